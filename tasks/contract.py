@@ -1,0 +1,248 @@
+"""The task contract: how every volcap step is declared.
+
+A volcap task is a Prefect task that
+
+- takes a ``store`` URL, artifact references (:class:`ArtifactRef`, records holding refs, lists or
+  dicts of them) and plain JSON parameters;
+- reads its inputs from the store, calls one ``volcap_core`` function, puts its outputs in the
+  store and returns references (JSON, never pickle);
+- is cached by a key built from its name, an explicit ``version`` the author bumps when its meaning
+  changes, the digests of its input refs (never their location, never re-hashing data) and its
+  canonical parameters.
+
+Declare one like this::
+
+    @volcap_task(name="ingest-camera", version="1")
+    def ingest_camera(store: str, raw: ArtifactRef, encoding: str) -> CameraIngest: ...
+
+Where the cache lives: Prefect keeps cache records through a *result storage*; volcap points it
+into the artifact store itself (``<store>/prefect/results/<key>``, written atomically), so every
+process and machine that shares the store URL shares the cache, whatever Prefect database each
+one talks to. Before Prefect trusts a record, :class:`StoreCachePolicy` checks that every object
+the cached result references is still in the store; if one is gone (``gc``, a wiped bucket) the
+record is dropped and the task recomputes instead of handing out a dangling reference.
+
+Traps of Prefect 3.8 this avoids (see ``../shared/NOTES.md``): ``result_storage_key`` would
+silently drop the cache policy (never set it); ``persist_result=False`` disables caching (always
+persisted); one storage for keys and results corrupts results (no separate key storage is used);
+the default policy includes the flow-run id (replaced); ``task_key`` depends on the install path
+(the task's *name* is used instead).
+"""
+
+from __future__ import annotations
+
+import functools
+import inspect
+import json
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import PurePosixPath
+from typing import Any, ParamSpec, TypeVar
+
+from prefect import task
+from prefect.cache_policies import CachePolicy
+from prefect.context import FlowRunContext, TaskRunContext
+from prefect.filesystems import WritableFileSystem
+from pydantic import BaseModel
+
+from volcap_core.digest import digest_bytes
+from volcap_core.records import ArtifactRef, canonical_json
+from volcap_core.store import ArtifactStore, _digests_in, normalize_store_url
+
+P = ParamSpec("P")
+T = TypeVar("T")
+
+RESULTS_PREFIX = "prefect/results"
+#: Parameter names that say *where* data lives, never *what* it is: excluded from cache keys.
+LOCATION_PARAMETERS = ("store",)
+
+
+# ---------------------------------------------------------------------------------------------
+# Result storage inside the artifact store
+# ---------------------------------------------------------------------------------------------
+
+
+def _current_store_url() -> str:
+    """The ``store`` parameter of the running task or flow: where results belong."""
+    for ctx in (TaskRunContext.get(), FlowRunContext.get()):
+        params = getattr(ctx, "parameters", None) or {}
+        if isinstance(params.get("store"), str):
+            return normalize_store_url(params["store"])
+    raise RuntimeError("volcap result storage used outside a task or flow with a 'store' parameter")
+
+
+class StoreResultStorage(WritableFileSystem):
+    """Prefect result storage under ``<store>/prefect/results``; atomic writes.
+
+    With ``store_url`` unset (the default used by every volcap flow) the store is the one named by
+    the running flow's or task's ``store`` parameter, so a flow run on any worker writes its cache
+    records next to its artifacts.
+    """
+
+    _block_type_name = "Volcap Store Results"
+    _block_type_slug = "volcap-store-results"
+    store_url: str | None = None
+
+    def _store(self) -> ArtifactStore:
+        return ArtifactStore(self.store_url or _current_store_url())
+
+    def _resolve_path(self, path: str) -> PurePosixPath:
+        # Prefect makes storage keys "absolute" through this hook and then takes them relative to
+        # _resolve_path(""); a virtual root keeps keys plain names inside prefect/results/.
+        return PurePosixPath("/") / path
+
+    def _path(self, store: ArtifactStore, key: str) -> str:
+        key = key.lstrip("/")
+        if "/" in key or key in ("", ".", ".."):
+            raise ValueError(f"unexpected result key {key!r}")
+        return store._p(RESULTS_PREFIX, key)
+
+    def read_path(self, path: str, **_: Any) -> bytes:  # prefect passes _sync=True
+        store = self._store()
+        return store.fs.cat_file(self._path(store, path))
+
+    def write_path(self, path: str, content: bytes, **_: Any) -> None:
+        store = self._store()
+        if store._local:
+            store.fs.makedirs(store._p(RESULTS_PREFIX), exist_ok=True)
+        store._write_atomic(self._path(store, path), bytes(content))
+
+    async def aread_path(self, path: str) -> bytes:
+        return self.read_path(path)
+
+    async def awrite_path(self, path: str, content: bytes) -> None:
+        self.write_path(path, content)
+
+
+def cached_result_record(store: ArtifactStore, key: str) -> bytes | None:
+    try:
+        return store.fs.cat_file(store._p(RESULTS_PREFIX, key))
+    except FileNotFoundError:
+        return None
+
+
+def drop_cached_result(store: ArtifactStore, key: str) -> None:
+    try:
+        store.fs.rm_file(store._p(RESULTS_PREFIX, key))
+    except FileNotFoundError:
+        pass
+
+
+def _record_digests(record: bytes) -> set[str] | None:
+    """Digests referenced by a Prefect result record; None when the record is unreadable."""
+    try:
+        doc = json.loads(record)
+        result = doc["result"]
+        if isinstance(result, str):
+            result = json.loads(result)
+    except (ValueError, KeyError, TypeError):
+        return None
+    return set(_digests_in(result))
+
+
+# ---------------------------------------------------------------------------------------------
+# Cache keys
+# ---------------------------------------------------------------------------------------------
+
+
+def canonical_inputs(value: Any, where: str = "input") -> Any:
+    """Plain JSON stand-in for an input: refs become their digest, records their JSON.
+
+    Refuses what has no stable, location-free meaning (arbitrary objects, floats like NaN), so a
+    task can never be cached on something the key does not really capture.
+    """
+    if isinstance(value, ArtifactRef):
+        return {"$ref": value.digest}
+    if isinstance(value, BaseModel):
+        return canonical_inputs(value.model_dump(mode="json"), where)
+    if isinstance(value, dict):
+        if not all(isinstance(k, str) for k in value):
+            raise TypeError(f"{where}: dict keys must be strings")
+        return {k: canonical_inputs(v, f"{where}.{k}") for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [canonical_inputs(v, f"{where}[{i}]") for i, v in enumerate(value)]
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    raise TypeError(f"{where}: {type(value).__name__} is not a reference or plain parameter; "
+                    "pass artifacts as ArtifactRef and settings as JSON values")
+
+
+def cache_key(name: str, version: str, inputs: dict[str, Any],
+              locations: Iterable[str] = LOCATION_PARAMETERS) -> str:
+    """``<name>-<blake3 hex>`` of (name, version, canonical inputs minus location parameters)."""
+    skip = set(locations)
+    body = {"task": name, "version": version,
+            "inputs": {k: canonical_inputs(v, k) for k, v in inputs.items() if k not in skip}}
+    return f"{name}-{digest_bytes(canonical_json(body)).split(':', 1)[1]}"
+
+
+@dataclass
+class StoreCachePolicy(CachePolicy):
+    """Cache key from task name, version, input digests and parameters; validated against the store."""
+
+    task_name: str = ""
+    version: str = ""
+    locations: tuple[str, ...] = LOCATION_PARAMETERS
+    key_parts: dict[str, Any] = field(default_factory=dict)
+
+    def compute_key(self, task_ctx: TaskRunContext, inputs: dict[str, Any],
+                    flow_parameters: dict[str, Any], **kwargs: Any) -> str | None:
+        key = cache_key(self.task_name, self.version, inputs, self.locations)
+        store = ArtifactStore(inputs["store"])
+        # Prefect only accepts result storage saved as a server-side block at decoration time, but
+        # the store is a run-time input. The engine takes this run's result store from the task
+        # run context right after computing the key (prefect 3.8), so point it into the store here.
+        # tests/test_task_contract.py checks the records land in the store.
+        task_ctx.result_store = task_ctx.result_store.model_copy(
+            update={"result_storage": StoreResultStorage(store_url=store.url), "metadata_storage": None})
+        record = cached_result_record(store, key)
+        if record is not None:
+            digests = _record_digests(record)
+            if digests is None or store.missing(digests):
+                # A record that cannot be read, or that points at objects no longer stored, must not
+                # be served: drop it so Prefect sees a miss and the task recomputes its outputs.
+                drop_cached_result(store, key)
+        return key
+
+
+# ---------------------------------------------------------------------------------------------
+# The decorator
+# ---------------------------------------------------------------------------------------------
+
+
+def volcap_task(*, name: str, version: str, locations: tuple[str, ...] = (),
+                retries: int = 0, retry_delay_seconds: float = 0, tags: Iterable[str] = (),
+                timeout_seconds: float | None = None) -> Callable[[Callable[P, T]], Any]:
+    """Declare a cached, store-backed Prefect task (see the module docstring).
+
+    ``name`` is stable across installs (it, not Prefect's ``task_key``, enters the cache key).
+    ``version``: bump it whenever the task's output for the same inputs would change.
+    ``locations``: extra parameters that only say where inputs live (e.g. a capture folder whose
+    content is already pinned by a digest input); they are left out of the key.
+    The function's first parameter must be ``store: str``.
+    """
+
+    def decorate(fn: Callable[P, T]) -> Any:
+        params = list(inspect.signature(fn).parameters)
+        if not params or params[0] != "store":
+            raise TypeError(f"task {name}: the first parameter must be 'store'")
+        policy = StoreCachePolicy(task_name=name, version=version,
+                                  locations=LOCATION_PARAMETERS + tuple(locations))
+
+        @functools.wraps(fn)
+        def run(*args: P.args, **kwargs: P.kwargs) -> T:
+            return fn(*args, **kwargs)
+
+        return task(
+            run,
+            name=name,
+            cache_policy=policy,
+            persist_result=True,
+            result_serializer="json",
+            retries=retries,
+            retry_delay_seconds=retry_delay_seconds,
+            tags=list(tags),
+            timeout_seconds=timeout_seconds,
+        )
+
+    return decorate
