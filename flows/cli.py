@@ -1,0 +1,273 @@
+"""The ``volcap`` command.
+
+Exit codes: 0 success; 1 the work failed (one line on stderr says why: file, camera, frame or
+digest); 2 bad usage. Commands that produce artifacts take ``--json`` and then print their output
+references as one JSON object on the last line of stdout. Every flow run ends with a one-line
+summary (tasks run / cached / failed, wall time); the same counts are in the ``--json`` object.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Annotated, Any, Optional
+
+import typer
+
+from flows.runtime import RunSummary, quiet_prefect_defaults
+
+quiet_prefect_defaults()
+
+app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
+                  help="volcap: 4D volumetric capture, from camera files to Gaussian-splat performances.")
+store_app = typer.Typer(no_args_is_help=True, help="Inspect and maintain a content-addressed artifact store.")
+app.add_typer(store_app, name="store")
+
+StoreOpt = Annotated[str, typer.Option("--store", envvar="VOLCAP_STORE",
+                                       help="store URL: a path, file://, memory:// or s3://bucket/prefix")]
+JsonOpt = Annotated[bool, typer.Option("--json", help="print output references as JSON on the last line")]
+DEFAULT_STORE = "./.volcap/store"
+
+
+class CommandError(Exception):
+    """A failure to report as one line on stderr with exit code 1."""
+
+
+def _store_url(url: str) -> str:
+    from volcap_core.store import normalize_store_url
+    return normalize_store_url(url)
+
+
+def _emit(obj: dict[str, Any], as_json: bool, human: str | None = None) -> None:
+    if human:
+        typer.echo(human)
+    if as_json:
+        typer.echo(json.dumps(obj, sort_keys=True, default=str))
+
+
+def _progress(label: str):
+    """A small stderr progress callback ``(done, total)`` for long local work."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    progress = Progress(TextColumn(label), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(),
+                        transient=True, console=_stderr_console())
+    task_id = progress.add_task(label, total=None)
+
+    def update(done: int, total: int) -> None:
+        progress.update(task_id, completed=done, total=total)
+
+    return progress, update
+
+
+def _stderr_console():
+    from rich.console import Console
+    return Console(stderr=True)
+
+
+def _run(flow: Any, **params: Any) -> RunSummary:
+    from flows.runtime import run_flow
+    try:
+        summary = run_flow(flow, **params)
+    except Exception as exc:
+        summary = getattr(exc, "run_summary", None)
+        if summary is not None:
+            typer.echo(summary.line(), err=True)
+        raise CommandError(_one_line(exc)) from exc
+    typer.echo(summary.line())
+    return summary
+
+
+def _one_line(exc: BaseException) -> str:
+    text = str(exc).strip() or type(exc).__name__
+    return " ".join(text.split("\n")[0].split()) if "\n" in text and len(text) > 400 else " ".join(text.split())
+
+
+# ---------------------------------------------------------------------------------------------
+# synth / ingest / demo
+# ---------------------------------------------------------------------------------------------
+
+
+@app.command()
+def synth(out_dir: Annotated[Path, typer.Argument(help="folder to write the capture into")],
+          rig: Annotated[str, typer.Option(help="built-in rig name or rig JSON file")] = "demo_scene",
+          seed: Annotated[int, typer.Option(help="random seed (same seed, same bytes)")] = 0,
+          frames: Annotated[int, typer.Option(min=1, help="frames in the take")] = 24,
+          json_out: JsonOpt = False) -> None:
+    """Render a synthetic capture (scene or face rig) in the layout ingest reads."""
+    from hardware.rig import load_rig
+    from volcap_core import synth as synthetic
+
+    t0 = time.perf_counter()
+    kind = load_rig(rig).kind
+    progress, update = _progress(f"rendering {rig}")
+    with progress:
+        fn = synthetic.synthesize_face_capture if kind == "face" else synthetic.synthesize_capture
+        path = fn(out_dir, rig=rig, seed=seed, frames=frames, progress=update)
+    wall = time.perf_counter() - t0
+    _emit({"capture_dir": str(Path(path).parent), "capture_json": str(path), "wall_s": round(wall, 3)},
+          json_out, f"wrote {path} in {wall:.1f} s")
+
+
+@app.command(name="ingest")
+def ingest_cmd(capture_dir: Annotated[Path, typer.Argument(help="capture folder holding capture.json")],
+               store: StoreOpt = DEFAULT_STORE,
+               nan_policy: Annotated[str, typer.Option(help="'error' refuses NaN/Inf pixels, 'repair' replaces them")] = "error",
+               json_out: JsonOpt = False) -> None:
+    """Check a capture folder and store every frame as scene-linear half EXR plus a Capture record."""
+    from flows.ingest import ingest_flow
+
+    if nan_policy not in ("error", "repair"):
+        raise typer.BadParameter("must be 'error' or 'repair'", param_hint="--nan-policy")
+    summary = _run(ingest_flow, store=_store_url(store), capture_dir=str(capture_dir), nan_policy=nan_policy)
+    ref = summary.result
+    _emit({"capture": ref.model_dump(mode="json"), **summary.counts()}, json_out, f"capture: {ref.digest}")
+
+
+@app.command()
+def demo(store: StoreOpt = DEFAULT_STORE,
+         out: Annotated[Path, typer.Option(help="where the demo capture folder is written")] = Path("./demo"),
+         frames: Annotated[int, typer.Option(min=2)] = 24,
+         json_out: JsonOpt = False) -> None:
+    """Make the built-in demo capture and run every stage that exists on it."""
+    from flows.demo import demo_flow
+
+    capture_dir = out / "capture"
+    if not (capture_dir / "capture.json").exists():
+        synth(capture_dir, rig="demo_scene", seed=0, frames=frames, json_out=False)
+    summary = _run(demo_flow, store=_store_url(store), capture_dir=str(capture_dir.resolve()))
+    refs = summary.result
+    lines = [f"  {k}: {v['digest'] if isinstance(v, dict) and 'digest' in v else v}" for k, v in refs.items()]
+    _emit({**refs, **summary.counts()}, json_out,
+          f"demo results in store {_store_url(store)}:\n" + "\n".join(lines))
+
+
+# ---------------------------------------------------------------------------------------------
+# store
+# ---------------------------------------------------------------------------------------------
+
+
+def _open(url: str):
+    from volcap_core.store import ArtifactStore
+    return ArtifactStore(url)
+
+
+@store_app.command("ls")
+def store_ls(prefix: Annotated[str, typer.Argument(help="only refs starting with this")] = "",
+             store: StoreOpt = DEFAULT_STORE, json_out: JsonOpt = False) -> None:
+    """List named refs (roots)."""
+    refs = _open(store).list_refs(prefix)
+    for name, ref in refs.items():
+        typer.echo(f"{name}\t{ref.digest}\t{ref.size}\t{ref.media_type}")
+    if json_out:
+        typer.echo(json.dumps({n: r.model_dump(mode="json") for n, r in refs.items()}, sort_keys=True))
+
+
+@store_app.command("put")
+def store_put(path: Annotated[Path, typer.Argument(exists=True, help="file or folder to store")],
+              name: Annotated[Optional[str], typer.Option("--name", help="also set this ref")] = None,
+              media_type: Annotated[str, typer.Option(help="media type for a file")] = "application/octet-stream",
+              store: StoreOpt = DEFAULT_STORE, json_out: JsonOpt = False) -> None:
+    """Store a file (a blob) or a folder (its files and a tree)."""
+    s = _open(store)
+    if path.is_dir():
+        progress, update = _progress(f"storing {path}")
+        with progress:
+            ref = s.put_directory(path, progress=update)
+    else:
+        ref = s.put_file(path, media_type)
+    if name:
+        s.set_ref(name, ref)
+    _emit({"ref": ref.model_dump(mode="json"), "name": name}, json_out, ref.digest)
+
+
+@store_app.command("get")
+def store_get(ref: Annotated[str, typer.Argument(help="digest (blake3:...) or ref name")],
+              out: Annotated[Optional[Path], typer.Option("--out", "-o", help="file or folder to write; stdout if omitted")] = None,
+              store: StoreOpt = DEFAULT_STORE) -> None:
+    """Copy an object out (verified). Trees are written as folders."""
+    from volcap_core.records import MEDIA_TREE
+
+    s = _open(store)
+    r = s.resolve(ref)
+    is_tree = r.media_type == MEDIA_TREE
+    if not is_tree and out is None:
+        sys.stdout.buffer.write(s.get_bytes(r))
+        return
+    if out is None:
+        raise CommandError(f"{ref} is a tree: give --out FOLDER")
+    if is_tree:
+        s.get_directory(r, out)
+    else:
+        s.get_file(r, out)
+    typer.echo(str(out))
+
+
+@store_app.command("verify")
+def store_verify(store: StoreOpt = DEFAULT_STORE, json_out: JsonOpt = False) -> None:
+    """Re-hash every object and check every ref's closure is present (exit 1 if not)."""
+    progress, update = _progress("verifying")
+    with progress:
+        report = _open(store).verify(progress=update)
+    for d in report.corrupt:
+        typer.echo(f"corrupt: {d}", err=True)
+    for d in report.dangling:
+        typer.echo(f"missing: {d}", err=True)
+    _emit({"checked": report.checked, "bytes": report.bytes, "corrupt": report.corrupt,
+           "dangling": report.dangling}, json_out,
+          f"{report.checked} objects, {report.bytes} bytes checked: "
+          f"{len(report.corrupt)} corrupt, {len(report.dangling)} missing")
+    if not report.ok:
+        raise CommandError(f"store {store} failed verification: {len(report.corrupt)} corrupt, "
+                           f"{len(report.dangling)} missing objects")
+
+
+@store_app.command("gc")
+def store_gc(store: StoreOpt = DEFAULT_STORE,
+             grace: Annotated[float, typer.Option(help="keep unreachable objects younger than this (seconds)")] = 3600.0,
+             dry_run: Annotated[bool, typer.Option("--dry-run", help="report only")] = False,
+             json_out: JsonOpt = False) -> None:
+    """Delete objects no ref reaches (older than the grace period)."""
+    r = _open(store).gc(grace_s=grace, dry_run=dry_run)
+    _emit({"deleted": r.deleted, "deleted_bytes": r.deleted_bytes, "kept": r.kept,
+           "young_unreachable": r.young_unreachable, "tmp_deleted": r.tmp_deleted, "dry_run": dry_run}, json_out,
+          f"{'would delete' if dry_run else 'deleted'} {r.deleted} objects ({r.deleted_bytes} bytes), kept {r.kept} "
+          f"({r.young_unreachable} unreachable but younger than {grace:g} s), {r.tmp_deleted} stale temporary files")
+
+
+@store_app.command("du")
+def store_du(store: StoreOpt = DEFAULT_STORE, json_out: JsonOpt = False) -> None:
+    """Objects and bytes in the store, and what each ref keeps alive."""
+    d = _open(store).du()
+    typer.echo(f"{d['objects']} objects, {d['bytes']} bytes")
+    for name, v in d["refs"].items():
+        typer.echo(f"  {name}: {v['objects']} objects, {v['bytes']} bytes")
+    if json_out:
+        typer.echo(json.dumps(d, sort_keys=True))
+
+
+def main() -> None:
+    """Entry point: one-line errors on stderr, exit 1 for failed work."""
+    from volcap_core.store import StoreError
+
+    try:
+        app(standalone_mode=False)
+    except typer.Exit as exc:
+        sys.exit(exc.exit_code)
+    except typer.Abort:
+        typer.echo("aborted", err=True)
+        sys.exit(130)
+    except Exception as exc:  # noqa: BLE001 - the command line's contract is one line and exit 1
+        if hasattr(exc, "show") and isinstance(getattr(exc, "exit_code", None), int):
+            exc.show()  # a click/typer usage or parameter error: exit 2, click's own message
+            sys.exit(exc.exit_code)
+        if isinstance(exc, (CommandError, StoreError, ValueError, OSError, KeyError)):
+            typer.echo(f"volcap: error: {_one_line(exc)}", err=True)
+            sys.exit(1)
+        typer.echo(f"volcap: internal error: {type(exc).__name__}: {_one_line(exc)}", err=True)
+        sys.exit(1)
+
+
+if __name__ == "__main__":
+    main()

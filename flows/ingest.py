@@ -1,0 +1,71 @@
+"""The ingest flow: a capture folder in, a Capture record (and ``captures/<name>`` ref) out."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from prefect import flow, get_run_logger, unmapped
+
+from tasks.ingest import fingerprint_camera, ingest_camera, record_capture
+from volcap_core import ingest
+from volcap_core.records import ArtifactRef
+from volcap_core.store import ArtifactStore
+
+
+@flow(name="ingest", persist_result=False, log_prints=False)
+def ingest_flow(store: str, capture_dir: str, nan_policy: str = "error", set_ref: bool = True) -> ArtifactRef:
+    """Check the whole folder, convert every camera (fanned out), then record the capture.
+
+    Returns the Capture record's ref; also names it ``captures/<name>`` in the store.
+    """
+    log = get_run_logger()
+    folder = Path(capture_dir).resolve()
+    s = ArtifactStore(store)
+
+    # 1. Everything that can be checked without decoding pixels, for all cameras, first.
+    desc = ingest.load_description(folder)
+    rig = ingest.load_capture_rig(folder, desc)
+    rig_cams, absent = ingest.match_rig(desc, rig)
+    if absent:
+        log.warning("rig %s cameras not in this capture: %s", rig.name, ", ".join(absent))
+    scans = {c.id: ingest.scan_camera(folder, desc, c) for c in desc.cameras}
+    lenses = {c.id: ingest.lens_for_take(desc, c, rig_cams[c.id]) for c in desc.cameras}
+    for c in desc.cameras:
+        ingest.check_headers(c, rig_cams[c.id], scans[c.id])
+    ocio_ref = None
+    if desc.ocio_config:
+        ocio_file = folder / desc.ocio_config
+        if not ocio_file.is_file():
+            raise ingest.IngestError(f"{folder / 'capture.json'}: ocio_config {ocio_file} does not exist")
+        ocio_ref = s.put_file(ocio_file, "application/x-ocio")
+
+    # 2. Fingerprint and convert, one task per camera.
+    files = [[str(f.path) for f in scans[c.id]] for c in desc.cameras]
+    stats = [[_stat(p) for p in fs] for fs in files]
+    manifests = fingerprint_camera.map(unmapped(store), [c.id for c in desc.cameras], files, stats)
+    cameras = ingest_camera.map(
+        unmapped(store), unmapped(str(folder)), desc.cameras, [rig_cams[c.id] for c in desc.cameras],
+        manifests, [desc.take_offset(c) for c in desc.cameras], unmapped(desc.take.frame_count),
+        unmapped(ocio_ref), unmapped(nan_policy), [lenses[c.id] for c in desc.cameras])
+
+    ground_truth = None
+    if desc.ground_truth:
+        gt = folder / desc.ground_truth
+        if not gt.is_dir():
+            raise ingest.IngestError(f"{folder / 'capture.json'}: ground_truth folder {gt} does not exist")
+        ground_truth = s.put_directory(gt)
+
+    # 3. Only when every camera converted: the record, then its name.
+    capture_ref = record_capture(store, desc.name, rig, desc.fps, desc.take.start_timecode,
+                                 desc.take.frame_count, [c.result() for c in cameras], ground_truth)
+    if set_ref:
+        s.set_ref(f"captures/{desc.name}", capture_ref)
+    log.info("capture %s: %d cameras x %d frames -> %s", desc.name, len(desc.cameras),
+             desc.take.frame_count, capture_ref.digest)
+    return capture_ref
+
+
+def _stat(path: str) -> list[int]:
+    st = os.stat(path)
+    return [st.st_size, st.st_mtime_ns, st.st_ctime_ns, st.st_ino]

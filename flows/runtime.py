@@ -1,0 +1,90 @@
+"""Running flows and telling the coordinator what happened.
+
+Every flow run ends with one line: tasks run, tasks cached, tasks failed, wall time. The counts
+come from Prefect's own record of the run (the API), so they are what the UI shows.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+from typing import Any
+from uuid import UUID
+
+
+def quiet_prefect_defaults() -> None:
+    """Offline-friendly Prefect settings, unless the user set them."""
+    os.environ.setdefault("DO_NOT_TRACK", "1")
+    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+
+
+@dataclass
+class RunSummary:
+    flow_run_id: str
+    state: str
+    tasks_run: int
+    tasks_cached: int
+    tasks_failed: int
+    wall_s: float
+    result: Any = None
+
+    def line(self) -> str:
+        return (f"{self.state.lower()}: {self.tasks_run} tasks run, {self.tasks_cached} cached, "
+                f"{self.tasks_failed} failed, {self.wall_s:.1f} s wall")
+
+    def counts(self) -> dict[str, Any]:
+        return {"tasks_run": self.tasks_run, "tasks_cached": self.tasks_cached,
+                "tasks_failed": self.tasks_failed, "wall_s": round(self.wall_s, 3),
+                "flow_run_id": self.flow_run_id, "state": self.state}
+
+
+def count_task_runs(flow_run_id: UUID | str) -> tuple[int, int, int]:
+    """(run, cached, failed) over the flow run and its sub-flow runs."""
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId, FlowRunFilterParentFlowRunId
+
+    with get_client(sync_client=True) as client:
+        ids = [UUID(str(flow_run_id))]
+        subflow_calls: set[UUID] = set()  # the parent's stand-in task run of each sub-flow
+        frontier = list(ids)
+        while frontier:  # sub-flows, any depth
+            children = client.read_flow_runs(
+                flow_run_filter=FlowRunFilter(parent_flow_run_id=FlowRunFilterParentFlowRunId(any_=frontier)))
+            frontier = [c.id for c in children if c.id not in ids]
+            subflow_calls.update(c.parent_task_run_id for c in children if c.parent_task_run_id)
+            ids.extend(frontier)
+        runs = client.read_task_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=ids)))
+    run = cached = failed = 0
+    for tr in runs:
+        if tr.state is None or tr.id in subflow_calls:
+            continue
+        if tr.state.name == "Cached":
+            cached += 1
+        elif tr.state.is_completed():
+            run += 1
+        elif tr.state.is_failed() or tr.state.is_crashed():
+            failed += 1
+    return run, cached, failed
+
+
+def run_flow(flow: Any, **parameters: Any) -> RunSummary:
+    """Run ``flow(**parameters)`` in this process; raise its exception after summarising it.
+
+    The summary (with the exception's message) is attached as ``exc.run_summary``.
+    """
+    t0 = time.perf_counter()
+    state = flow(**parameters, return_state=True)
+    wall = time.perf_counter() - t0
+    run, cached, failed = count_task_runs(state.state_details.flow_run_id)
+    summary = RunSummary(str(state.state_details.flow_run_id), state.name, run, cached, failed, wall)
+    if state.is_completed():
+        summary.result = state.result()
+        return summary
+    try:
+        state.result()
+    except BaseException as exc:  # noqa: BLE001 - re-raised with the summary attached
+        exc.run_summary = summary  # type: ignore[attr-defined]
+        raise
+    raise RuntimeError(f"flow ended in state {state.name}")

@@ -1,0 +1,69 @@
+"""Ingest tasks: fingerprint a camera's raw files, convert them, record the capture."""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+from hardware.rig import Rig, RigCamera
+from tasks.contract import volcap_task
+from volcap_core import ingest
+from volcap_core.capture import CameraSource, Capture, CaptureCamera, LensSample
+from volcap_core.records import MEDIA_EXR, ArtifactRef
+from volcap_core.store import ArtifactStore
+
+RAW_MANIFEST_MEDIA = "application/vnd.volcap.raw-manifest+json"
+
+
+@volcap_task(name="fingerprint-camera", version="1")
+def fingerprint_camera(store: str, camera_id: str, files: list[str], file_stats: list[list[int]]) -> ArtifactRef:
+    """BLAKE3 of a camera's raw files, as a manifest object.
+
+    Keyed on the files' paths and (size, mtime_ns, ctime_ns, inode): an untouched folder is not
+    re-read on a rerun, while replacing a file (which always changes its ctime) re-hashes it.
+    """
+    from volcap_core.ingest import RawFrame
+
+    frames = [RawFrame(take_index=i, camera_frame=-1, path=Path(p)) for i, p in enumerate(files)]
+    entries = ingest.fingerprint(frames)
+    return ArtifactStore(store).put_json(ingest.raw_manifest_json(camera_id, entries), RAW_MANIFEST_MEDIA)
+
+
+@volcap_task(name="ingest-camera", version="1", locations=("capture_dir",))
+def ingest_camera(store: str, capture_dir: str, camera: CameraSource, rig_camera: RigCamera,
+                  raw_manifest: ArtifactRef, take_offset: int, frame_count: int,
+                  ocio_config: ArtifactRef | None, nan_policy: str,
+                  lens: list[LensSample] | None) -> CaptureCamera:
+    """Convert one camera's frames to scene-linear half EXR in the store.
+
+    The key holds the raw files' digests (``raw_manifest``), never their location
+    (``capture_dir``): the same bytes ingested from another mount are a cache hit.
+    """
+    s = ArtifactStore(store)
+    entries = ingest.parse_raw_manifest(s.get_bytes(raw_manifest))
+    if len(entries) != frame_count:
+        raise ingest.IngestError(f"camera {camera.id}: manifest has {len(entries)} frames, take has {frame_count}")
+    ocio_path = None
+    if ocio_config is not None:
+        # Pin the config by content: copy the stored bytes out rather than trusting the folder.
+        ocio_path = s.get_file(ocio_config, Path(tempfile.gettempdir()) / "volcap-ocio" / f"{ocio_config.hex}.ocio")
+    raws = [ingest.RawFrame(e["take_index"], e["take_index"] - take_offset, Path(e["file"])) for e in entries]
+    want_alpha = "A" in ingest.imageio.probe_image(raws[0].path).channels
+    frames: list[ArtifactRef] = []
+    for raw, entry in zip(raws, entries):
+        data, _ = ingest.convert_frame(raw, entry["digest"], camera, ocio_config=ocio_path,
+                                       nan_policy=nan_policy, want_alpha=want_alpha)
+        frames.append(s.put_bytes(data, MEDIA_EXR))
+    return CaptureCamera(id=camera.id, width=rig_camera.sensor.width_px, height=rig_camera.sensor.height_px,
+                         channels=("R", "G", "B", "A") if want_alpha else ("R", "G", "B"),
+                         source_encoding=camera.encoding, frames=tuple(frames),
+                         lens_encoder=tuple(lens) if lens is not None else None)
+
+
+@volcap_task(name="record-capture", version="1")
+def record_capture(store: str, name: str, rig: Rig, fps: float, start_timecode: str, frame_count: int,
+                   cameras: list[CaptureCamera], ground_truth: ArtifactRef | None) -> ArtifactRef:
+    """Assemble and store the Capture record (only once every camera converted)."""
+    capture = Capture(name=name, rig=rig, fps=fps, start_timecode=start_timecode, frame_count=frame_count,
+                      cameras=tuple(cameras), ground_truth=ground_truth)
+    return ArtifactStore(store).put_record(capture)

@@ -1,0 +1,235 @@
+"""Ingest: check a capture folder, then convert each camera's frames to scene-linear half EXR.
+
+Pure functions; the Prefect tasks in ``tasks/ingest.py`` call them and store what they return.
+Every error is an :class:`IngestError` whose message names the file, camera and frame concerned.
+
+Checks, in the order a coordinator meets them (all run before any pixel is converted, so a bad
+folder fails in seconds, and nothing is recorded unless every camera converts):
+
+1. ``capture.json`` parses and is valid; the rig loads.
+2. Every camera of ``capture.json`` exists in the rig (rig cameras absent from the capture are
+   allowed: a dead camera is left out of ``capture.json`` and reported).
+3. Each camera folder holds exactly one file per take index: no missing frame, no duplicate
+   (``000012.exr`` and ``000012.png``, or ``12.exr`` and ``0012.exr``), no frame outside the take.
+4. Each file's header is readable, its resolution is the rig sensor's, its channels hold RGB.
+5. Tracking cameras carry lens-encoder readings for every take frame.
+6. While converting: damaged pixel data, and NaN/Inf pixels under the ``nan_policy``:
+   ``"error"`` (default) refuses the frame, naming how many pixels; ``"repair"`` replaces NaN by 0
+   and ±Inf by ±65504 (the largest half) and logs it.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from hardware.rig import Rig, RigCamera, load_rig
+from volcap_core import imageio
+from volcap_core.capture import (
+    FRAME_FILE_RE,
+    CameraSource,
+    CaptureDescription,
+    Encoding,
+    LensSample,
+)
+from volcap_core.colour import srgb_decode
+from volcap_core.digest import digest_file
+
+NanPolicy = Literal["error", "repair"]
+HALF_MAX = 65504.0
+
+
+class IngestError(ValueError):
+    """A capture folder problem; the message names file, camera and frame."""
+
+
+@dataclass(frozen=True)
+class RawFrame:
+    take_index: int
+    camera_frame: int   # the number in the file name
+    path: Path          # absolute
+
+
+def load_description(capture_dir: Path) -> CaptureDescription:
+    path = Path(capture_dir) / "capture.json"
+    if not path.is_file():
+        raise IngestError(f"{path}: no capture description (capture.json) in {capture_dir}")
+    try:
+        return CaptureDescription.model_validate_json(path.read_bytes())
+    except ValueError as exc:
+        raise IngestError(f"{path}: invalid capture description: {exc}") from exc
+
+
+def load_capture_rig(capture_dir: Path, desc: CaptureDescription) -> Rig:
+    rig_file = Path(capture_dir) / desc.rig
+    try:
+        return load_rig(rig_file if desc.rig.endswith(".json") else desc.rig)
+    except ValueError as exc:
+        raise IngestError(f"{Path(capture_dir) / 'capture.json'}: {exc}") from exc
+
+
+def match_rig(desc: CaptureDescription, rig: Rig) -> tuple[dict[str, RigCamera], list[str]]:
+    """Rig camera for each capture camera, and the rig cameras the capture leaves out."""
+    known = {c.id: c for c in rig.cameras}
+    unknown = [c.id for c in desc.cameras if c.id not in known]
+    if unknown:
+        raise IngestError(f"capture {desc.name}: camera(s) {', '.join(unknown)} are not in rig {rig.name}")
+    listed = {c.id for c in desc.cameras}
+    return {c.id: known[c.id] for c in desc.cameras}, [i for i in known if i not in listed]
+
+
+def scan_camera(capture_dir: Path, desc: CaptureDescription, cam: CameraSource) -> list[RawFrame]:
+    """The camera's files in take order; refuses missing, duplicate and out-of-take frames."""
+    folder = Path(capture_dir) / cam.path
+    if not folder.is_dir():
+        raise IngestError(f"camera {cam.id}: folder {folder} does not exist")
+    offset = desc.take_offset(cam)
+    by_index: dict[int, RawFrame] = {}
+    for p in sorted(folder.iterdir()):
+        if p.name.startswith(".") or p.is_dir():
+            continue
+        m = FRAME_FILE_RE.match(p.name)
+        if not m:
+            raise IngestError(f"camera {cam.id}: unexpected file {p} (frames are named NNNNNN.exr|dpx|tif|tiff|png)")
+        number = int(m["number"])
+        take_index = number + offset
+        if not 0 <= take_index < desc.take.frame_count:
+            raise IngestError(
+                f"camera {cam.id}: frame {number} ({p}) falls at take index {take_index}, outside the "
+                f"take [0, {desc.take.frame_count}) that starts at {desc.take.start_timecode}; "
+                f"check the camera's start_timecode {cam.start_timecode}")
+        if take_index in by_index:
+            raise IngestError(f"camera {cam.id}: frame {number} is duplicated: {by_index[take_index].path} and {p}")
+        by_index[take_index] = RawFrame(take_index, number, p.resolve())
+    missing = [i for i in range(desc.take.frame_count) if i not in by_index]
+    if missing:
+        shown = ", ".join(str(i - offset) for i in missing[:10]) + (" ..." if len(missing) > 10 else "")
+        raise IngestError(f"camera {cam.id}: {len(missing)} frame(s) missing in {folder}: camera frame number(s) {shown}")
+    return [by_index[i] for i in range(desc.take.frame_count)]
+
+
+def check_headers(cam: CameraSource, rig_cam: RigCamera, frames: list[RawFrame]) -> imageio.ImageInfo:
+    """Every file readable, at the rig sensor's resolution, with RGB channels; returns the first."""
+    first: imageio.ImageInfo | None = None
+    want = (rig_cam.sensor.width_px, rig_cam.sensor.height_px)
+    for f in frames:
+        try:
+            info = imageio.probe_image(f.path)
+        except imageio.ImageReadError as exc:
+            raise IngestError(f"camera {cam.id}, frame {f.camera_frame}: {exc}") from exc
+        if (info.width, info.height) != want:
+            raise IngestError(f"camera {cam.id}, frame {f.camera_frame}: {f.path} is {info.width}x{info.height}, "
+                              f"the rig says {want[0]}x{want[1]}")
+        has_rgb = {"R", "G", "B"} <= set(info.channels) or "Y" in info.channels
+        if not has_rgb:
+            raise IngestError(f"camera {cam.id}, frame {f.camera_frame}: {f.path} has channels "
+                              f"{', '.join(info.channels)}, no R,G,B")
+        if first is None:
+            first = info
+        elif ("A" in info.channels) != ("A" in first.channels):
+            raise IngestError(f"camera {cam.id}, frame {f.camera_frame}: channels {', '.join(info.channels)} "
+                              f"differ from the camera's first frame ({', '.join(first.channels)})")
+    assert first is not None
+    return first
+
+
+def lens_for_take(desc: CaptureDescription, cam: CameraSource, rig_cam: RigCamera) -> tuple[LensSample, ...] | None:
+    """Lens readings re-indexed to take indices; tracking cameras must cover every take frame."""
+    if cam.lens_encoder is None:
+        if rig_cam.role.tracks:
+            raise IngestError(f"camera {cam.id}: tracking camera without lens_encoder readings")
+        return None
+    offset = desc.take_offset(cam)
+    samples = {}
+    for s in cam.lens_encoder:
+        i = s.frame + offset
+        if 0 <= i < desc.take.frame_count:
+            samples[i] = LensSample(frame=i, focal_mm=s.focal_mm, focus_m=s.focus_m)
+    missing = [i - offset for i in range(desc.take.frame_count) if i not in samples]
+    if rig_cam.role.tracks and missing:
+        raise IngestError(f"camera {cam.id}: lens_encoder has no reading for camera frame(s) "
+                          f"{', '.join(map(str, missing[:10]))}{' ...' if len(missing) > 10 else ''}")
+    return tuple(samples[i] for i in sorted(samples))
+
+
+def fingerprint(frames: list[RawFrame]) -> list[dict]:
+    """BLAKE3 of each raw file (chunked): what the conversion's cache key is made of."""
+    out = []
+    for f in frames:
+        digest, size = digest_file(f.path)
+        out.append({"take_index": f.take_index, "camera_frame": f.camera_frame, "file": str(f.path),
+                    "digest": digest, "size": size})
+    return out
+
+
+def to_scene_linear(pixels: np.ndarray, encoding: Encoding, *, ocio_config: Path | None = None,
+                    ocio_colorspace: str | None = None, where: str = "") -> np.ndarray:
+    """[H, W, C] float32 as read → scene-linear float32 (alpha, channel 3, passes through)."""
+    rgb = pixels[..., :3]
+    if encoding is Encoding.linear:
+        lin = rgb
+    elif encoding is Encoding.srgb:
+        lin = srgb_decode(np.ascontiguousarray(rgb))
+    else:
+        import PyOpenColorIO as ocio
+
+        if ocio_config is None:
+            raise IngestError(f"{where}: encoding 'ocio' but the capture has no ocio_config")
+        try:
+            config = ocio.Config.CreateFromFile(str(ocio_config))
+            proc = config.getProcessor(ocio_colorspace, ocio.ROLE_SCENE_LINEAR).getDefaultCPUProcessor()
+        except Exception as exc:  # OCIO raises its own Exception type
+            raise IngestError(f"{where}: OpenColorIO cannot convert {ocio_colorspace!r} to scene-linear "
+                              f"with {ocio_config}: {exc}") from exc
+        lin = np.ascontiguousarray(rgb, dtype=np.float32).copy()
+        proc.applyRGB(lin)
+    out = np.concatenate([lin, pixels[..., 3:4]], axis=-1) if pixels.shape[-1] > 3 else lin
+    return np.ascontiguousarray(out, dtype=np.float32)
+
+
+def apply_nan_policy(pixels: np.ndarray, policy: NanPolicy, where: str) -> tuple[np.ndarray, int]:
+    bad = ~np.isfinite(pixels)
+    n = int(bad.any(axis=-1).sum())
+    if not n:
+        return pixels, 0
+    if policy == "error":
+        raise IngestError(f"{where}: {n} pixel(s) hold NaN or Inf (nan_policy 'error'; use 'repair' "
+                          "to set NaN to 0 and ±Inf to ±65504)")
+    return np.nan_to_num(pixels, nan=0.0, posinf=HALF_MAX, neginf=-HALF_MAX), n
+
+
+def convert_frame(frame: RawFrame, expected_digest: str, cam: CameraSource, *, ocio_config: Path | None,
+                  nan_policy: NanPolicy, want_alpha: bool) -> tuple[bytes, int]:
+    """One raw frame → (half-float scene-linear EXR bytes, repaired pixel count).
+
+    Refuses a file whose content changed since it was fingerprinted: the cache key would lie.
+    """
+    where = f"camera {cam.id}, frame {frame.camera_frame} ({frame.path})"
+    digest, _ = digest_file(frame.path)
+    if digest != expected_digest:
+        raise IngestError(f"{where}: file changed during ingest (was {expected_digest}, now {digest}); rerun")
+    try:
+        pixels, channels = imageio.read_image(frame.path)
+    except imageio.ImageReadError as exc:
+        raise IngestError(f"{where}: {exc}") from exc
+    lin = to_scene_linear(pixels, cam.encoding, ocio_config=ocio_config,
+                          ocio_colorspace=cam.ocio_colorspace, where=where)
+    lin, repaired = apply_nan_policy(lin, nan_policy, where)
+    if want_alpha and lin.shape[-1] == 3:
+        lin = np.concatenate([lin, np.ones_like(lin[..., :1])], axis=-1)
+    channels_out = ("R", "G", "B", "A") if lin.shape[-1] == 4 else ("R", "G", "B")
+    attrs = {"volcap.camera": cam.id, "volcap.take_index": str(frame.take_index),
+             "volcap.source_encoding": cam.encoding.value}
+    return imageio.encode_exr(lin, channels_out, pixel_type="half", compression="zip", attributes=attrs), repaired
+
+
+def raw_manifest_json(camera_id: str, entries: list[dict]) -> dict:
+    return {"camera": camera_id, "frames": entries}
+
+
+def parse_raw_manifest(data: bytes) -> list[dict]:
+    return json.loads(data)["frames"]
