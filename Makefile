@@ -1,0 +1,37 @@
+# Two entry points that work on a fresh machine (Debian, Python 3.11, pip, no GPU):
+#   make demo   sets up .venv when missing, then runs the whole pipeline on the built-in demo capture
+#   make test   sets up .venv when missing, then runs the test suite (what CI runs: .ci/run)
+PYTHON ?= python3
+VENV   ?= .venv
+# On CPU machines torch must be exactly this (a local CPU wheel exists; a looser spec pulls CUDA builds).
+TORCH  ?= torch==2.13.0
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.volcap-installed
+
+.PHONY: setup demo test test-quick bench clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml Makefile
+	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip
+	$(BIN)/python -m pip install -q "$(TORCH)"
+	$(BIN)/python -m pip install -q -e ".[test]"
+	@touch $@
+
+demo: $(STAMP)
+	$(BIN)/volcap demo
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q -ra
+
+# The quick subset: everything but the slow end-to-end tests.
+test-quick: $(STAMP)
+	$(BIN)/python -m pytest -q -ra -m "not slow"
+
+bench: $(STAMP)
+	$(BIN)/python bench/bench_store.py
+	$(BIN)/python bench/bench_ingest.py
+
+clean:
+	rm -rf $(VENV) .volcap demo .pytest_cache
