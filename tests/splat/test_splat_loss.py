@@ -1,0 +1,76 @@
+"""SSIM/PSNR against scikit-image's values on real image pairs; the training loss's colour space."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from volcap_core.colour import srgb_encode_unbounded
+from volcap_core.splat.loss import grid_regularisers, psnr, reconstruction_loss, ssim
+
+PAIRS = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "reference" / "ssim_pairs"
+
+
+def _load(name):
+    cv2 = pytest.importorskip("cv2")
+    img = cv2.imread(str(PAIRS / name), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        pytest.skip(f"cannot read {name}")
+    img = torch.from_numpy(img.astype(np.float64) / 255.0)
+    return img[..., None] if img.ndim == 2 else img
+
+
+def _pairs():
+    ref = PAIRS / "reference_values.json"
+    if not ref.exists():
+        return []
+    values = json.loads(ref.read_text())["pairs"]
+    return [pytest.param(v, id=k) for k, v in values.items()
+            if all((PAIRS / f).exists() for f in v["files"])]
+
+
+@pytest.mark.parametrize("pair", _pairs())
+def test_ssim_and_psnr_match_scikit_image(pair):
+    a, b = (_load(f) for f in pair["files"])
+    s = float(ssim(a, b, padding="valid"))
+    assert s == pytest.approx(pair["ssim_wang_gaussian_sigma1.5_popcov"], abs=1e-6)
+    if "psnr_db" in pair:
+        assert float(psnr(a, b)) == pytest.approx(pair["psnr_db"], abs=1e-6)
+
+
+def test_reference_pairs_present_or_skip():
+    if not _pairs():
+        pytest.skip("shared SSIM reference pairs absent")
+
+
+def test_ssim_identity_shapes_and_batch():
+    x = torch.rand(2, 20, 24, 3)
+    assert float(ssim(x, x)) == pytest.approx(1.0, abs=1e-6)
+    assert ssim(x, x, reduction="none").shape == (2, 20, 24, 3)
+    assert ssim(x, x, padding="valid", reduction="none").shape == (2, 10, 14, 3)
+
+
+def test_reconstruction_loss_is_computed_in_unbounded_srgb():
+    t = torch.full((16, 16, 3), 0.2)
+    p = torch.full((16, 16, 3), 0.3)
+    loss, parts = reconstruction_loss(p, t)
+    l1 = float((srgb_encode_unbounded(p) - srgb_encode_unbounded(t)).abs().mean())
+    assert parts["l1"] == pytest.approx(l1, rel=1e-6)
+    assert float(loss) == pytest.approx(0.8 * l1 + 0.2 * (1 - parts["ssim"]), rel=1e-6)
+
+
+def test_hdr_targets_give_finite_loss_and_gradients():
+    t = torch.logspace(-6, np.log10(65504), 16 * 16 * 3).reshape(16, 16, 3)
+    p = torch.zeros(16, 16, 3, requires_grad=True)
+    loss, _ = reconstruction_loss(p, t)
+    loss.backward()
+    assert torch.isfinite(loss) and torch.isfinite(p.grad).all()
+
+
+def test_grid_regulariser_weights():
+    E = torch.full((2, 3, 4, 4), 1.1)
+    B = torch.full((3, 4, 4), 0.02)
+    loss, parts = grid_regularisers(E, B)
+    assert float(loss) == pytest.approx(10 * 0.01 - 0.05 * 0.02, rel=1e-5)

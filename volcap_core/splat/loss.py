@@ -1,0 +1,127 @@
+"""Training objective and image metrics (paper §"Training Objective").
+
+    L_total = (1 - λ_ssim)·L1 + λ_ssim·(1 - SSIM)           in unbounded sRGB (both images encoded)
+              + λ_e·(mean E - 1)² + λ_b·(-mean B)            exposure / black-level grids
+              (+ the 3DGS-MCMC regularisers, :func:`volcap_core.splat.mcmc.mcmc_regulariser`)
+
+with λ_ssim = 0.2 (3DGS), λ_e = 10, λ_b = 0.05 (paper). The prediction and the target are linear;
+both go through :func:`~volcap_core.colour.srgb_encode_unbounded` so the loss sees the same
+perceptually spaced values the paper trains on, HDR values included (65504 -> ~107).
+
+SSIM is Wang et al.'s with an 11×11 Gaussian window (σ = 1.5), population statistics,
+C1 = (0.01 L)², C2 = (0.03 L)². ``padding="valid"`` reproduces scikit-image's
+``structural_similarity(gaussian_weights=True, sigma=1.5, use_sample_covariance=False)`` and kornia's
+``ssim(..., padding="valid")``; ``padding="same"`` zero-pads like 3DGS's training loss.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+
+from volcap_core.colour import srgb_encode, srgb_encode_unbounded
+from volcap_core.splat.grids import black_level_regulariser, exposure_regulariser
+
+__all__ = ["psnr", "reconstruction_loss", "grid_regularisers", "ssim", "display_metrics"]
+
+
+@functools.lru_cache(maxsize=8)
+def _gauss_1d(size: int, sigma: float) -> torch.Tensor:
+    x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
+    g = torch.exp(-x * x / (2 * sigma * sigma))
+    return g / g.sum()
+
+
+def ssim(x: torch.Tensor, y: torch.Tensor, *, data_range: float = 1.0, window_size: int = 11,
+         sigma: float = 1.5, padding: Literal["same", "valid"] = "same",
+         reduction: Literal["mean", "none"] = "mean") -> torch.Tensor:
+    """Structural similarity of channel-last images.
+
+    Args:
+        x, y: ``[..., H, W, C]`` images (any leading batch dims), same shape.
+        data_range: L in C1 = (0.01 L)², C2 = (0.03 L)².
+        window_size, sigma: Gaussian window (px).
+        padding: ``"same"`` (zero padding, output H×W) or ``"valid"`` (output shrinks by
+            window_size - 1 per axis, scikit-image's cropped mean).
+        reduction: ``"mean"`` -> scalar; ``"none"`` -> the SSIM map ``[..., H', W', C]``.
+    Returns:
+        mean SSIM (scalar) or the map.
+    """
+    if x.shape != y.shape:
+        raise ValueError(f"shape mismatch {tuple(x.shape)} vs {tuple(y.shape)}")
+    *lead, H, W, C = x.shape
+    to_nchw = lambda t: t.reshape(-1, H, W, C).permute(0, 3, 1, 2).reshape(-1, 1, H, W)  # noqa: E731
+    g = _gauss_1d(window_size, sigma).to(x)
+    pad = window_size // 2 if padding == "same" else 0
+
+    def blur(t):  # separable Gaussian filter, [B, 1, H, W]
+        t = F.conv2d(t, g.view(1, 1, -1, 1), padding=(pad, 0))
+        return F.conv2d(t, g.view(1, 1, 1, -1), padding=(0, pad))
+
+    a, b = to_nchw(x), to_nchw(y)
+    mu_a, mu_b = blur(a), blur(b)
+    var_a = blur(a * a) - mu_a * mu_a
+    var_b = blur(b * b) - mu_b * mu_b
+    cov = blur(a * b) - mu_a * mu_b
+    c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
+    s = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a ** 2 + mu_b ** 2 + c1) * (var_a + var_b + c2))
+    if reduction == "mean":
+        return s.mean()
+    h2, w2 = s.shape[-2:]
+    return s.reshape(-1, C, h2, w2).permute(0, 2, 3, 1).reshape(*lead, h2, w2, C)
+
+
+def psnr(x: torch.Tensor, y: torch.Tensor, data_range: float = 1.0) -> torch.Tensor:
+    """Peak signal-to-noise ratio in dB: ``10 log10(L² / MSE)``. Args: any equal shapes."""
+    mse = torch.mean((x - y) ** 2)
+    return 10.0 * torch.log10(data_range ** 2 / mse.clamp(min=1e-20))
+
+
+def reconstruction_loss(pred_linear: torch.Tensor, target_linear: torch.Tensor, *,
+                        ssim_weight: float = 0.2) -> tuple[torch.Tensor, dict[str, float]]:
+    """``(1 - w)·L1 + w·(1 - SSIM)`` between the unbounded-sRGB encodings of two linear images.
+
+    Args:
+        pred_linear: ``[H, W, 3]`` adjusted rendering (linear).
+        target_linear: ``[H, W, 3]`` captured image (linear, HDR allowed).
+        ssim_weight: w, 0.2 as in 3DGS.
+    Returns:
+        ``(loss, {"l1": ..., "ssim": ...})``.
+    """
+    p = srgb_encode_unbounded(pred_linear)
+    t = srgb_encode_unbounded(target_linear)
+    l1 = (p - t).abs().mean()
+    s = ssim(p, t, padding="same")
+    loss = (1.0 - ssim_weight) * l1 + ssim_weight * (1.0 - s)
+    return loss, {"l1": float(l1.detach()), "ssim": float(s.detach())}
+
+
+def grid_regularisers(exposure_all: torch.Tensor, black_view: torch.Tensor, *,
+                      exposure_weight: float = 10.0,
+                      black_weight: float = 0.05) -> tuple[torch.Tensor, dict[str, float]]:
+    """``λ_e (mean E - 1)² + λ_b (-mean B)`` (paper eq. 4-5).
+
+    Args:
+        exposure_all: ``[C, 3, h, w]`` every training camera's exposure grid.
+        black_view: ``[3, h, w]`` the current view's black-level grid.
+    Returns:
+        ``(loss, parts)``.
+    """
+    le = exposure_regulariser(exposure_all)
+    lb = black_level_regulariser(black_view)
+    return exposure_weight * le + black_weight * lb, {"exposure": float(le.detach()),
+                                                      "black": float(lb.detach())}
+
+
+def display_metrics(pred_linear: torch.Tensor, target_linear: torch.Tensor) -> tuple[float, float]:
+    """(PSNR dB, SSIM) of two linear images after display encoding (sRGB, clamped to [0, 1]):
+    what a viewer sees, the measure reported for held-out views. Args: ``[H, W, 3]`` each."""
+    p = srgb_encode(pred_linear.detach())
+    t = srgb_encode(target_linear.detach())
+    v = float(psnr(p, t))
+    return (v if math.isfinite(v) else 200.0), float(ssim(p, t, padding="valid"
+                                                         if min(p.shape[:2]) > 11 else "same"))
