@@ -214,3 +214,27 @@ def test_nan_repair_policy(prefect_api, capture_dir, store_url):
 def test_demo_rig_matches_the_layout(capture_dir):
     # The tiny rig used above has the shape of the built-in ones.
     assert load_rig(str(capture_dir / "rig.json")).has_tracking_cameras
+
+
+def test_camera_log_footage_is_linearised_through_an_ocio_config(prefect_api, capture_dir, store_url):
+    """C0 re-encoded as ARRI LogC3 through OpenColorIO's studio config; ingest must undo it."""
+    import PyOpenColorIO as ocio
+
+    config = ocio.Config.CreateFromBuiltinConfig("studio-config-latest")
+    # volcap's working space is linear Rec.709 primaries: the config's scene_linear role says so.
+    config.setRole(ocio.ROLE_SCENE_LINEAR, "Linear Rec.709 (sRGB)")
+    (capture_dir / "studio.ocio").write_text(config.serialize())
+    to_log = config.getProcessor("Linear Rec.709 (sRGB)", "ARRI LogC3 (EI800)").getDefaultCPUProcessor()
+    for f in range(FRAMES):
+        px = _pixels(0, f).copy()
+        to_log.applyRGB(px)
+        imageio.write_exr(capture_dir / "C0" / f"{f:06d}.exr", px, ("R", "G", "B"), pixel_type="float")
+    desc = json.loads((capture_dir / "capture.json").read_text())
+    desc["ocio_config"] = "studio.ocio"
+    desc["cameras"][0].update(encoding="ocio", ocio_colorspace="ARRI LogC3 (EI800)")
+    (capture_dir / "capture.json").write_text(json.dumps(desc))
+
+    summary = run_flow(ingest_flow, store=store_url, capture_dir=str(capture_dir))
+    s = ArtifactStore(store_url)
+    px, _ = imageio.decode_exr(s.get_bytes(s.get_record(summary.result, Capture).camera("C0").frames[1]))
+    np.testing.assert_allclose(px, _pixels(0, 1), rtol=3e-3, atol=1e-4)
