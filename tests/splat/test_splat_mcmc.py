@@ -1,0 +1,88 @@
+"""3DGS-MCMC relocation, growth and noise on Poly4DGS models."""
+
+import math
+
+import pytest
+import torch
+
+from volcap_core.splat.mcmc import (MCMCConfig, add_gaussians, inject_noise, mcmc_regulariser,
+                                    relocate_dead, relocation_opacity_scale)
+from volcap_core.splat.model import Poly4DGS, Poly4DGSConfig
+from volcap_core.splat.optim import AdamState
+
+
+def _model(n=40, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    m = Poly4DGS.from_points(Poly4DGSConfig.paper(sh_degree=1), torch.randn(n, 3, generator=g),
+                             torch.rand(n, 3, generator=g), scales=torch.full((n,), 0.05),
+                             t0=torch.rand(n, generator=g))
+    for k, v in m.params.items():
+        if k != "t0":
+            v.add_(0.1 * torch.randn(v.shape, generator=g))
+    return m
+
+
+@pytest.mark.parametrize("o", [0.01, 0.3, 0.9, 1 - 1e-7])
+@pytest.mark.parametrize("n", [1, 2, 7, 51])
+def test_split_preserves_opacity_and_1d_opacity_mass(o, n):
+    o_new, s_new = relocation_opacity_scale(torch.tensor([o]), torch.tensor([[1.0, 2.0, 3.0]]),
+                                            torch.tensor([n]))
+    assert torch.isfinite(o_new).all() and torch.isfinite(s_new).all()
+    o_new, s = float(o_new), float(s_new[0, 0])
+    # N stacked copies composite to the original peak opacity ...
+    assert 1 - (1 - o_new) ** n == pytest.approx(o, rel=1e-5)
+    # ... and carry the same 1D opacity mass: ∫ 1 - (1 - o_new e^{-x²/2s²})^N dx = o·sqrt(2π)
+    x = torch.linspace(-30, 30, 200001, dtype=torch.float64)
+    mass = torch.trapezoid(1 - (1 - o_new * torch.exp(-x * x / (2 * s * s))) ** n, x)
+    assert float(mass) == pytest.approx(o * math.sqrt(2 * math.pi), rel=1e-4)
+
+
+def test_relocation_moves_dead_onto_live_copies_everything_and_resets_moments():
+    m = _model()
+    adam = AdamState.zeros_like(m.params)
+    for d in (adam.exp_avg, adam.exp_avg_sq):
+        for v in d.values():
+            v.fill_(1.0)
+    m.params["opacities"][:10] = -10.0  # o_0 ≈ 4.5e-5: dead
+    cfg = MCMCConfig()
+    n = relocate_dead(m, adam, cfg, torch.Generator().manual_seed(0))
+    assert n == 10 and len(m) == 40
+    o0 = torch.sigmoid(m.params["opacities"])
+    assert (o0 >= cfg.min_opacity).all()
+    for i in range(10):  # each dead slot is now an exact copy of a live (sampled) Gaussian
+        src = [j for j in range(10, 40)
+               if torch.equal(m.params["means_t"][j], m.params["means_t"][i])]
+        assert src, "relocated Gaussian must copy a live one's coefficients"
+        j = src[0]
+        for name in ("means", "quats_t", "log_lambdas", "t0", "shN", "opacities", "scales"):
+            assert torch.equal(m.params[name][i], m.params[name][j]), name
+        assert (adam.exp_avg["means"][i] == 0).all() and (adam.exp_avg_sq["means"][j] == 0).all()
+
+
+def test_growth_is_five_percent_and_capped():
+    m = _model(40)
+    adam = AdamState.zeros_like(m.params)
+    gen = torch.Generator().manual_seed(1)
+    assert add_gaussians(m, adam, MCMCConfig(), gen) == 2 and len(m) == 42
+    assert all(v.shape[0] == 42 for v in adam.exp_avg.values())
+    assert add_gaussians(m, adam, MCMCConfig(cap_max=43), gen) == 1 and len(m) == 43
+    assert add_gaussians(m, adam, MCMCConfig(cap_max=43), gen) == 0
+
+
+def test_noise_moves_transparent_gaussians_not_opaque_ones():
+    m = _model(20)
+    m.params["opacities"][:10] = 6.0    # o ≈ 0.9975
+    m.params["opacities"][10:] = -7.0   # o ≈ 0.0009
+    before = m.params["means"].clone()
+    inject_noise(m, 1.6e-4, MCMCConfig(), torch.Generator().manual_seed(0))
+    moved = (m.params["means"] - before).norm(dim=1)
+    assert moved[:10].max() < 1e-6 * moved[10:].min()
+    assert (moved[10:] > 0).all()
+
+
+def test_regulariser_is_differentiable():
+    m = _model(10)
+    for v in m.params.values():
+        v.requires_grad_(True)
+    mcmc_regulariser(m, MCMCConfig()).backward()
+    assert (m.params["opacities"].grad > 0).all() and (m.params["scales"].grad > 0).all()

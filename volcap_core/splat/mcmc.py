@@ -1,0 +1,194 @@
+"""3DGS-MCMC (Kheradmand et al. 2024) for Poly4DGS, pure torch.
+
+What it does, with the defaults of :class:`MCMCConfig` (gsplat's ``MCMCStrategy`` values):
+
+* **Relocation** every ``refine_every`` = 100 steps in ``[refine_start, refine_stop)``: Gaussians
+  whose peak opacity ``o_0 < min_opacity`` (0.005) are dead; each is moved onto a live Gaussian
+  sampled with probability ∝ ``o_0``. A live Gaussian sampled k times is split into N = k + 1
+  (capped at 51) identical Gaussians whose composite matches the original:
+  ``o_new = 1 - (1 - o)^(1/N)`` and ``s_new = o / D · s`` with
+  ``D = Σ_{k<N} C(N, k+1) (-1)^k o_new^(k+1) / sqrt(k+1)`` (computed in float64: the alternating
+  sum cancels badly in float32). All polynomial coefficients (motion, rotation, log-scale, temporal
+  opacity, t0, SH) are copied; the Adam moments of the source and the destinations are reset.
+* **Growth** at the same steps: ``grow_rate`` = 5% more Gaussians, sampled the same way, up to
+  ``cap_max``.
+* **SGLD noise** after every optimiser step: ``Δμ_0 = lr_μ · noise_lr · σ(-100 (o_0 - 0.005)) · Σ η``
+  with ``Σ = R diag(s_0)² Rᵀ``, ``η ~ N(0, I)``, ``noise_lr = 5e5``: nearly transparent Gaussians
+  explore, opaque ones stay put.
+* **Regularisers** added to the loss: ``opacity_reg · mean(o_0) + scale_reg · mean(exp(s_0))``,
+  0.01 each, pushing unused Gaussians towards death (and so relocation).
+
+All randomness comes from the ``torch.Generator`` passed in (checkpointed by the trainer).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import torch
+from pydantic import BaseModel, ConfigDict, Field
+
+from volcap_core.splat.model import LOG_SCALE_MAX, LOG_SCALE_MIN, Poly4DGS
+from volcap_core.splat.optim import AdamState
+from volcap_core.splat.rasterize import quat_scale_to_covar
+
+__all__ = ["MCMCConfig", "add_gaussians", "inject_noise", "mcmc_regulariser", "relocate_dead",
+           "relocation_opacity_scale"]
+
+
+class MCMCConfig(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    cap_max: int = Field(1_000_000, gt=0, description="most Gaussians growth may reach")
+    refine_start: int = Field(500, ge=0)
+    refine_stop: int = Field(25_000, ge=0)
+    refine_every: int = Field(100, gt=0)
+    min_opacity: float = Field(0.005, gt=0, lt=1, description="o_0 below this is dead")
+    grow_rate: float = Field(0.05, ge=0)
+    noise_lr: float = Field(5e5, ge=0)
+    opacity_reg: float = Field(0.01, ge=0)
+    scale_reg: float = Field(0.01, ge=0)
+    max_ratio: int = Field(51, ge=2, description="cap on N, the split count of one Gaussian")
+
+    def is_refine_step(self, step: int) -> bool:
+        """True after optimiser step ``step`` (1-based) when relocation and growth run."""
+        return self.refine_start <= step < self.refine_stop and step % self.refine_every == 0
+
+
+@functools.lru_cache(maxsize=4)
+def _binomials(n_max: int) -> torch.Tensor:
+    """``[n_max + 1, n_max + 1]`` float64 table, ``C(n, k)``."""
+    t = torch.zeros(n_max + 1, n_max + 1, dtype=torch.float64)
+    for n in range(n_max + 1):
+        for k in range(n + 1):
+            t[n, k] = math.comb(n, k)
+    return t
+
+
+def relocation_opacity_scale(opacities: torch.Tensor, scales: torch.Tensor, ratios: torch.Tensor,
+                             *, max_ratio: int = 51) -> tuple[torch.Tensor, torch.Tensor]:
+    """Opacity and scale of each of N copies so that N copies composite like the original.
+
+    Args:
+        opacities: ``[M]`` original opacities in (0, 1).
+        scales: ``[M, 3]`` original scales (metres).
+        ratios: ``[M]`` int N >= 1 (clamped to ``max_ratio``).
+    Returns:
+        ``(o_new [M], s_new [M, 3])`` in the input dtype; N = 1 returns the inputs unchanged.
+    """
+    n = ratios.clamp(1, max_ratio).to(torch.float64)
+    o = opacities.to(torch.float64)
+    o_new = 1.0 - (1.0 - o) ** (1.0 / n)
+    k = torch.arange(max_ratio, dtype=torch.float64, device=o.device)           # [R]
+    binom = _binomials(max_ratio).to(o.device)[n.long()][:, 1:]                    # C(N, k+1)
+    terms = binom * (-1.0) ** k * o_new[:, None] ** (k + 1) / torch.sqrt(k + 1)
+    terms = torch.where(k[None] < n[:, None], terms, 0.0)
+    denom = terms.sum(dim=1)
+    coef = o / denom
+    return o_new.to(opacities.dtype), (coef[:, None] * scales.to(torch.float64)).to(scales.dtype)
+
+
+def _sample_by_opacity(o0: torch.Tensor, candidates: torch.Tensor, n: int,
+                       generator: torch.Generator) -> torch.Tensor:
+    probs = o0[candidates].to(torch.float64)
+    probs = probs / probs.sum()
+    pick = torch.multinomial(probs, n, replacement=True, generator=generator)
+    return candidates[pick]
+
+
+@torch.no_grad()
+def _split_into(model: Poly4DGS, sampled: torch.Tensor, cfg: MCMCConfig) -> None:
+    """Set the opacity and scale of each sampled Gaussian to its share of the split."""
+    p = model.params
+    ratios = torch.bincount(sampled, minlength=len(model))[sampled] + 1
+    o0 = torch.sigmoid(p["opacities"][sampled])
+    s0 = torch.exp(p["scales"][sampled])
+    o_new, s_new = relocation_opacity_scale(o0, s0, ratios, max_ratio=cfg.max_ratio)
+    eps = torch.finfo(torch.float32).eps
+    o_new = o_new.clamp(min=cfg.min_opacity, max=1.0 - eps)
+    p["opacities"][sampled] = torch.logit(o_new)
+    # shift the whole log-scale polynomial: s_t scales by the same factor at every t
+    p["scales"][sampled] = torch.log(s_new).clamp(LOG_SCALE_MIN, LOG_SCALE_MAX)
+
+
+@torch.no_grad()
+def relocate_dead(model: Poly4DGS, adam: AdamState | None, cfg: MCMCConfig,
+                  generator: torch.Generator) -> int:
+    """Move dead Gaussians (``o_0 < min_opacity``) onto live ones sampled by opacity.
+
+    Modifies ``model.params`` (in place) and ``adam`` moments. Returns the number relocated.
+    """
+    p = model.params
+    o0 = torch.sigmoid(p["opacities"])
+    dead = o0 < cfg.min_opacity
+    n_dead = int(dead.sum())
+    if n_dead == 0 or n_dead == len(model):
+        return 0
+    dead_idx = torch.nonzero(dead).squeeze(1)
+    sampled = _sample_by_opacity(o0, torch.nonzero(~dead).squeeze(1), n_dead, generator)
+    _split_into(model, sampled, cfg)
+    for name, t in p.items():
+        t[dead_idx] = t[sampled]
+    if adam is not None:
+        for moments in (adam.exp_avg, adam.exp_avg_sq):
+            for name in p:
+                moments[name][sampled] = 0
+                moments[name][dead_idx] = 0
+    return n_dead
+
+
+@torch.no_grad()
+def add_gaussians(model: Poly4DGS, adam: AdamState | None, cfg: MCMCConfig,
+                  generator: torch.Generator) -> int:
+    """Grow by ``grow_rate`` (up to ``cap_max``): sampled Gaussians split, the copies are appended.
+
+    Replaces the tensors of ``model.params`` (new leaves, same ``requires_grad``) and extends the
+    Adam moments with zeros. Returns the number added.
+    """
+    n = len(model)
+    n_new = max(0, min(cfg.cap_max, int((1.0 + cfg.grow_rate) * n)) - n)
+    if n_new == 0:
+        return 0
+    p = model.params
+    o0 = torch.sigmoid(p["opacities"])
+    sampled = _sample_by_opacity(o0, torch.arange(n, device=o0.device), n_new, generator)
+    _split_into(model, sampled, cfg)
+    for name, t in list(p.items()):
+        grown = torch.cat([t.detach(), t.detach()[sampled]]).requires_grad_(t.requires_grad)
+        p[name] = grown
+    if adam is not None:
+        for moments in (adam.exp_avg, adam.exp_avg_sq):
+            for name in p:
+                m = moments[name]
+                m[sampled] = 0
+                moments[name] = torch.cat([m, m.new_zeros((n_new, *m.shape[1:]))])
+    return n_new
+
+
+@torch.no_grad()
+def inject_noise(model: Poly4DGS, lr_means: float, cfg: MCMCConfig,
+                 generator: torch.Generator) -> None:
+    """SGLD exploration of μ_0 (see module doc), in place."""
+    if cfg.noise_lr <= 0 or lr_means <= 0:
+        return
+    p = model.params
+    o0 = torch.sigmoid(p["opacities"])
+    gate = torch.sigmoid(-100.0 * (o0 - cfg.min_opacity))
+    cov = quat_scale_to_covar(p["quats"], torch.exp(p["scales"].clamp(LOG_SCALE_MIN,
+                                                                       LOG_SCALE_MAX)))
+    eta = torch.randn(p["means"].shape, generator=generator, device=p["means"].device,
+                      dtype=p["means"].dtype)
+    noise = (cov @ (eta * (gate * lr_means * cfg.noise_lr)[:, None])[..., None])[..., 0]
+    p["means"].add_(noise)
+
+
+def mcmc_regulariser(model: Poly4DGS, cfg: MCMCConfig) -> torch.Tensor:
+    """``opacity_reg · mean(o_0) + scale_reg · mean(exp(s_0))`` (differentiable scalar)."""
+    p = model.params
+    loss = p["means"].new_zeros(())
+    if cfg.opacity_reg:
+        loss = loss + cfg.opacity_reg * torch.sigmoid(p["opacities"]).mean()
+    if cfg.scale_reg:
+        loss = loss + cfg.scale_reg * torch.exp(p["scales"].clamp(LOG_SCALE_MIN,
+                                                                  LOG_SCALE_MAX)).mean()
+    return loss
