@@ -214,8 +214,8 @@ def convert_frame(frame: RawFrame, expected_digest: str, cam: CameraSource, *, o
         raise IngestError(f"{where}: file changed during ingest (was {expected_digest}, now {digest}); rerun")
     try:
         pixels, channels = imageio.read_image(frame.path)
-    except imageio.ImageReadError as exc:
-        raise IngestError(f"{where}: {exc}") from exc
+    except imageio.ImageReadError as exc:  # its message already names the file
+        raise IngestError(f"camera {cam.id}, frame {frame.camera_frame}: {exc}") from exc
     lin = to_scene_linear(pixels, cam.encoding, ocio_config=ocio_config,
                           ocio_colorspace=cam.ocio_colorspace, where=where)
     lin, repaired = apply_nan_policy(lin, nan_policy, where)
