@@ -53,6 +53,7 @@ from volcap_core.records import (
 
 DEFAULT_STORE_URL = "./.volcap/store"
 TREE_FORMAT = "volcap-tree/1"
+_TREE_HEAD = b'{"entries":{'  # canonical manifests start so (sorted keys)
 REF_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*(/[A-Za-z0-9][A-Za-z0-9._-]*)*$")
 #: Objects and temporary files younger than this are never collected: a writer may be using them.
 DEFAULT_GRACE_S = 3600.0
@@ -153,12 +154,17 @@ def decode_tree(data: bytes, name: str = "tree") -> dict[str, TreeEntry]:
         raise
     except (ValueError, UnicodeDecodeError) as exc:
         raise InvalidTreeError(f"{name}: not a JSON manifest ({exc})") from exc
-    if not isinstance(doc, dict) or doc.get("format") != TREE_FORMAT or not isinstance(doc.get("entries"), dict):
+    if not isinstance(doc, dict) or set(doc) != {"format", "entries"} or doc["format"] != TREE_FORMAT \
+            or not isinstance(doc["entries"], dict):
         raise InvalidTreeError(f"{name}: not a {TREE_FORMAT} manifest")
     entries: dict[str, TreeEntry] = {}
     for path, e in doc["entries"].items():
-        validate_tree_path(path)
-        if not isinstance(e, dict) or set(e) != {"digest", "size"} or not isinstance(e["size"], int) \
+        try:
+            validate_tree_path(path)
+        except InvalidTreeError as exc:
+            raise InvalidTreeError(f"{name}: {exc}") from None
+        # type() rather than isinstance(): JSON true/false are Python bools, and bools are ints.
+        if not isinstance(e, dict) or set(e) != {"digest", "size"} or type(e["size"]) is not int \
                 or not isinstance(e["digest"], str) or not DIGEST_RE.match(e["digest"]) or e["size"] < 0:
             raise InvalidTreeError(f"{name}: bad entry for {path!r}: {e!r}")
         entries[path] = TreeEntry(e["digest"], e["size"])
@@ -199,7 +205,12 @@ class ArtifactStore:
 
     def __init__(self, url: str = DEFAULT_STORE_URL):
         self.url = normalize_store_url(url)
-        self.fs, root = fsspec.core.url_to_fs(self.url)
+        options: dict[str, Any] = {}
+        if "::" not in self.url and fsspec.utils.get_protocol(self.url) not in ("file", "local", "memory"):
+            # Other processes write and delete here too: a cached listing (s3fs keeps one per
+            # directory it lists, e.g. after gc/verify) would hide their objects and refs.
+            options["use_listings_cache"] = False
+        self.fs, root = fsspec.core.url_to_fs(self.url, **options)
         self.root = root.rstrip("/")
         self._local = isinstance(self.fs, LocalFileSystem)
         if self._local:
@@ -444,15 +455,21 @@ class ArtifactStore:
     def get_ref(self, name: str) -> ArtifactRef:
         try:
             data = self.fs.cat_file(self._ref_path(name))
-        except FileNotFoundError:
+        except (FileNotFoundError, IsADirectoryError, NotADirectoryError):
+            # A directory is a namespace of refs ("captures" of "captures/demo"), not a ref.
             raise MissingRefError(f"no ref named {name!r} in store {self.url}") from None
         return ArtifactRef.model_validate_json(data)
 
     def delete_ref(self, name: str) -> None:
+        path = self._ref_path(name)
+        missing = MissingRefError(f"no ref named {name!r} in store {self.url}")
+        # Object storage deletes an absent key without complaint: ask first there.
+        if not self._local and not self.fs.isfile(path):
+            raise missing
         try:
-            self.fs.rm_file(self._ref_path(name))
-        except FileNotFoundError:
-            raise MissingRefError(f"no ref named {name!r} in store {self.url}") from None
+            self.fs.rm_file(path)
+        except (FileNotFoundError, IsADirectoryError, NotADirectoryError):
+            raise missing from None
 
     def list_refs(self, prefix: str = "") -> dict[str, ArtifactRef]:
         base = self._p("refs")
@@ -468,26 +485,41 @@ class ArtifactStore:
         return out
 
     def resolve(self, ref_or_name: str) -> ArtifactRef:
-        """A digest (``blake3:…``) or a ref name → ArtifactRef (media type from the ref if named)."""
+        """A digest (``blake3:…``) or a ref name → ArtifactRef.
+
+        A named ref carries its media type; a bare digest is recognised as a tree by its content.
+        """
         if DIGEST_RE.match(ref_or_name):
-            return ArtifactRef(digest=ref_or_name, size=self.size(ref_or_name))
+            media = MEDIA_TREE if self._is_tree(ref_or_name) else MEDIA_BYTES
+            return ArtifactRef(digest=ref_or_name, size=self.size(ref_or_name), media_type=media)
         return self.get_ref(ref_or_name)
+
+    def _is_tree(self, digest: str) -> bool:
+        try:
+            with self.fs.open(self._object_path(digest), "rb") as f:
+                if f.read(len(_TREE_HEAD)) != _TREE_HEAD:
+                    return False
+            self.get_tree(digest)
+            return True
+        except (FileNotFoundError, StoreError):
+            return False
 
     # -- reachability, gc, verify ------------------------------------------------------------
     def children(self, digest: str, media_type: str | None = None) -> set[str]:
         """Digests a JSON object (tree or record) mentions; other objects have none."""
         path = self._object_path(digest)
         try:
-            with self.fs.open(path, "rb") as f:
-                head = f.read(1)
+            # One ranged read: never the whole of a large blob (and on S3, not a 50 MB block).
+            data = self.fs.cat_file(path, start=0, end=_JSON_SNIFF_BYTES)
+            if not _looks_like_json_text(data):
+                return set()
+            if len(data) >= _JSON_SNIFF_BYTES:
+                data = self.fs.cat_file(path)  # JSON text is parsed whole anyway
         except FileNotFoundError:
             return set()
-        if head not in (b"{", b"["):
-            return set()
-        data = self.fs.cat_file(path)
         try:
-            doc = json.loads(data)
-        except ValueError:
+            doc = json.loads(data.decode("utf-8"))
+        except ValueError:  # UnicodeDecodeError is a ValueError
             return set()
         return set(_digests_in(doc))
 
@@ -518,7 +550,18 @@ class ArtifactStore:
                 report.kept += 1
                 continue
             if not dry_run:
-                self._discard(self._object_path(digest))
+                # The listing may be minutes old by now: a writer may have re-put (refreshed) this
+                # object since. Look again right before deleting.
+                path = self._object_path(digest)
+                try:
+                    current = self.fs.info(path)
+                except FileNotFoundError:
+                    continue
+                if time.time() - _mtime(current) < grace_s:
+                    report.young_unreachable += 1
+                    report.kept += 1
+                    continue
+                self._discard(path)
             report.deleted += 1
             report.deleted_bytes += int(info.get("size", 0))
             report.deleted_digests.append(digest)
@@ -566,12 +609,33 @@ class ArtifactStore:
         return {"objects": len(sizes), "bytes": sum(sizes.values()), "refs": per_ref}
 
 
+_JSON_SNIFF_BYTES = 64 << 10
+#: A digest anywhere in a string: a whole value, a dict key, or inside a URI-like value. gc keeps
+#: whatever a record mentions; keeping too much is harmless, deleting a referenced object is not.
+_DIGEST_IN_TEXT = re.compile(r"(?<![0-9A-Za-z])blake3:[0-9a-f]{64}(?![0-9A-Za-z])")
+
+
+def _looks_like_json_text(head: bytes) -> bool:
+    """Whether the first bytes of an object can begin a JSON object or array (UTF-8 text).
+
+    JSON text never holds a raw NUL and is valid UTF-8; binary formats (even one that happens to
+    begin with ``{``, as a safetensors header length can) fail within the first bytes.
+    """
+    if head.lstrip(b" \t\r\n")[:1] not in (b"{", b"[") or b"\x00" in head:
+        return False
+    try:
+        head.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        return exc.start >= len(head) - 3 and len(head) >= _JSON_SNIFF_BYTES  # a cut character
+    return True
+
+
 def _digests_in(doc: Any) -> Iterator[str]:
     if isinstance(doc, str):
-        if DIGEST_RE.match(doc):
-            yield doc
+        yield from _DIGEST_IN_TEXT.findall(doc)
     elif isinstance(doc, dict):
-        for v in doc.values():
+        for k, v in doc.items():
+            yield from _digests_in(k)
             yield from _digests_in(v)
     elif isinstance(doc, list):
         for v in doc:

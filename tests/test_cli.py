@@ -1,0 +1,105 @@
+"""The `volcap` command as a coordinator uses it: exit codes, one-line errors, --json last lines."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tests.test_ingest import make_capture
+
+VOLCAP = [sys.executable, "-m", "flows.cli"]
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture
+def api_env(prefect_api):
+    """Subprocesses talk to the session's temporary Prefect server instead of starting their own."""
+    from prefect.settings import PREFECT_API_URL
+
+    return {**os.environ, "PREFECT_API_URL": PREFECT_API_URL.value()}
+
+
+def volcap(*args: str, env: dict | None = None, cwd: Path = REPO) -> subprocess.CompletedProcess:
+    return subprocess.run([*VOLCAP, *args], capture_output=True, text=True, env=env or os.environ.copy(),
+                          cwd=cwd, timeout=600)
+
+
+def last_json(out: str) -> dict:
+    return json.loads(out.strip().splitlines()[-1])
+
+
+def test_ingest_json_summary_and_cached_rerun(api_env, tmp_path):
+    capture = make_capture(tmp_path / "cap")
+    store = str(tmp_path / "store")
+    first = volcap("ingest", str(capture), "--store", store, "--json", env=api_env)
+    assert first.returncode == 0, first.stderr
+    doc = last_json(first.stdout)
+    assert doc["capture"]["digest"].startswith("blake3:")
+    assert (doc["tasks_run"], doc["tasks_cached"], doc["tasks_failed"]) == (7, 0, 0)
+    assert "7 tasks run, 0 cached, 0 failed" in first.stdout
+
+    again = last_json(volcap("ingest", str(capture), "--store", store, "--json", env=api_env).stdout)
+    assert (again["tasks_run"], again["tasks_cached"]) == (0, 7) and again["capture"] == doc["capture"]
+
+    ls = volcap("store", "ls", "--store", store)
+    assert ls.returncode == 0 and "captures/tiny\t" + doc["capture"]["digest"] in ls.stdout
+    verify = volcap("store", "verify", "--store", store, "--json")
+    assert verify.returncode == 0 and last_json(verify.stdout)["corrupt"] == []
+    du = last_json(volcap("store", "du", "--store", store, "--json").stdout)
+    assert du["refs"]["captures/tiny"]["objects"] == 1 + 3 * 4  # record + frames
+    got = volcap("store", "get", "captures/tiny", "--store", store)
+    assert json.loads(got.stdout)["name"] == "tiny"
+
+
+def test_bad_capture_exits_1_with_one_line_naming_camera_and_frame(api_env, tmp_path):
+    capture = make_capture(tmp_path / "cap")
+    (capture / "C1" / "000002.png").unlink()
+    res = volcap("ingest", str(capture), "--store", str(tmp_path / "store"), env=api_env)
+    assert res.returncode == 1
+    err = [line for line in res.stderr.strip().splitlines() if line.startswith("volcap: error:")]
+    assert len(err) == 1 and "camera C1: 1 frame(s) missing" in err[0] and "2" in err[0]
+
+
+def test_store_put_get_gc_and_errors(tmp_path):
+    store = str(tmp_path / "store")
+    f = tmp_path / "blob.bin"
+    f.write_bytes(b"volcap" * 1000)
+    put = volcap("store", "put", str(f), "--name", "misc/blob", "--store", store, "--json")
+    assert put.returncode == 0, put.stderr
+    ref = last_json(put.stdout)["ref"]
+    out = tmp_path / "back.bin"
+    assert volcap("store", "get", ref["digest"], "-o", str(out), "--store", store).returncode == 0
+    assert out.read_bytes() == f.read_bytes()
+
+    folder = tmp_path / "folder"
+    (folder / "sub").mkdir(parents=True)
+    (folder / "sub" / "a.txt").write_text("a")
+    tree = last_json(volcap("store", "put", str(folder), "--store", store, "--json").stdout)["ref"]
+    back = tmp_path / "folder-back"
+    assert volcap("store", "get", tree["digest"], "-o", str(back), "--store", store).returncode == 0
+    assert (back / "sub" / "a.txt").read_text() == "a"
+
+    gc = last_json(volcap("store", "gc", "--grace", "0", "--store", store, "--json").stdout)
+    assert gc["deleted"] == 2  # the unnamed tree and its file; the named blob stays
+    missing = volcap("store", "get", tree["digest"], "-o", str(back), "--store", store)
+    assert missing.returncode == 1 and missing.stderr.strip() == \
+        f"volcap: error: object {tree['digest']} is not in store {Path(store).resolve().as_uri()}"
+
+    # Corrupt the blob behind the store's back: verify and get fail naming the digest.
+    hexd = ref["digest"].split(":")[1]
+    (Path(store) / "objects" / hexd[:2] / hexd[2:]).write_bytes(b"tampered")
+    v = volcap("store", "verify", "--store", store)
+    assert v.returncode == 1 and f"corrupt: {ref['digest']}" in v.stderr
+    g = volcap("store", "get", "misc/blob", "--store", store)
+    assert g.returncode == 1 and ref["digest"] in g.stderr and "corrupt" in g.stderr
+
+
+def test_usage_errors_exit_2_and_help_exits_0():
+    assert volcap("no-such-command").returncode == 2
+    for cmd in (["--help"], ["ingest", "--help"], ["store", "gc", "--help"], ["synth", "--help"], ["demo", "--help"]):
+        assert volcap(*cmd).returncode == 0, cmd
