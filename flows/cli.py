@@ -18,7 +18,7 @@ import typer
 
 from flows.runtime import RunSummary, quiet_prefect_defaults
 
-quiet_prefect_defaults()
+quiet_prefect_defaults(log_level="INFO")
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="volcap: 4D volumetric capture, from camera files to Gaussian-splat performances.")

@@ -13,11 +13,15 @@ from typing import Any
 from uuid import UUID
 
 
-def quiet_prefect_defaults() -> None:
-    """Offline-friendly Prefect settings, unless the user set them."""
+def quiet_prefect_defaults(log_level: str = "WARNING") -> None:
+    """Offline-friendly Prefect settings, unless the user set them.
+
+    The command line keeps Prefect's INFO logs (on stderr): one line per finished task run is the
+    progress a coordinator watches.
+    """
     os.environ.setdefault("DO_NOT_TRACK", "1")
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
-    os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+    os.environ.setdefault("PREFECT_LOGGING_LEVEL", log_level)
 
 
 @dataclass
