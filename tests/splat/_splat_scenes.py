@@ -31,3 +31,49 @@ def random_gaussians(n: int, *, seed: int = 0, spread: float = 0.4, scale=(0.03,
         scales=scale[0] + torch.rand(n, 3, generator=g, dtype=dtype) * (scale[1] - scale[0]),
         opacities=0.3 + 0.6 * torch.rand(n, generator=g, dtype=dtype),
         sh=sh, ids=torch.arange(n))
+
+
+import pytest  # noqa: E402
+
+
+@pytest.fixture(autouse=False)
+def single_thread():
+    """Run a test on one intra-op thread: on a shared 2-core machine OpenMP spin-waits make small
+    tensor ops ~10x slower with 2 threads when the other core is busy. Restores the setting."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def moving_scene(n: int = 40, *, frames=(0, 3), fps: float = 10.0, cameras: int = 6,
+                 size: int = 32, seed: int = 5):
+    """A known dynamic scene: ``n`` Gaussians moving at constant velocity, rendered from a ring of
+    cameras. Returns (SegmentData, init points per frame, cameras)."""
+    from volcap_core.colour import srgb_decode_unbounded
+    from volcap_core.splat.render import render
+    from volcap_core.splat.sh import sh_to_colour
+    from volcap_core.splat.train import PointsAtTime, SegmentData
+
+    gt = random_gaussians(n, seed=seed, sh_degree=0, scale=(0.05, 0.15))
+    gt.opacities[:] = 0.9
+    vel = torch.randn(n, 3, generator=torch.Generator().manual_seed(seed + 1)) * 0.3
+    cams = ring_cameras(cameras, size=size)
+
+    def at(t):
+        return Gaussians3D(gt.means + vel * t, gt.quats, gt.scales, gt.opacities, gt.sh, gt.ids)
+
+    with torch.no_grad():
+        images = {(str(i), f): render(at(f / fps), c, backend="torch")["rgb"]
+                  for i, c in enumerate(cams) for f in range(*frames)}
+    data = SegmentData.build(frames=frames, camera_ids=[str(i) for i in range(cameras)], fps=fps,
+                             load_image=lambda c, f: images[(c, f)],
+                             camera_for=lambda c, f: cams[int(c)])
+    g = torch.Generator().manual_seed(seed + 2)
+    linear = srgb_decode_unbounded(sh_to_colour(gt.sh, gt.means)).clamp(0, 1)
+    points = []
+    for f in range(*frames):
+        # a noisy "dense" cloud: 3 points per true Gaussian, 5 cm jitter
+        xyz = at(f / fps).means.repeat(3, 1) + 0.05 * torch.randn(3 * n, 3, generator=g)
+        points.append(PointsAtTime(f / fps, xyz, linear.repeat(3, 1)))
+    return data, points, cams

@@ -17,7 +17,6 @@ C1 = (0.01 L)², C2 = (0.03 L)². ``padding="valid"`` reproduces scikit-image's
 from __future__ import annotations
 
 import functools
-import math
 from typing import Literal
 
 import torch
@@ -122,6 +121,5 @@ def display_metrics(pred_linear: torch.Tensor, target_linear: torch.Tensor) -> t
     what a viewer sees, the measure reported for held-out views. Args: ``[H, W, 3]`` each."""
     p = srgb_encode(pred_linear.detach())
     t = srgb_encode(target_linear.detach())
-    v = float(psnr(p, t))
-    return (v if math.isfinite(v) else 200.0), float(ssim(p, t, padding="valid"
-                                                         if min(p.shape[:2]) > 11 else "same"))
+    pad = "valid" if min(p.shape[:2]) > 11 else "same"
+    return float(psnr(p, t)), float(ssim(p, t, padding=pad))

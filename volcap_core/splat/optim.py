@@ -32,25 +32,30 @@ class AdamState:
 
 
 @torch.no_grad()
-def adam_step(params: dict[str, torch.Tensor], lrs: dict[str, float], state: AdamState, *,
-              betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-15) -> None:
-    """One Adam update in place on every ``params[name]`` that has a ``.grad`` and a positive
-    learning rate ``lrs[name]``. ``eps = 1e-15`` as in 3DGS (Gaussian parameters have tiny
-    gradients; a larger eps would silently lower their learning rate)."""
+def adam_step(params: dict[str, torch.Tensor], lrs: dict[str, float | torch.Tensor],
+              state: AdamState, *, betas: tuple[float, float] = (0.9, 0.999),
+              eps: float = 1e-15) -> None:
+    """One Adam update in place on every ``params[name]`` that has a ``.grad`` and a learning
+    rate ``lrs[name]``: a float (0 or absent = frozen) or a tensor broadcastable to the parameter
+    (e.g. ``[1, n, 1]``: one rate per polynomial order). ``eps = 1e-15`` as in 3DGS (Gaussian
+    parameters have tiny gradients; a larger eps would silently lower their learning rate)."""
     state.step += 1
     b1, b2 = betas
     bc1 = 1.0 - b1 ** state.step
     bc2 = 1.0 - b2 ** state.step
     for name, p in params.items():
         lr = lrs.get(name, 0.0)
-        if p.grad is None or lr <= 0.0:
+        if p.grad is None or (not isinstance(lr, torch.Tensor) and lr <= 0.0):
             continue
         g = p.grad
         m, v = state.exp_avg[name], state.exp_avg_sq[name]
         m.mul_(b1).add_(g, alpha=1.0 - b1)
         v.mul_(b2).addcmul_(g, g, value=1.0 - b2)
         denom = (v / bc2).sqrt_().add_(eps)
-        p.addcdiv_(m, denom, value=-lr / bc1)
+        if isinstance(lr, torch.Tensor):
+            p.sub_(m / denom * (lr / bc1))
+        else:
+            p.addcdiv_(m, denom, value=-lr / bc1)
 
 
 def exponential_lr(lr_init: float, lr_final: float, step: int, max_steps: int) -> float:

@@ -1,0 +1,513 @@
+"""Train one Poly4DGS segment: :func:`train_segment`, the library half of the segment task.
+
+    data = SegmentData.build(frames=(a, b), camera_ids=ids, fps=fps,
+                             load_image=lambda cam, f: ..., camera_for=lambda cam, f: ...)
+    result = train_segment(data, points, TrainConfig(held_out_cameras=["cam07"]),
+                           checkpoint=lambda blob, step: store.put(blob), seed=0)
+
+One step: pick a random training (camera, frame); slice the model at the frame's time; render
+(linear); apply that camera's exposure/black-level grids; loss in unbounded sRGB (L1 + SSIM) plus
+grid and MCMC regularisers; Adam with per-parameter learning rates; MCMC relocation/growth at
+refine steps and SGLD noise on the means after every step.
+
+Held-out cameras are never trained on. Evaluation (every ``eval_every`` steps and at the end)
+renders them with the frozen model, fits *only* their own exposure and black-level grids for
+``eval_fit_steps`` steps (the paper's protocol: the model's exposure is arbitrary relative to a
+camera it never saw), then reports PSNR/SSIM on the display encoding (sRGB, clamped) against the
+training wall time so far (evaluation and checkpoint time excluded).
+
+Checkpoints are safetensors bytes (tensors + JSON metadata, no pickle) holding the model, both Adam
+states, the grids, the RNG state, the step and the evaluation history. ``resume_from`` continues
+exactly: on CPU a resumed run ends bit-identical to an uninterrupted one with the same seed.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+from pydantic import BaseModel, ConfigDict, Field
+from safetensors.torch import load as st_load
+from safetensors.torch import save as st_save
+
+from volcap_core.colour import srgb_encode_unbounded
+from volcap_core.splat.camera import Camera
+from volcap_core.splat.grids import ExposureGrids, apply_grids
+from volcap_core.splat.loss import display_metrics, grid_regularisers, reconstruction_loss
+from volcap_core.splat.mcmc import (MCMCConfig, add_gaussians, inject_noise, mcmc_regulariser,
+                                    relocate_dead)
+from volcap_core.splat.model import Poly4DGS, Poly4DGSConfig, evaluate
+from volcap_core.splat.optim import AdamState, adam_step, exponential_lr
+from volcap_core.splat.render import render
+
+__all__ = [
+    "EvalPoint",
+    "LearningRates",
+    "PointsAtTime",
+    "SegmentData",
+    "TrainConfig",
+    "TrainResult",
+    "View",
+    "evaluate_held_out",
+    "init_model",
+    "train_segment",
+]
+
+CHECKPOINT_FORMAT = "volcap-poly4dgs-train/1"
+
+
+# ----------------------------------------------------------------------------------------- data
+
+@dataclass(frozen=True)
+class View:
+    """One training or evaluation image.
+
+    Attributes:
+        camera_id: the camera (a rig camera id).
+        frame: take index.
+        time: seconds on the take's clock (``frame / fps``), the clock of the model's ``t0``.
+        camera: intrinsics/extrinsics at this frame (zoom cameras may change per frame).
+        image: ``[H, W, 3]`` or ``[H, W, 4]`` linear float (RGB, or premultiplied RGBA), or a
+            zero-argument callable returning it (loaded lazily, e.g. from the artifact store).
+    """
+
+    camera_id: str
+    frame: int
+    time: float
+    camera: Camera
+    image: torch.Tensor | Callable[[], torch.Tensor]
+
+    def load(self) -> torch.Tensor:
+        img = self.image() if callable(self.image) else self.image
+        if img.ndim != 3 or img.shape[2] not in (3, 4):
+            raise ValueError(f"view {self.camera_id}@{self.frame}: image must be [H,W,3|4], "
+                             f"got {tuple(img.shape)}")
+        if (img.shape[0], img.shape[1]) != (self.camera.height, self.camera.width):
+            raise ValueError(f"view {self.camera_id}@{self.frame}: image {tuple(img.shape[:2])} "
+                             f"!= camera {(self.camera.height, self.camera.width)}")
+        return img.float()
+
+
+@dataclass
+class SegmentData:
+    """The views of frames ``[a, b)`` of a capture: one :class:`View` per (camera, frame)."""
+
+    frames: tuple[int, int]
+    views: list[View]
+
+    @classmethod
+    def build(cls, *, frames: tuple[int, int], camera_ids: Sequence[str], fps: float,
+              load_image: Callable[[str, int], torch.Tensor],
+              camera_for: Callable[[str, int], Camera], lazy: bool = True) -> "SegmentData":
+        """Assemble from an ingested capture and a calibration.
+
+        Args:
+            frames: ``(a, b)`` take indices, b exclusive.
+            camera_ids: cameras to use (training and held-out alike).
+            fps: capture frame rate; a frame's time is ``index / fps`` seconds.
+            load_image: ``(camera_id, take_index) -> [H, W, 3|4]`` linear image.
+            camera_for: ``(camera_id, take_index) -> Camera``.
+            lazy: defer ``load_image`` until a view is used (default), else load now.
+        """
+        a, b = frames
+        if not 0 <= a < b:
+            raise ValueError(f"bad frame range [{a}, {b})")
+        views = []
+        for cam in camera_ids:
+            for f in range(a, b):
+                img = (lambda c=cam, i=f: load_image(c, i)) if lazy else load_image(cam, f)
+                views.append(View(cam, f, f / fps, camera_for(cam, f), img))
+        return cls((a, b), views)
+
+    @property
+    def camera_ids(self) -> list[str]:
+        return sorted({v.camera_id for v in self.views})
+
+    @property
+    def times(self) -> list[float]:
+        return sorted({v.time for v in self.views})
+
+
+@dataclass(frozen=True)
+class PointsAtTime:
+    """A dense point cloud of one frame: ``xyz [P, 3]`` metres, ``rgb [P, 3]`` linear colour,
+    ``time`` seconds (becomes the t0 of the Gaussians made from it)."""
+
+    time: float
+    xyz: torch.Tensor
+    rgb: torch.Tensor
+
+
+# --------------------------------------------------------------------------------------- config
+
+class LearningRates(BaseModel):
+    """Adam learning rates per parameter (3DGS / gsplat-MCMC values where they exist).
+
+    ``means`` decays exponentially to ``means_final`` over the run, both times the scene scale
+    (1.1 × the largest camera distance from the cameras' centroid). Higher polynomial orders use
+    the rate of their order-0 parameter divided by ``time_scale^i``, so every order moves the
+    Gaussian by about the same amount per step at ``|t - t0| = time_scale``.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    means: float = 1.6e-4
+    means_final: float = 1.6e-6
+    quats: float = 1e-3
+    scales: float = 5e-3
+    opacities: float = 5e-2
+    log_lambdas: float = 1e-2
+    t0: float = 0.0
+    sh0: float = 2.5e-3
+    shN: float = 2.5e-3 / 20
+    exposure: float = 1e-3
+    black: float = 1e-4
+
+
+class TrainConfig(BaseModel):
+    """Everything that shapes a segment's training. JSON-serialisable (a task's cache key)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    model: Poly4DGSConfig = Poly4DGSConfig.paper()
+    steps: int = Field(30_000, ge=0)
+    lr: LearningRates = LearningRates()
+    mcmc: MCMCConfig = MCMCConfig()
+    ssim_weight: float = 0.2
+    exposure_weight: float = 10.0
+    black_weight: float = 0.05
+    optimise_exposure: bool = True
+    optimise_black_level: bool = True
+    grid_size: int = Field(32, ge=1, description="exposure/black grid cells per axis")
+    alpha_weight: float = Field(0.0, ge=0, description="L1 on alpha when images are RGBA")
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    held_out_cameras: list[str] = Field(default_factory=list)
+    init_opacity: float = Field(0.5, gt=0, lt=1)
+    init_lifespan_frames: float = Field(1.5, gt=0,
+                                        description="initial temporal σ, in frame intervals")
+    init_max_points: int | None = Field(None, gt=0, description="subsample init points to this")
+    time_scale_s: float | None = Field(None, gt=0, description="default: half the segment")
+    checkpoint_every: int = Field(1000, ge=0)
+    eval_every: int = Field(1000, ge=0, description="0: only at the end")
+    eval_fit_steps: int = Field(100, ge=0)
+    eval_fit_lr: float = 1e-2
+    eval_max_views: int = Field(24, gt=0)
+    backend: str = "auto"
+    tile_size: int = Field(8, ge=1)
+
+
+@dataclass(frozen=True)
+class EvalPoint:
+    """Held-out quality after ``step`` optimiser steps and ``wall_s`` seconds of training."""
+
+    step: int
+    wall_s: float
+    psnr: float
+    ssim: float
+
+
+@dataclass
+class TrainResult:
+    model: Poly4DGS
+    grids: ExposureGrids
+    history: list[EvalPoint] = field(default_factory=list)
+    steps: int = 0
+    wall_s: float = 0.0
+
+
+# ---------------------------------------------------------------------------------------- init
+
+def _nn_scale(xyz: np.ndarray, k: int = 3) -> np.ndarray:
+    """RMS distance to the k nearest neighbours (3DGS's initial scale), floored."""
+    from scipy.spatial import cKDTree
+
+    if len(xyz) < 2:
+        return np.full(len(xyz), 0.01)
+    kk = min(k, len(xyz) - 1)
+    d, _ = cKDTree(xyz).query(xyz, k=kk + 1)
+    d = d[:, 1:]
+    s = np.sqrt((d * d).mean(axis=1))
+    return np.maximum(s, 1e-7)
+
+
+def init_model(points: Sequence[PointsAtTime], config: TrainConfig, *, frame_interval_s: float,
+               generator: torch.Generator | None = None) -> Poly4DGS:
+    """One Gaussian per point: t0 = its frame time, colour = its colour (unbounded sRGB), isotropic
+    scale = RMS distance to its 3 nearest neighbours within its own frame, opacity
+    ``init_opacity``, no motion, temporal σ = ``init_lifespan_frames`` frame intervals."""
+    if not points:
+        raise ValueError("no initial points")
+    xyz = torch.cat([p.xyz.float() for p in points])
+    rgb = torch.cat([p.rgb.float() for p in points])
+    t0 = torch.cat([torch.full((len(p.xyz),), float(p.time)) for p in points])
+    scales = torch.cat([torch.from_numpy(_nn_scale(p.xyz.double().numpy())).float()
+                        for p in points])
+    n_max = min(config.init_max_points or len(xyz), config.mcmc.cap_max)
+    if len(xyz) > n_max:
+        keep = torch.randperm(len(xyz), generator=generator)[:n_max].sort().values
+        xyz, rgb, t0, scales = xyz[keep], rgb[keep], t0[keep], scales[keep]
+    return Poly4DGS.from_points(config.model, xyz, srgb_encode_unbounded(rgb), scales=scales,
+                                t0=t0, opacity=config.init_opacity,
+                                lifespan_s=config.init_lifespan_frames * frame_interval_s)
+
+
+def _scene_scale(cameras: Sequence[Camera]) -> float:
+    centres = torch.stack([c.centre for c in cameras])
+    return 1.1 * float((centres - centres.mean(0)).norm(dim=1).max().clamp(min=1e-3))
+
+
+def _frame_interval(times: Sequence[float]) -> float:
+    if len(times) < 2:
+        return 1.0 / 30.0
+    return float(np.median(np.diff(np.asarray(sorted(times)))))
+
+
+def _learning_rates(cfg: TrainConfig, step: int, scene_scale: float, time_scale: float,
+                    model: Poly4DGS) -> dict[str, float | torch.Tensor]:
+    lr = cfg.lr
+    means = exponential_lr(lr.means * scene_scale, lr.means_final * scene_scale, step, cfg.steps)
+    out: dict[str, float | torch.Tensor] = {
+        "means": means, "quats": lr.quats, "scales": lr.scales, "opacities": lr.opacities,
+        "log_lambdas": lr.log_lambdas, "t0": lr.t0, "sh0": lr.sh0, "shN": lr.shN}
+    for name, base in (("means_t", means), ("quats_t", lr.quats), ("scales_t", lr.scales)):
+        if name in model.params:
+            n = model.params[name].shape[1]
+            order = torch.arange(1, n + 1, dtype=torch.float32)
+            out[name] = (base * time_scale ** -order).view(1, n, 1).to(model.params[name].device)
+    return out
+
+
+# ---------------------------------------------------------------------------------- evaluation
+
+def evaluate_held_out(model: Poly4DGS, views: Sequence[View], config: TrainConfig, *,
+                      device: torch.device | str = "cpu") -> tuple[float, float]:
+    """Mean (PSNR dB, SSIM) over ``views`` after fitting each camera's exposure and black-level
+    grids to them for ``eval_fit_steps`` Adam steps with the model frozen."""
+    if not views:
+        return float("nan"), float("nan")
+    bg = torch.tensor(config.background, device=device)
+    with torch.no_grad():
+        renders = [render(evaluate(model, v.time), v.camera, backend=config.backend,
+                          background=bg, tile_size=config.tile_size)["rgb"] for v in views]
+    targets = [v.load()[..., :3].to(device) for v in views]
+    cam_ids = sorted({v.camera_id for v in views})
+    grids = ExposureGrids.identity(cam_ids, config.grid_size, device)
+    fit = {"exposure": grids.exposure.requires_grad_(config.optimise_exposure),
+           "black": grids.black.requires_grad_(config.optimise_black_level)}
+    state = AdamState.zeros_like(fit)
+    rows = [cam_ids.index(v.camera_id) for v in views]
+    lrs = {k: config.eval_fit_lr for k in fit}
+    for _ in range(config.eval_fit_steps if (config.optimise_exposure
+                                             or config.optimise_black_level) else 0):
+        for t in fit.values():
+            t.grad = None
+        loss = sum(reconstruction_loss(apply_grids(r, fit["exposure"][i], fit["black"][i]), t,
+                                       ssim_weight=config.ssim_weight)[0]
+                   for r, t, i in zip(renders, targets, rows)) / len(views)
+        loss.backward()
+        adam_step(fit, lrs, state)
+    scores = []
+    with torch.no_grad():
+        for r, t, i in zip(renders, targets, rows):
+            scores.append(display_metrics(apply_grids(r, fit["exposure"][i], fit["black"][i]), t))
+    return float(np.mean([s[0] for s in scores])), float(np.mean([s[1] for s in scores]))
+
+
+def _eval_subset(views: Sequence[View], n: int) -> list[View]:
+    """At most ``n`` views, spread evenly over the list (deterministic)."""
+    if len(views) <= n:
+        return list(views)
+    idx = np.linspace(0, len(views) - 1, n).round().astype(int)
+    return [views[i] for i in sorted(set(idx.tolist()))]
+
+
+# ---------------------------------------------------------------------------------- checkpoints
+
+@dataclass
+class _State:
+    model: Poly4DGS
+    adam: AdamState
+    grids: ExposureGrids
+    grid_adam: AdamState
+    generator: torch.Generator
+    step: int
+    wall_s: float
+    history: list[EvalPoint]
+
+
+def _serialise(state: _State, config: TrainConfig, extra: dict) -> bytes:
+    tensors: dict[str, torch.Tensor] = {}
+    for k, v in state.model.params.items():
+        tensors[f"model/{k}"] = v.detach()
+        tensors[f"adam/m/{k}"] = state.adam.exp_avg[k]
+        tensors[f"adam/v/{k}"] = state.adam.exp_avg_sq[k]
+    tensors["grids/exposure"] = state.grids.exposure.detach()
+    tensors["grids/black"] = state.grids.black.detach()
+    for k in ("exposure", "black"):
+        tensors[f"grid_adam/m/{k}"] = state.grid_adam.exp_avg[k]
+        tensors[f"grid_adam/v/{k}"] = state.grid_adam.exp_avg_sq[k]
+    tensors["rng"] = state.generator.get_state()
+    tensors = {k: v.detach().contiguous().cpu() for k, v in tensors.items()}
+    meta = {
+        "format": CHECKPOINT_FORMAT,
+        "train_config": config.model_dump_json(),
+        "model_config": state.model.config.model_dump_json(),
+        "state": json.dumps({
+            "step": state.step, "adam_step": state.adam.step,
+            "grid_adam_step": state.grid_adam.step, "wall_s": state.wall_s,
+            "camera_ids": state.grids.camera_ids,
+            "history": [[e.step, e.wall_s, e.psnr, e.ssim] for e in state.history],
+            **extra}),
+    }
+    return st_save(tensors, metadata=meta)
+
+
+def _deserialise(data: bytes, device) -> tuple[_State, dict, Poly4DGSConfig]:
+    from volcap_core.splat.model import _safetensors_metadata
+
+    meta = _safetensors_metadata(data)
+    if meta.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"not a Poly4DGS training checkpoint (format {meta.get('format')!r})")
+    info = json.loads(meta["state"])
+    model_cfg = Poly4DGSConfig.model_validate_json(meta["model_config"])
+    t = st_load(data)
+    names = [k.split("/", 1)[1] for k in t if k.startswith("model/")]
+    model = Poly4DGS(model_cfg, {k: t[f"model/{k}"].to(device).requires_grad_(True)
+                                 for k in names})
+    adam = AdamState({k: t[f"adam/m/{k}"].to(device) for k in names},
+                     {k: t[f"adam/v/{k}"].to(device) for k in names}, info["adam_step"])
+    grids = ExposureGrids(info["camera_ids"], t["grids/exposure"].to(device),
+                          t["grids/black"].to(device))
+    gadam = AdamState({k: t[f"grid_adam/m/{k}"].to(device) for k in ("exposure", "black")},
+                      {k: t[f"grid_adam/v/{k}"].to(device) for k in ("exposure", "black")},
+                      info["grid_adam_step"])
+    gen = torch.Generator()
+    gen.set_state(t["rng"])
+    history = [EvalPoint(int(s), float(w), float(p), float(q)) for s, w, p, q in info["history"]]
+    return (_State(model, adam, grids, gadam, gen, info["step"], info["wall_s"], history), info,
+            model_cfg)
+
+
+# ------------------------------------------------------------------------------------- training
+
+def train_segment(views: SegmentData, init_points: Sequence[PointsAtTime], config: TrainConfig,
+                  *, checkpoint: Callable[[bytes, int], None] | None = None,
+                  resume_from: bytes | None = None, seed: int = 0,
+                  progress: Callable[[int, int, dict], None] | None = None,
+                  device: torch.device | str | None = None) -> TrainResult:
+    """Fit a Poly4DGS model to one segment.
+
+    Args:
+        views: the segment's images and cameras (held-out cameras included; they are split off
+            by ``config.held_out_cameras``).
+        init_points: dense points per frame (ignored when resuming).
+        config: see :class:`TrainConfig`.
+        checkpoint: called as ``checkpoint(bytes, step)`` every ``config.checkpoint_every`` steps
+            and after the last step; the bytes resume the run exactly.
+        resume_from: checkpoint bytes to continue from (the model config must match; the rest of
+            ``config`` applies from here on, e.g. a larger ``steps``).
+        seed: seeds the single ``torch.Generator`` behind every random choice.
+        progress: called as ``progress(step, total_steps, info)`` after every step, ``info``
+            holding ``loss``, ``l1``, ``ssim``, ``num_gaussians``, ``wall_s``.
+        device: where to train; default CUDA when available, else CPU.
+    Returns:
+        :class:`TrainResult` (model, training grids, evaluation history).
+    """
+    device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    held = set(config.held_out_cameras)
+    unknown = held - set(views.camera_ids)
+    if unknown:
+        raise ValueError(f"held-out cameras not in the data: {sorted(unknown)}")
+    train_views = [v for v in views.views if v.camera_id not in held]
+    eval_views = _eval_subset([v for v in views.views if v.camera_id in held],
+                              config.eval_max_views)
+    if not train_views:
+        raise ValueError("no training views left after holding out cameras")
+    train_cams = sorted({v.camera_id for v in train_views})
+    scene_scale = _scene_scale([v.camera for v in train_views])
+    frame_dt = _frame_interval(views.times)
+    seg_len = max(views.times) - min(views.times)
+    time_scale = config.time_scale_s or max(0.5 * seg_len, frame_dt)
+    extra = {"scene_scale": scene_scale, "time_scale": time_scale, "seed": seed}
+
+    if resume_from is not None:
+        state, info, model_cfg = _deserialise(resume_from, device)
+        if model_cfg != config.model:
+            raise ValueError(f"checkpoint model config {model_cfg} != {config.model}")
+        if state.grids.camera_ids != train_cams:
+            raise ValueError("checkpoint was trained on other cameras")
+    else:
+        gen = torch.Generator().manual_seed(seed)
+        model = init_model(init_points, config, frame_interval_s=frame_dt, generator=gen).to(device)
+        for v in model.params.values():
+            v.requires_grad_(True)
+        grids = ExposureGrids.identity(train_cams, config.grid_size, device)
+        state = _State(model, AdamState.zeros_like(model.params), grids,
+                       AdamState.zeros_like({"exposure": grids.exposure, "black": grids.black}),
+                       gen, 0, 0.0, [])
+    grid_params = {"exposure": state.grids.exposure.requires_grad_(config.optimise_exposure),
+                   "black": state.grids.black.requires_grad_(config.optimise_black_level)}
+    grid_lrs = {"exposure": config.lr.exposure if config.optimise_exposure else 0.0,
+                "black": config.lr.black if config.optimise_black_level else 0.0}
+    bg = torch.tensor(config.background, device=device)
+    cam_row = {c: i for i, c in enumerate(train_cams)}
+
+    def run_eval() -> None:
+        if eval_views and (not state.history or state.history[-1].step != state.step):
+            p, s = evaluate_held_out(state.model, eval_views, config, device=device)
+            state.history.append(EvalPoint(state.step, state.wall_s, p, s))
+
+    if state.step == 0 and config.eval_every:
+        run_eval()
+    while state.step < config.steps:
+        t_start = time.perf_counter()
+        step = state.step + 1
+        model = state.model
+        view = train_views[int(torch.randint(len(train_views), (1,), generator=state.generator))]
+        target = view.load().to(device)
+        lrs = _learning_rates(config, step, scene_scale, time_scale, model)
+        for p in (*model.params.values(), *grid_params.values()):
+            p.grad = None
+
+        out = render(evaluate(model, view.time), view.camera, backend=config.backend,
+                     background=bg, tile_size=config.tile_size)
+        row = cam_row[view.camera_id]
+        pred = apply_grids(out["rgb"],
+                           grid_params["exposure"][row] if config.optimise_exposure else None,
+                           grid_params["black"][row] if config.optimise_black_level else None)
+        loss, parts = reconstruction_loss(pred, target[..., :3], ssim_weight=config.ssim_weight)
+        if config.alpha_weight and target.shape[2] == 4:
+            loss = loss + config.alpha_weight * (out["alpha"] - target[..., 3:]).abs().mean()
+        reg, _ = grid_regularisers(
+            grid_params["exposure"], grid_params["black"][row],
+            exposure_weight=config.exposure_weight if config.optimise_exposure else 0.0,
+            black_weight=config.black_weight if config.optimise_black_level else 0.0)
+        loss = loss + reg + mcmc_regulariser(model, config.mcmc)
+        loss.backward()
+        adam_step(model.params, lrs, state.adam)
+        adam_step(grid_params, grid_lrs, state.grid_adam)
+
+        if config.mcmc.is_refine_step(step):
+            relocate_dead(model, state.adam, config.mcmc, state.generator)
+            add_gaussians(model, state.adam, config.mcmc, state.generator)
+        inject_noise(model, float(lrs["means"]), config.mcmc, state.generator)
+        state.step = step
+        state.wall_s += time.perf_counter() - t_start
+
+        if progress is not None:
+            progress(step, config.steps, {"loss": float(loss.detach()), **parts,
+                                          "num_gaussians": len(model), "wall_s": state.wall_s})
+        if config.eval_every and step % config.eval_every == 0:
+            run_eval()
+        if checkpoint is not None and (
+                (config.checkpoint_every and step % config.checkpoint_every == 0)
+                or step == config.steps):
+            checkpoint(_serialise(state, config, extra), step)
+    run_eval()
+    final = state.model.detached()
+    grids = ExposureGrids(state.grids.camera_ids, state.grids.exposure.detach().clone(),
+                          state.grids.black.detach().clone())
+    return TrainResult(final, grids, list(state.history), state.step, state.wall_s)
+
