@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import BinaryIO
 
@@ -9,10 +10,25 @@ import blake3
 
 CHUNK_BYTES = 8 << 20  # 8 MiB: large enough for BLAKE3's SIMD/threads, small enough for memory
 
+#: The process that may use BLAKE3's threads. They live in one process-wide pool, created on first
+#: use; a forked child inherits the pool's state but not its threads, and a multi-threaded hash
+#: there waits forever (multiprocessing's default fork start on Linux, DataLoader workers...).
+#: A child forked after its parent hashed with threads therefore hashes on one thread.
+_threads_pid: int | None = None
+
+
+def _threads_allowed() -> bool:
+    global _threads_pid
+    pid = os.getpid()
+    if _threads_pid is None:
+        _threads_pid = pid
+    return _threads_pid == pid
+
 
 def _hasher(size_hint: int = 0) -> blake3.blake3:
     # BLAKE3 can spread one large input over threads; below ~1 MiB the thread start costs more.
-    return blake3.blake3(max_threads=blake3.blake3.AUTO if size_hint >= (1 << 20) else 1)
+    threads = size_hint >= (1 << 20) and _threads_allowed()
+    return blake3.blake3(max_threads=blake3.blake3.AUTO if threads else 1)
 
 
 def digest_bytes(data: bytes | memoryview) -> str:
