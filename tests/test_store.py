@@ -946,3 +946,11 @@ def test_store_urls(tmp_path, monkeypatch):
     assert normalize_store_url("s3://bucket/prefix/") == "s3://bucket/prefix"
     monkeypatch.setenv("VOLCAP_STORE", a.url)
     assert open_store().exists(ref) and open_store(str(tmp_path / "other")).url.endswith("/other")
+
+
+def test_tree_with_a_file_that_is_also_a_folder_is_refused():
+    from volcap_core.store import InvalidTreeError, TreeEntry, encode_tree
+
+    e = TreeEntry("blake3:" + "0" * 64, 1)
+    with pytest.raises(InvalidTreeError, match="both a file and a folder"):
+        encode_tree({"a": e, "a-b": e, "a/b": e})

@@ -135,7 +135,19 @@ def encode_tree(entries: dict[str, TreeEntry]) -> bytes:
         if not DIGEST_RE.match(e.digest):
             raise InvalidTreeError(f"tree entry {path!r}: bad digest {e.digest!r}")
         body[path] = {"digest": e.digest, "size": int(e.size)}
+    _refuse_file_directory_clash(body)
     return canonical_json({"format": TREE_FORMAT, "entries": body})
+
+
+def _refuse_file_directory_clash(paths: Iterable[str], name: str = "tree") -> None:
+    """``a`` and ``a/b`` cannot both be files: such a tree cannot be written to a folder."""
+    files = set(paths)
+    for path in sorted(files):
+        parts = path.split("/")
+        for i in range(1, len(parts)):
+            folder = "/".join(parts[:i])
+            if folder in files:
+                raise InvalidTreeError(f"{name}: {folder!r} is both a file and a folder (of {path!r})")
 
 
 def decode_tree(data: bytes, name: str = "tree") -> dict[str, TreeEntry]:
@@ -170,6 +182,7 @@ def decode_tree(data: bytes, name: str = "tree") -> dict[str, TreeEntry]:
         entries[path] = TreeEntry(e["digest"], e["size"])
     if canonical_json(doc) != data:
         raise InvalidTreeError(f"{name}: manifest is not canonically encoded")
+    _refuse_file_directory_clash(entries, name)
     return entries
 
 
@@ -496,9 +509,9 @@ class ArtifactStore:
 
     def _is_tree(self, digest: str) -> bool:
         try:
-            with self.fs.open(self._object_path(digest), "rb") as f:
-                if f.read(len(_TREE_HEAD)) != _TREE_HEAD:
-                    return False
+            head = self.fs.cat_file(self._object_path(digest), start=0, end=len(_TREE_HEAD))  # ranged
+            if head != _TREE_HEAD:
+                return False
             self.get_tree(digest)
             return True
         except (FileNotFoundError, StoreError):
