@@ -19,9 +19,10 @@ tile's Gaussians sorted by depth and padded to a common length within a chunk of
 load, and the Mahalanobis term of every (pixel, Gaussian) pair is a single batched matmul: in
 tile-local coordinates ``σ - ln o`` is a quadratic form in the pixel position, i.e.
 ``[x², y², xy, x, y, 1] · coefficients(Gaussian)``. Transmittance is a cumulative sum of
-``log(1 - α)``. Memory is bounded by chunking tiles (``chunk_pairs`` pairs at a time); when the whole
-image would hold more than ``resident_pairs`` pairs of autograd state, each chunk is
-gradient-checkpointed (recomputed in backward) instead of kept.
+``log(1 - α)``. The compositing has a hand-written backward (:class:`_Composite`) that recomputes
+the per-pair terms instead of storing them, so memory is bounded by the chunk size
+(``chunk_pairs`` pairs at a time) in forward and backward alike, whatever the image or the number
+of Gaussians: autograd keeps only O(tiles × Gaussians per tile) between the passes.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from torch.utils.checkpoint import checkpoint
+import torch.nn.functional as F
 
 from volcap_core.splat.camera import Camera
 
@@ -174,13 +175,12 @@ def project_gaussians(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
 class TileStats:
     """What a rasterization cost: ``pairs`` (pixel, Gaussian) pairs inside the tile footprints
     (tile pixels × Gaussians binned to the tile), ``padded_pairs`` as evaluated after padding,
-    ``intersections`` (tile, Gaussian) entries, ``chunks``, ``checkpointed``."""
+    ``intersections`` (tile, Gaussian) entries, ``chunks``."""
 
     pairs: int = 0
     padded_pairs: int = 0
     intersections: int = 0
     chunks: int = 0
-    checkpointed: bool = False
 
 
 def _pixel_monomials(tile_size: int, device, dtype) -> torch.Tensor:
@@ -190,6 +190,68 @@ def _pixel_monomials(tile_size: int, device, dtype) -> torch.Tensor:
     yy, xx = torch.meshgrid(r, r, indexing="ij")
     x, y = xx.reshape(-1), yy.reshape(-1)
     return torch.stack([x * x, y * y, x * y, x, y, torch.ones_like(x)], dim=-1)
+
+
+def _forward_terms(coef: torch.Tensor, monomials: torch.Tensor):
+    """Per-pair compositing terms of one chunk (no autograd; shared by forward and backward).
+
+    Returns ``alpha [T,P,K]`` (after the 0.999 clamp, the 1/255 threshold and the early stop; 0
+    where unused), ``one_minus [T,P,K]`` (1 - alpha) and ``trans [T,P,K]`` (T_i, the transmittance
+    in front of each fragment). In-place ops throughout: each pass over the pairs costs ~1 ns each.
+    """
+    # clamp before exp: far pixels have ln o - σ of -100s, whose exp is a float32 denormal, and
+    # denormal arithmetic is ~10x slower on x86 (anything below e^-20 is skipped as α < 1/255 anyway)
+    alpha = torch.matmul(monomials, coef).clamp_(min=-20.0).exp_()  # o·exp(-σ), [T, P, K]
+    alpha.clamp_(max=ALPHA_MAX)
+    F.threshold_(alpha, ALPHA_THRESHOLD - 1e-12, 0.0)         # skip α < 1/255
+    one_minus = torch.rsub(alpha, 1.0)
+    # log(1 - α) rather than log1p(-α): α is 0 or >= 1/255 here, so nothing cancels, and log is
+    # vectorised on CPU where log1p is not (2-3x faster)
+    log_t = torch.log(one_minus)
+    log_incl = torch.cumsum(log_t, dim=-1)
+    # stop before the fragment that would take transmittance to <= 1e-4; log_incl only decreases
+    # along K, so this drops a suffix of each pixel's list
+    stop = log_incl <= math.log(TRANSMITTANCE_MIN)
+    alpha.masked_fill_(stop, 0.0)
+    one_minus.masked_fill_(stop, 1.0)
+    # exclusive: T_i = Π_{j<i}(1 - α_j); clamped for the same denormal reason (T < 1e-4 is unused)
+    trans = log_incl.sub_(log_t).clamp_(min=-20.0).exp_()
+    return alpha, one_minus, trans
+
+
+class _Composite(torch.autograd.Function):
+    """Front-to-back compositing of one chunk of tiles with an analytic backward.
+
+    ``values`` carries a last column of ones, so the accumulated last channel is ``Σ_i α_i T_i``,
+    i.e. the pixel's alpha (1 - final transmittance) for free in the same matmul.
+
+    Nothing per (pixel, Gaussian) pair is kept between forward and backward: the backward
+    recomputes the terms from ``coef`` (one small matmul), so memory is O(tiles × Gaussians per
+    tile), not O(pairs). With ``acc = Σ_i w_i v_i``, ``w_i = α_i T_i``, ``c_i = ⟨∂L/∂acc, v_i⟩`` and
+    ``S_i = Σ_{j>i} w_j c_j``: ``∂L/∂α_i = T_i c_i - S_i / (1 - α_i)``; no gradient flows through
+    the clamp, the threshold or the early stop (gsplat does the same).
+    """
+
+    @staticmethod
+    def forward(ctx, coef, values, monomials):
+        alpha, _, trans = _forward_terms(coef, monomials)
+        ctx.save_for_backward(coef, values, monomials)
+        return torch.matmul(alpha.mul_(trans), values)        # weights α_i T_i, [T, P, D]
+
+    @staticmethod
+    def backward(ctx, g_acc):
+        coef, values, monomials = ctx.saved_tensors
+        alpha, one_minus, trans = _forward_terms(coef, monomials)
+        slope = alpha.masked_fill(alpha >= ALPHA_MAX, 0.0)     # dα/d(ln o - σ) = α if unclamped
+        weights = alpha.mul_(trans)
+        g_values = torch.matmul(weights.transpose(1, 2), g_acc)  # [T, K, D]
+        c = torch.matmul(g_acc, values.transpose(1, 2))          # [T, P, K]
+        wc = weights.mul_(c)
+        incl = torch.cumsum(wc, dim=-1)
+        suffix = torch.sub(incl[..., -1:], incl, out=incl)       # Σ_{j>i} w_j c_j
+        g_alpha = trans.mul_(c).sub_(suffix.div_(one_minus))
+        g_coef = torch.matmul(monomials.T, g_alpha.mul_(slope))  # [T, 6, K]
+        return g_coef, g_values, None
 
 
 def _composite_chunk(table: torch.Tensor, values: torch.Tensor, idx: torch.Tensor,
@@ -203,34 +265,24 @@ def _composite_chunk(table: torch.Tensor, values: torch.Tensor, idx: torch.Tenso
         centres: ``[T, 2]`` tile centres (px).
         monomials: ``[P, 6]`` from :func:`_pixel_monomials`.
     Returns:
-        ``[T, P, D + 1]``: accumulated values and, last, the final transmittance.
+        ``[T, P, D]``: accumulated values (the last column of ``values`` being ones, the last
+        channel is the alpha).
     """
     g = table[idx]                                            # [T, K, 6]
     mx = g[..., 0] - centres[:, None, 0]
     my = g[..., 1] - centres[:, None, 1]
     a, b, c, log_o = g[..., 2], g[..., 3], g[..., 4], g[..., 5]
-    # ln o - σ = ln o - ½a(x-mx)² - ½c(y-my)² - b(x-mx)(y-my), expanded in the pixel monomials
+    # ln o - σ = ln o - ½a(x-mx)² - ½c(y-my)² - b(x-mx)(y-my), expanded in the pixel monomials;
+    # tile-local coordinates keep the expansion's cancellation small (|x|, |y| <= tile / 2)
     coef = torch.stack([-0.5 * a, -0.5 * c, -b, a * mx + b * my, c * my + b * mx,
                         log_o - 0.5 * a * mx * mx - 0.5 * c * my * my - b * mx * my], dim=1)
-    alpha = torch.exp(torch.matmul(monomials, coef)).clamp(max=ALPHA_MAX)  # [T, P, K]
-    log_t = torch.log1p(-alpha)
-    with torch.no_grad():
-        used = alpha >= ALPHA_THRESHOLD
-        # stop before the fragment that would take transmittance to <= 1e-4 (a prefix per pixel)
-        used &= torch.cumsum(torch.where(used, log_t, 0.0), dim=-1) > math.log(TRANSMITTANCE_MIN)
-    alpha = torch.where(used, alpha, 0.0)
-    log_t = torch.where(used, log_t, 0.0)
-    log_t_incl = torch.cumsum(log_t, dim=-1)
-    weights = alpha * torch.exp(log_t_incl - log_t)           # α_i T_i
-    acc = torch.matmul(weights, values[idx])                  # [T, P, D]
-    return torch.cat([acc, torch.exp(log_t_incl[..., -1:])], dim=-1)
+    return _Composite.apply(coef, values[idx], monomials)
 
 
 def rasterize_tiles(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor,
                     depths: torch.Tensor, radii: torch.Tensor, values: torch.Tensor,
                     width: int, height: int, *, tile_size: int = 8,
-                    chunk_pairs: int = 1 << 21, resident_pairs: int = 40_000_000,
-                    pad_ratio: float = 0.7,
+                    chunk_pairs: int = 1 << 21, pad_ratio: float = 0.7,
                     stats: TileStats | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Alpha-composite projected Gaussians front to back (see module doc for the rules).
 
@@ -240,8 +292,9 @@ def rasterize_tiles(means2d: torch.Tensor, conics: torch.Tensor, opacities: torc
         values: ``[M, D]`` accumulated per pixel as ``Σ_i α_i T_i v_i`` (colours, depth...).
         width, height: image size (px).
         tile_size: square tile edge (px); 8 wastes fewer pairs on small splats than gsplat's 16.
-        chunk_pairs: target padded (pixel, Gaussian) pairs per chunk (~48 B of autograd state each).
-        resident_pairs: above this many pairs per image, chunks are gradient-checkpointed.
+        chunk_pairs: target padded (pixel, Gaussian) pairs per chunk: bounds the temporaries
+            (~6 float tensors of that many elements, ~50 MB at the default 2M) in forward and
+            backward alike; nothing per pair is kept between them.
         pad_ratio: a chunk only holds tiles with at least this fraction of its largest tile's
             Gaussian count (padding waste <= 1 / pad_ratio).
         stats: filled with the work done, if given.
@@ -278,12 +331,12 @@ def rasterize_tiles(means2d: torch.Tensor, conics: torch.Tensor, opacities: torc
         busy = busy[torch.argsort(counts[busy], descending=True, stable=True)]
         busy_counts = counts[busy].cpu().numpy()
     total_pairs = n_isect * P
-    use_ckpt = torch.is_grad_enabled() and total_pairs > resident_pairs
     table = torch.cat([torch.stack([means2d[:, 0], means2d[:, 1], conics[:, 0], conics[:, 1],
                                     conics[:, 2], torch.log(opacities.clamp(min=1e-30))], -1),
                        torch.tensor([[0, 0, 0, 0, 0, _DUMMY_LOG_OPACITY]], device=device,
                                     dtype=dtype)])
-    vals = torch.cat([values, values.new_zeros(1, D)])
+    # a column of ones accumulates the alpha; the padding dummy (last row) is all zeros
+    vals = torch.cat([torch.cat([values, values.new_ones(M, 1)], 1), values.new_zeros(1, D + 1)])
     monomials = _pixel_monomials(ts, device, dtype)
     outs, out_tiles = [], []
     i, n_busy, padded = 0, len(busy_counts), 0
@@ -298,17 +351,11 @@ def rasterize_tiles(means2d: torch.Tensor, conics: torch.Tensor, opacities: torc
         idx = torch.where(slots < counts[tids][:, None], gid[pos.clamp(max=n_isect - 1)], M)
         centres = torch.stack([(tids % tw) * ts + ts / 2, (tids // tw) * ts + ts / 2],
                               -1).to(dtype)
-        if use_ckpt:
-            out = checkpoint(_composite_chunk, table, vals, idx, centres, monomials,
-                             use_reentrant=False)
-        else:
-            out = _composite_chunk(table, vals, idx, centres, monomials)
-        outs.append(out)
+        outs.append(_composite_chunk(table, vals, idx, centres, monomials))
         out_tiles.append(tids)
         padded += n * k * P
         i += n
     base = torch.zeros(n_tiles, P, D + 1, device=device, dtype=dtype)
-    base[..., D] = 1.0
     if outs:
         base = base.index_copy(0, torch.cat(out_tiles), torch.cat(outs))
     img = base.reshape(th, tw, ts, ts, D + 1).permute(0, 2, 1, 3, 4).reshape(th * ts, tw * ts, D + 1)
@@ -318,5 +365,4 @@ def rasterize_tiles(means2d: torch.Tensor, conics: torch.Tensor, opacities: torc
         stats.padded_pairs += padded
         stats.intersections += n_isect
         stats.chunks += len(outs)
-        stats.checkpointed = stats.checkpointed or use_ckpt
-    return img[..., :D], img[..., D]
+    return img[..., :D], 1.0 - img[..., D]

@@ -43,24 +43,20 @@ def sh_to_colour(sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
         ``[N, 3]`` colours (``+ 0.5`` included, no clamp).
     """
     K = sh.shape[-2]
-    out = SH_C0 * sh[:, 0] + 0.5
     if K == 1:
-        return out
-    d = torch.nn.functional.normalize(dirs, dim=-1, eps=1e-12)
-    x, y, z = (d[:, i:i + 1] for i in range(3))
-    out = out - _C1 * y * sh[:, 1] + _C1 * z * sh[:, 2] - _C1 * x * sh[:, 3]
-    if K == 4:
-        return out
-    xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
-    out = (out + _C2[0] * xy * sh[:, 4] + _C2[1] * yz * sh[:, 5]
-           + _C2[2] * (2 * zz - xx - yy) * sh[:, 6] + _C2[3] * xz * sh[:, 7]
-           + _C2[4] * (xx - yy) * sh[:, 8])
-    if K == 9:
-        return out
-    if K != 16:
+        return SH_C0 * sh[:, 0] + 0.5
+    if K not in (4, 9, 16):
         raise ValueError(f"unsupported number of SH coefficients {K}")
-    return (out + _C3[0] * y * (3 * xx - yy) * sh[:, 9] + _C3[1] * xy * z * sh[:, 10]
-            + _C3[2] * y * (4 * zz - xx - yy) * sh[:, 11]
-            + _C3[3] * z * (2 * zz - 3 * xx - 3 * yy) * sh[:, 12]
-            + _C3[4] * x * (4 * zz - xx - yy) * sh[:, 13] + _C3[5] * z * (xx - yy) * sh[:, 14]
-            + _C3[6] * x * (xx - 3 * yy) * sh[:, 15])
+    d = torch.nn.functional.normalize(dirs, dim=-1, eps=1e-12)
+    x, y, z = d.unbind(-1)
+    basis = [torch.full_like(x, SH_C0), -_C1 * y, _C1 * z, -_C1 * x]
+    if K > 4:
+        xx, yy, zz, xy, yz, xz = x * x, y * y, z * z, x * y, y * z, x * z
+        basis += [_C2[0] * xy, _C2[1] * yz, _C2[2] * (2 * zz - xx - yy), _C2[3] * xz,
+                  _C2[4] * (xx - yy)]
+    if K > 9:
+        basis += [_C3[0] * y * (3 * xx - yy), _C3[1] * xy * z, _C3[2] * y * (4 * zz - xx - yy),
+                  _C3[3] * z * (2 * zz - 3 * xx - 3 * yy), _C3[4] * x * (4 * zz - xx - yy),
+                  _C3[5] * z * (xx - yy), _C3[6] * x * (xx - 3 * yy)]
+    # one contraction (not K slices of sh): its backward is one product, not K scatters
+    return torch.einsum("nk,nkc->nc", torch.stack(basis, dim=-1), sh) + 0.5
