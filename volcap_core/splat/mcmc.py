@@ -90,10 +90,11 @@ def relocation_opacity_scale(opacities: torch.Tensor, scales: torch.Tensor, rati
 
 def _sample_by_opacity(o0: torch.Tensor, candidates: torch.Tensor, n: int,
                        generator: torch.Generator) -> torch.Tensor:
-    probs = o0[candidates].to(torch.float64)
+    # sampled on the CPU with the (CPU) generator whatever the device: one RNG stream to checkpoint
+    probs = o0[candidates].detach().to("cpu", torch.float64)
     probs = probs / probs.sum()
     pick = torch.multinomial(probs, n, replacement=True, generator=generator)
-    return candidates[pick]
+    return candidates[pick.to(candidates.device)]
 
 
 @torch.no_grad()
@@ -176,8 +177,8 @@ def inject_noise(model: Poly4DGS, lr_means: float, cfg: MCMCConfig,
     gate = torch.sigmoid(-100.0 * (o0 - cfg.min_opacity))
     cov = quat_scale_to_covar(p["quats"], torch.exp(p["scales"].clamp(LOG_SCALE_MIN,
                                                                        LOG_SCALE_MAX)))
-    eta = torch.randn(p["means"].shape, generator=generator, device=p["means"].device,
-                      dtype=p["means"].dtype)
+    eta = torch.randn(p["means"].shape, generator=generator,
+                      dtype=p["means"].dtype).to(p["means"].device)
     noise = (cov @ (eta * (gate * lr_means * cfg.noise_lr)[:, None])[..., None])[..., 0]
     p["means"].add_(noise)
 
