@@ -29,7 +29,13 @@ def ingest_flow(store: str, capture_dir: str, nan_policy: str = "error", set_ref
     rig_cams, absent = ingest.match_rig(desc, rig)
     if absent:
         log.warning("rig %s cameras not in this capture: %s", rig.name, ", ".join(absent))
-    scans = {c.id: ingest.scan_camera(folder, desc, c) for c in desc.cameras}
+    recorded = {c.id: ingest.list_camera_files(folder, desc, c) for c in desc.cameras}
+    common = ingest.common_range(recorded)
+    scans = {}
+    for c in desc.cameras:
+        scans[c.id], outside = ingest.select_take(desc, c, recorded[c.id], common)
+        if outside:
+            log.info("camera %s: %d recorded frame(s) outside the take left out", c.id, outside)
     lenses = {c.id: ingest.lens_for_take(desc, c, rig_cams[c.id]) for c in desc.cameras}
     for c in desc.cameras:
         ingest.check_headers(c, rig_cams[c.id], scans[c.id])

@@ -156,9 +156,11 @@ def _break(capture_dir: Path, how: str) -> str:
     if how == "duplicate-frame":
         shutil.copy(capture_dir / "C0" / "000001.exr", capture_dir / "C0" / "1.exr")
         return "camera C0: frame 1 is duplicated"
-    if how == "out-of-take":
-        shutil.copy(capture_dir / "C0" / "000001.exr", capture_dir / "C0" / "000009.exr")
-        return "camera C0: frame 9"
+    if how == "out-of-take":  # camera C0 stopped recording a frame early
+        (capture_dir / "C0" / "000003.exr").unlink()
+        return ("camera C0: the take 01:00:00:00-01:00:00:03 is out of the camera's recording "
+                "01:00:00:00-01:00:00:02 (camera frames 0-2); the common timecode range of all cameras is "
+                "01:00:00:00-01:00:00:02")
     if how == "unknown-camera":
         desc["cameras"][0]["id"] = "X9"
         desc["cameras"][0]["path"] = "C0"
@@ -201,6 +203,13 @@ def test_bad_folders_are_refused_by_name_and_nothing_is_recorded(prefect_api, ca
     assert fragment in str(err.value)
     with pytest.raises(MissingRefError):
         ArtifactStore(store_url).get_ref("captures/tiny")
+
+
+def test_frames_recorded_outside_the_take_are_left_out(prefect_api, capture_dir, store_url):
+    shutil.copy(capture_dir / "C0" / "000001.exr", capture_dir / "C0" / "000009.exr")
+    summary = run_flow(ingest_flow, store=store_url, capture_dir=str(capture_dir))
+    capture = ArtifactStore(store_url).get_record(summary.result, Capture)
+    assert len(capture.camera("C0").frames) == FRAMES
 
 
 def test_nan_repair_policy(prefect_api, capture_dir, store_url):

@@ -9,8 +9,9 @@ folder fails in seconds, and nothing is recorded unless every camera converts):
 1. ``capture.json`` parses and is valid; the rig loads.
 2. Every camera of ``capture.json`` exists in the rig (rig cameras absent from the capture are
    allowed: a dead camera is left out of ``capture.json`` and reported).
-3. Each camera folder holds exactly one file per take index: no missing frame, no duplicate
-   (``000012.exr`` and ``000012.png``, or ``12.exr`` and ``0012.exr``), no frame outside the take.
+3. Each camera folder holds one file per frame number (``000012.exr`` and ``000012.png``, or
+   ``12.exr`` and ``0012.exr``, are duplicates); the take lies inside every camera's recording (the
+   common timecode range) with no hole. Frames recorded outside the take are left out.
 4. Each file's header is readable, its resolution is the rig sensor's, its channels hold RGB.
 5. Tracking cameras carry lens-encoder readings for every take frame.
 6. While converting: damaged pixel data, and NaN/Inf pixels under the ``nan_policy``:
@@ -31,6 +32,8 @@ from hardware.rig import Rig, RigCamera, load_rig
 from volcap_core import imageio
 from volcap_core.capture import (
     FRAME_FILE_RE,
+    frames_to_timecode,
+    timecode_to_frames,
     CameraSource,
     CaptureDescription,
     Encoding,
@@ -82,8 +85,8 @@ def match_rig(desc: CaptureDescription, rig: Rig) -> tuple[dict[str, RigCamera],
     return {c.id: known[c.id] for c in desc.cameras}, [i for i in known if i not in listed]
 
 
-def scan_camera(capture_dir: Path, desc: CaptureDescription, cam: CameraSource) -> list[RawFrame]:
-    """The camera's files in take order; refuses missing, duplicate and out-of-take frames."""
+def list_camera_files(capture_dir: Path, desc: CaptureDescription, cam: CameraSource) -> dict[int, RawFrame]:
+    """Every frame file of a camera by take index (may lie outside the take); refuses duplicates."""
     folder = Path(capture_dir) / cam.path
     if not folder.is_dir():
         raise IngestError(f"camera {cam.id}: folder {folder} does not exist")
@@ -97,19 +100,54 @@ def scan_camera(capture_dir: Path, desc: CaptureDescription, cam: CameraSource) 
             raise IngestError(f"camera {cam.id}: unexpected file {p} (frames are named NNNNNN.exr|dpx|tif|tiff|png)")
         number = int(m["number"])
         take_index = number + offset
-        if not 0 <= take_index < desc.take.frame_count:
-            raise IngestError(
-                f"camera {cam.id}: frame {number} ({p}) falls at take index {take_index}, outside the "
-                f"take [0, {desc.take.frame_count}) that starts at {desc.take.start_timecode}; "
-                f"check the camera's start_timecode {cam.start_timecode}")
         if take_index in by_index:
             raise IngestError(f"camera {cam.id}: frame {number} is duplicated: {by_index[take_index].path} and {p}")
         by_index[take_index] = RawFrame(take_index, number, p.resolve())
-    missing = [i for i in range(desc.take.frame_count) if i not in by_index]
+    if not by_index:
+        raise IngestError(f"camera {cam.id}: no frames in {folder}")
+    return by_index
+
+
+def common_range(files: dict[str, dict[int, RawFrame]]) -> tuple[int, int]:
+    """[first, last] take indices every camera recorded (the intersection of their spans)."""
+    first = max(min(f) for f in files.values())
+    last = min(max(f) for f in files.values())
+    return first, last
+
+
+def select_take(desc: CaptureDescription, cam: CameraSource, files: dict[int, RawFrame],
+                common: tuple[int, int] | None = None) -> tuple[list[RawFrame], int]:
+    """The camera's frames in take order, and how many recorded frames fall outside the take.
+
+    Frames recorded before or after the take are normal (cameras start and stop at different
+    times) and are left out. A take reaching outside what the camera recorded, or a hole inside it,
+    is an error naming the camera, the frame numbers and the common timecode range.
+    """
+    n = desc.take.frame_count
+    offset = desc.take_offset(cam)
+    lo, hi = min(files), max(files)
+    if lo > 0 or hi < n - 1:
+        tc0 = timecode_to_frames(desc.take.start_timecode, desc.fps)
+        def tc(i: int) -> str:
+            return frames_to_timecode(tc0 + i, desc.fps)
+        msg = (f"camera {cam.id}: the take {tc(0)}-{tc(n - 1)} is out of the camera's recording "
+               f"{tc(lo)}-{tc(hi)} (camera frames {lo - offset}-{hi - offset})")
+        if common is not None:
+            msg += (f"; the common timecode range of all cameras is {tc(common[0])}-{tc(common[1])}"
+                    if common[0] <= common[1] else "; the cameras share no common timecode range")
+        raise IngestError(msg)
+    missing = [i for i in range(n) if i not in files]
     if missing:
         shown = ", ".join(str(i - offset) for i in missing[:10]) + (" ..." if len(missing) > 10 else "")
-        raise IngestError(f"camera {cam.id}: {len(missing)} frame(s) missing in {folder}: camera frame number(s) {shown}")
-    return [by_index[i] for i in range(desc.take.frame_count)]
+        raise IngestError(f"camera {cam.id}: {len(missing)} frame(s) missing in "
+                          f"{Path(files[lo].path).parent}: camera frame number(s) {shown}")
+    outside = sum(1 for i in files if not 0 <= i < n)
+    return [files[i] for i in range(n)], outside
+
+
+def scan_camera(capture_dir: Path, desc: CaptureDescription, cam: CameraSource) -> list[RawFrame]:
+    """``list_camera_files`` then ``select_take`` for one camera."""
+    return select_take(desc, cam, list_camera_files(capture_dir, desc, cam))[0]
 
 
 def check_headers(cam: CameraSource, rig_cam: RigCamera, frames: list[RawFrame]) -> imageio.ImageInfo:
