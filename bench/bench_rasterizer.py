@@ -1,4 +1,4 @@
-"""CPU cost of the pure-PyTorch Gaussian rasterizer: ns per (pixel, Gaussian) pair, forward+backward.
+"""CPU cost of the pure-PyTorch Gaussian rasterizer: ns per (pixel, Gaussian) pair, fwd+bwd.
 
     python bench/bench_rasterizer.py                  # 10k/50k Gaussians x 128²/256², 1 thread
     python bench/bench_rasterizer.py --threads 2 --tile-sizes 8 16 --repeats 5

@@ -60,7 +60,8 @@ def test_unbounded_keeps_hdr_and_continues_linear_segment_below_zero():
     torch.testing.assert_close(srgb_decode_unbounded(neg), neg / 12.92)
     torch.testing.assert_close(srgb_encode_unbounded(neg), neg * 12.92)
     # the bounded pair clamps
-    assert float(srgb_encode(torch.tensor(3.0))) == pytest.approx(1.0, abs=1e-6) and float(srgb_decode(torch.tensor(-1.0))) == 0.0
+    assert float(srgb_encode(torch.tensor(3.0))) == pytest.approx(1.0, abs=1e-6)
+    assert float(srgb_decode(torch.tensor(-1.0))) == 0.0
 
 
 @pytest.mark.parametrize("fn", [srgb_encode_unbounded, srgb_decode_unbounded])

@@ -10,9 +10,10 @@ image) and applied to the rasterized linear colour::
 They absorb what is not the scene: lens glare (an additive veil, B) and sensor/vignetting gain (E).
 Novel views render without them, or with a chosen camera's.
 
-The FFT zero-padding upsample of an ``h × w`` grid to ``H × W`` is linear and separable, so it equals
-``U_H · g · U_Wᵀ`` with fixed matrices ``U_H [H, h]`` and ``U_W [W, w]``: :func:`upsample_grid`
-uses that (two small matmuls, ~10x cheaper than FFTs at 1080p, with a trivial backward);
+The FFT zero-padding upsample of an ``h × w`` grid to ``H × W`` is linear and separable, so it
+equals ``U_H · g · U_Wᵀ`` with fixed matrices ``U_H [H, h]`` and ``U_W [W, w]``:
+:func:`upsample_grid` uses that (two small matmuls, ~10x cheaper than FFTs at 1080p, with a trivial
+backward);
 :func:`fft_upsample` is the FFT form, kept as the reference the matrices are tested against.
 Periodicity means the right edge of the image interpolates towards the left edge (and bottom to
 top), a property of the paper's FFT upsampling that we keep.

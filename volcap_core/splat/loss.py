@@ -10,8 +10,8 @@ perceptually spaced values the paper trains on, HDR values included (65504 -> ~1
 
 SSIM is Wang et al.'s with an 11×11 Gaussian window (σ = 1.5), population statistics,
 C1 = (0.01 L)², C2 = (0.03 L)². ``padding="valid"`` reproduces scikit-image's
-``structural_similarity(gaussian_weights=True, sigma=1.5, use_sample_covariance=False)`` and kornia's
-``ssim(..., padding="valid")``; ``padding="same"`` zero-pads like 3DGS's training loss.
+``structural_similarity(gaussian_weights=True, sigma=1.5, use_sample_covariance=False)`` and
+kornia's ``ssim(..., padding="valid")``; ``padding="same"`` zero-pads like 3DGS's training loss.
 """
 
 from __future__ import annotations
@@ -67,7 +67,8 @@ def ssim(x: torch.Tensor, y: torch.Tensor, *, data_range: float = 1.0, window_si
     var_b = blur(b * b) - mu_b * mu_b
     cov = blur(a * b) - mu_a * mu_b
     c1, c2 = (0.01 * data_range) ** 2, (0.03 * data_range) ** 2
-    s = ((2 * mu_a * mu_b + c1) * (2 * cov + c2)) / ((mu_a ** 2 + mu_b ** 2 + c1) * (var_a + var_b + c2))
+    num = (2 * mu_a * mu_b + c1) * (2 * cov + c2)
+    s = num / ((mu_a ** 2 + mu_b ** 2 + c1) * (var_a + var_b + c2))
     if reduction == "mean":
         return s.mean()
     h2, w2 = s.shape[-2:]

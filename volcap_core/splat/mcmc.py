@@ -12,7 +12,8 @@ What it does, with the defaults of :class:`MCMCConfig` (gsplat's ``MCMCStrategy`
   opacity, t0, SH) are copied; the Adam moments of the source and the destinations are reset.
 * **Growth** at the same steps: ``grow_rate`` = 5% more Gaussians, sampled the same way, up to
   ``cap_max``.
-* **SGLD noise** after every optimiser step: ``Δμ_0 = lr_μ · noise_lr · σ(-100 (o_0 - 0.005)) · Σ η``
+* **SGLD noise** after every optimiser step:
+  ``Δμ_0 = lr_μ · noise_lr · σ(-100 (o_0 - 0.005)) · Σ η``
   with ``Σ = R diag(s_0)² Rᵀ``, ``η ~ N(0, I)``, ``noise_lr = 5e5``: nearly transparent Gaussians
   explore, opaque ones stay put.
 * **Regularisers** added to the loss: ``opacity_reg · mean(o_0) + scale_reg · mean(exp(s_0))``,
@@ -128,7 +129,7 @@ def relocate_dead(model: Poly4DGS, adam: AdamState | None, cfg: MCMCConfig,
     dead_idx = torch.nonzero(dead).squeeze(1)
     sampled = _sample_by_opacity(o0, torch.nonzero(~dead).squeeze(1), n_dead, generator)
     _split_into(model, sampled, cfg)
-    for name, t in p.items():
+    for t in p.values():
         t[dead_idx] = t[sampled]
     if adam is not None:
         for moments in (adam.exp_avg, adam.exp_avg_sq):

@@ -200,7 +200,7 @@ def _forward_terms(coef: torch.Tensor, monomials: torch.Tensor):
     in front of each fragment). In-place ops throughout: each pass over the pairs costs ~1 ns each.
     """
     # clamp before exp: far pixels have ln o - σ of -100s, whose exp is a float32 denormal, and
-    # denormal arithmetic is ~10x slower on x86 (anything below e^-20 is skipped as α < 1/255 anyway)
+    # denormal arithmetic is ~10x slower on x86 (below e^-20 it is skipped as α < 1/255 anyway)
     alpha = torch.matmul(monomials, coef).clamp_(min=-20.0).exp_()  # o·exp(-σ), [T, P, K]
     alpha.clamp_(max=ALPHA_MAX)
     F.threshold_(alpha, ALPHA_THRESHOLD - 1e-12, 0.0)         # skip α < 1/255
@@ -358,7 +358,8 @@ def rasterize_tiles(means2d: torch.Tensor, conics: torch.Tensor, opacities: torc
     base = torch.zeros(n_tiles, P, D + 1, device=device, dtype=dtype)
     if outs:
         base = base.index_copy(0, torch.cat(out_tiles), torch.cat(outs))
-    img = base.reshape(th, tw, ts, ts, D + 1).permute(0, 2, 1, 3, 4).reshape(th * ts, tw * ts, D + 1)
+    img = base.reshape(th, tw, ts, ts, D + 1).permute(0, 2, 1, 3, 4)
+    img = img.reshape(th * ts, tw * ts, D + 1)
     img = img[:height, :width]
     if stats is not None:
         stats.pairs += total_pairs

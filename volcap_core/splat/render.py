@@ -1,6 +1,6 @@
 """Render 3D Gaussians into a camera: THE entry point, one function, two back-ends.
 
-    out = render(gaussians, camera)          # {"rgb": [H,W,3] linear, "alpha": [H,W,1], "depth": [H,W,1]}
+    out = render(gaussians, camera)   # {"rgb": [H,W,3] linear, "alpha": [H,W,1], "depth": [H,W,1]}
 
 Colour path (paper eq. 1): each Gaussian's SH is evaluated at the direction from the camera
 centre, giving an *unbounded sRGB* colour; that is linearised with

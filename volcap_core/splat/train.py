@@ -27,6 +27,7 @@ import json
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 import torch
@@ -194,7 +195,7 @@ class TrainConfig(BaseModel):
     eval_fit_steps: int = Field(100, ge=0)
     eval_fit_lr: float = 1e-2
     eval_max_views: int = Field(24, gt=0)
-    backend: str = "auto"
+    backend: Literal["auto", "gsplat", "torch"] = "auto"
     tile_size: int = Field(8, ge=1)
 
 
