@@ -8,8 +8,12 @@ import numpy as np
 import pytest
 import torch
 
-from volcap_core.colour import (srgb_decode, srgb_decode_unbounded, srgb_encode,
-                                srgb_encode_unbounded)
+from volcap_core.colour import (
+    srgb_decode,
+    srgb_decode_unbounded,
+    srgb_encode,
+    srgb_encode_unbounded,
+)
 
 REF = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "reference" / \
     "srgb_colour_science_reference.json"

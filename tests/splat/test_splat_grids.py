@@ -6,8 +6,14 @@ import pytest
 import scipy.signal
 import torch
 
-from volcap_core.splat.grids import (ExposureGrids, apply_grids, black_level_regulariser,
-                                     exposure_regulariser, fft_upsample, upsample_grid)
+from volcap_core.splat.grids import (
+    ExposureGrids,
+    apply_grids,
+    black_level_regulariser,
+    exposure_regulariser,
+    fft_upsample,
+    upsample_grid,
+)
 
 
 @pytest.mark.parametrize("H,W", [(64, 96), (45, 77), (32, 32), (20, 50), (1080 // 8, 1920 // 8)])

@@ -5,8 +5,14 @@ import math
 import pytest
 import torch
 
-from volcap_core.splat.mcmc import (MCMCConfig, add_gaussians, inject_noise, mcmc_regulariser,
-                                    relocate_dead, relocation_opacity_scale)
+from volcap_core.splat.mcmc import (
+    MCMCConfig,
+    add_gaussians,
+    inject_noise,
+    mcmc_regulariser,
+    relocate_dead,
+    relocation_opacity_scale,
+)
 from volcap_core.splat.model import Poly4DGS, Poly4DGSConfig
 from volcap_core.splat.optim import AdamState
 

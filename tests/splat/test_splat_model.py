@@ -5,8 +5,14 @@ import math
 import pytest
 import torch
 
-from volcap_core.splat.model import (Poly4DGS, Poly4DGSConfig, evaluate, load_model,
-                                     opacity_envelope, save_model)
+from volcap_core.splat.model import (
+    Poly4DGS,
+    Poly4DGSConfig,
+    evaluate,
+    load_model,
+    opacity_envelope,
+    save_model,
+)
 
 
 def _model(config, n=5, seed=0):

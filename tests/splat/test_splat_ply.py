@@ -1,11 +1,17 @@
 """PLY export in the standard 3DGS layout."""
 
+import sys
+from pathlib import Path
+
 import numpy as np
 import torch
 
-from _splat_scenes import random_gaussians
-from volcap_core.splat.model import Poly4DGS, Poly4DGSConfig
-from volcap_core.splat.ply import export_ply, gaussians_to_ply, read_ply
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _splat_scenes, any import mode
+
+from _splat_scenes import random_gaussians  # noqa: E402
+
+from volcap_core.splat.model import Poly4DGS, Poly4DGSConfig  # noqa: E402
+from volcap_core.splat.ply import export_ply, gaussians_to_ply, read_ply  # noqa: E402
 
 
 def test_header_layout_and_binary_body():

@@ -1,17 +1,22 @@
 """The CPU rasterizer against an independent brute-force renderer, finite differences, culling."""
 
 import math
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
-from _splat_scenes import random_gaussians, ring_cameras
-from volcap_core.colour import srgb_decode_unbounded
-from volcap_core.splat.camera import Camera, look_at
-from volcap_core.splat.model import Gaussians3D
-from volcap_core.splat.render import gsplat_available, render
-from volcap_core.splat.sh import sh_to_colour
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _splat_scenes, any import mode
+
+from _splat_scenes import random_gaussians, ring_cameras  # noqa: E402
+
+from volcap_core.colour import srgb_decode_unbounded  # noqa: E402
+from volcap_core.splat.camera import Camera, look_at  # noqa: E402
+from volcap_core.splat.model import Gaussians3D  # noqa: E402
+from volcap_core.splat.render import gsplat_available, render  # noqa: E402
+from volcap_core.splat.sh import sh_to_colour  # noqa: E402
 
 
 def brute_force(g: Gaussians3D, cam: Camera, background=(0.0, 0.0, 0.0)):

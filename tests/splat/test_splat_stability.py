@@ -3,16 +3,21 @@ model slice -> render -> exposure/black grids -> loss -> backward. Each guard is
 docs/poly4dgs.md ("Numerical guards")."""
 
 import math
+import sys
+from pathlib import Path
 
 import pytest
 import torch
 
-from _splat_scenes import ring_cameras
-from volcap_core.splat.grids import apply_grids
-from volcap_core.splat.loss import grid_regularisers, reconstruction_loss
-from volcap_core.splat.mcmc import MCMCConfig, inject_noise, mcmc_regulariser
-from volcap_core.splat.model import Poly4DGS, Poly4DGSConfig, evaluate
-from volcap_core.splat.render import render
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _splat_scenes, any import mode
+
+from _splat_scenes import ring_cameras  # noqa: E402
+
+from volcap_core.splat.grids import apply_grids  # noqa: E402
+from volcap_core.splat.loss import grid_regularisers, reconstruction_loss  # noqa: E402
+from volcap_core.splat.mcmc import MCMCConfig, inject_noise, mcmc_regulariser  # noqa: E402
+from volcap_core.splat.model import Poly4DGS, Poly4DGSConfig, evaluate  # noqa: E402
+from volcap_core.splat.render import render  # noqa: E402
 
 CAM = ring_cameras(1, size=16)[0]
 

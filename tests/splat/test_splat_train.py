@@ -2,14 +2,19 @@
 and resumes bit-exactly."""
 
 import math
+import sys
+from pathlib import Path
 
 import pytest
 import torch
 from safetensors.torch import load as st_load
 
-from _splat_scenes import moving_scene, single_thread  # noqa: F401  (fixture)
-from volcap_core.splat.model import Poly4DGSConfig
-from volcap_core.splat.train import SegmentData, TrainConfig, View, train_segment
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _splat_scenes, any import mode
+
+from _splat_scenes import moving_scene, single_thread  # noqa: E402, F401  (fixture)
+
+from volcap_core.splat.model import Poly4DGSConfig  # noqa: E402
+from volcap_core.splat.train import SegmentData, TrainConfig, View, train_segment  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("single_thread")
 

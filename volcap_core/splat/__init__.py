@@ -15,12 +15,25 @@ Modules, one concern each (see ``docs/poly4dgs.md``):
 
 from volcap_core.splat.camera import Camera, look_at
 from volcap_core.splat.grids import ExposureGrids, apply_grids
-from volcap_core.splat.model import (Gaussians3D, Poly4DGS, Poly4DGSConfig, evaluate, load_model,
-                                     save_model)
+from volcap_core.splat.model import (
+                                     Gaussians3D,
+                                     Poly4DGS,
+                                     Poly4DGSConfig,
+                                     evaluate,
+                                     load_model,
+                                     save_model,
+)
 from volcap_core.splat.ply import export_ply
 from volcap_core.splat.render import render
-from volcap_core.splat.train import (EvalPoint, PointsAtTime, SegmentData, TrainConfig,
-                                     TrainResult, View, train_segment)
+from volcap_core.splat.train import (
+                                     EvalPoint,
+                                     PointsAtTime,
+                                     SegmentData,
+                                     TrainConfig,
+                                     TrainResult,
+                                     View,
+                                     train_segment,
+)
 
 __all__ = [
     "Camera", "EvalPoint", "ExposureGrids", "Gaussians3D", "PointsAtTime", "Poly4DGS",

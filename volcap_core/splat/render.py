@@ -27,7 +27,12 @@ import torch
 from volcap_core.colour import srgb_decode_unbounded
 from volcap_core.splat.camera import Camera
 from volcap_core.splat.model import Gaussians3D
-from volcap_core.splat.rasterize import EPS2D, TileStats, project_gaussians, rasterize_tiles
+from volcap_core.splat.rasterize import (
+    EPS2D,
+    TileStats,
+    project_gaussians,
+    rasterize_tiles,
+)
 from volcap_core.splat.sh import sh_to_colour
 
 __all__ = ["Backend", "gsplat_available", "gaussian_colours", "render"]

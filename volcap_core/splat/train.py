@@ -38,9 +38,18 @@ from safetensors.torch import save as st_save
 from volcap_core.colour import srgb_encode_unbounded
 from volcap_core.splat.camera import Camera
 from volcap_core.splat.grids import ExposureGrids, apply_grids
-from volcap_core.splat.loss import display_metrics, grid_regularisers, reconstruction_loss
-from volcap_core.splat.mcmc import (MCMCConfig, add_gaussians, inject_noise, mcmc_regulariser,
-                                    relocate_dead)
+from volcap_core.splat.loss import (
+    display_metrics,
+    grid_regularisers,
+    reconstruction_loss,
+)
+from volcap_core.splat.mcmc import (
+    MCMCConfig,
+    add_gaussians,
+    inject_noise,
+    mcmc_regulariser,
+    relocate_dead,
+)
 from volcap_core.splat.model import Poly4DGS, Poly4DGSConfig, evaluate
 from volcap_core.splat.optim import AdamState, adam_step, exponential_lr
 from volcap_core.splat.render import render
