@@ -44,33 +44,28 @@ class RunSummary:
                 "flow_run_id": self.flow_run_id, "state": self.state}
 
 
-def count_task_runs(flow_run_id: UUID | str) -> tuple[int, int, int]:
-    """(run, cached, failed) over the flow run and its sub-flow runs."""
+def flow_run_family(flow_run_id: UUID | str) -> list[UUID]:
+    """The flow run and its sub-flow runs, any depth (flow runs are created synchronously)."""
     from prefect.client.orchestration import get_client
-    from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId, FlowRunFilterParentFlowRunId
+    from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterParentFlowRunId
 
+    ids = [UUID(str(flow_run_id))]
     with get_client(sync_client=True) as client:
-        ids = [UUID(str(flow_run_id))]
-        subflow_calls: set[UUID] = set()  # the parent's stand-in task run of each sub-flow
         frontier = list(ids)
-        while frontier:  # sub-flows, any depth
+        while frontier:
             children = client.read_flow_runs(
                 flow_run_filter=FlowRunFilter(parent_flow_run_id=FlowRunFilterParentFlowRunId(any_=frontier)))
             frontier = [c.id for c in children if c.id not in ids]
-            subflow_calls.update(c.parent_task_run_id for c in children if c.parent_task_run_id)
             ids.extend(frontier)
-        runs = client.read_task_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=ids)))
-    run = cached = failed = 0
-    for tr in runs:
-        if tr.state is None or tr.id in subflow_calls:
-            continue
-        if tr.state.name == "Cached":
-            cached += 1
-        elif tr.state.is_completed():
-            run += 1
-        elif tr.state.is_failed() or tr.state.is_crashed():
-            failed += 1
-    return run, cached, failed
+    return ids
+
+
+def count_task_runs(flow_run_id: UUID | str) -> tuple[int, int, int]:
+    """(run, cached, failed) volcap task runs of the flow run and its sub-flows, in this process."""
+    from tasks.contract import tally_for
+
+    counts = tally_for(flow_run_family(flow_run_id))
+    return counts["run"], counts["cached"], counts["failed"]
 
 
 def run_flow(flow: Any, **parameters: Any) -> RunSummary:

@@ -34,6 +34,8 @@ from __future__ import annotations
 import functools
 import inspect
 import json
+import logging
+import threading
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import PurePosixPath
@@ -206,6 +208,45 @@ class StoreCachePolicy(CachePolicy):
 
 
 # ---------------------------------------------------------------------------------------------
+# Tally of finished task runs (for the one-line summary)
+# ---------------------------------------------------------------------------------------------
+
+# Prefect records task-run states from events, asynchronously: reading them back from the API right
+# after a flow returns can miss the last few. Hooks run in the task's own engine, synchronously, so
+# the tally of this process is exact the moment the flow returns.
+_TALLY: list[tuple[str, str]] = []  # (flow_run_id, "run" | "cached" | "failed")
+_TALLY_LOCK = threading.Lock()
+_HOOK_NAME = "_volcap_tally"
+
+
+def _volcap_tally(task: Any, task_run: Any, state: Any) -> None:
+    outcome = "cached" if state.name == "Cached" else "run" if state.is_completed() else "failed"
+    with _TALLY_LOCK:
+        _TALLY.append((str(task_run.flow_run_id), outcome))
+
+
+def tally_for(flow_run_ids: Iterable[str]) -> dict[str, int]:
+    """Counts of finished volcap task runs of these flow runs seen by this process."""
+    ids = {str(i) for i in flow_run_ids}
+    counts = {"run": 0, "cached": 0, "failed": 0}
+    with _TALLY_LOCK:
+        for fr, outcome in _TALLY:
+            if fr in ids:
+                counts[outcome] += 1
+    return counts
+
+
+class _QuietTallyHook(logging.Filter):
+    """Prefect logs every hook call at INFO; the tally hook is bookkeeping, not news."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        return _HOOK_NAME not in record.getMessage()
+
+
+logging.getLogger("prefect.task_runs").addFilter(_QuietTallyHook())
+
+
+# ---------------------------------------------------------------------------------------------
 # The decorator
 # ---------------------------------------------------------------------------------------------
 
@@ -243,6 +284,8 @@ def volcap_task(*, name: str, version: str, locations: tuple[str, ...] = (),
             retry_delay_seconds=retry_delay_seconds,
             tags=list(tags),
             timeout_seconds=timeout_seconds,
+            on_completion=[_volcap_tally],
+            on_failure=[_volcap_tally],
         )
 
     return decorate
