@@ -121,7 +121,9 @@ class SegmentData:
             fps: capture frame rate; a frame's time is ``index / fps`` seconds.
             load_image: ``(camera_id, take_index) -> [H, W, 3|4]`` linear image.
             camera_for: ``(camera_id, take_index) -> Camera``.
-            lazy: defer ``load_image`` until a view is used (default), else load now.
+            lazy: defer ``load_image`` until a view is used (default), else load now. A lazy
+                loader runs every time its view is drawn: cache inside it (e.g. an LRU of decoded
+                frames) when decoding is expensive.
         """
         a, b = frames
         if not 0 <= a < b:
