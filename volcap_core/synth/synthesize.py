@@ -1,0 +1,330 @@
+"""Write complete synthetic capture folders (layout of ``volcap_core.capture``) with ground truth."""
+
+from __future__ import annotations
+
+import math
+import shutil
+import zlib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Sequence
+
+import numpy as np
+
+from hardware.rig import CameraRole, Rig, RigCamera, load_rig
+from volcap_core.capture import (CameraSource, CaptureDescription, Encoding, LensSample, Take,
+                                 frames_to_timecode, timecode_to_frames)
+from volcap_core.synth import io as sio
+from volcap_core.synth.actors import Actor
+from volcap_core.synth.geometry import PinholeCamera, look_at_rotation
+from volcap_core.synth.render import World, background, render
+from volcap_core.synth.sensor import EncoderModel, SensorModel, smooth_zoom
+from volcap_core.synth.stage import build_face_stage, build_room_stage
+
+TAKE_START = "01:00:00:00"
+FRAMES_DIR = "frames"
+GT_DIR = "ground_truth"
+Progress = Callable[[int, int], None]
+
+
+def _rng(seed: int, *keys) -> np.random.Generator:
+    """An independent stream per (seed, purpose...): adding a camera never changes another's noise."""
+    ints = [int(seed)] + [k if isinstance(k, int) else zlib.crc32(str(k).encode()) for k in keys]
+    return np.random.default_rng(ints)
+
+
+# --------------------------------------------------------------------------- cameras over time
+
+@dataclass
+class CameraPlan:
+    cam: RigCamera
+    pre_roll: int                  # frames recorded before the take start
+    sensor: SensorModel
+    encoder: EncoderModel | None
+    position: np.ndarray           # true optical centre (fixed)
+    cx: float
+    cy: float
+    static: PinholeCamera | None = None
+    static_focal_mm: float = 0.0
+    actor: int = 0
+    mode: str = "head"             # head | full | upper | lower
+    extent_m: float = 0.55
+    lag_s: float = 0.06
+    zoom_period_s: float = 3.0
+    zoom_phase: float = 0.0
+    wobble: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+
+    @property
+    def tracks(self) -> bool:
+        return self.static is None
+
+
+MODE_TARGET = {"full": (0.95, 2.3), "upper": (1.3, 1.1), "lower": (0.5, 1.15)}
+
+
+def _target(world: World, actor: int, mode: str, t: float) -> np.ndarray:
+    a = world.actors[actor]
+    if mode == "head":
+        return a.head(t)[0]
+    root, _ = a.root(t)
+    return root + np.array([0.0, 0.0, MODE_TARGET[mode][0] * a.scale])
+
+
+def camera_at(plan: CameraPlan, world: World, t: float) -> tuple[PinholeCamera, float, float]:
+    """The true camera at time t, its focal length (mm) and focus distance (m)."""
+    s = plan.cam.sensor
+    if not plan.tracks:
+        tgt = _target(world, 0, "head", t) if world.actors else plan.position + plan.static.R[2]
+        return plan.static, plan.static_focal_mm, float(np.linalg.norm(tgt - plan.position))
+    target = _target(world, plan.actor, plan.mode, t)
+    aim = _target(world, plan.actor, plan.mode, t - plan.lag_s)
+    dist = float(np.linalg.norm(aim - plan.position))
+    # small smooth servo error, perpendicular to the line of sight
+    R0 = look_at_rotation(plan.position, aim)
+    w1, w2, p1, p2 = plan.wobble
+    err = 0.006 * dist * (math.sin(2 * math.pi * w1 * t + p1) * R0[0] + math.sin(2 * math.pi * w2 * t + p2) * R0[1])
+    R = look_at_rotation(plan.position, aim + err)
+    f_mm = s.height_mm * dist / plan.extent_m * smooth_zoom(t, plan.zoom_period_s, plan.zoom_phase)
+    f_mm = float(np.clip(f_mm, plan.cam.lens.focal_min_mm, plan.cam.lens.focal_max_mm))
+    f_px = s.focal_px(f_mm)
+    cam = PinholeCamera(s.width_px, s.height_px, f_px, f_px, plan.cx, plan.cy, R, -R @ plan.position)
+    return cam, f_mm, float(np.linalg.norm(target - plan.position))
+
+
+def _plans(rig: Rig, seed: int, actor_centres: list[tuple[float, float]], cameras: Sequence[str] | None
+           ) -> list[CameraPlan]:
+    n_actors = len(actor_centres)
+    chosen = [c for c in rig.cameras if cameras is None or c.id in cameras]
+    if cameras is not None and len(chosen) != len(set(cameras)):
+        missing = sorted(set(cameras) - {c.id for c in chosen})
+        raise ValueError(f"rig {rig.name} has no camera(s) {missing}")
+    # one static and one tracking camera (when there are) start a few frames before the take
+    pre: dict[str, int] = {}
+    r = _rng(seed, "pre-roll")
+    statics = [c.id for c in chosen if not c.role.tracks]
+    trackers = [c.id for c in chosen if c.role.tracks]
+    for group in (statics, trackers):
+        if group and len(chosen) > 1:
+            pre[group[int(r.integers(len(group)))]] = int(r.integers(2, 5))
+    plans = []
+    n_portrait = 0
+    for cam in chosen:
+        r = _rng(seed, "camera", cam.id)
+        s = cam.sensor
+        pos = np.asarray(cam.mount.position_m) + r.normal(0, 0.015, 3)
+        cx = (s.width_px - 1) / 2 + r.normal(0, 0.003 * s.width_px)
+        cy = (s.height_px - 1) / 2 + r.normal(0, 0.003 * s.height_px)
+        sensor = SensorModel.random(_rng(seed, "sensor", cam.id), zoom=cam.role.tracks)
+        plan = CameraPlan(cam, pre.get(cam.id, 0), sensor, None, pos, float(cx), float(cy))
+        if cam.role is CameraRole.static:
+            look = np.asarray(cam.mount.look_at_m)
+            look = look + r.normal(0, 0.005 * np.linalg.norm(look - pos), 3)
+            f_mm = float(np.clip(cam.nominal_focal_mm * (1 + r.normal(0, 0.01)),
+                                 cam.lens.focal_min_mm, cam.lens.focal_max_mm))
+            f_px = s.focal_px(f_mm)
+            plan.static = PinholeCamera.looking_at(s.width_px, s.height_px, f_px, f_px, cx, cy, pos, look,
+                                                   cam.mount.roll_deg + r.normal(0, 0.3))
+            plan.static_focal_mm = f_mm
+        else:
+            if n_actors == 0:
+                raise ValueError(f"tracking camera {cam.id} needs an actor to follow")
+            plan.encoder = EncoderModel.random(_rng(seed, "encoder", cam.id), cam.lens.focal_min_mm)
+            # follow the actor whose walking loop is nearest; portrait cameras cycle through
+            # full-body, upper-body and lower-body framings
+            plan.actor = int(np.argmin([np.linalg.norm(np.asarray(c) - pos[:2]) for c in actor_centres]))
+            if cam.role is CameraRole.tracking_landscape:
+                plan.mode, plan.extent_m = "head", 0.55
+            else:
+                plan.mode = ("full", "upper", "lower")[n_portrait % 3]
+                plan.extent_m = MODE_TARGET[plan.mode][1]
+                n_portrait += 1
+            plan.lag_s = float(r.uniform(0.03, 0.09))
+            plan.zoom_period_s = float(r.uniform(2.0, 4.0))
+            plan.zoom_phase = float(r.uniform(0, 2 * math.pi))
+            plan.wobble = (float(r.uniform(0.3, 0.8)), float(r.uniform(0.3, 0.8)),
+                           float(r.uniform(0, 6.3)), float(r.uniform(0, 6.3)))
+        plans.append(plan)
+    return plans
+
+
+# --------------------------------------------------------------------------- actors
+
+def _scene_actors(rig: Rig, seed: int, n: int) -> list[Actor]:
+    sx, sy, _ = rig.stage_size_m
+    r0 = 0.3 * min(sx, sy)
+    actors = []
+    for i in range(n):
+        r = _rng(seed, "actor", i)
+        if n == 1:
+            centre, radii = (0.0, 0.0), (0.55 * r0, 0.45 * r0)
+        else:
+            ang = 2 * math.pi * i / n + math.pi / 2
+            centre = (0.65 * r0 * math.cos(ang), 0.65 * r0 * math.sin(ang))
+            radii = (0.38 * r0, 0.3 * r0)
+        actors.append(Actor.random(i, r, centre, radii, walking=True))
+    return actors
+
+
+def _face_actor(seed: int) -> Actor:
+    a = Actor.random(0, _rng(seed, "face-actor"), (0.0, 0.0), (0.0, 0.0), walking=False, expressive=1.6)
+    a.scale = 1.7 / 1.62 * float(_rng(seed, "face-scale").uniform(0.99, 1.01))
+    return a
+
+
+# --------------------------------------------------------------------------- the writer
+
+def _render_camera(plan: CameraPlan, world: World, fps: float, frames: int, seed: int, ss: int,
+                   cam_dir: Path, depth_dir: Path | None, tick) -> dict:
+    """Render and write all of one camera's frames; return its ground truth and encoder samples."""
+    cache = background(world, plan.static, ss) if not plan.tracks else None
+    bg_ss = 1   # moving cameras: the set at one sample per pixel (mip-filtered), actors at ss
+    gt_frames, samples = [], []
+    enc_rng = _rng(seed, "encoder-noise", plan.cam.id)
+    for n in range(plan.pre_roll + frames):
+        k = n - plan.pre_roll
+        t = k / fps
+        cam, f_mm, focus = camera_at(plan, world, t)
+        rad, depth = render(world, cam, t, ss, cache=cache, bg_ss=bg_ss, want_depth=depth_dir is not None)
+        img = plan.sensor.apply(rad, _rng(seed, "noise", plan.cam.id, n))
+        sio.write_exr(cam_dir / f"{n:06d}.exr", img)
+        if plan.encoder is not None:
+            fr, fo = plan.encoder.read(enc_rng, f_mm, focus)
+            samples.append(LensSample(frame=n, focal_mm=fr, focus_m=fo))
+        if k >= 0:
+            gt_frames.append({"take_index": k, "frame": n, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
+                              "cy": cam.cy, "focal_mm": f_mm, "focus_m": round(focus, 6),
+                              "world_to_camera": np.round(cam.world_to_camera, 9).tolist()})
+            if depth_dir is not None:
+                sio.write_exr(depth_dir / f"{k:06d}.exr", depth, half=False)
+        tick()
+    return {"frames": gt_frames, "samples": samples}
+
+
+def _synthesize(out_dir: Path, rig_name: str | Path, seed: int, frames: int, kind: str, n_actors: int,
+                ss: int, cameras: Sequence[str] | None, write_depth: bool, lidar_spacing_m: float,
+                progress: Progress | None, name: str | None) -> Path:
+    if frames < 1:
+        raise ValueError("frames must be >= 1")
+    if ss < 1:
+        raise ValueError("supersample must be >= 1")
+    rig = load_rig(rig_name)
+    if rig.kind != kind:
+        raise ValueError(f"rig {rig.name} is a {rig.kind} rig; this synthesizer needs a {kind} rig "
+                         f"(synthesize_{'face_' if rig.kind == 'face' else ''}capture renders it)")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    # a rerun into the same folder replaces what a previous synthesis wrote (and nothing else)
+    for old in (out_dir / "capture.json", out_dir / "rig.json"):
+        old.unlink(missing_ok=True)
+    for old in (out_dir / FRAMES_DIR, out_dir / GT_DIR):
+        if old.is_dir():
+            shutil.rmtree(old)
+    rig_ref = rig.name
+    if str(rig_name).endswith(".json") and Path(rig_name).exists():
+        shutil.copyfile(rig_name, out_dir / "rig.json")
+        rig_ref = "rig.json"
+    if kind == "face":
+        stage = build_face_stage(rig, _rng(seed, "stage"))
+        actors = [_face_actor(seed)]
+    else:
+        stage = build_room_stage(rig, _rng(seed, "stage"))
+        actors = _scene_actors(rig, seed, n_actors)
+    world = World(stage, actors)
+    plans = _plans(rig, seed, [a.path_centre for a in actors], cameras)
+    fps = rig.fps
+    total = sum(p.pre_roll + frames for p in plans)
+    done = 0
+
+    def tick():
+        nonlocal done
+        done += 1
+        if progress is not None:
+            progress(done, total)
+
+    gt_dir = out_dir / GT_DIR
+    gt_dir.mkdir(exist_ok=True)
+    take_tc = timecode_to_frames(TAKE_START, fps)
+    sources, gt_cams = [], {}
+    for plan in plans:
+        cid = plan.cam.id
+        cam_dir = out_dir / FRAMES_DIR / cid
+        cam_dir.mkdir(parents=True, exist_ok=True)
+        depth_dir = None
+        if write_depth:
+            depth_dir = gt_dir / "depth" / cid
+            depth_dir.mkdir(parents=True, exist_ok=True)
+        res = _render_camera(plan, world, fps, frames, seed, ss, cam_dir, depth_dir, tick)
+        sources.append(CameraSource(
+            id=cid, path=f"{FRAMES_DIR}/{cid}", start_timecode=frames_to_timecode(take_tc - plan.pre_roll, fps),
+            encoding=Encoding.linear, lens_encoder=res["samples"] or None))
+        gt_cams[cid] = {
+            "role": plan.cam.role.value, "width": plan.cam.sensor.width_px, "height": plan.cam.sensor.height_px,
+            "sensor_mm": [plan.cam.sensor.width_mm, plan.cam.sensor.height_mm],
+            "take_offset": -plan.pre_roll, "centre_m": np.round(plan.position, 9).tolist(),
+            "photometric": plan.sensor.to_json(),
+            "encoder": plan.encoder.to_json() if plan.encoder else None,
+            "tracking": ({"actor": plan.actor, "target": plan.mode, "framing_extent_m": plan.extent_m,
+                          "lag_s": plan.lag_s} if plan.tracks else None),
+            "frames": res["frames"]}
+    desc = CaptureDescription(
+        name=name or f"synth-{rig.name}-s{seed}", rig=rig_ref, fps=fps,
+        take=Take(start_timecode=TAKE_START, frame_count=frames), cameras=sources, ground_truth=GT_DIR)
+    # ground truth
+    sio.write_json(gt_dir / "cameras.json", {
+        "format": "volcap-synth-cameras/1",
+        "convention": "world: metres, z up, origin at the stage centre on the floor. world_to_camera: 4x4, "
+                      "OpenCV camera axes (x right, y down, z forward). Pixels: OpenCV, centre of the "
+                      "top-left pixel at (0, 0) (COLMAP: +0.5). Pinhole, no distortion. frames[i] is take "
+                      "index i; 'frame' is the camera's own frame number.",
+        "fps": fps, "take_start_timecode": TAKE_START, "frame_count": frames, "cameras": gt_cams})
+    scene_gt = {
+        "format": "volcap-synth-scene/1", "seed": seed, "rig": rig.name, "kind": kind,
+        "units": "metres, seconds; world z up, origin at the stage centre on the floor; colours linear Rec.709",
+        "stage": {"size_m": list(stage.stage_size_m), "set": stage.background.describe()},
+        "lighting": stage.lighting.to_json(), "emitters": stage.emitters,
+        "chart": stage.chart, "targets": stage.targets, "props": stage.props,
+        "actors": []}
+    for a in actors:
+        d = a.describe()
+        d["frames"] = []
+        for k in range(frames):
+            t = k / fps
+            root, yaw = a.root(t)
+            prims = a.pose(t)
+            head = next(p for p in prims if p.name == "head")
+            d["frames"].append({"take_index": k, "time_s": round(t, 6), "root_m": np.round(root, 6).tolist(),
+                                "yaw_rad": round(yaw, 6), "head_centre_m": np.round(head.centre, 6).tolist(),
+                                "head_rotation": np.round(head.R, 6).tolist(),
+                                "expression": {k2: round(v, 6) for k2, v in head.expression.items()},
+                                "parts": [p.to_json() for p in prims]})
+        scene_gt["actors"].append(d)
+    sio.write_json(gt_dir / "scene.json", scene_gt)
+    pts, nrm = stage.lidar(_rng(seed, "lidar"), lidar_spacing_m)
+    sio.write_ply(gt_dir / "lidar.ply", pts, nrm,
+                  comment="volcap synthetic lidar scan of the static set, world frame, metres")
+    sio.write_json(out_dir / "capture.json", desc.model_dump(mode="json", exclude_none=True))
+    return out_dir / "capture.json"
+
+
+def synthesize_capture(out_dir: Path, rig: str = "demo_scene", seed: int = 0, frames: int = 24, *,
+                       progress: Progress | None = None, actors: int = 2, supersample: int = 2,
+                       cameras: Sequence[str] | None = None, write_depth: bool = False,
+                       lidar_spacing_m: float = 0.05, name: str | None = None) -> Path:
+    """Render a Scene Rig capture of ``actors`` walking, talking actors; returns capture.json's path.
+
+    ``rig``: a built-in rig name or a rig JSON file (copied into the capture). ``cameras`` renders a
+    subset of the rig (tests). ``supersample``: ss x ss samples per pixel. Same arguments, same bytes.
+    """
+    if not 1 <= actors <= 3:
+        raise ValueError("actors must be 1, 2 or 3")
+    return _synthesize(Path(out_dir), rig, seed, frames, "scene", actors, supersample, cameras, write_depth,
+                       lidar_spacing_m, progress, name)
+
+
+def synthesize_face_capture(out_dir: Path, rig: str = "demo_face", seed: int = 0, frames: int = 48, *,
+                            progress: Progress | None = None, supersample: int = 2,
+                            cameras: Sequence[str] | None = None, write_depth: bool = False,
+                            lidar_spacing_m: float = 0.03, name: str | None = None) -> Path:
+    """Render a Face Rig capture: one actor's head making expressions; returns capture.json's path."""
+    return _synthesize(Path(out_dir), rig, seed, frames, "face", 1, supersample, cameras, write_depth,
+                       lidar_spacing_m, progress, name)
