@@ -1,0 +1,1 @@
+"""Camera calibration: static SfM, tracking-camera refinement, colour calibration, dense points."""
