@@ -1,0 +1,609 @@
+"""The production spec (YAML) and the planner that decides what it needs.
+
+A production spec names the captures, the rigs they come from, the actors, the shots to deliver
+and a quality preset (format and example in ``docs/production-spec.md``). :func:`load_spec`
+validates it with pydantic and reports every problem with its field path, the offending value and
+the YAML line. :func:`needed_steps` turns a spec into the list of :class:`Step` s it needs — and no
+more:
+
+- a capture no requested shot shows is not touched (unless it sets ``reconstruct: true``);
+- no tracking-camera calibration for a capture whose rig has no tracking cameras;
+- only the segments that the requested shots' frames fall into (with their blend neighbours);
+- no Face Rig work (face captures, face pairs, enhancer) unless a requested shot has
+  ``enhance: true``, and then only for the actors in those shots.
+
+Everything here is pure: no store, no Prefect. The flows layer maps each step kind to its flow or
+task and marks which steps are already cached (``volcap plan``).
+"""
+
+from __future__ import annotations
+
+import json
+import re
+from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
+
+from volcap_core.production._errors import format_validation_error
+from volcap_core.production.segments import (
+    DEFAULT_OVERLAP,
+    GIB,
+    SegmentBudget,
+    SegmentPlan,
+    plan_segments,
+)
+from volcap_core.production.shot import Shot, ShotError, load_shot
+from volcap_core.splat.model import Poly4DGSConfig
+
+__all__ = [
+    "PRESETS",
+    "SPEC_FORMAT",
+    "ActorSpec",
+    "CaptureInfo",
+    "CaptureSpec",
+    "ProductionSpec",
+    "QualityPreset",
+    "SpecError",
+    "Step",
+    "StepKind",
+    "capture_info_from_folder",
+    "load_spec",
+    "needed_steps",
+    "parse_spec",
+    "segment_plan_for",
+]
+
+SPEC_FORMAT = "volcap-production/1"
+NAME = r"^[A-Za-z0-9_.-]+$"
+
+
+class SpecError(ValueError):
+    """An invalid production spec; one line per problem (field path, message, value, YAML line)."""
+
+
+# ------------------------------------------------------------------------------------------------
+# Quality presets
+
+
+class QualityPreset(BaseModel):
+    """Every knob a quality level sets. Presets are in :data:`PRESETS`; a spec may override
+    single fields (``quality: {preset: production, train_steps: 20000}``)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    train_steps: int = Field(gt=0, description="Poly4DGS optimisation steps per segment")
+    gaussians_per_frame: int = Field(gt=0, description="Gaussians a segment needs per frame")
+    max_gaussians_per_segment: int | None = Field(None, gt=0)
+    gpu_memory_gb: float | None = Field(None, gt=0, description="GPU a segment must fit (GiB)")
+    max_segment_frames: int | None = Field(None, gt=0, description="cap on segment length")
+    overlap: int = Field(DEFAULT_OVERLAP, ge=0, description="frames shared by neighbours")
+    train_scale: float = Field(1.0, gt=0, le=1, description="training resolution / capture")
+    sh_degree: int = Field(3, ge=0, le=3)
+    face_subsequences: int = Field(60, gt=0, description="Face Rig sub-sequences per actor")
+    face_subsequence_frames: int = Field(8, gt=0)
+    face_camera_paths: int = Field(60, gt=0, description="camera paths per sub-sequence")
+    face_hq_gaussians_per_frame: int = Field(1_000_000, gt=0)
+    face_lq_gaussians: tuple[int, int] = (50_000, 200_000)
+    pair_resolution: int = Field(4096, gt=0, description="square LQ/HQ pair renders (px)")
+    enhancer_steps: int = Field(20_000, gt=0)
+
+    @model_validator(mode="after")
+    def _cap(self) -> "QualityPreset":
+        if self.max_gaussians_per_segment is None and self.gpu_memory_gb is None:
+            raise ValueError("set max_gaussians_per_segment or gpu_memory_gb (or both)")
+        lo, hi = self.face_lq_gaussians
+        if not 0 < lo <= hi:
+            raise ValueError(f"face_lq_gaussians must be 0 < low <= high, got {[lo, hi]}")
+        return self
+
+
+PRESETS: dict[str, QualityPreset] = {
+    # CI and laptops: a handful of steps on tiny segments
+    "test": QualityPreset(train_steps=50, gaussians_per_frame=500, max_gaussians_per_segment=8_000,
+                          max_segment_frames=8, overlap=2, train_scale=0.25, sh_degree=0,
+                          face_subsequences=2, face_subsequence_frames=4, face_camera_paths=2,
+                          face_hq_gaussians_per_frame=2_000, face_lq_gaussians=(200, 500),
+                          pair_resolution=128, enhancer_steps=20),
+    # dailies: half resolution, short training, one 24 GB GPU per segment
+    "preview": QualityPreset(train_steps=3_000, gaussians_per_frame=20_000, gpu_memory_gb=24,
+                             max_segment_frames=48, overlap=2, train_scale=0.5, sh_degree=1,
+                             face_subsequences=12, face_camera_paths=12,
+                             face_hq_gaussians_per_frame=250_000, face_lq_gaussians=(20_000, 50_000),
+                             pair_resolution=1024, enhancer_steps=2_000),
+    # final: the paper's settings, an 80 GB GPU per segment, at most 5 s (24 fps) per segment
+    "production": QualityPreset(train_steps=30_000, gaussians_per_frame=100_000, gpu_memory_gb=80,
+                                max_segment_frames=120, overlap=3, train_scale=1.0, sh_degree=3),
+}
+
+
+class QualitySelection(BaseModel):
+    """``quality: {preset: NAME, <field>: <override>...}``."""
+
+    model_config = ConfigDict(extra="allow", frozen=True)
+    preset: str
+
+
+# ------------------------------------------------------------------------------------------------
+# Spec models
+
+
+class CaptureSpec(BaseModel):
+    """A capture: a folder to ingest, or one already in the store (named ref or digest)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    folder: str | None = Field(None, description="capture folder with capture.json")
+    ref: str | None = Field(None, description="store ref name (captures/NAME) or blake3 digest")
+    rig: str | None = Field(None, description="a key of the spec's rigs")
+    frames: tuple[int, int] | None = Field(None, description="take indices [start, end) to use")
+    reconstruct: bool = Field(False, description="train every segment even if no shot needs it")
+
+    @model_validator(mode="after")
+    def _one_source(self) -> "CaptureSpec":
+        if (self.folder is None) == (self.ref is None):
+            raise ValueError("give exactly one of 'folder' and 'ref' "
+                             f"({'both' if self.folder else 'neither'} given)")
+        if self.frames is not None and not 0 <= self.frames[0] < self.frames[1]:
+            raise ValueError(f"frames must be [start, end) with 0 <= start < end, got "
+                             f"{list(self.frames)}")
+        return self
+
+
+class ActorSpec(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    name: str = Field(pattern=NAME)
+    captures: tuple[str, ...] = Field(min_length=1, description="scene captures the actor is in")
+    face_capture: str | None = Field(None, description="Face Rig capture for the enhancer")
+
+
+class ProductionSpec(BaseModel):
+    """A validated production spec (``docs/production-spec.md``)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    format: Literal["volcap-production/1"] = SPEC_FORMAT
+    name: str = Field(pattern=NAME)
+    store: str | None = Field(None, description="store URL shared by every worker")
+    quality: str | QualitySelection = "production"
+    rigs: dict[str, str] = Field(default_factory=dict,
+                                 description="name → built-in rig or rig JSON path")
+    captures: dict[str, CaptureSpec] = Field(min_length=1)
+    actors: tuple[ActorSpec, ...] = ()
+    shots: tuple[Shot, ...] = ()
+
+    @field_validator("store")
+    @classmethod
+    def _no_credentials(cls, v: str | None) -> str | None:
+        if v is not None and re.match(r"^[a-z][a-z0-9+.-]*://[^/@]*@", v):
+            raise ValueError("the store URL must not carry credentials: give them in the "
+                             "environment (AWS_ACCESS_KEY_ID, ...) or a Prefect block")
+        return v
+
+    @field_validator("captures", "rigs")
+    @classmethod
+    def _names(cls, v: dict) -> dict:
+        for name in v:
+            if not re.match(NAME, name):
+                raise ValueError(f"name {name!r} may only use letters, digits, '_', '.', '-'")
+        return v
+
+    @field_validator("shots", mode="before")
+    @classmethod
+    def _load_shot_files(cls, v: Any, info: ValidationInfo) -> Any:
+        if not isinstance(v, (list, tuple)):
+            return v
+        base = Path((info.context or {}).get("base_dir", "."))
+        out = []
+        for i, entry in enumerate(v):
+            if isinstance(entry, str):
+                try:
+                    out.append(load_shot(base / entry, where=entry))
+                except ShotError as exc:
+                    raise ValueError(f"shot file {i}: {exc}") from None
+            else:
+                out.append(entry)
+        return out
+
+    @model_validator(mode="after")
+    def _references(self) -> "ProductionSpec":
+        problems: list[str] = []
+        preset = self.quality if isinstance(self.quality, str) else self.quality.preset
+        where = "quality" if isinstance(self.quality, str) else "quality.preset"
+        if preset not in PRESETS:
+            problems.append(f"{where}: unknown preset {preset!r} (known: {', '.join(PRESETS)})")
+        elif not isinstance(self.quality, str):
+            try:
+                self.quality_preset()
+            except ValidationError as exc:
+                problems += [f"quality.{line}" for line in format_validation_error(exc)]
+        for name, cap in self.captures.items():
+            if cap.rig is not None and cap.rig not in self.rigs:
+                problems.append(f"captures.{name}.rig: {cap.rig!r} is not one of rigs "
+                                f"({', '.join(self.rigs) or 'none defined'})")
+        seen: set[str] = set()
+        for i, actor in enumerate(self.actors):
+            if actor.name in seen:
+                problems.append(f"actors[{i}].name: actor {actor.name!r} is listed twice")
+            seen.add(actor.name)
+            for j, c in enumerate(actor.captures):
+                if c not in self.captures:
+                    problems.append(f"actors[{i}].captures[{j}]: unknown capture {c!r} "
+                                    f"(known: {', '.join(self.captures)})")
+            if actor.face_capture is not None:
+                if actor.face_capture not in self.captures:
+                    problems.append(f"actors[{i}].face_capture: unknown capture "
+                                    f"{actor.face_capture!r} (known: {', '.join(self.captures)})")
+                elif actor.face_capture in actor.captures:
+                    problems.append(f"actors[{i}].face_capture: {actor.face_capture!r} is also one "
+                                    "of the actor's scene captures")
+        shot_names: set[str] = set()
+        for i, shot in enumerate(self.shots):
+            where = f"shots[{i}] ({shot.name})"
+            if shot.name in shot_names:
+                problems.append(f"{where}.name: shot {shot.name!r} is listed twice")
+            shot_names.add(shot.name)
+            if shot.performance not in self.captures:
+                problems.append(f"{where}.performance: unknown capture {shot.performance!r} "
+                                f"(known: {', '.join(self.captures)})")
+                continue
+            for a in shot.actors:
+                actor = self.actor(a)
+                if actor is None:
+                    problems.append(f"{where}.actors: unknown actor {a!r}")
+                elif shot.performance not in actor.captures:
+                    problems.append(f"{where}.actors: actor {a!r} is not in capture "
+                                    f"{shot.performance!r} (actors[{self.actors.index(actor)}]"
+                                    ".captures)")
+            if shot.enhance:
+                featured = self.shot_actors(shot)
+                if not featured:
+                    problems.append(f"{where}.enhance: true, but no actor is in capture "
+                                    f"{shot.performance!r}: nothing to enhance")
+                for actor in featured:
+                    if actor.face_capture is None:
+                        problems.append(
+                            f"{where}.enhance: true needs a face capture for actor {actor.name!r} "
+                            f"(actors[{self.actors.index(actor)}].face_capture is not set)")
+        if problems:
+            raise ValueError("\n".join(problems))
+        return self
+
+    # -- helpers ---------------------------------------------------------------------------------
+
+    def actor(self, name: str) -> ActorSpec | None:
+        return next((a for a in self.actors if a.name == name), None)
+
+    def shot(self, name: str) -> Shot:
+        for s in self.shots:
+            if s.name == name:
+                return s
+        raise KeyError(f"spec {self.name} has no shot {name!r} "
+                       f"(shots: {', '.join(s.name for s in self.shots)})")
+
+    def shot_actors(self, shot: Shot) -> list[ActorSpec]:
+        """The actors a shot features: its ``actors``, or every actor of its capture."""
+        if shot.actors:
+            return [a for a in self.actors if a.name in shot.actors]
+        return [a for a in self.actors if shot.performance in a.captures]
+
+    def quality_preset(self) -> QualityPreset:
+        """The preset with the spec's overrides applied."""
+        if isinstance(self.quality, str):
+            return PRESETS[self.quality]
+        base = PRESETS[self.quality.preset]
+        overrides = dict(self.quality.model_extra or {})
+        return QualityPreset.model_validate({**base.model_dump(), **overrides})
+
+
+def _yaml_line(text: str, loc: Sequence[int | str]) -> int | None:
+    """1-based line of the YAML node at ``loc`` (the deepest that exists)."""
+    try:
+        node = yaml.compose(text, Loader=yaml.SafeLoader)
+    except yaml.YAMLError:
+        return None
+    line = node.start_mark.line + 1 if node is not None else None
+    for part in loc:
+        if isinstance(node, yaml.MappingNode) and isinstance(part, str):
+            nxt = next((v for k, v in node.value if getattr(k, "value", None) == part), None)
+        elif isinstance(node, yaml.SequenceNode) and isinstance(part, int) and part < len(node.value):
+            nxt = node.value[part]
+        else:
+            nxt = None
+        if nxt is None:
+            break
+        node, line = nxt, nxt.start_mark.line + 1
+    return line
+
+
+_LOC_RE = re.compile(r"^([A-Za-z_][\w]*(?:\.[\w.-]+|\[\d+\])*)")
+
+
+def _loc_from_text(path: str) -> list[int | str]:
+    """``actors[1].captures[0]`` → ``['actors', 1, 'captures', 0]`` (best effort)."""
+    out: list[int | str] = []
+    for name, index in re.findall(r"([^.\[\]]+)|\[(\d+)\]", path):
+        out.append(int(index) if index else name)
+    return out
+
+
+def parse_spec(data: Mapping[str, Any], *, base_dir: str | Path = ".", text: str | None = None,
+               origin: str = "<spec>") -> ProductionSpec:
+    """Validate an already parsed spec. Shot file paths resolve against ``base_dir``."""
+    try:
+        return ProductionSpec.model_validate(dict(data), context={"base_dir": str(base_dir)})
+    except ValidationError as exc:
+        lines = []
+        for err, line in zip(exc.errors(), format_validation_error(exc)):
+            loc = tuple(err.get("loc", ()))
+            if loc:
+                ln = _yaml_line(text, loc) if text else None
+                lines.append(line + (f" [line {ln}]" if ln else ""))
+                continue
+            # whole-spec cross-reference checks: one problem per line, each starting with its path
+            for m in line.removeprefix("(top level): ").split("\n"):
+                path = _LOC_RE.match(m)
+                ln = _yaml_line(text, _loc_from_text(path.group(1))) if (text and path) else None
+                lines.append(m + (f" [line {ln}]" if ln else ""))
+        raise SpecError(f"{origin}: invalid production spec:\n  " + "\n  ".join(lines)) from None
+
+
+def load_spec(path: str | Path) -> ProductionSpec:
+    """Read and validate a production spec YAML file (shot paths relative to its folder).
+
+    Raises :class:`SpecError` with one line per problem: field path, message, value, YAML line."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise SpecError(f"{path}: spec file not found") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise SpecError(f"{path}: not valid YAML: {exc}") from None
+    if not isinstance(data, dict):
+        raise SpecError(f"{path}: a production spec is a YAML mapping, got {type(data).__name__}")
+    return parse_spec(data, base_dir=path.parent, text=text, origin=str(path))
+
+
+# ------------------------------------------------------------------------------------------------
+# Planning
+
+
+StepKind = Literal["ingest", "calibrate-static", "calibrate-tracking", "dense-points",
+                   "train-segment", "render-shot", "face-pairs", "train-enhancer", "enhance-shot"]
+STEP_KINDS: tuple[str, ...] = StepKind.__args__  # type: ignore[attr-defined]
+
+
+class Step(BaseModel):
+    """One unit of work of a plan. ``id`` is stable (``<kind>:<subject>``): the same spec and
+    capture facts always give the same ids, so a plan can be compared with the cache."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    kind: StepKind
+    id: str
+    inputs: tuple[str, ...] = ()
+    parameters: dict[str, Any] = Field(default_factory=dict)
+
+
+class CaptureInfo(BaseModel):
+    """What the planner must know about a capture before anything runs.
+
+    ``width``/``height``: the largest camera image (for the segment memory estimate).
+    ``segment_plan``: the plan to use; None plans from the spec's quality preset."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    has_tracking_cameras: bool
+    fps: float = Field(gt=0)
+    frame_count: int = Field(gt=0)
+    width: int = Field(3840, gt=0)
+    height: int = Field(2160, gt=0)
+    segment_plan: SegmentPlan | None = None
+
+    @classmethod
+    def from_capture(cls, capture, segment_plan: SegmentPlan | None = None) -> "CaptureInfo":
+        """From an ingested :class:`~volcap_core.capture.Capture` record."""
+        return cls(has_tracking_cameras=capture.rig.has_tracking_cameras, fps=capture.fps,
+                   frame_count=capture.frame_count,
+                   width=max(c.width for c in capture.cameras),
+                   height=max(c.height for c in capture.cameras), segment_plan=segment_plan)
+
+
+def capture_info_from_folder(folder: str | Path) -> CaptureInfo:
+    """From a capture folder's ``capture.json`` and its rig (nothing is ingested or decoded)."""
+    from hardware.rig import load_rig
+    from volcap_core.capture import CaptureDescription
+
+    folder = Path(folder)
+    try:
+        desc = CaptureDescription.model_validate(json.loads((folder / "capture.json").read_text()))
+    except FileNotFoundError:
+        raise ValueError(f"{folder}: no capture.json") from None
+    rig_file = folder / desc.rig
+    rig = load_rig(rig_file if rig_file.suffix == ".json" and rig_file.exists() else desc.rig)
+    listed = {c.id for c in desc.cameras}
+    cams = [c for c in rig.cameras if c.id in listed] or list(rig.cameras)
+    return CaptureInfo(has_tracking_cameras=any(c.role.tracks for c in cams), fps=desc.fps,
+                       frame_count=desc.take.frame_count,
+                       width=max(max(c.sensor.width_px, c.sensor.height_px) for c in cams),
+                       height=max(min(c.sensor.width_px, c.sensor.height_px) for c in cams))
+
+
+def segment_plan_for(spec: ProductionSpec, capture: str, info: CaptureInfo) -> SegmentPlan:
+    """The capture's segment plan: ``info.segment_plan``, or one from the quality preset."""
+    if info.segment_plan is not None:
+        return info.segment_plan
+    q = spec.quality_preset()
+    cap = spec.captures[capture]
+    frames = cap.frames or (0, info.frame_count)
+    if frames[1] > info.frame_count:
+        raise ValueError(f"captures.{capture}.frames: [{frames[0]}, {frames[1]}) reaches past the "
+                         f"take's {info.frame_count} frames")
+    budget = SegmentBudget(
+        gaussians_per_frame=q.gaussians_per_frame, max_gaussians=q.max_gaussians_per_segment,
+        gpu_memory_bytes=int(q.gpu_memory_gb * GIB) if q.gpu_memory_gb else None,
+        width=max(1, round(info.width * q.train_scale)),
+        height=max(1, round(info.height * q.train_scale)),
+        config=Poly4DGSConfig.paper(sh_degree=q.sh_degree))
+    return plan_segments(frames, budget, overlap=q.overlap, max_length=q.max_segment_frames)
+
+
+def _shot_take_frames(shot: Shot, fps: float) -> list[float]:
+    """Take positions (fractional take indices) of every frame of ``shot``."""
+    return [shot.time_at(f) * fps for f in shot.frame_numbers()]
+
+
+def needed_steps(spec: ProductionSpec, capture_info: Mapping[str, CaptureInfo], *,
+                 shots: Iterable[str] | None = None) -> list[Step]:
+    """The steps the spec needs, in dependency order (every step after its inputs).
+
+    Args:
+        spec: the validated spec.
+        capture_info: facts per capture name (:class:`CaptureInfo`); needed for every capture a
+            requested shot shows, every face capture of an actor in an enhanced shot, and every
+            capture with ``reconstruct: true``.
+        shots: names of the shots to deliver (default: all of the spec's).
+    Returns:
+        Steps with stable ids::
+
+            ingest:C  calibrate-static:C  calibrate-tracking:C  dense-points:C:SEG
+            train-segment:C:SEG  render-shot:S  face-pairs:A  train-enhancer:A1+A2  enhance-shot:S
+
+        (C capture, SEG ``aaaaaa-bbbbbb`` take indices, S shot, A actor). A capture given by
+        ``ref`` is already ingested: no ingest step, its ref is a parameter of its calibration.
+        One enhancer is trained on the face pairs of every actor in an enhanced shot (the paper
+        trains one model on all actors' pairs).
+    """
+    requested = [spec.shot(n) for n in shots] if shots is not None else list(spec.shots)
+    q = spec.quality_preset()
+
+    def info(capture: str, why: str) -> CaptureInfo:
+        if capture not in capture_info:
+            raise ValueError(f"no capture info for capture {capture!r} ({why})")
+        return capture_info[capture]
+
+    # which segments of which capture are needed, and by whom
+    needed_segments: dict[str, dict[str, Any]] = {}   # capture -> {seg id -> Segment}
+    shot_segments: dict[str, list[str]] = {}
+    plans: dict[str, SegmentPlan] = {}
+    for shot in requested:
+        cap = shot.performance
+        ci = info(cap, f"shown by shot {shot.name!r}")
+        plan = plans.setdefault(cap, segment_plan_for(spec, cap, ci))
+        try:
+            segs = plan.segments_for_frames(_shot_take_frames(shot, ci.fps))
+        except ValueError as exc:
+            raise ValueError(f"shot {shot.name!r} (frames [{shot.frames[0]}, {shot.frames[1]}) at "
+                             f"{shot.fps:g} fps, time offset {shot.time_offset_s:g} s) shows "
+                             f"times capture {cap!r} does not cover: {exc}") from None
+        bucket = needed_segments.setdefault(cap, {})
+        for s in segs:
+            bucket[s.id] = s
+        shot_segments[shot.name] = [f"train-segment:{cap}:{s.id}" for s in segs]
+    for cap, cs in sorted(spec.captures.items()):
+        if cs.reconstruct:
+            ci = info(cap, "reconstruct: true")
+            plan = plans.setdefault(cap, segment_plan_for(spec, cap, ci))
+            bucket = needed_segments.setdefault(cap, {})
+            for s in plan.segments:
+                bucket[s.id] = s
+
+    enhanced = [s for s in requested if s.enhance]
+    enhance_actors = sorted({a.name for s in enhanced for a in spec.shot_actors(s)})
+    face_captures = {a: spec.actor(a).face_capture for a in enhance_actors}
+
+    steps: list[Step] = []
+    calibrated: dict[str, str] = {}
+
+    def calibrate(cap: str, ci: CaptureInfo) -> str:
+        """Ingest + calibration steps of a capture (once); returns its final calibration's id."""
+        if cap in calibrated:
+            return calibrated[cap]
+        cs = spec.captures[cap]
+        src: dict[str, Any] = {"capture": cap}
+        inputs: tuple[str, ...] = ()
+        if cs.folder is not None:
+            steps.append(Step(kind="ingest", id=f"ingest:{cap}",
+                              parameters={"capture": cap, "folder": cs.folder}))
+            inputs = (f"ingest:{cap}",)
+        else:
+            src["capture_ref"] = cs.ref
+        rig = spec.rigs.get(cs.rig) if cs.rig else None
+        steps.append(Step(kind="calibrate-static", id=f"calibrate-static:{cap}", inputs=inputs,
+                          parameters={**src, "rig": rig}))
+        final = f"calibrate-static:{cap}"
+        if ci.has_tracking_cameras:
+            steps.append(Step(kind="calibrate-tracking", id=f"calibrate-tracking:{cap}",
+                              inputs=(*inputs, final), parameters=src))
+            final = f"calibrate-tracking:{cap}"
+        calibrated[cap] = final
+        return final
+
+    for cap in sorted(needed_segments):
+        ci = capture_info[cap]
+        calib = calibrate(cap, ci)
+        ingest = (f"ingest:{cap}",) if spec.captures[cap].folder is not None else ()
+        plan = plans[cap]
+        for seg in sorted(needed_segments[cap].values(), key=lambda s: s.index):
+            points = f"dense-points:{cap}:{seg.id}"
+            steps.append(Step(kind="dense-points", id=points, inputs=(*ingest, calib),
+                              parameters={"capture": cap, "frames": list(seg.frames)}))
+            steps.append(Step(
+                kind="train-segment", id=f"train-segment:{cap}:{seg.id}",
+                inputs=(*ingest, calib, points),
+                parameters={"capture": cap, "segment": seg.index, "frames": list(seg.frames),
+                            "core": list(seg.core), "overlap": plan.overlap,
+                            "gaussians": seg.gaussians, "memory_bytes": seg.memory_bytes,
+                            "train_steps": q.train_steps, "train_scale": q.train_scale,
+                            "sh_degree": q.sh_degree}))
+    for shot in requested:
+        steps.append(Step(kind="render-shot", id=f"render-shot:{shot.name}",
+                          inputs=tuple(shot_segments[shot.name]),
+                          parameters={"shot": shot.name, "capture": shot.performance,
+                                      "frames": list(shot.frames), "enhance": shot.enhance,
+                                      "shot_spec": shot.model_dump(mode="json")}))
+    if enhanced:
+        pair_ids = []
+        for actor in enhance_actors:
+            fc = face_captures[actor]
+            fci = info(fc, f"face capture of actor {actor!r}")
+            calib = calibrate(fc, fci)
+            ingest = (f"ingest:{fc}",) if spec.captures[fc].folder is not None else ()
+            pid = f"face-pairs:{actor}"
+            steps.append(Step(kind="face-pairs", id=pid, inputs=(*ingest, calib), parameters={
+                "actor": actor, "face_capture": fc,
+                "subsequences": q.face_subsequences,
+                "subsequence_frames": q.face_subsequence_frames,
+                "camera_paths": q.face_camera_paths,
+                "hq_gaussians_per_frame": q.face_hq_gaussians_per_frame,
+                "lq_gaussians": list(q.face_lq_gaussians),
+                "resolution": q.pair_resolution}))
+            pair_ids.append(pid)
+        enhancer = "train-enhancer:" + "+".join(enhance_actors)
+        steps.append(Step(kind="train-enhancer", id=enhancer, inputs=tuple(pair_ids),
+                          parameters={"actors": enhance_actors, "steps": q.enhancer_steps}))
+        for shot in enhanced:
+            steps.append(Step(kind="enhance-shot", id=f"enhance-shot:{shot.name}",
+                              inputs=(f"render-shot:{shot.name}", enhancer),
+                              parameters={"shot": shot.name,
+                                          "actors": [a.name for a in spec.shot_actors(shot)]}))
+    _check_order(steps)
+    return steps
+
+
+def _check_order(steps: Sequence[Step]) -> None:
+    seen: set[str] = set()
+    for s in steps:
+        if s.id in seen:
+            raise AssertionError(f"internal: step {s.id} planned twice")
+        missing = [i for i in s.inputs if i not in seen]
+        if missing:
+            raise AssertionError(f"internal: step {s.id} before its inputs {missing}")
+        seen.add(s.id)
