@@ -1,0 +1,63 @@
+#!/usr/bin/env bash
+# Start one volcap GPU worker per GPU of this machine (process work pool `gpu`), plus one
+# `control` worker for the production orchestrator when asked. Each GPU worker sees only its GPU
+# (CUDA_VISIBLE_DEVICES) and runs one flow run at a time, so a segment owns its GPU.
+#
+#   deploy/worker.sh                 # every GPU of this machine
+#   deploy/worker.sh --gpus 0,1      # these GPUs only
+#   deploy/worker.sh --control       # also the control-pool worker (run it on one machine)
+#
+# Needs, in the environment (never in a file of the repository):
+#   PREFECT_API_URL      http://<prefect-server>:4200/api
+#   VOLCAP_HOME          this machine's checkout of volcap (the deployments' pull step cds there)
+#   VOLCAP_STORE         the shared store, e.g. s3://studio-volcap/store
+#   AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY, AWS_DEFAULT_REGION [, AWS_ENDPOINT_URL]
+#                        store credentials (or a Prefect Secret block the flows read)
+# `volcap worker` is provided by the flows layer (flows/cli.py): a `prefect worker start` with
+# volcap's settings. Until it exists, VOLCAP_WORKER_CMD="prefect worker start" works the same.
+set -euo pipefail
+
+GPU_LIST=""
+CONTROL=0
+while [[ $# -gt 0 ]]; do
+  case "$1" in
+    --gpus) GPU_LIST="$2"; shift 2 ;;
+    --control) CONTROL=1; shift ;;
+    -h|--help) sed -n '2,21p' "$0"; exit 0 ;;
+    *) echo "unknown argument: $1 (see --help)" >&2; exit 2 ;;
+  esac
+done
+: "${PREFECT_API_URL:?set PREFECT_API_URL, e.g. http://prefect-server:4200/api}"
+: "${VOLCAP_HOME:?set VOLCAP_HOME to the volcap checkout on this machine}"
+WORKER=(${VOLCAP_WORKER_CMD:-volcap worker})
+export DO_NOT_TRACK=1 PREFECT_SERVER_ANALYTICS_ENABLED=false
+export PREFECT_FLOWS_HEARTBEAT_FREQUENCY="${PREFECT_FLOWS_HEARTBEAT_FREQUENCY:-60}"
+
+if [[ -z "$GPU_LIST" ]]; then
+  GPU_LIST=$(nvidia-smi --query-gpu=index --format=csv,noheader | paste -sd, -)
+fi
+IFS=, read -r -a GPUS <<< "$GPU_LIST"
+LOGDIR="${VOLCAP_WORKER_LOGS:-$VOLCAP_HOME/.volcap/workers}"
+mkdir -p "$LOGDIR"
+PIDS=()
+
+stop() { kill "${PIDS[@]}" 2>/dev/null || true; wait || true; }
+trap stop INT TERM EXIT
+
+for gpu in "${GPUS[@]}"; do
+  name="$(hostname -s)-gpu$gpu"
+  echo "starting $name (CUDA_VISIBLE_DEVICES=$gpu), log $LOGDIR/$name.log"
+  CUDA_VISIBLE_DEVICES="$gpu" "${WORKER[@]}" --pool gpu --name "$name" --limit 1 \
+    >"$LOGDIR/$name.log" 2>&1 &
+  PIDS+=("$!")
+done
+if [[ "$CONTROL" == 1 ]]; then
+  name="$(hostname -s)-control"
+  echo "starting $name (no GPU), log $LOGDIR/$name.log"
+  CUDA_VISIBLE_DEVICES="" "${WORKER[@]}" --pool control --name "$name" \
+    >"$LOGDIR/$name.log" 2>&1 &
+  PIDS+=("$!")
+fi
+# exit (and stop the others) as soon as one worker dies: a supervisor (systemd) restarts us
+wait -n
+echo "a worker exited; stopping the others" >&2
