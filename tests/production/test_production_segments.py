@@ -141,7 +141,7 @@ def test_blend_weights_partition_of_unity_and_continuity():
             assert max(abs(a - b) for a, b in zip(dense, prev)) <= 1.5 / 4 * 0.01 + 1e-9
         prev = dense
     # core frames are pure, every shared frame is blended
-    for i, (a, b) in enumerate(spans[:-1]):
+    for i, (_, b) in enumerate(spans[:-1]):
         a1 = spans[i + 1][0]
         for f in range(a1, b):
             assert len(blend_weights(spans, f)) == 2

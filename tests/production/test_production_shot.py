@@ -76,7 +76,8 @@ def test_look_at_keyframes_put_the_target_at_the_image_centre():
     assert (u, v) == pytest.approx((32.0, 18.0), abs=1e-4)
     # intrinsics from focal and sensor
     cam = camera_at(shot, 0)
-    assert float(cam.K[0, 0]) == pytest.approx(35 * 64 / 36) and float(cam.K[1, 1]) == pytest.approx(35 * 36 / 20.25)
+    assert float(cam.K[0, 0]) == pytest.approx(35 * 64 / 36)
+    assert float(cam.K[1, 1]) == pytest.approx(35 * 36 / 20.25)
     assert float(cam.K[0, 2]) == 32 and float(cam.K[1, 2]) == 18
     # up is up: a point above the target appears above the centre (smaller v)
     (_, v_up), _ = project(cam, (0.0, 0.0, 1.9))

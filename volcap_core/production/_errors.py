@@ -7,7 +7,14 @@ from typing import Any
 
 from pydantic import ValidationError
 
-__all__ = ["format_loc", "format_validation_error"]
+__all__ = ["clean_loc", "format_loc", "format_validation_error"]
+
+
+def clean_loc(loc: Sequence[int | str]) -> tuple[int | str, ...]:
+    """Drop the entries pydantic adds for validators and union members (``function-after[...]``,
+    ``str``...), leaving the path of fields and indices."""
+    return tuple(p for p in loc if not (isinstance(p, str) and (
+        "function-" in p or "[" in p or p in ("str", "int", "float", "Shot"))))
 
 
 def format_loc(loc: Sequence[int | str]) -> str:
@@ -35,11 +42,15 @@ def format_validation_error(exc: ValidationError, *,
     left out when it is a whole object (a model validator's message names what is wrong).
     """
     lines = []
-    for err in exc.errors():
+    errors = exc.errors()
+    for err in errors:
         loc = tuple(err.get("loc", ()))
-        # tagged unions and "function-after" validators add noise entries to the location
-        loc = tuple(p for p in loc if not (isinstance(p, str) and ("function-" in p or p in
-                                                                   ("str", "int", "float"))))
+        # a sequence whose item failed is also reported "too short" by pydantic: noise
+        if err.get("type") == "too_short" and any(
+                len(e.get("loc", ())) > len(loc) and tuple(e["loc"][:len(loc)]) == loc
+                for e in errors):
+            continue
+        loc = clean_loc(loc)
         where = describe_loc(loc) if describe_loc else format_loc(loc)
         msg = err.get("msg", "invalid")
         for prefix in ("Value error, ", "Assertion failed, "):

@@ -79,8 +79,9 @@ class Performance(Record):
         """The performance of a trained :class:`SegmentPlan` (one model per segment, in order)."""
         if len(models) != len(plan.segments):
             raise ValueError(f"{len(models)} models for {len(plan.segments)} planned segments")
-        return cls(name=name, capture=capture, fps=fps, segments=tuple(
-            SegmentModel(model=m, frames=s.frames, core=s.core) for s, m in zip(plan.segments, models)))
+        segments = tuple(SegmentModel(model=m, frames=s.frames, core=s.core)
+                         for s, m in zip(plan.segments, models, strict=True))
+        return cls(name=name, capture=capture, fps=fps, segments=segments)
 
     @property
     def frames(self) -> tuple[int, int]:

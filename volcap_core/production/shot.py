@@ -49,6 +49,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from volcap_core.production._errors import format_validation_error
+from volcap_core.production.performance import Performance, render_performance
 from volcap_core.records import ArtifactRef
 from volcap_core.splat.camera import Camera
 from volcap_core.splat.model import Poly4DGS
@@ -492,14 +493,14 @@ def encode_shot_exr(rgba: np.ndarray, camera: Camera, shot: Shot, frame: int, *,
     return out.getvalue()
 
 
-def render_shot_frame(shot: Shot, performance, load_model: Callable[[ArtifactRef], Poly4DGS],
-                      frame: int, *, backend: Backend = "auto",
-                      device: torch.device | str | None = None) -> bytes:
-    """Render shot frame ``frame`` of ``performance`` (a
-    :class:`~volcap_core.production.performance.Performance`) and encode it
-    (:func:`encode_shot_exr`): linear premultiplied RGBA, half float, cropped to the actors."""
-    from volcap_core.production.performance import render_performance
+def render_shot_frame(shot: Shot, performance: Performance,
+                      load_model: Callable[[ArtifactRef], Poly4DGS], frame: int, *,
+                      backend: Backend = "auto", device: torch.device | str | None = None) -> bytes:
+    """Render shot frame ``frame`` of ``performance`` and encode it (:func:`encode_shot_exr`):
+    linear premultiplied RGBA, half float, cropped to the actors, camera in the header.
 
+    ``load_model`` maps a segment's model ref to the model on the rendering device (cache it);
+    ``device`` moves the camera there."""
     a, b = shot.frames
     if not a <= frame < b:
         raise ValueError(f"shot {shot.name}: frame {frame} is outside its frames [{a}, {b})")

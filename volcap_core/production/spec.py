@@ -35,7 +35,7 @@ from pydantic import (
     model_validator,
 )
 
-from volcap_core.production._errors import format_validation_error
+from volcap_core.production._errors import clean_loc, format_validation_error
 from volcap_core.production.segments import (
     DEFAULT_OVERLAP,
     GIB,
@@ -341,8 +341,11 @@ def parse_spec(data: Mapping[str, Any], *, base_dir: str | Path = ".", text: str
         return ProductionSpec.model_validate(dict(data), context={"base_dir": str(base_dir)})
     except ValidationError as exc:
         lines = []
-        for err, line in zip(exc.errors(), format_validation_error(exc)):
-            loc = tuple(err.get("loc", ()))
+        errors = [e for e in exc.errors() if not (e.get("type") == "too_short" and any(
+            len(o.get("loc", ())) > len(e["loc"]) and tuple(o["loc"][:len(e["loc"])]) == tuple(e["loc"])
+            for o in exc.errors()))]
+        for err, line in zip(errors, format_validation_error(exc), strict=True):
+            loc = clean_loc(err.get("loc", ()))
             if loc:
                 ln = _yaml_line(text, loc) if text else None
                 lines.append(line + (f" [line {ln}]" if ln else ""))
@@ -409,8 +412,10 @@ class CaptureInfo(BaseModel):
 
     @classmethod
     def from_capture(cls, capture, segment_plan: SegmentPlan | None = None) -> "CaptureInfo":
-        """From an ingested :class:`~volcap_core.capture.Capture` record."""
-        return cls(has_tracking_cameras=capture.rig.has_tracking_cameras, fps=capture.fps,
+        """From an ingested :class:`~volcap_core.capture.Capture` record (tracking cameras: those
+        of its rig that the capture actually recorded)."""
+        tracking = any(capture.rig.camera(c.id).role.tracks for c in capture.cameras)
+        return cls(has_tracking_cameras=tracking, fps=capture.fps,
                    frame_count=capture.frame_count,
                    width=max(c.width for c in capture.cameras),
                    height=max(c.height for c in capture.cameras), segment_plan=segment_plan)
