@@ -207,6 +207,19 @@ class StoreCachePolicy(CachePolicy):
         return key
 
 
+def current_run_key() -> str:
+    """The cache key of the running volcap task: a stable name for its checkpoints.
+
+    A retried or restarted run of the same task on the same inputs gets the same key, so it finds
+    the checkpoints of the run it replaces.
+    """
+    ctx = TaskRunContext.get()
+    policy = getattr(getattr(ctx, "task", None), "cache_policy", None)
+    if not isinstance(policy, StoreCachePolicy):
+        raise RuntimeError("current_run_key() called outside a volcap task")
+    return cache_key(policy.task_name, policy.version, ctx.parameters, policy.locations)
+
+
 # ---------------------------------------------------------------------------------------------
 # Tally of finished task runs (for the one-line summary)
 # ---------------------------------------------------------------------------------------------

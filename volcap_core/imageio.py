@@ -785,6 +785,15 @@ def read_exr_native(path: str | os.PathLike[str], part: int = 0) -> tuple[np.nda
 
 def decode_exr(data: bytes, name: str = "<bytes>", part: int = 0) -> tuple[np.ndarray, tuple[str, ...]]:
     """:func:`read_image` for EXR bytes held in memory; ``name`` labels errors."""
+    return _decode_exr_bytes(data, name, part, lambda tmp: _read_rgb(tmp, "exr", part))
+
+
+def decode_exr_native(data: bytes, name: str = "<bytes>", part: int = 0) -> tuple[np.ndarray, tuple[str, ...]]:
+    """:func:`read_exr_native` for EXR bytes held in memory (any channels, e.g. a depth ``Z``)."""
+    return _decode_exr_bytes(data, name, part, lambda tmp: read_exr_native(tmp, part))
+
+
+def _decode_exr_bytes(data: bytes, name: str, part: int, read) -> tuple[np.ndarray, tuple[str, ...]]:
     data = bytes(data)  # no copy for bytes; bytearray/memoryview become immutable
     _exr_part(_validate_exr_buffer(data, len(data), name), part, name)
     # OpenImageIO's Python bindings read from paths only: go through a private temporary file
@@ -793,7 +802,7 @@ def decode_exr(data: bytes, name: str = "<bytes>", part: int = 0) -> tuple[np.nd
         with os.fdopen(fd, "wb") as f:
             f.write(data)
         try:
-            return _read_rgb(tmp, "exr", part)
+            return read(tmp)
         except ImageReadError as exc:
             raise ImageReadError(name, exc.reason) from None
     finally:

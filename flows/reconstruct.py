@@ -1,0 +1,61 @@
+"""The reconstruct flow: an ingested capture in, one trained Poly4DGS model per segment out."""
+
+from __future__ import annotations
+
+from prefect import flow, get_run_logger, unmapped
+
+from tasks.reconstruct import ground_truth_calibration, ground_truth_points, train_segment_task
+from volcap_core import reconstruction
+from volcap_core.capture import Capture
+from volcap_core.store import ArtifactStore
+
+
+def split_frames(a: int, b: int, segment_frames: int | None) -> list[tuple[int, int]]:
+    """[a, b) in consecutive segments of at most ``segment_frames`` frames (all of it when None)."""
+    if segment_frames is None or segment_frames >= b - a:
+        return [(a, b)]
+    if segment_frames < 1:
+        raise ValueError(f"segment_frames must be >= 1, got {segment_frames}")
+    return [(s, min(s + segment_frames, b)) for s in range(a, b, segment_frames)]
+
+
+@flow(name="reconstruct", persist_result=False)
+def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = None, preset: str = "demo",
+                     degrees: str = "poly4dgs", segment_frames: int | None = None,
+                     calibration: str | None = None, points: str | None = None,
+                     held_out: list[str] | None = None, points_per_frame: int = 20000,
+                     max_gaussians: int | None = None, seed: int = 0) -> dict:
+    """Train the segments of ``capture`` (a ref name such as ``captures/demo`` or a digest).
+
+    ``calibration`` / ``points``: refs of a Calibration and a PointCloudSequence. When omitted,
+    a synthetic capture's ground truth stands in (true cameras, points from true depth).
+    Returns the segment model refs and their held-out PSNR/SSIM and training wall time.
+    """
+    log = get_run_logger()
+    s = ArtifactStore(store)
+    capture_ref = s.resolve(capture)
+    cap = s.get_record(capture_ref, Capture)
+    a, b = frames if frames is not None else (0, cap.frame_count)
+    if not 0 <= a < b <= cap.frame_count:
+        raise ValueError(f"frames {a}:{b} outside capture {cap.name}'s [0, {cap.frame_count})")
+
+    calib_ref = s.resolve(calibration) if calibration else ground_truth_calibration(store, capture_ref)
+    points_ref = s.resolve(points) if points else ground_truth_points(store, capture_ref, calib_ref,
+                                                                        points_per_frame, seed)
+    held = held_out if held_out is not None else reconstruction.default_held_out(cap)
+    config = reconstruction.train_config(preset, degrees=degrees, held_out=held, max_gaussians=max_gaussians)
+    segments = split_frames(a, b, segment_frames)
+    log.info("capture %s: %d segment(s) of frames %d:%d, preset %s, held out %s", cap.name, len(segments), a, b,
+             preset, ", ".join(held) or "none")
+    futures = train_segment_task.map(unmapped(store), unmapped(capture_ref), unmapped(calib_ref),
+                                     unmapped(points_ref), [list(seg) for seg in segments], unmapped(config),
+                                     unmapped(seed))
+    models = [f.result() for f in futures]
+    report = []
+    for ref, seg in zip(models, segments):
+        rec = s.get_record(ref, reconstruction.SegmentModel)
+        report.append({"model": ref.model_dump(mode="json"), "frames": list(seg), "gaussians": rec.gaussians,
+                       "held_out_psnr": rec.held_out_psnr, "held_out_ssim": rec.held_out_ssim,
+                       "train_wall_s": round(rec.wall_s, 3)})
+    return {"capture": capture_ref.model_dump(mode="json"), "calibration": calib_ref.model_dump(mode="json"),
+            "points": points_ref.model_dump(mode="json"), "segments": report}

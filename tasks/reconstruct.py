@@ -1,0 +1,168 @@
+"""Reconstruction tasks: ground-truth inputs for synthetic captures, segment training, rendering."""
+
+from __future__ import annotations
+
+import json
+import logging
+
+import numpy as np
+import torch
+
+from tasks.contract import current_run_key, volcap_task
+from volcap_core import imageio, reconstruction
+from volcap_core.calibration.record import Calibration, TrackingFrames, camera_at, decode_tracking_frames
+from volcap_core.capture import Capture
+from volcap_core.pointcloud import POINTS_MEDIA, PointCloudFrame, PointCloudSequence, decode_points, encode_points
+from volcap_core.records import MEDIA_EXR, MEDIA_SAFETENSORS, ArtifactRef
+from volcap_core.splat import evaluate, load_model, render, save_model, train_segment
+from volcap_core.splat.train import TrainConfig
+from volcap_core.store import ArtifactStore, MissingRefError
+from volcap_core.synth import ground_truth
+
+log = logging.getLogger("volcap.reconstruct")
+
+
+def _ground_truth_file(s: ArtifactStore, capture: Capture, path: str) -> bytes:
+    if capture.ground_truth is None:
+        raise ValueError(f"capture {capture.name} carries no ground truth (only synthetic captures do)")
+    tree = s.get_tree(capture.ground_truth)
+    if path not in tree:
+        raise ValueError(f"capture {capture.name}: ground truth has no {path}"
+                         + (" (synthesize with write_depth=True for depth maps)" if path.startswith("depth/") else ""))
+    return s.get_bytes(tree[path].digest)
+
+
+@volcap_task(name="ground-truth-calibration", version="1")
+def ground_truth_calibration(store: str, capture: ArtifactRef) -> ArtifactRef:
+    """The synthetic capture's true cameras as a Calibration record (source ``ground_truth``)."""
+    s = ArtifactStore(store)
+    cap = s.get_record(capture, Capture)
+    cams_json = json.loads(_ground_truth_file(s, cap, "cameras.json"))
+    record, blob = ground_truth.calibration(cams_json, cap.name, [c.id for c in cap.cameras],
+                                            cap.rig.stage_size_m)
+    if blob is not None:
+        record = record.model_copy(update={"tracking_frames": s.put_bytes(blob, MEDIA_SAFETENSORS)})
+    return s.put_record(record)
+
+
+def load_tracking(s: ArtifactStore, calib: Calibration) -> dict[str, TrackingFrames] | None:
+    return decode_tracking_frames(s.get_bytes(calib.tracking_frames)) if calib.tracking_frames else None
+
+
+@volcap_task(name="ground-truth-points", version="1")
+def ground_truth_points(store: str, capture: ArtifactRef, calibration: ArtifactRef, points_per_frame: int,
+                        seed: int) -> ArtifactRef:
+    """Dense points per frame from the true depth maps of every camera, coloured by its image."""
+    s = ArtifactStore(store)
+    cap = s.get_record(capture, Capture)
+    calib = s.get_record(calibration, Calibration)
+    tracking = load_tracking(s, calib)
+    frames = []
+    for f in range(cap.frame_count):
+        xyz_all, rgb_all = [], []
+        for cam in cap.cameras:
+            depth, _ = imageio.decode_exr_native(_ground_truth_file(s, cap, f"depth/{cam.id}/{f:06d}.exr"))
+            image, _ = imageio.decode_exr(s.get_bytes(cam.frames[f]))
+            K, w2c, _, _ = camera_at(calib, cam.id, f, tracking)
+            xyz, rgb = ground_truth.backproject_depth(depth[..., 0].astype(np.float32), image, K, w2c)
+            xyz_all.append(xyz)
+            rgb_all.append(rgb)
+        xyz, rgb = ground_truth.subsample(np.concatenate(xyz_all), np.concatenate(rgb_all),
+                                          points_per_frame, seed + f)
+        ref = s.put_bytes(encode_points(xyz, rgb), POINTS_MEDIA)
+        frames.append(PointCloudFrame(frame=f, time=cap.frame_time(f), count=len(xyz), points=ref))
+    return s.put_record(PointCloudSequence(calibration=calibration, frames=tuple(frames),
+                                           method=f"ground-truth depth, {points_per_frame} per frame"))
+
+
+@volcap_task(name="train-segment", version="1", retries=1)
+def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRef, points: ArtifactRef,
+                       frames: list[int], config: TrainConfig, seed: int) -> ArtifactRef:
+    """Train one Poly4DGS segment; resumable from its checkpoints in the store.
+
+    Every ``config.checkpoint_every`` steps the training state is stored and named
+    ``checkpoints/<this run's cache key>``; a killed or retried run of the same segment resumes from
+    it, and ends with the same model as an uninterrupted run (on CPU, bit for bit).
+    """
+    s = ArtifactStore(store)
+    cap = s.get_record(capture, Capture)
+    calib = s.get_record(calibration, Calibration)
+    pts = s.get_record(points, PointCloudSequence)
+    a, b = frames
+    data = reconstruction.segment_data(cap, calib, load_tracking(s, calib), (a, b),
+                                       reconstruction.FrameCache(s.get_bytes))
+    init = reconstruction.segment_points(pts, (a, b), lambda ref: decode_points(s.get_bytes(ref)))
+
+    ckpt_name = f"checkpoints/{current_run_key()}"
+    try:
+        resume = s.get_bytes(s.get_ref(ckpt_name))
+        log.warning("segment [%d, %d): resuming from %s", a, b, ckpt_name)
+    except MissingRefError:
+        resume = None
+
+    def checkpoint(blob: bytes, step: int) -> None:
+        s.set_ref(ckpt_name, s.put_bytes(blob))
+
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    with reconstruction.deterministic_torch(device):
+        result = train_segment(data, init, config, checkpoint=checkpoint if config.checkpoint_every else None,
+                               resume_from=resume, seed=seed, device=device)
+    model_ref = s.put_bytes(save_model(result.model), reconstruction.SEGMENT_MODEL_MEDIA)
+    grids_ref = s.put_bytes(reconstruction.encode_grids(result.grids.camera_ids, result.grids.exposure,
+                                                        result.grids.black))
+    last = result.history[-1] if result.history else None
+    record = reconstruction.SegmentModel(
+        capture=capture, calibration=calibration, frames=(a, b), fps=cap.fps, model=model_ref, grids=grids_ref,
+        grid_cameras=tuple(result.grids.camera_ids), held_out_cameras=tuple(config.held_out_cameras),
+        gaussians=len(result.model), steps=result.steps, wall_s=result.wall_s,
+        held_out_psnr=_finite(last.psnr) if last else None, held_out_ssim=_finite(last.ssim) if last else None,
+        history=tuple(reconstruction.EvalSample(step=h.step, wall_s=h.wall_s, psnr=_finite(h.psnr),
+                                                ssim=_finite(h.ssim)) for h in result.history),
+        config=config.model_dump(mode="json"))
+    ref = s.put_record(record)
+    try:  # the model is stored: its checkpoint has done its job (gc may take it)
+        s.delete_ref(ckpt_name)
+    except MissingRefError:
+        pass
+    return ref
+
+
+def _finite(x: float) -> float | None:
+    return float(x) if x is not None and np.isfinite(x) else None
+
+
+@volcap_task(name="render-view", version="1")
+def render_view(store: str, segment: ArtifactRef, K: list[list[float]], world_to_camera: list[list[float]],
+                width: int, height: int, time_s: float, grids_of: str | None = None) -> ArtifactRef:
+    """Render a segment model from any camera at time ``time_s`` (take clock, seconds):
+    linear RGBA, half-float EXR. ``grids_of``: apply that training camera's exposure/black grids."""
+    s = ArtifactStore(store)
+    seg = s.get_record(segment, reconstruction.SegmentModel)
+    return s.put_bytes(render_segment_exr(s, seg, np.asarray(K), np.asarray(world_to_camera), width, height,
+                                          time_s, grids_of), MEDIA_EXR)
+
+
+def render_segment_exr(s: ArtifactStore, seg: reconstruction.SegmentModel, K: np.ndarray, w2c: np.ndarray,
+                       width: int, height: int, time_s: float, grids_of: str | None = None) -> bytes:
+    lo, hi = seg.time_range
+    if not lo - 0.5 / seg.fps <= time_s <= hi + 0.5 / seg.fps:
+        log.warning("time %.3f s is outside the segment's %.3f-%.3f s", time_s, lo, hi)
+    model = load_model(s.get_bytes(seg.model))
+    camera = reconstruction.splat_camera(K, w2c, width, height)
+    with torch.no_grad():
+        out = render(evaluate(model, time_s), camera)
+        rgb = out["rgb"]
+        if grids_of is not None:
+            if seg.grids is None or grids_of not in seg.grid_cameras:
+                raise ValueError(f"segment has no exposure grids for camera {grids_of!r} "
+                                 f"(it has {', '.join(seg.grid_cameras) or 'none'})")
+            rgb = reconstruction.decode_grids(s.get_bytes(seg.grids)).apply(rgb, grids_of)
+        rgba = torch.cat([rgb, out["alpha"]], dim=-1).cpu().numpy()
+    attrs = {"volcap.time_s": float(time_s), "volcap.segment_frames": f"{seg.frames[0]}:{seg.frames[1]}",
+             "volcap.K": json.dumps(np.asarray(K).tolist()),
+             "volcap.world_to_camera": json.dumps(np.asarray(w2c).tolist())}
+    return imageio.encode_exr(rgba, ("R", "G", "B", "A"), pixel_type="half", attributes=attrs)
+
+
+__all__ = ["ground_truth_calibration", "ground_truth_points", "train_segment_task", "render_view",
+           "render_segment_exr"]

@@ -1,0 +1,220 @@
+"""From stored records to Poly4DGS inputs and back: the glue the reconstruction tasks call.
+
+A capture (scene-linear EXR frames), a calibration (cameras per frame) and dense points per frame
+become :class:`~volcap_core.splat.SegmentData` and :class:`~volcap_core.splat.PointsAtTime`; a
+trained segment becomes a :class:`SegmentModel` record. Loaders are passed in, so this module never
+touches a store or Prefect.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from contextlib import contextmanager
+from collections.abc import Callable, Sequence
+from threading import Lock
+from typing import Any, ClassVar
+
+import numpy as np
+import torch
+from pydantic import BaseModel, ConfigDict
+
+from volcap_core import imageio
+from volcap_core.calibration.record import Calibration, TrackingFrames, camera_at
+from volcap_core.capture import Capture
+from volcap_core.pointcloud import PointCloudSequence
+from volcap_core.records import ArtifactRef, Record
+from volcap_core.splat import Camera, PointsAtTime, SegmentData, TrainConfig
+from volcap_core.splat.model import Poly4DGSConfig
+
+SEGMENT_MODEL_MEDIA = "application/vnd.volcap.poly4dgs+safetensors"
+
+#: Named training presets: the step counts trade time for quality. ``demo`` keeps the built-in demo
+#: under a few minutes on 2 CPU cores; ``production`` is the paper's 30k steps.
+PRESETS: dict[str, dict[str, Any]] = {
+    "test": {"steps": 20, "grid_size": 4, "eval_every": 0, "eval_fit_steps": 5, "eval_max_views": 2,
+             "checkpoint_every": 10, "mcmc": {"refine_start": 5, "refine_every": 5, "refine_stop": 15}},
+    "demo": {"steps": 300, "grid_size": 8, "eval_every": 100, "eval_fit_steps": 30, "eval_max_views": 6,
+             "checkpoint_every": 100, "mcmc": {"refine_start": 100, "refine_every": 50, "refine_stop": 250}},
+    "preview": {"steps": 3000, "eval_every": 500, "checkpoint_every": 500,
+                "mcmc": {"refine_start": 300, "refine_every": 100, "refine_stop": 2500}},
+    "production": {},  # TrainConfig's defaults: the paper's schedule
+}
+
+#: Model degrees by name (paper Table 1 baselines).
+DEGREES = {"poly4dgs": Poly4DGSConfig.paper, "rotor4d": Poly4DGSConfig.rotor4d, "static": Poly4DGSConfig.static}
+
+
+def train_config(preset: str = "demo", *, degrees: str = "poly4dgs", held_out: Sequence[str] = (),
+                 max_gaussians: int | None = None, **overrides: Any) -> TrainConfig:
+    """A :class:`TrainConfig` from a preset name, model degrees and overrides."""
+    if preset not in PRESETS:
+        raise ValueError(f"unknown preset {preset!r}: choose one of {', '.join(PRESETS)}")
+    if degrees not in DEGREES:
+        raise ValueError(f"unknown model degrees {degrees!r}: choose one of {', '.join(DEGREES)}")
+    values = dict(PRESETS[preset])
+    values["model"] = DEGREES[degrees]()
+    values["held_out_cameras"] = list(held_out)
+    mcmc = dict(values.pop("mcmc", {}))
+    if max_gaussians is not None:
+        mcmc["cap_max"] = max_gaussians
+        values["init_max_points"] = max_gaussians
+    if mcmc:
+        from volcap_core.splat.mcmc import MCMCConfig
+        values["mcmc"] = MCMCConfig(**{**MCMCConfig().model_dump(), **mcmc})
+    values.update(overrides)
+    return TrainConfig(**values)
+
+
+@contextmanager
+def deterministic_torch(device: str = "cpu"):
+    """Deterministic kernels while training (restored after).
+
+    Measured: with 2 intra-op threads, CPU training of the same segment from the same seed ended
+    with different Gaussians in two runs (multi-threaded scatter/index-add accumulation order);
+    with deterministic algorithms it is bit-identical, which resuming from a checkpoint relies on.
+    On CUDA it only warns where an op has no deterministic kernel.
+    """
+    before, warn_before = torch.are_deterministic_algorithms_enabled(), \
+        torch.is_deterministic_algorithms_warn_only_enabled()
+    torch.use_deterministic_algorithms(True, warn_only=device != "cpu")
+    try:
+        yield
+    finally:
+        torch.use_deterministic_algorithms(before, warn_only=warn_before)
+
+
+class EvalSample(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    step: int
+    wall_s: float
+    psnr: float | None
+    ssim: float | None
+
+
+class SegmentModel(Record):
+    """A trained segment: the Poly4DGS model for take frames [a, b) and how well it does."""
+
+    kind: ClassVar[str] = "segment-model"
+    capture: ArtifactRef
+    calibration: ArtifactRef
+    frames: tuple[int, int]
+    fps: float
+    model: ArtifactRef                 # safetensors (save_model): Gaussians + config
+    grids: ArtifactRef | None = None   # safetensors: per training camera exposure/black grids
+    grid_cameras: tuple[str, ...] = ()
+    held_out_cameras: tuple[str, ...] = ()
+    gaussians: int
+    steps: int
+    wall_s: float
+    held_out_psnr: float | None = None
+    held_out_ssim: float | None = None
+    history: tuple[EvalSample, ...] = ()
+    config: dict[str, Any]
+
+    @property
+    def time_range(self) -> tuple[float, float]:
+        """Seconds on the take's clock covered by the segment's frames."""
+        return self.frames[0] / self.fps, (self.frames[1] - 1) / self.fps
+
+
+def splat_camera(K: np.ndarray, world_to_camera: np.ndarray, width: int, height: int) -> Camera:
+    """A calibration camera (OpenCV, top-left pixel centre at 0) as a splat :class:`Camera`.
+
+    The rasterizer puts pixel centres at +0.5 (gsplat's convention), so cx, cy shift by 0.5.
+    """
+    K = np.array(K, dtype=np.float64, copy=True)
+    K[0, 2] += 0.5
+    K[1, 2] += 0.5
+    return Camera(K=torch.tensor(K, dtype=torch.float32),
+                  world_to_camera=torch.tensor(np.asarray(world_to_camera), dtype=torch.float32),
+                  width=int(width), height=int(height))
+
+
+class FrameCache:
+    """Decoded frames by digest, least recently used out first (a view is drawn many times)."""
+
+    def __init__(self, load_bytes: Callable[[ArtifactRef], bytes], max_frames: int = 512):
+        self._load = load_bytes
+        self._max = max_frames
+        self._frames: OrderedDict[str, torch.Tensor] = OrderedDict()
+        self._lock = Lock()
+
+    def __call__(self, ref: ArtifactRef) -> torch.Tensor:
+        with self._lock:
+            hit = self._frames.get(ref.digest)
+            if hit is not None:
+                self._frames.move_to_end(ref.digest)
+                return hit
+        pixels, _ = imageio.decode_exr(self._load(ref), name=ref.digest)
+        img = torch.from_numpy(np.ascontiguousarray(pixels[..., :3], dtype=np.float32))
+        with self._lock:
+            self._frames[ref.digest] = img
+            while len(self._frames) > self._max:
+                self._frames.popitem(last=False)
+        return img
+
+
+def segment_data(capture: Capture, calibration: Calibration, tracking: dict[str, TrackingFrames] | None,
+                 frames: tuple[int, int], load_frame: Callable[[ArtifactRef], torch.Tensor],
+                 camera_ids: Sequence[str] | None = None) -> SegmentData:
+    """Views of take frames [a, b) of every (or the given) camera, images loaded lazily."""
+    a, b = frames
+    if not 0 <= a < b <= capture.frame_count:
+        raise ValueError(f"capture {capture.name}: frames [{a}, {b}) outside [0, {capture.frame_count})")
+    ids = list(camera_ids) if camera_ids is not None else [c.id for c in capture.cameras]
+    missing = [c for c in ids if c not in {cc.id for cc in calibration.cameras}]
+    if missing:
+        raise ValueError(f"calibration lacks camera(s) {', '.join(missing)} of capture {capture.name}")
+
+    def load_image(cam: str, f: int) -> torch.Tensor:
+        return load_frame(capture.camera(cam).frames[f])
+
+    def camera_for(cam: str, f: int) -> Camera:
+        return splat_camera(*camera_at(calibration, cam, f, tracking))
+
+    return SegmentData.build(frames=frames, camera_ids=ids, fps=capture.fps, load_image=load_image,
+                             camera_for=camera_for)
+
+
+def segment_points(points: PointCloudSequence, frames: tuple[int, int],
+                   load_points: Callable[[ArtifactRef], tuple[np.ndarray, np.ndarray]]) -> list[PointsAtTime]:
+    """The dense points of frames [a, b), one :class:`PointsAtTime` per frame."""
+    out = []
+    for f in range(*frames):
+        pf = points.at(f)
+        xyz, rgb = load_points(pf.points)
+        out.append(PointsAtTime(time=pf.time, xyz=torch.from_numpy(np.asarray(xyz, np.float32)),
+                                rgb=torch.from_numpy(np.asarray(rgb, np.float32))))
+    return out
+
+
+def default_held_out(capture: Capture, n: int = 1) -> list[str]:
+    """Held-out cameras when none are named: static cameras spread over the rig (never tracking
+    ones, whose framing changes), at most ``n``; none when fewer than 4 static cameras exist."""
+    static = [c.id for c in capture.cameras if not capture.rig.camera(c.id).role.tracks]
+    if len(static) < 4 or n <= 0:
+        return []
+    step = len(static) / n
+    return [static[int(step * i + step / 2)] for i in range(n)]
+
+
+def encode_grids(camera_ids: Sequence[str], exposure: torch.Tensor, black: torch.Tensor) -> bytes:
+    from safetensors.torch import save
+
+    return save({"exposure": exposure.detach().cpu().contiguous(), "black": black.detach().cpu().contiguous()},
+                metadata={"cameras": ",".join(camera_ids)})
+
+
+def decode_grids(data: bytes):
+    """ExposureGrids from :func:`encode_grids` bytes."""
+    import json as _json
+    import struct
+
+    from safetensors.torch import load
+
+    from volcap_core.splat.grids import ExposureGrids
+
+    n = struct.unpack("<Q", data[:8])[0]
+    meta = _json.loads(data[8:8 + n]).get("__metadata__", {})
+    t = load(data)
+    return ExposureGrids(meta["cameras"].split(","), t["exposure"], t["black"])

@@ -1,0 +1,83 @@
+"""Ground truth of a synthetic capture as pipeline records: the cameras as a Calibration's arrays,
+and dense per-frame points from the true depth maps.
+
+Evaluation and the reconstruction tests use these to separate Poly4DGS's errors from calibration's
+(the Poly4DGS issue trains on them until estimated calibration is available). Formats:
+``docs/synthetic-capture.md``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+from volcap_core.calibration.record import (
+    Calibration,
+    CameraCalibration,
+    TrackingFrames,
+    encode_tracking_frames,
+    matrix4,
+    tracking_frames_ref,
+)
+
+
+def calibration(cameras_json: dict, capture_name: str, camera_ids: Sequence[str],
+                stage_size_m: tuple[float, float, float]) -> tuple[Calibration, bytes | None]:
+    """``ground_truth/cameras.json`` → a :class:`Calibration` (``stats["ground_truth"] = 1``) and the
+    tracking cameras' per-frame blob (None without tracking cameras). The caller stores the blob
+    and sets ``tracking_frames`` to its ref (``Calibration.model_copy``)."""
+    n = int(cameras_json["frame_count"])
+    cams, tracking = [], {}
+    for cid in camera_ids:
+        try:
+            gt = cameras_json["cameras"][cid]
+        except KeyError:
+            raise ValueError(f"ground truth has no camera {cid!r}") from None
+        frames = sorted(gt["frames"], key=lambda f: f["take_index"])
+        if len(frames) != n:
+            raise ValueError(f"ground truth camera {cid}: {len(frames)} frames, expected {n}")
+        intr = np.array([[f["fx"], f["fy"], f["cx"], f["cy"]] for f in frames], np.float64)
+        w2c = np.array([f["world_to_camera"] for f in frames], np.float64)
+        static = gt["role"] == "static"
+        if static:
+            cams.append(CameraCalibration(id=cid, role=gt["role"], static=True, width=gt["width"],
+                                          height=gt["height"], intrinsics=tuple(intr[0]),
+                                          world_to_camera=matrix4(w2c[0])))
+        else:
+            cams.append(CameraCalibration(id=cid, role=gt["role"], static=False, width=gt["width"],
+                                          height=gt["height"]))
+            tracking[cid] = TrackingFrames(intr, w2c)
+    blob = encode_tracking_frames(tracking) if tracking else None
+    record = Calibration(capture=capture_name, frame_count=n, fps=float(cameras_json["fps"]), reference_frame=n // 2,
+                         stage_size_m=tuple(stage_size_m), cameras=tuple(cams),
+                         tracking_frames=tracking_frames_ref(blob) if blob else None,
+                         stats={"ground_truth": 1.0})
+    return record, blob
+
+
+def backproject_depth(depth: np.ndarray, image: np.ndarray, K: np.ndarray, world_to_camera: np.ndarray,
+                      stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels with finite positive depth → (xyz [N, 3] world metres, rgb [N, 3] linear).
+
+    ``depth`` [H, W] is the distance along the optical axis (camera z); ``image`` [H, W, >=3].
+    """
+    h, w = depth.shape
+    v, u = np.mgrid[0:h:stride, 0:w:stride]
+    z = depth[v, u]
+    ok = np.isfinite(z) & (z > 0)
+    ui, vi, z = u[ok], v[ok], z[ok].astype(np.float64)
+    x = (ui - K[0, 2]) / K[0, 0] * z
+    y = (vi - K[1, 2]) / K[1, 1] * z
+    cam = np.stack([x, y, z], axis=-1)
+    R, t = world_to_camera[:3, :3], world_to_camera[:3, 3]
+    world = (cam - t) @ R  # R^T (x - t), as row vectors
+    return world.astype(np.float32), np.asarray(image[vi, ui, :3], np.float32)
+
+
+def subsample(xyz: np.ndarray, rgb: np.ndarray, budget: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """At most ``budget`` points, chosen uniformly at random (deterministic by seed)."""
+    if len(xyz) <= budget:
+        return xyz, rgb
+    idx = np.sort(np.random.default_rng(seed).choice(len(xyz), size=budget, replace=False))
+    return xyz[idx], rgb[idx]
