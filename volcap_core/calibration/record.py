@@ -1,130 +1,167 @@
-"""Calibration and point-cloud records: what calibration produces and Poly4DGS training consumes.
+"""The ``Calibration`` record: every camera's intrinsics and pose at every take index.
 
-Conventions: OpenCV pinhole. Pixel coordinates have the centre of the top-left pixel at (0, 0)
-(add 0.5 to cx, cy for COLMAP/gsplat's "+0.5" pixel centres), world-to-camera poses map stage
-coordinates (metres, z up) to camera coordinates (x right, y down, z forward). Distortion is
-OpenCV's (k1, k2, p1, p2).
+Conventions: world = the stage frame (metres, z up, origin at the stage centre on the floor);
+``world_to_camera`` is 4x4 with OpenCV camera axes (x right, y down, z forward), ``x_cam = R x + t``;
+intrinsics in OpenCV pixels (centre of the top-left pixel at (0, 0)); distortion in OpenCV's order
+``(k1, k2, p1, p2, k3)`` (all zero for the pinhole cameras calibrated here).
 
-Per-frame arrays are kept out of the JSON record (180 cameras × 1000s of frames) in one
-safetensors blob: ``K`` [C, F, 3, 3], ``world_to_camera`` [C, F, 4, 4], ``distortion`` [C, F, 4],
-float64, camera order as in the record. Static cameras repeat one value over F.
+Size: static cameras carry one pose in the JSON record. Tracking cameras change every frame; their
+per-frame arrays live in one safetensors blob referenced by ``Calibration.tracking_frames``:
+``<camera id>/intrinsics`` float64 [T, 4] (fx, fy, cx, cy) and ``<camera id>/world_to_camera``
+float64 [T, 4, 4], T = ``frame_count``. :func:`encode_tracking_frames` / :func:`decode_tracking_frames`
+turn them into / from bytes; the task layer stores the bytes and puts the ref in the record.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import ClassVar, Literal
+from typing import ClassVar, Mapping
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+from safetensors.numpy import load as st_load
+from safetensors.numpy import save as st_save
 
-from volcap_core.records import ArtifactRef, Record
+from volcap_core.records import MEDIA_SAFETENSORS, ArtifactRef, Record
 
-CALIBRATION_ARRAYS_MEDIA = "application/vnd.volcap.calibration-arrays+safetensors"
-POINTS_MEDIA = "application/vnd.volcap.points+safetensors"
+Matrix4 = tuple[tuple[float, float, float, float], ...]
 
 
-class CalibratedCamera(BaseModel):
+class CameraCalibration(BaseModel):
+    """One camera. ``static`` cameras have ``intrinsics`` and ``world_to_camera`` here; tracking
+    cameras have them per frame in the tracking blob (and None here)."""
+
     model_config = ConfigDict(extra="forbid", frozen=True)
     id: str
-    width: int
-    height: int
+    role: str = Field(description="rig role: static, tracking-landscape or tracking-portrait")
     static: bool
+    width: int = Field(gt=0)
+    height: int = Field(gt=0)
+    intrinsics: tuple[float, float, float, float] | None = Field(
+        default=None, description="fx, fy, cx, cy in OpenCV pixels (static cameras)")
+    distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    world_to_camera: Matrix4 | None = Field(default=None, description="4x4, OpenCV axes (static cameras)")
+    quality: dict[str, float] = Field(default_factory=dict,
+                                      description="per-camera fit statistics (reprojection px, inliers...)")
+
+    @field_validator("world_to_camera")
+    @classmethod
+    def _is_rigid(cls, v):
+        if v is None:
+            return v
+        m = np.asarray(v, np.float64)
+        if m.shape != (4, 4):
+            raise ValueError(f"world_to_camera must be 4x4, got {m.shape}")
+        R = m[:3, :3]
+        if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+            raise ValueError("world_to_camera rotation is not a proper rotation")
+        if not np.allclose(m[3], [0, 0, 0, 1]):
+            raise ValueError("world_to_camera last row must be 0 0 0 1")
+        return v
 
 
 class Calibration(Record):
-    """Every camera of a capture at every take frame."""
+    """A capture's calibration (consumed by Poly4DGS training through :func:`camera_at`)."""
 
     kind: ClassVar[str] = "calibration"
-    capture: ArtifactRef
-    frame_count: int
-    cameras: tuple[CalibratedCamera, ...]
-    arrays: ArtifactRef  # safetensors: K, world_to_camera, distortion (see module docstring)
-    source: Literal["estimated", "ground_truth"] = "estimated"
-    metrics: dict[str, float] | None = None
+    capture: str = Field(description="name of the calibrated capture")
+    frame_count: int = Field(gt=0)
+    fps: float = Field(gt=0)
+    reference_frame: int = Field(ge=0, description="take index the static cameras were calibrated on")
+    stage_size_m: tuple[float, float, float]
+    cameras: tuple[CameraCalibration, ...]
+    tracking_frames: ArtifactRef | None = Field(
+        default=None, description="safetensors blob of the tracking cameras' per-frame arrays")
+    stats: dict[str, float] = Field(default_factory=dict)
 
-    def camera_index(self, camera_id: str) -> int:
-        for i, c in enumerate(self.cameras):
+    def camera(self, camera_id: str) -> CameraCalibration:
+        for c in self.cameras:
             if c.id == camera_id:
-                return i
-        raise KeyError(f"calibration has no camera {camera_id!r}")
+                return c
+        raise KeyError(f"calibration of {self.capture} has no camera {camera_id!r}")
+
+    @property
+    def static_ids(self) -> list[str]:
+        return [c.id for c in self.cameras if c.static]
+
+    @property
+    def tracking_ids(self) -> list[str]:
+        return [c.id for c in self.cameras if not c.static]
 
 
 @dataclass(frozen=True)
-class CalibrationArrays:
-    """Decoded per-frame arrays; ``K`` [C, F, 3, 3], ``world_to_camera`` [C, F, 4, 4],
-    ``distortion`` [C, F, 4] (float64)."""
+class TrackingFrames:
+    """Per-frame arrays of one tracking camera: ``intrinsics`` [T, 4] (fx, fy, cx, cy) and
+    ``world_to_camera`` [T, 4, 4], float64."""
 
-    K: np.ndarray
+    intrinsics: np.ndarray
     world_to_camera: np.ndarray
-    distortion: np.ndarray
-
-    def __post_init__(self) -> None:
-        c, f = self.K.shape[:2]
-        if self.K.shape != (c, f, 3, 3) or self.world_to_camera.shape != (c, f, 4, 4) \
-                or self.distortion.shape != (c, f, 4):
-            raise ValueError(f"inconsistent calibration arrays: K {self.K.shape}, "
-                             f"world_to_camera {self.world_to_camera.shape}, distortion {self.distortion.shape}")
 
 
-def encode_calibration_arrays(arrays: CalibrationArrays) -> bytes:
-    from safetensors.numpy import save
+def encode_tracking_frames(frames: Mapping[str, TrackingFrames]) -> bytes:
+    """Tracking cameras' per-frame arrays -> safetensors bytes (deterministic: sorted keys)."""
+    tensors: dict[str, np.ndarray] = {}
+    for cid in sorted(frames):
+        f = frames[cid]
+        intr = np.ascontiguousarray(np.asarray(f.intrinsics, np.float64))
+        w2c = np.ascontiguousarray(np.asarray(f.world_to_camera, np.float64))
+        if intr.ndim != 2 or intr.shape[1] != 4 or w2c.shape != (len(intr), 4, 4):
+            raise ValueError(f"camera {cid}: intrinsics must be [T, 4] and world_to_camera [T, 4, 4], "
+                             f"got {intr.shape} and {w2c.shape}")
+        if not (np.isfinite(intr).all() and np.isfinite(w2c).all()):
+            raise ValueError(f"camera {cid}: non-finite values")
+        tensors[f"{cid}/intrinsics"] = intr
+        tensors[f"{cid}/world_to_camera"] = w2c
+    return st_save(tensors, metadata={"format": "volcap-tracking-frames/1"})
 
-    return save({"K": np.ascontiguousarray(arrays.K, np.float64),
-                 "world_to_camera": np.ascontiguousarray(arrays.world_to_camera, np.float64),
-                 "distortion": np.ascontiguousarray(arrays.distortion, np.float64)})
+
+def decode_tracking_frames(data: bytes) -> dict[str, TrackingFrames]:
+    """Inverse of :func:`encode_tracking_frames`."""
+    t = st_load(data)
+    out: dict[str, TrackingFrames] = {}
+    for key in t:
+        cid, name = key.rsplit("/", 1)
+        if name == "intrinsics":
+            out[cid] = TrackingFrames(t[key], t[f"{cid}/world_to_camera"])
+    return out
 
 
-def decode_calibration_arrays(data: bytes) -> CalibrationArrays:
-    from safetensors.numpy import load
+def tracking_frames_ref(data: bytes) -> ArtifactRef:
+    """The ref the store will give ``data`` (for records built before or without a store)."""
+    from volcap_core.digest import digest_bytes
 
-    t = load(data)
-    return CalibrationArrays(t["K"], t["world_to_camera"], t["distortion"])
+    return ArtifactRef(digest=digest_bytes(data), size=len(data), media_type=MEDIA_SAFETENSORS)
 
 
-def camera_at(calibration: Calibration, arrays: CalibrationArrays, camera_id: str,
-              frame: int) -> tuple[np.ndarray, np.ndarray, int, int]:
-    """(K [3, 3], world_to_camera [4, 4], width, height) of a camera at a take index."""
-    i = calibration.camera_index(camera_id)
+def camera_at(calibration: Calibration, camera_id: str, frame: int,
+              tracking: Mapping[str, TrackingFrames] | None = None) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """Camera ``camera_id`` at take index ``frame``: (K [3, 3], world_to_camera [4, 4], width, height).
+
+    Static cameras are answered from the record alone; tracking cameras need ``tracking`` (the decoded
+    blob of ``calibration.tracking_frames``). Raises ``KeyError`` for an unknown camera and
+    ``IndexError`` for a frame outside ``[0, frame_count)``.
+    """
     if not 0 <= frame < calibration.frame_count:
-        raise IndexError(f"frame {frame} outside the calibration's [0, {calibration.frame_count})")
-    cam = calibration.cameras[i]
-    return arrays.K[i, frame], arrays.world_to_camera[i, frame], cam.width, cam.height
+        raise IndexError(f"frame {frame} outside [0, {calibration.frame_count}) of {calibration.capture}")
+    cam = calibration.camera(camera_id)
+    if cam.static:
+        fx, fy, cx, cy = cam.intrinsics
+        w2c = np.asarray(cam.world_to_camera, np.float64)
+    else:
+        if tracking is None:
+            raise ValueError(f"camera {camera_id} is a tracking camera: pass the decoded tracking frames "
+                             f"(decode_tracking_frames of the blob {calibration.tracking_frames})")
+        tf = tracking[camera_id]
+        fx, fy, cx, cy = (float(v) for v in tf.intrinsics[frame])
+        w2c = np.asarray(tf.world_to_camera[frame], np.float64)
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    return K, w2c.copy(), cam.width, cam.height
 
 
-class PointCloudFrame(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-    frame: int          # take index
-    time: float         # seconds on the take's clock (frame / fps)
-    count: int
-    points: ArtifactRef  # safetensors: xyz [N, 3] float32 metres, rgb [N, 3] float32 linear
-
-
-class PointCloudSequence(Record):
-    """Dense per-frame points (Poly4DGS initialises one Gaussian per point)."""
-
-    kind: ClassVar[str] = "point-cloud-sequence"
-    calibration: ArtifactRef
-    frames: tuple[PointCloudFrame, ...]
-    method: str
-
-    def at(self, frame: int) -> PointCloudFrame:
-        for f in self.frames:
-            if f.frame == frame:
-                return f
-        raise KeyError(f"no points for frame {frame}")
-
-
-def encode_points(xyz: np.ndarray, rgb: np.ndarray) -> bytes:
-    from safetensors.numpy import save
-
-    if xyz.ndim != 2 or xyz.shape[1] != 3 or rgb.shape != xyz.shape:
-        raise ValueError(f"points must be xyz [N, 3] and rgb [N, 3], got {xyz.shape} and {rgb.shape}")
-    return save({"xyz": np.ascontiguousarray(xyz, np.float32), "rgb": np.ascontiguousarray(rgb, np.float32)})
-
-
-def decode_points(data: bytes) -> tuple[np.ndarray, np.ndarray]:
-    from safetensors.numpy import load
-
-    t = load(data)
-    return t["xyz"], t["rgb"]
+def matrix4(m: np.ndarray) -> Matrix4:
+    """A 4x4 array as the record's nested tuple (floats rounded to 1e-12, re-orthonormalised)."""
+    m = np.asarray(m, np.float64).copy()
+    U, _, Vt = np.linalg.svd(m[:3, :3])
+    m[:3, :3] = U @ Vt
+    m[3] = (0.0, 0.0, 0.0, 1.0)
+    return tuple(tuple(float(round(v, 12)) for v in row) for row in m)

@@ -1,0 +1,374 @@
+"""Static-camera structure from motion with pycolmap (CPU): SIFT, exhaustive matching, incremental
+mapping with the focal lengths held at the lens metadata, then a robust global bundle adjustment.
+
+Traps handled here (measured with pycolmap 4.2.1, see NOTES):
+
+- ``cv2`` is imported before ``pycolmap`` (zlib clash on PNG writes otherwise);
+- ``Database.write_camera`` creates a rig implicitly, and images written by hand get no frame: the
+  images are created by feature extraction with ``ImageReaderOptions.existing_camera_id`` so each
+  image is tied to its own, known camera (and frame);
+- matching 320x180 views 30° apart gives 50-90 verified matches a pair: the mapper's initial-pair
+  and registration thresholds are lowered accordingly, and affine-adapted SIFT is used;
+- no dense MVS (``patch_match_stereo`` needs CUDA).
+
+Everything returned is in OpenCV conventions (see :mod:`volcap_core.calibration.geometry`), in the
+arbitrary frame and scale of the reconstruction until :meth:`SparseModel.transformed` is applied.
+"""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+import time
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Mapping
+
+import cv2
+import numpy as np
+import pycolmap
+
+from volcap_core.calibration.features import SiftOptions
+from volcap_core.calibration.geometry import COLMAP_PIXEL_OFFSET, Similarity, pose_matrix
+from volcap_core.calibration.images import to_uint8_gray
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics in OpenCV pixels (centre of the top-left pixel at (0, 0))."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+    @property
+    def K(self) -> np.ndarray:
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @staticmethod
+    def nominal(focal_px: float, width: int, height: int) -> "Intrinsics":
+        """Square pixels, principal point at the image centre ((W-1)/2, (H-1)/2)."""
+        return Intrinsics(float(focal_px), float(focal_px), (width - 1) / 2.0, (height - 1) / 2.0,
+                          int(width), int(height))
+
+
+@dataclass(frozen=True)
+class StaticSfmOptions:
+    sift: SiftOptions = SiftOptions()
+    match_max_ratio: float = 0.8
+    #: verified inliers a pair needs: at 320x180, true neighbours give 50-95, spurious pairs
+    #: (repeated texture, markers) 15-30
+    min_pair_inliers: int = 36
+    #: COLMAP's guided matching (re-match under the verified two-view geometry)
+    guided_matching: bool = True
+    init_min_num_inliers: int = 30
+    abs_pose_min_num_inliers: int = 15
+    #: seeded mode: rounds of triangulation from the current poses, with a COLMAP bundle
+    #: adjustment between rounds (none after the last: the lidar-constrained one follows)
+    seeded_rounds: int = 1
+    triangulation_max_angle_deg: float = 4.0
+    triangulation_max_error_px: float = 8.0
+    #: refine the focal lengths in the final bundle adjustment (the paper keeps them fixed)
+    refine_focal: bool = False
+    #: Cauchy loss scale of the final bundle adjustment, pixels
+    loss_scale_px: float = 1.0
+    num_threads: int = 2
+    seed: int = 0
+
+
+@dataclass
+class SparseModel:
+    """A sparse reconstruction of the static cameras.
+
+    Shapes: ``points`` [P, 3] float64, ``colours`` [P, 3] float32 (linear, mean over the track),
+    ``track_length`` [P] int; observations ``obs_point`` [M] (row in ``points``), ``obs_camera``
+    [M] (index in ``camera_ids``), ``obs_xy`` [M, 2] OpenCV px. Per camera: ``keypoints`` [K, 2]
+    OpenCV px, ``descriptors`` [K, 128] uint8, ``point_of_keypoint`` [K] int (-1 = untriangulated).
+    """
+
+    camera_ids: list[str]
+    intrinsics: dict[str, Intrinsics]
+    world_to_camera: dict[str, np.ndarray]
+    points: np.ndarray
+    colours: np.ndarray
+    track_length: np.ndarray
+    obs_point: np.ndarray
+    obs_camera: np.ndarray
+    obs_xy: np.ndarray
+    keypoints: dict[str, np.ndarray]
+    descriptors: dict[str, np.ndarray]
+    point_of_keypoint: dict[str, np.ndarray]
+    unregistered: list[str] = field(default_factory=list)
+    stats: dict = field(default_factory=dict)
+
+    def transformed(self, sim: Similarity) -> "SparseModel":
+        """The same model in the frame ``x_new = s R x + t``."""
+        return replace(self, points=sim.apply(self.points),
+                       world_to_camera={k: sim.apply_pose(v) for k, v in self.world_to_camera.items()})
+
+    def centres(self) -> np.ndarray:
+        """Camera centres [C, 3] in ``camera_ids`` order."""
+        out = []
+        for cid in self.camera_ids:
+            m = self.world_to_camera[cid]
+            out.append(-m[:3, :3].T @ m[:3, 3])
+        return np.asarray(out)
+
+    def reprojection_errors(self) -> np.ndarray:
+        """Reprojection error (px) of every observation [M]."""
+        err = np.zeros(len(self.obs_point))
+        for ci, cid in enumerate(self.camera_ids):
+            sel = self.obs_camera == ci
+            m = self.world_to_camera[cid]
+            p = self.points[self.obs_point[sel]] @ m[:3, :3].T + m[:3, 3]
+            K = self.intrinsics[cid].K
+            uv = p[:, :2] / p[:, 2:3] @ K[:2, :2].T + K[:2, 2]
+            err[sel] = np.linalg.norm(uv - self.obs_xy[sel], axis=1)
+        return err
+
+
+def _colmap_camera(intr: Intrinsics) -> pycolmap.Camera:
+    if abs(intr.fx - intr.fy) < 1e-9:
+        cam = pycolmap.Camera(model="SIMPLE_PINHOLE", width=intr.width, height=intr.height,
+                              params=[intr.fx, intr.cx + COLMAP_PIXEL_OFFSET, intr.cy + COLMAP_PIXEL_OFFSET])
+    else:
+        cam = pycolmap.Camera(model="PINHOLE", width=intr.width, height=intr.height,
+                              params=[intr.fx, intr.fy, intr.cx + COLMAP_PIXEL_OFFSET,
+                                      intr.cy + COLMAP_PIXEL_OFFSET])
+    cam.has_prior_focal_length = True
+    return cam
+
+
+def _intrinsics_from_colmap(cam: pycolmap.Camera) -> Intrinsics:
+    return Intrinsics(float(cam.focal_length_x), float(cam.focal_length_y),
+                      float(cam.principal_point_x) - COLMAP_PIXEL_OFFSET,
+                      float(cam.principal_point_y) - COLMAP_PIXEL_OFFSET, int(cam.width), int(cam.height))
+
+
+def _quiet() -> None:
+    try:  # glog is chatty at INFO; keep warnings
+        pycolmap.logging.minloglevel = 1
+    except Exception:  # pragma: no cover - older pycolmap
+        pass
+
+
+def reconstruct_static(images: Mapping[str, np.ndarray], intrinsics: Mapping[str, Intrinsics],
+                       options: StaticSfmOptions = StaticSfmOptions(),
+                       initial_poses: Mapping[str, np.ndarray] | None = None,
+                       work_dir: str | Path | None = None) -> SparseModel:
+    """Sparse SfM of static cameras seen at one instant (the middle frame).
+
+    ``images``: camera id -> scene-linear RGB(A) float [H, W, C] (or uint8 gray [H, W]).
+    ``intrinsics``: camera id -> fixed :class:`Intrinsics` (focal from the lens metadata).
+    ``initial_poses``: camera id -> world-to-camera [4, 4] seeds (the rig's nominal mounts). With
+    seeds the points are triangulated from the seeded poses and the poses bundle-adjusted
+    (COLMAP, focal lengths fixed); without, COLMAP's incremental mapper runs on its own (it failed
+    on the demo rig's mostly planar 320x180 views, see ``docs/calibration.md``).
+    ``work_dir``: where the COLMAP database and PNGs go (a temporary folder when None).
+
+    Returns the largest reconstruction; cameras it could not register are in ``unregistered``.
+    Raises ``RuntimeError`` when fewer than two cameras register.
+    """
+    _quiet()
+    ids = sorted(images)
+    missing = [c for c in ids if c not in intrinsics]
+    if missing:
+        raise ValueError(f"no intrinsics for camera(s) {missing}")
+    if len(ids) < 2:
+        raise ValueError("static SfM needs at least two cameras")
+    with tempfile.TemporaryDirectory(prefix="volcap-sfm-") as tmp:
+        work = Path(work_dir) if work_dir is not None else Path(tmp)
+        t0 = time.perf_counter()
+        db_path, img_dir = _build_database(images, intrinsics, ids, options, work)
+        t1 = time.perf_counter()
+        _match(db_path, options)
+        t2 = time.perf_counter()
+        if initial_poses is not None:
+            rec = _seeded(db_path, {c: initial_poses[c] for c in ids if c in initial_poses})
+            for i in range(options.seeded_rounds):
+                rec = _triangulate(rec, db_path, img_dir, work, options)
+                if i + 1 < options.seeded_rounds:
+                    _final_bundle_adjustment(rec, options)
+            n_models = 1
+        else:
+            rec, n_models = _incremental(db_path, img_dir, work, options)
+            _final_bundle_adjustment(rec, options)
+        t3 = time.perf_counter()
+        kps, descs = _read_features(db_path)
+    model = _model_from_reconstruction(rec, ids, images, kps, descs)
+    model.stats.update({"time_features_s": t1 - t0, "time_matching_s": t2 - t1,
+                        "time_reconstruction_s": t3 - t2, "num_models": n_models,
+                        "method": "seeded" if initial_poses is not None else "incremental"})
+    return model
+
+
+def _build_database(images, intrinsics, ids, options: StaticSfmOptions, work: Path) -> tuple[Path, Path]:
+    img_dir = work / "images"
+    img_dir.mkdir(parents=True, exist_ok=True)
+    db_path = work / "database.db"
+    if db_path.exists():
+        db_path.unlink()
+    for cid in ids:
+        img = images[cid]
+        gray = img if img.dtype == np.uint8 and img.ndim == 2 else to_uint8_gray(img)
+        cv2.imwrite(str(img_dir / f"{cid}.png"), gray)
+    colmap_ids: dict[str, int] = {}
+    # write_camera creates a trivial rig per camera; the images (and their frames) are created by
+    # feature extraction, tied to the camera through existing_camera_id
+    with pycolmap.Database.open(str(db_path)) as db:
+        for cid in ids:
+            colmap_ids[cid] = int(db.write_camera(_colmap_camera(intrinsics[cid])))
+    eo = options.sift.colmap()
+    for cid in ids:
+        ro = pycolmap.ImageReaderOptions()
+        ro.existing_camera_id = colmap_ids[cid]
+        pycolmap.extract_features(str(db_path), str(img_dir), image_names=[f"{cid}.png"],
+                                  reader_options=ro, extraction_options=eo, device=pycolmap.Device.cpu)
+    return db_path, img_dir
+
+
+def _match(db_path: Path, options: StaticSfmOptions) -> None:
+    mo = pycolmap.FeatureMatchingOptions()
+    mo.sift.max_ratio = options.match_max_ratio
+    mo.num_threads = options.num_threads
+    mo.guided_matching = options.guided_matching
+    vo = pycolmap.TwoViewGeometryOptions()
+    vo.min_num_inliers = options.min_pair_inliers
+    pycolmap.match_exhaustive(str(db_path), matching_options=mo, verification_options=vo,
+                              device=pycolmap.Device.cpu)
+
+
+def _read_features(db_path: Path) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    kps, descs = {}, {}
+    with pycolmap.Database.open(str(db_path)) as db:
+        for im in db.read_all_images():
+            cid = im.name[:-4]
+            k = np.asarray(db.read_keypoints(im.image_id), np.float64)
+            kps[cid] = k[:, :2] - COLMAP_PIXEL_OFFSET
+            descs[cid] = np.asarray(db.read_descriptors(im.image_id).data, np.uint8)
+    return kps, descs
+
+
+def _incremental(db_path: Path, img_dir: Path, work: Path, options: StaticSfmOptions):
+    po = pycolmap.IncrementalPipelineOptions()
+    po.ba_refine_focal_length = False
+    po.ba_refine_extra_params = False
+    po.ba_refine_principal_point = False
+    po.mapper.abs_pose_refine_focal_length = False
+    po.mapper.abs_pose_refine_extra_params = False
+    po.mapper.init_min_num_inliers = options.init_min_num_inliers
+    po.mapper.abs_pose_min_num_inliers = options.abs_pose_min_num_inliers
+    po.num_threads = options.num_threads
+    po.random_seed = options.seed
+    po.multiple_models = True
+    sparse = work / "sparse"
+    sparse.mkdir(exist_ok=True)
+    recs = pycolmap.incremental_mapping(str(db_path), str(img_dir), str(sparse), options=po)
+    if not recs:
+        raise RuntimeError("static SfM registered no cameras")
+    rec = max(recs.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()))
+    if rec.num_reg_images() < 2:
+        raise RuntimeError("static SfM registered fewer than two cameras")
+    return rec, len(recs)
+
+
+def _seeded(db_path: Path, poses: Mapping[str, np.ndarray]) -> pycolmap.Reconstruction:
+    """A reconstruction with the database's cameras and images at the given poses, no points."""
+    rec = pycolmap.Reconstruction()
+    with pycolmap.Database.open(str(db_path)) as db:
+        cams = {c.camera_id: c for c in db.read_all_cameras()}
+        for im in db.read_all_images():
+            cid = im.name[:-4]
+            if cid not in poses:
+                continue
+            rec.add_camera_with_trivial_rig(cams[im.camera_id])
+            kp = np.asarray(db.read_keypoints(im.image_id), np.float64)[:, :2]
+            img = pycolmap.Image(name=im.name, keypoints=kp, camera_id=im.camera_id, image_id=im.image_id)
+            m = np.asarray(poses[cid], np.float64)
+            rec.add_image_with_trivial_frame(img, pycolmap.Rigid3d(m[:3, :4]))
+    if rec.num_reg_images() < 2:
+        raise RuntimeError("seeded static SfM needs at least two seeded cameras")
+    return rec
+
+
+def _triangulate(rec, db_path: Path, img_dir: Path, work: Path, options: StaticSfmOptions):
+    po = pycolmap.IncrementalPipelineOptions()
+    po.num_threads = options.num_threads
+    po.triangulation.create_max_angle_error = options.triangulation_max_angle_deg
+    po.mapper.filter_max_reproj_error = options.triangulation_max_error_px
+    out = work / "triangulated"
+    out.mkdir(exist_ok=True)
+    return pycolmap.triangulate_points(rec, str(db_path), str(img_dir), str(out), clear_points=True,
+                                       options=po, refine_intrinsics=False)
+
+
+def _final_bundle_adjustment(rec: pycolmap.Reconstruction, options: StaticSfmOptions) -> None:
+    ba = pycolmap.BundleAdjustmentOptions()
+    ba.refine_focal_length = options.refine_focal
+    ba.refine_principal_point = False
+    ba.refine_extra_params = False
+    ba.print_summary = False
+    ba.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    ba.ceres.loss_function_scale = options.loss_scale_px
+    pycolmap.bundle_adjustment(rec, ba)
+
+
+def _model_from_reconstruction(rec, ids, images, kps, descs) -> SparseModel:
+    reg: dict[str, int] = {}
+    for iid in rec.reg_image_ids():
+        reg[rec.images[iid].name[:-4]] = iid
+    cam_ids = [c for c in ids if c in reg]
+    intr, poses = {}, {}
+    for cid in cam_ids:
+        im = rec.images[reg[cid]]
+        intr[cid] = _intrinsics_from_colmap(rec.cameras[im.camera_id])
+        m = im.cam_from_world().matrix()
+        poses[cid] = pose_matrix(m[:, :3], m[:, 3])
+    index_of_image = {reg[c]: i for i, c in enumerate(cam_ids)}
+    pid_rows = {}
+    pts, cols, tl = [], [], []
+    obs_p, obs_c, obs_xy = [], [], []
+    pok = {c: np.full(len(kps[c]), -1, np.int64) for c in cam_ids}
+    for pid, p in rec.points3D.items():
+        row = len(pts)
+        pid_rows[pid] = row
+        pts.append(np.asarray(p.xyz, np.float64))
+        rgb = []
+        n = 0
+        for el in p.track.elements:
+            ci = index_of_image.get(el.image_id)
+            if ci is None:
+                continue
+            cid = cam_ids[ci]
+            xy = kps[cid][el.point2D_idx]
+            obs_p.append(row)
+            obs_c.append(ci)
+            obs_xy.append(xy)
+            pok[cid][el.point2D_idx] = row
+            n += 1
+            img = images[cid]
+            if img.ndim == 3:
+                x = int(np.clip(round(xy[0]), 0, img.shape[1] - 1))
+                y = int(np.clip(round(xy[1]), 0, img.shape[0] - 1))
+                rgb.append(np.asarray(img[y, x, :3], np.float32))
+        tl.append(n)
+        cols.append(np.mean(rgb, axis=0) if rgb else np.zeros(3, np.float32))
+    model = SparseModel(
+        camera_ids=cam_ids, intrinsics=intr, world_to_camera=poses,
+        points=np.asarray(pts, np.float64).reshape(-1, 3),
+        colours=np.asarray(cols, np.float32).reshape(-1, 3),
+        track_length=np.asarray(tl, np.int64),
+        obs_point=np.asarray(obs_p, np.int64), obs_camera=np.asarray(obs_c, np.int64),
+        obs_xy=np.asarray(obs_xy, np.float64).reshape(-1, 2),
+        keypoints={c: kps[c] for c in cam_ids}, descriptors={c: descs[c] for c in cam_ids},
+        point_of_keypoint=pok, unregistered=[c for c in ids if c not in reg])
+    err = model.reprojection_errors()
+    model.stats.update({"registered": len(cam_ids), "points": len(pts),
+                        "mean_reprojection_error_px": float(err.mean()) if len(err) else float("nan"),
+                        "mean_track_length": float(np.mean(tl)) if tl else 0.0})
+    return model

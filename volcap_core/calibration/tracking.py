@@ -1,0 +1,652 @@
+"""Tracking (pan/tilt/zoom) cameras: a pose and a focal length at every frame.
+
+Every tracking camera is registered at every frame against the *fixed* static model, then its whole
+sequence is refined jointly with priors, because per-frame focal and depth trade off (a zoom-in looks
+like a dolly-in) and per-frame estimates drift and stutter.
+
+Observations (:func:`observe_tracking_camera`):
+
+- 2D-3D: SIFT of each frame matched to the static reference (:func:`build_static_reference`: SIFT of
+  the static cameras' background plates lifted onto the lidar scan, plus the sparse SfM points);
+- 2D-2D: SIFT matches between frames t and t+k of the same camera (k in ``pair_offsets``), kept when
+  they follow the dominant homography; for a camera that only rotates and zooms, background points
+  map between its frames by ``K_j R_j R_i^T K_i^-1`` whatever their depth, so these constrain
+  relative rotations and focal ratios very precisely.
+
+Initialisation (:func:`initialise_tracking`): focal from the smoothed lens encoder, centre at the
+rig's mount, relative rotations from the frame-to-frame homographies, absolute orientation by a
+two-point RANSAC over the 2D-3D matches of all frames pooled (few per frame at high zoom, hundreds
+together).
+
+Refinement (:func:`refine_tracking`, torch, batched over cameras): Levenberg-Marquardt over, per frame,
+rotation (3), centre (3) and log focal (1), and per camera a mean centre (3), a focal gain (log) and
+an offset, minimising (Cauchy-robust) 2D-3D and 2D-2D reprojection errors plus
+
+- a focal prior: ``log f_t = log(exp(a) * s(t) + b) ± focal_sigma_rel``, ``s`` the encoder focal
+  (px) smoothed robustly over time (:func:`smooth_encoder_focal`), ``a, b`` the per-camera gain and
+  offset (the encoder's calibration error);
+- a centre prior: ``C_t = C_mean ± centre_sigma_m`` (the head barely translates).
+
+``mode="free"`` drops both priors (per-frame focal and centre free, still joint); ``"independent"``
+also drops the 2D-2D terms: every frame alone, the classic per-frame registration.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Mapping, Sequence
+
+import cv2
+import numpy as np
+import torch
+from kornia.geometry.conversions import axis_angle_to_rotation_matrix
+
+from volcap_core.calibration.features import SiftOptions, extract_sift, match_descriptors
+from volcap_core.calibration.images import to_uint8_gray
+from volcap_core.calibration.lidar import LidarScan, lift_to_lidar
+
+NF = 7   # per-frame parameters: rotation (3), centre (3), log focal (1)
+NG = 5   # per-camera parameters: mean centre (3), focal gain (log), focal offset (px)
+
+
+@dataclass(frozen=True)
+class TrackingOptions:
+    #: SIFT for the zoomed frames: more octaves (their background is many times larger)
+    sift: SiftOptions = SiftOptions(num_octaves=6)
+    ratio_3d: float = 0.85
+    ratio_2d: float = 0.8
+    pair_offsets: tuple[int, ...] = (1, 2, 4)
+    homography_px: float = 3.0
+    min_pair_matches: int = 12
+    pixel_sigma_3d: float = 2.0
+    pixel_sigma_2d: float = 1.0
+    focal_sigma_rel: float = 0.003
+    centre_sigma_m: float = 0.005
+    #: prior of the mean centre around the rig's mount (a zoomed view barely tells a sideways
+    #: shift from a pan: without it the centre slides tens of cm)
+    mount_sigma_m: float = 0.05
+    smooth_lambda: float = 4.0
+    iterations: int = 30
+    mode: str = "priors"            # priors | free | independent
+    ransac_iterations: int = 2000
+    ransac_px: float = 12.0
+    device: str = "cpu"
+    seed: int = 0
+
+
+# --------------------------------------------------------------------------- the encoder prior
+
+def smooth_encoder_focal(frames: np.ndarray, focal: np.ndarray, frame_count: int,
+                         lam: float = 4.0, iterations: int = 5) -> np.ndarray:
+    """Robust smooth curve through lens-encoder focal readings.
+
+    ``frames`` [S] take indices of the readings, ``focal`` [S] readings (any unit); returns [T]
+    (T = ``frame_count``, same unit): a Whittaker smoother (second differences, weight ``lam``) with
+    Cauchy re-weighting (scale = 1.4826 MAD of the residuals), so a glitching reading does not bend
+    it. Frames without a reading are interpolated by the smoother.
+    """
+    frames = np.asarray(frames, np.int64)
+    y = np.zeros(frame_count)
+    w0 = np.zeros(frame_count)
+    ok = (frames >= 0) & (frames < frame_count)
+    y[frames[ok]] = np.asarray(focal, np.float64)[ok]
+    w0[frames[ok]] = 1.0
+    if w0.sum() == 0:
+        raise ValueError("no encoder reading inside the take")
+    if frame_count < 3:
+        return np.full(frame_count, y[w0 > 0].mean())
+    D = np.diff(np.eye(frame_count), 2, axis=0)
+    P = lam * D.T @ D
+    w = w0.copy()
+    z = y.copy()
+    for _ in range(iterations):
+        z = np.linalg.solve(np.diag(w) + P + 1e-12 * np.eye(frame_count), w * y)
+        r = (y - z)[w0 > 0]
+        s = max(1.4826 * np.median(np.abs(r)), 1e-9 * max(1.0, np.abs(y).max()))
+        w = w0 / (1 + ((y - z) / (3 * s)) ** 2)
+    return z
+
+
+# --------------------------------------------------------------------------- the static reference
+
+@dataclass
+class StaticReference:
+    """3D points [N, 3] (stage frame) with SIFT descriptors [N, 128] uint8, from the static cameras."""
+
+    points: np.ndarray
+    descriptors: np.ndarray
+
+
+def build_static_reference(images: Mapping[str, np.ndarray], K: Mapping[str, np.ndarray],
+                           world_to_camera: Mapping[str, np.ndarray], scan: LidarScan | None,
+                           *, sparse_points: np.ndarray | None = None,
+                           sparse_descriptors: np.ndarray | None = None,
+                           sift: SiftOptions = SiftOptions()) -> StaticReference:
+    """SIFT of calibrated static views (background plates preferably), lifted onto the lidar scan.
+
+    ``images``: id -> linear RGB [H, W, 3]. ``sparse_points`` [P, 3] with ``sparse_descriptors``
+    [P, 128] (e.g. the SfM points and one descriptor of each) are appended. Without a scan only the
+    sparse points are used.
+    """
+    pts, descs = [], []
+    if scan is not None:
+        for cid in sorted(images):
+            img = images[cid]
+            kp, de = extract_sift(to_uint8_gray(img), sift)
+            X, ok = lift_to_lidar(K[cid], world_to_camera[cid], kp[:, :2], scan, img.shape[1], img.shape[0])
+            pts.append(X[ok])
+            descs.append(de[ok])
+    if sparse_points is not None and sparse_descriptors is not None:
+        good = np.isfinite(sparse_points).all(1)
+        pts.append(np.asarray(sparse_points)[good])
+        descs.append(np.asarray(sparse_descriptors)[good])
+    if not pts:
+        raise ValueError("a static reference needs a lidar scan or sparse points")
+    return StaticReference(np.concatenate(pts).astype(np.float64), np.concatenate(descs).astype(np.uint8))
+
+
+# --------------------------------------------------------------------------- observations
+
+@dataclass
+class TrackingObservations:
+    """What one tracking camera saw. 2D-3D: ``m3_frame`` [A], ``m3_uv`` [A, 2], ``m3_X`` [A, 3].
+    2D-2D: ``m2_i`` [B], ``m2_j`` [B] frames, ``m2_ui`` [B, 2], ``m2_uj`` [B, 2]. Homographies
+    ``H[(i, j)]`` mapping frame i pixels to frame j pixels (consecutive pairs)."""
+
+    frame_count: int
+    width: int
+    height: int
+    m3_frame: np.ndarray
+    m3_uv: np.ndarray
+    m3_X: np.ndarray
+    m2_i: np.ndarray
+    m2_j: np.ndarray
+    m2_ui: np.ndarray
+    m2_uj: np.ndarray
+    H: dict = field(default_factory=dict)
+    seconds: float = 0.0
+
+
+def observe_tracking_camera(frames: Sequence[np.ndarray], reference: StaticReference,
+                            options: TrackingOptions = TrackingOptions()) -> TrackingObservations:
+    """Features and matches of one tracking camera. ``frames``: linear RGB [H, W, 3] per take index."""
+    t0 = time.perf_counter()
+    T = len(frames)
+    h, w = frames[0].shape[:2]
+    feats = [extract_sift(to_uint8_gray(f), options.sift) for f in frames]
+    f3, uv3, X3 = [], [], []
+    for t, (kp, de) in enumerate(feats):
+        m = match_descriptors(de, reference.descriptors, ratio=options.ratio_3d)
+        if len(m):
+            f3.append(np.full(len(m), t))
+            uv3.append(kp[m[:, 0], :2])
+            X3.append(reference.points[m[:, 1]])
+    i2, j2, ui2, uj2 = [], [], [], []
+    Hs = {}
+    for k in options.pair_offsets:
+        for i in range(T - k):
+            j = i + k
+            kpi, dei = feats[i]
+            kpj, dej = feats[j]
+            m = match_descriptors(dei, dej, ratio=options.ratio_2d, mutual=True)
+            if len(m) < options.min_pair_matches:
+                continue
+            a = kpi[m[:, 0], :2].astype(np.float64)
+            b = kpj[m[:, 1], :2].astype(np.float64)
+            H, mask = cv2.findHomography(a, b, cv2.RANSAC, options.homography_px, maxIters=2000,
+                                         confidence=0.999)
+            if H is None:
+                continue
+            mask = mask.ravel().astype(bool)
+            if mask.sum() < options.min_pair_matches:
+                continue
+            if k == 1:
+                Hs[(i, j)] = H
+            i2.append(np.full(mask.sum(), i))
+            j2.append(np.full(mask.sum(), j))
+            ui2.append(a[mask])
+            uj2.append(b[mask])
+
+    def cat(x, shape):
+        return np.concatenate(x) if x else np.zeros(shape)
+
+    return TrackingObservations(T, w, h, cat(f3, (0,)).astype(np.int64), cat(uv3, (0, 2)), cat(X3, (0, 3)),
+                                cat(i2, (0,)).astype(np.int64), cat(j2, (0,)).astype(np.int64),
+                                cat(ui2, (0, 2)), cat(uj2, (0, 2)), Hs, time.perf_counter() - t0)
+
+
+# --------------------------------------------------------------------------- initialisation
+
+def _orthonormal(M: np.ndarray) -> np.ndarray:
+    U, _, Vt = np.linalg.svd(M)
+    R = U @ Vt
+    if np.linalg.det(R) < 0:
+        R = U @ np.diag([1, 1, -1]) @ Vt
+    return R
+
+
+def _bearings(uv: np.ndarray, f: float, cx: float, cy: float) -> np.ndarray:
+    b = np.stack([(uv[:, 0] - cx) / f, (uv[:, 1] - cy) / f, np.ones(len(uv))], 1)
+    return b / np.linalg.norm(b, axis=1, keepdims=True)
+
+
+def _kabsch(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Rotation R minimising sum |R a_i - b_i|^2 (unit vectors [N, 3])."""
+    U, _, Vt = np.linalg.svd(b.T @ a)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+def initialise_tracking(obs: TrackingObservations, focal_px: np.ndarray, centre: np.ndarray,
+                        principal: tuple[float, float], options: TrackingOptions = TrackingOptions()
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
+    """Initial rotations [T, 3, 3], centres [T, 3] and focal lengths [T] of one tracking camera.
+
+    ``focal_px`` [T]: the smoothed encoder focal; ``centre`` [3]: the mount position (metres).
+    """
+    T = obs.frame_count
+    cx, cy = principal
+    # relative rotations R_t R_{t-1}^T: Kabsch on the bearings of the homography inliers of (t-1, t)
+    rel = [np.eye(3)]
+    cons = (obs.m2_j - obs.m2_i) == 1
+    for t in range(1, T):
+        sel = cons & (obs.m2_i == t - 1)
+        if sel.sum() < 3:
+            rel.append(rel[-1])
+            continue
+        bi = _bearings(obs.m2_ui[sel], focal_px[t - 1], cx, cy)
+        bj = _bearings(obs.m2_uj[sel], focal_px[t], cx, cy)
+        rel.append(_kabsch(bi, bj) @ rel[-1])
+    rel = np.asarray(rel)
+    # pooled bearings in the frame-0 orientation
+    t3 = obs.m3_frame
+    uv = obs.m3_uv
+    if len(t3) < 3:
+        raise RuntimeError("tracking camera: fewer than 3 2D-3D matches over the whole take")
+    rays = np.stack([(uv[:, 0] - cx) / focal_px[t3], (uv[:, 1] - cy) / focal_px[t3], np.ones(len(t3))], 1)
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    b = np.einsum("nji,nj->ni", rel[t3], rays)                    # R_rel^T ray
+    d = obs.m3_X - centre
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    thr = options.ransac_px / np.median(focal_px)
+    rng = np.random.default_rng(options.seed)
+    best, best_n = None, -1
+    n = len(b)
+    for _ in range(options.ransac_iterations):
+        i, j = rng.choice(n, 2, replace=False)
+        if abs(d[i] @ d[j]) > 0.99995:
+            continue
+        R0 = _kabsch(d[[i, j]], b[[i, j]])
+        err = np.linalg.norm(d @ R0.T - b, axis=1)
+        inl = err < thr
+        cnt = int(inl.sum())
+        if cnt > best_n:
+            best, best_n = inl, cnt
+    R0 = _kabsch(d[best], b[best])
+    for _ in range(3):
+        inl = np.linalg.norm(d @ R0.T - b, axis=1) < thr
+        if inl.sum() >= 3:
+            R0 = _kabsch(d[inl], b[inl])
+    R = rel @ R0
+    C = np.repeat(np.asarray(centre, np.float64)[None], T, 0)
+    return R, C, np.asarray(focal_px, np.float64).copy(), {"ransac_inliers": int(inl.sum()), "matches_3d": n,
+                                                           "homographies": len(obs.H)}
+
+
+# --------------------------------------------------------------------------- refinement
+
+@dataclass
+class TrackingSolution:
+    """Per frame: ``K`` [T, 3, 3], ``world_to_camera`` [T, 4, 4]; per camera: focal ``gain``
+    (multiplier on the smoothed encoder focal) and ``offset`` (px), mean ``centre`` [3]."""
+
+    K: np.ndarray
+    world_to_camera: np.ndarray
+    gain: float
+    offset: float
+    centre: np.ndarray
+    stats: dict
+
+
+def _skew(v: torch.Tensor) -> torch.Tensor:
+    z = torch.zeros_like(v[..., 0])
+    return torch.stack([torch.stack([z, -v[..., 2], v[..., 1]], -1),
+                        torch.stack([v[..., 2], z, -v[..., 0]], -1),
+                        torch.stack([-v[..., 1], v[..., 0], z], -1)], -2)
+
+
+def _dpi(w: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
+    """d pi / d w [Q, 2, 3] for pi = f * w_xy / w_z."""
+    z = w[:, 2]
+    d = torch.zeros(len(w), 2, 3, dtype=w.dtype, device=w.device)
+    d[:, 0, 0] = f / z
+    d[:, 1, 1] = f / z
+    d[:, 0, 2] = -f * w[:, 0] / z ** 2
+    d[:, 1, 2] = -f * w[:, 1] / z ** 2
+    return d
+
+
+class _Batch:
+    """All cameras' observations concatenated, with the camera index of each."""
+
+    def __init__(self, obs: list[TrackingObservations], principal: np.ndarray, prior_px: list[np.ndarray],
+                 mounts: list[np.ndarray], o: TrackingOptions, dev):
+        f64 = dict(dtype=torch.float64, device=dev)
+        self.B = len(obs)
+        self.T = max(ob.frame_count for ob in obs)
+        self.n = NF * self.T + NG
+        c3, t3, uv3, X3 = [], [], [], []
+        c2, i2, j2, ui2, uj2 = [], [], [], [], []
+        for b, ob in enumerate(obs):
+            c3.append(np.full(len(ob.m3_frame), b))
+            t3.append(ob.m3_frame)
+            uv3.append(ob.m3_uv)
+            X3.append(ob.m3_X)
+            if o.mode != "independent":
+                c2.append(np.full(len(ob.m2_i), b))
+                i2.append(ob.m2_i)
+                j2.append(ob.m2_j)
+                ui2.append(ob.m2_ui)
+                uj2.append(ob.m2_uj)
+        L = lambda xs, s: torch.as_tensor(np.concatenate(xs) if xs else np.zeros(s), device=dev)  # noqa: E731
+        self.c3 = L(c3, (0,)).long()
+        self.t3 = L(t3, (0,)).long()
+        self.uv3 = L(uv3, (0, 2)).to(torch.float64)
+        self.X3 = L(X3, (0, 3)).to(torch.float64)
+        self.c2 = L(c2, (0,)).long()
+        self.i2 = L(i2, (0,)).long()
+        self.j2 = L(j2, (0,)).long()
+        self.ui2 = L(ui2, (0, 2)).to(torch.float64)
+        self.uj2 = L(uj2, (0, 2)).to(torch.float64)
+        self.pp = torch.as_tensor(principal, **f64)                                   # [B, 2]
+        self.s = torch.stack([torch.as_tensor(p, **f64) for p in prior_px])            # [B, T]
+        self.mount = torch.as_tensor(np.stack([ob_mount for ob_mount in mounts]), **f64)  # [B, 3]
+        self.valid_frame = torch.zeros(self.B, self.T, dtype=torch.bool, device=dev)
+        for b, ob in enumerate(obs):
+            self.valid_frame[b, :ob.frame_count] = True
+
+
+class _State:
+    def __init__(self, R, C, logf, Cm, a, off):
+        self.R, self.C, self.logf, self.Cm, self.a, self.off = R, C, logf, Cm, a, off
+
+    def step(self, d: torch.Tensor, T: int) -> "_State":
+        B = d.shape[0]
+        fr = d[:, :NF * T].view(B, T, NF)
+        g = d[:, NF * T:]
+        dR = axis_angle_to_rotation_matrix(fr[..., :3].reshape(-1, 3)).view(B, T, 3, 3)
+        return _State(dR @ self.R, self.C + fr[..., 3:6], self.logf + fr[..., 6], self.Cm + g[:, :3],
+                      self.a + g[:, 3], self.off + g[:, 4])
+
+
+def _terms(st: _State, bt: _Batch, o: TrackingOptions, jac: bool):
+    """Residual blocks: list of (camera [Q], residual [Q, k], J [Q, k, m], index [Q, m], weight sigma)."""
+    out = []
+    f = torch.exp(st.logf)
+    # 2D-3D
+    if len(bt.c3):
+        b, t = bt.c3, bt.t3
+        R = st.R[b, t]
+        w = (R @ (bt.X3 - st.C[b, t])[..., None])[..., 0]
+        ft = f[b, t]
+        z = w[:, 2].clamp(min=1e-6)
+        pred = ft[:, None] * w[:, :2] / z[:, None] + bt.pp[b]
+        r = (pred - bt.uv3) / o.pixel_sigma_3d
+        behind = w[:, 2] <= 1e-6
+        r = torch.where(behind[:, None], torch.full_like(r, 1e3), r)
+        J = idx = None
+        if jac:
+            d = _dpi(w, ft)
+            Jw = d @ (-_skew(w))
+            JC = d @ (-R)
+            Jf = (ft[:, None] * w[:, :2] / z[:, None])[..., None]
+            J = torch.cat([Jw, JC, Jf], 2) / o.pixel_sigma_3d
+            idx = (NF * t)[:, None] + torch.arange(NF, device=t.device)[None]
+        out.append((b, r, J, idx))
+    # 2D-2D (frame i -> frame j, same camera)
+    if len(bt.c2):
+        b, i, j = bt.c2, bt.i2, bt.j2
+        fi, fj = f[b, i], f[b, j]
+        pp = bt.pp[b]
+        ray = torch.cat([(bt.ui2 - pp) / fi[:, None], torch.ones_like(fi)[:, None]], 1)
+        Ri, Rj = st.R[b, i], st.R[b, j]
+        v = (Ri.transpose(1, 2) @ ray[..., None])[..., 0]
+        w = (Rj @ v[..., None])[..., 0]
+        z = w[:, 2].clamp(min=1e-6)
+        pred = fj[:, None] * w[:, :2] / z[:, None] + pp
+        r = (pred - bt.uj2) / o.pixel_sigma_2d
+        J = idx = None
+        if jac:
+            d = _dpi(w, fj)
+            Jwj = d @ (-_skew(w))
+            RjRiT = Rj @ Ri.transpose(1, 2)
+            Jwi = d @ RjRiT @ _skew(ray)
+            dray = torch.zeros_like(ray)
+            dray[:, :2] = -(bt.ui2 - pp) / fi[:, None]
+            Jfi = d @ (RjRiT @ dray[..., None])
+            Jfj = (fj[:, None] * w[:, :2] / z[:, None])[..., None]
+            zero3 = torch.zeros(len(b), 2, 3, dtype=w.dtype, device=w.device)
+            J = torch.cat([Jwi, zero3, Jfi, Jwj, zero3, Jfj], 2) / o.pixel_sigma_2d
+            ar = torch.arange(NF, device=b.device)[None]
+            idx = torch.cat([(NF * i)[:, None] + ar, (NF * j)[:, None] + ar], 1)
+        out.append((b, r, J, idx))
+    return out
+
+
+def _prior_terms(st: _State, bt: _Batch, o: TrackingOptions, jac: bool):
+    """Quadratic priors: focal curve, centre, weak gauge terms. Same format as _terms."""
+    out = []
+    B, T = bt.B, bt.T
+    dev = st.C.device
+    bb, tt = torch.meshgrid(torch.arange(B, device=dev), torch.arange(T, device=dev), indexing="ij")
+    vf = bt.valid_frame
+    bb, tt = bb[vf], tt[vf]
+    ar3 = torch.arange(3, device=dev)
+    if o.mode == "priors":
+        g = torch.exp(st.a)[bb] * bt.s[bb, tt]
+        model = g + st.off[bb]
+        r = ((st.logf[bb, tt] - torch.log(model)) / o.focal_sigma_rel)[:, None]
+        J = idx = None
+        if jac:
+            J = torch.stack([torch.ones_like(g), -g / model, -1.0 / model], 1)[:, None, :] / o.focal_sigma_rel
+            idx = torch.stack([NF * tt + 6, torch.full_like(tt, NF * T + 3), torch.full_like(tt, NF * T + 4)], 1)
+        out.append((bb, r, J, idx))
+        rc = (st.C[bb, tt] - st.Cm[bb]) / o.centre_sigma_m
+        J = idx = None
+        if jac:
+            eye = torch.eye(3, dtype=rc.dtype, device=dev).expand(len(bb), 3, 3)
+            J = torch.cat([eye, -eye], 2) / o.centre_sigma_m
+            idx = torch.cat([(NF * tt + 3)[:, None] + ar3, (NF * T + ar3).expand(len(bb), 3)], 1)
+        out.append((bb, rc, J, idx))
+        bcam = torch.arange(B, device=dev)
+        rm = (st.Cm - bt.mount) / o.mount_sigma_m
+        J = idx = None
+        if jac:
+            J = torch.eye(3, dtype=rm.dtype, device=dev).expand(B, 3, 3) / o.mount_sigma_m
+            idx = (NF * T + ar3).expand(B, 3)
+        out.append((bcam, rm, J, idx))
+        # weak priors on the encoder calibration (1 % gain, 1 % offset) keep the system regular
+        scale = bt.s.mean(1)
+        r = torch.stack([st.a / 0.01, st.off / (0.01 * scale)], 1)
+        J = idx = None
+        if jac:
+            J = torch.zeros(B, 2, 2, dtype=r.dtype, device=dev)
+            J[:, 0, 0] = 1 / 0.01
+            J[:, 1, 1] = 1 / (0.01 * scale)
+            idx = torch.tensor([NF * T + 3, NF * T + 4], device=dev).expand(B, 2)
+        out.append((bcam, r, J, idx))
+    else:
+        # without priors: only a weak regulariser (1 m around the mount) so every frame stays solvable
+        rc = (st.C[bb, tt] - bt.mount[bb]) / 1.0
+        J = idx = None
+        if jac:
+            J = torch.eye(3, dtype=rc.dtype, device=dev).expand(len(bb), 3, 3).clone()
+            idx = (NF * tt + 3)[:, None] + ar3
+        out.append((bb, rc, J, idx))
+    return out
+
+
+def _cost(st: _State, bt: _Batch, o: TrackingOptions) -> torch.Tensor:
+    """Per-camera cost [B]: Cauchy on data terms, squares on priors."""
+    c = torch.zeros(bt.B, dtype=torch.float64, device=st.C.device)
+    for b, r, _, _ in _terms(st, bt, o, False):
+        c.index_add_(0, b, torch.log1p((r ** 2).sum(1)))
+    for b, r, _, _ in _prior_terms(st, bt, o, False):
+        c.index_add_(0, b, (r ** 2).sum(1))
+    return c
+
+
+def _normal_equations(st: _State, bt: _Batch, o: TrackingOptions):
+    B, n = bt.B, bt.n
+    dev = st.C.device
+    H = torch.zeros(B * n * n, dtype=torch.float64, device=dev)
+    g = torch.zeros(B * n, dtype=torch.float64, device=dev)
+    for robust, terms in ((True, _terms(st, bt, o, True)), (False, _prior_terms(st, bt, o, True))):
+        for b, r, J, idx in terms:
+            if len(b) == 0:
+                continue
+            w = 1.0 / (1.0 + (r ** 2).sum(1)) if robust else torch.ones(len(b), dtype=r.dtype, device=dev)
+            Jw = J * w[:, None, None]
+            JtJ = Jw.transpose(1, 2) @ J                                        # [Q, m, m]
+            Jtr = (Jw.transpose(1, 2) @ r[..., None])[..., 0]                   # [Q, m]
+            m = idx.shape[1]
+            flat = (b[:, None, None] * n * n + idx[:, :, None] * n + idx[:, None, :]).reshape(-1)
+            H.index_add_(0, flat, JtJ.reshape(-1))
+            g.index_add_(0, (b[:, None] * n + idx).reshape(-1), Jtr.reshape(-1))
+    H = H.view(B, n, n)
+    g = g.view(B, n)
+    # frames a camera does not have, and the unused globals without priors, get unit diagonals
+    diag = H.diagonal(dim1=1, dim2=2)
+    diag += (diag == 0).to(H.dtype)
+    return H, g
+
+
+def refine_tracking(obs: list[TrackingObservations], init: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+                    prior_px: list[np.ndarray], principal: np.ndarray, mounts: list[np.ndarray],
+                    options: TrackingOptions = TrackingOptions()) -> list[TrackingSolution]:
+    """Jointly refine every tracking camera's sequence (batched over cameras).
+
+    ``init[b]`` = (R [T, 3, 3], C [T, 3], f [T]) from :func:`initialise_tracking`; ``prior_px[b]`` [T]
+    the smoothed encoder focal in px; ``principal`` [B, 2] held fixed; ``mounts[b]`` [3] the nominal
+    centre (prior of the mean centre).
+    """
+    t0 = time.perf_counter()
+    dev = torch.device(options.device)
+    f64 = dict(dtype=torch.float64, device=dev)
+    bt = _Batch(obs, np.asarray(principal, np.float64), prior_px, mounts, options, dev)
+    B, T = bt.B, bt.T
+
+    def pad(a, shape_tail, fill):
+        out = np.broadcast_to(np.asarray(fill, np.float64), (B, T) + shape_tail).copy()
+        for b, x in enumerate(a):
+            out[b, :len(x)] = x
+        return torch.as_tensor(out, **f64)
+
+    R = pad([i[0] for i in init], (3, 3), np.eye(3))
+    C = pad([i[1] for i in init], (3,), 0.0)
+    logf = torch.log(pad([i[2] for i in init], (), 1.0))
+    Cm = torch.stack([C[b, :obs[b].frame_count].mean(0) for b in range(B)])
+    # start gain/offset at the least-squares fit of the initial focal to the prior curve
+    a = torch.zeros(B, **f64)
+    off = torch.zeros(B, **f64)
+    st = _State(R, C, logf, Cm, a, off)
+    lam = torch.full((B,), 1e-3, **f64)
+    cost = _cost(st, bt, options)
+    it = 0
+    for it in range(options.iterations):
+        H, g = _normal_equations(st, bt, options)
+        D = torch.diag_embed(H.diagonal(dim1=1, dim2=2))
+        d = torch.linalg.solve(H + lam[:, None, None] * D, -g[..., None])[..., 0]
+        new = st.step(d, T)
+        new_cost = _cost(new, bt, options)
+        better = new_cost < cost
+        sel = better.to(torch.float64)
+        st = _State(*[torch.where(_bc(better, x), y, x) for x, y in
+                      ((st.R, new.R), (st.C, new.C), (st.logf, new.logf), (st.Cm, new.Cm), (st.a, new.a),
+                       (st.off, new.off))])
+        rel = (cost - new_cost) / cost.clamp(min=1e-12)
+        cost = torch.where(better, new_cost, cost)
+        lam = torch.where(better, (lam / 3).clamp(min=1e-9), lam * 5)
+        if bool(((rel.abs() < 1e-7) & better | (lam > 1e7)).all()) and it > 2:
+            break
+        del sel
+    sols = []
+    f = torch.exp(st.logf)
+    for b in range(B):
+        Tb = obs[b].frame_count
+        K = np.zeros((Tb, 3, 3))
+        K[:, 0, 0] = f[b, :Tb].cpu().numpy()
+        K[:, 1, 1] = K[:, 0, 0]
+        K[:, 0, 2], K[:, 1, 2] = principal[b]
+        K[:, 2, 2] = 1
+        Rb = st.R[b, :Tb].cpu().numpy()
+        Cb = st.C[b, :Tb].cpu().numpy()
+        W = np.tile(np.eye(4), (Tb, 1, 1))
+        W[:, :3, :3] = Rb
+        W[:, :3, 3] = -np.einsum("tij,tj->ti", Rb, Cb)
+        res = _per_frame_residuals(st, bt, options, b, Tb)
+        sols.append(TrackingSolution(K, W, float(torch.exp(st.a[b])), float(st.off[b]),
+                                     st.Cm[b].cpu().numpy(),
+                                     {"cost": float(cost[b]), "iterations": it + 1, **res}))
+    for s in sols:
+        s.stats["seconds"] = time.perf_counter() - t0
+    return sols
+
+
+def _bc(mask: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    return mask.view(-1, *([1] * (x.dim() - 1)))
+
+
+def _per_frame_residuals(st, bt, o, b, Tb) -> dict:
+    out = {}
+    terms = _terms(st, bt, o, False)
+    names = ["reprojection_3d_px", "reprojection_2d_px"] if len(bt.c3) else ["reprojection_2d_px"]
+    sig = [o.pixel_sigma_3d, o.pixel_sigma_2d]
+    for name, s, (cam, r, _, _) in zip(names, sig, terms):
+        sel = cam == b
+        e = (r[sel].norm(dim=1) * s).cpu().numpy()
+        out[name + "_median"] = float(np.median(e)) if len(e) else float("nan")
+        out[name + "_inliers"] = int((e < 3 * s).sum())
+    return out
+
+
+# --------------------------------------------------------------------------- the whole stage
+
+def calibrate_tracking_cameras(frames: Mapping[str, Sequence[np.ndarray]],
+                               encoder: Mapping[str, tuple[np.ndarray, np.ndarray]],
+                               focal_px_per_mm: Mapping[str, float], mounts: Mapping[str, np.ndarray],
+                               reference: StaticReference, options: TrackingOptions = TrackingOptions()
+                               ) -> dict[str, TrackingSolution]:
+    """Register and refine every tracking camera at every frame.
+
+    ``frames``: id -> T linear RGB images [H, W, 3] (take indices 0..T-1); ``encoder``: id ->
+    (take indices [S], focal mm [S]) lens-encoder readings; ``focal_px_per_mm``: id -> sensor
+    pixels per mm; ``mounts``: id -> nominal centre [3]; ``reference``: the static model.
+    Returns id -> :class:`TrackingSolution`. An empty ``frames`` returns {}.
+    """
+    ids = sorted(frames)
+    if not ids:
+        return {}
+    obs, inits, priors, pps, info = [], [], [], [], {}
+    for cid in ids:
+        seq = frames[cid]
+        ob = observe_tracking_camera(seq, reference, options)
+        idx, mm = encoder[cid]
+        prior = smooth_encoder_focal(idx, mm, len(seq), options.smooth_lambda) * focal_px_per_mm[cid]
+        h, w = seq[0].shape[:2]
+        pp = ((w - 1) / 2.0, (h - 1) / 2.0)
+        R, C, f, st = initialise_tracking(ob, prior, np.asarray(mounts[cid], np.float64), pp, options)
+        obs.append(ob)
+        inits.append((R, C, f))
+        priors.append(prior)
+        pps.append(pp)
+        info[cid] = {**st, "observe_s": ob.seconds}
+    sols = refine_tracking(obs, inits, priors, np.asarray(pps), [np.asarray(mounts[c], np.float64) for c in ids],
+                           options)
+    out = {}
+    for cid, s in zip(ids, sols):
+        s.stats.update(info[cid])
+        out[cid] = s
+    return out
