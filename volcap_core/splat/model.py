@@ -7,6 +7,7 @@ For a Gaussian with temporal centre ``t0`` and ``dt = t - t0`` (seconds)::
     s_t = exp(Σ_{i=0..n_s} s_i dt^i)                  scale, metres (polynomial in log-scale)
     o_t = o_0 · exp(-½ Σ_{i=1..n_o} λ_i dt^{2i})      opacity, λ_i >= 0
     c(d) = SH(sh, d) + 0.5                            colour, unbounded sRGB, constant in time
+                                                      (``colour_space="linear"``: linear radiance)
 
 Degrees are configuration (:class:`Poly4DGSConfig`): the paper's default is
 ``(n_μ, n_q, n_s, n_o) = (2, 1, 0, 2)``; ``(1, 0, 0, 1)`` is the 4D-Rotor sliced baseline;
@@ -43,9 +44,10 @@ from __future__ import annotations
 import json
 import math
 from dataclasses import dataclass, fields
+from typing import Literal
 
 import torch
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_serializer
 from safetensors.torch import load as st_load
 from safetensors.torch import save as st_save
 
@@ -53,6 +55,7 @@ from volcap_core.splat.sh import num_sh_bases
 
 __all__ = [
     "ALPHA_MIN",
+    "ColourSpace",
     "Gaussians3D",
     "Poly4DGS",
     "Poly4DGSConfig",
@@ -73,6 +76,12 @@ LOG_SCALE_MIN, LOG_SCALE_MAX = -30.0, 10.0
 _LOG_TERM_CAP = 80.0
 MODEL_FORMAT = "volcap-poly4dgs/1"
 
+#: What the SH colour ``c(d) = SH(d) + 0.5`` of a Gaussian is. ``"srgb_unbounded"`` (the paper's
+#: choice): unbounded sRGB, linearised before rasterization. ``"linear"``: linear radiance,
+#: rasterized as is (the paper's "training in linear colour space" ablation). The loss is the same
+#: (unbounded sRGB of the linear render) either way.
+ColourSpace = Literal["srgb_unbounded", "linear"]
+
 
 class Poly4DGSConfig(BaseModel):
     """Polynomial degrees per property and the SH degree. JSON-serialisable, immutable."""
@@ -83,6 +92,17 @@ class Poly4DGSConfig(BaseModel):
     scale_degree: int = Field(0, ge=0, le=8, description="n_s")
     opacity_degree: int = Field(2, ge=0, le=6, description="n_o (terms λ_1..λ_n of dt^2i)")
     sh_degree: int = Field(3, ge=0, le=3)
+    colour_space: ColourSpace = Field("srgb_unbounded",
+                                      description="what the SH colours are (see ColourSpace)")
+
+    @model_serializer(mode="wrap")
+    def _omit_default_colour_space(self, handler):
+        # The default is left out of the JSON so configs (a task's cache key) and saved models
+        # written before the field existed stay byte-identical; a missing field reads back as it.
+        out = handler(self)
+        if self.colour_space == "srgb_unbounded":
+            out.pop("colour_space", None)
+        return out
 
     @classmethod
     def paper(cls, sh_degree: int = 3) -> "Poly4DGSConfig":
@@ -134,8 +154,11 @@ class Gaussians3D:
         quats: ``[M, 4]`` unit quaternions, wxyz.
         scales: ``[M, 3]`` standard deviations along the rotated axes (metres), > 0.
         opacities: ``[M]`` in ``[0, 1]``.
-        sh: ``[M, K, 3]`` SH coefficients of the unbounded-sRGB colour.
+        sh: ``[M, K, 3]`` SH coefficients of the colour (unbounded sRGB unless
+            ``colour_space`` says ``"linear"``).
         ids: ``[M]`` int64 index of each Gaussian in the model it came from.
+        colour_space: what ``SH + 0.5`` is (:data:`ColourSpace`); the renderer linearises
+            ``"srgb_unbounded"`` colours and rasterizes ``"linear"`` ones as they are.
     """
 
     means: torch.Tensor
@@ -144,13 +167,15 @@ class Gaussians3D:
     opacities: torch.Tensor
     sh: torch.Tensor
     ids: torch.Tensor
+    colour_space: ColourSpace = "srgb_unbounded"
 
     def __len__(self) -> int:
         return self.means.shape[0]
 
     def select(self, index: torch.Tensor) -> "Gaussians3D":
         """Subset by an index or boolean mask ``[M]`` (differentiable)."""
-        return Gaussians3D(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
+        return Gaussians3D(**{f.name: getattr(self, f.name)[index] for f in fields(self)
+                              if f.name != "colour_space"}, colour_space=self.colour_space)
 
 
 class Poly4DGS:
@@ -183,7 +208,8 @@ class Poly4DGS:
 
         Args:
             xyz: ``[N, 3]`` positions (metres).
-            colour: ``[N, 3]`` unbounded-sRGB colours (encode linear point colours first).
+            colour: ``[N, 3]`` colours in ``config.colour_space`` (unbounded sRGB by default:
+                encode linear point colours first).
             scales: ``[N]`` or ``[N, 3]`` initial standard deviations (metres), > 0.
             t0: ``[N]`` temporal centres (seconds); required when the config is temporal.
             opacity: initial o_0 in (0, 1).
@@ -297,7 +323,7 @@ def evaluate(model: Poly4DGS, t: float, *, min_opacity: float = ALPHA_MIN) -> Ga
     if c.sh_degree:
         sh = torch.cat([sh, p["shN"][ids]], dim=1)
     return Gaussians3D(means=means, quats=quats, scales=scales, opacities=opac_all[ids], sh=sh,
-                       ids=ids)
+                       ids=ids, colour_space=c.colour_space)
 
 
 def save_model(model: Poly4DGS) -> bytes:

@@ -5,8 +5,9 @@
 Colour path (paper eq. 1): each Gaussian's SH is evaluated at the direction from the camera
 centre, giving an *unbounded sRGB* colour; that is linearised with
 :func:`~volcap_core.colour.srgb_decode_unbounded` (no clamp) and the linear colours are
-rasterized. Exposure/black-level grids are applied by the caller
-(:mod:`volcap_core.splat.grids`): novel views render without them.
+rasterized (a model with ``colour_space="linear"`` stores linear colours: no decode).
+Exposure/black-level grids are applied by the caller (:mod:`volcap_core.splat.grids`): novel
+views render without them.
 
 Back-ends:
 
@@ -54,9 +55,13 @@ def gsplat_available() -> bool:
 
 def gaussian_colours(gaussians: Gaussians3D, camera: Camera) -> torch.Tensor:
     """Linear colours ``[M, 3]`` of the Gaussians seen from ``camera``: SH evaluated at the
-    direction camera centre -> Gaussian (unbounded sRGB), then linearised without clamping."""
+    direction camera centre -> Gaussian (unbounded sRGB), then linearised without clamping; with
+    ``colour_space="linear"`` the SH colour is already linear and is returned as is."""
     dirs = gaussians.means - camera.centre.to(gaussians.means)
-    return srgb_decode_unbounded(sh_to_colour(gaussians.sh, dirs))
+    colour = sh_to_colour(gaussians.sh, dirs)
+    if gaussians.colour_space == "linear":
+        return colour
+    return srgb_decode_unbounded(colour)
 
 
 def render(gaussians: Gaussians3D, camera: Camera, *, backend: Backend = "auto",

@@ -246,7 +246,8 @@ def _nn_scale(xyz: np.ndarray, k: int = 3) -> np.ndarray:
 
 def init_model(points: Sequence[PointsAtTime], config: TrainConfig, *, frame_interval_s: float,
                generator: torch.Generator | None = None) -> Poly4DGS:
-    """One Gaussian per point: t0 = its frame time, colour = its colour (unbounded sRGB), isotropic
+    """One Gaussian per point: t0 = its frame time, colour = its colour (unbounded sRGB, or linear
+    as it is when ``config.model.colour_space == "linear"``), isotropic
     scale = RMS distance to its 3 nearest neighbours within its own frame, opacity
     ``init_opacity``, no motion, temporal σ = ``init_lifespan_frames`` frame intervals."""
     if not points:
@@ -260,7 +261,8 @@ def init_model(points: Sequence[PointsAtTime], config: TrainConfig, *, frame_int
     if len(xyz) > n_max:
         keep = torch.randperm(len(xyz), generator=generator)[:n_max].sort().values
         xyz, rgb, t0, scales = xyz[keep], rgb[keep], t0[keep], scales[keep]
-    return Poly4DGS.from_points(config.model, xyz, srgb_encode_unbounded(rgb), scales=scales,
+    colour = rgb if config.model.colour_space == "linear" else srgb_encode_unbounded(rgb)
+    return Poly4DGS.from_points(config.model, xyz, colour, scales=scales,
                                 t0=t0, opacity=config.init_opacity,
                                 lifespan_s=config.init_lifespan_frames * frame_interval_s)
 
