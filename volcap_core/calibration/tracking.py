@@ -232,6 +232,31 @@ def _bearings(uv: np.ndarray, f: float, cx: float, cy: float) -> np.ndarray:
     return b / np.linalg.norm(b, axis=1, keepdims=True)
 
 
+def _ransac_rotation(a: np.ndarray, b: np.ndarray, thr: float, rng: np.random.Generator,
+                     iterations: int) -> np.ndarray:
+    """Rotation R with R a_i ≈ b_i (unit vectors [N, 3]) from 2-point samples; refit on the inliers
+    (|R a - b| < thr) a few times."""
+    n = len(a)
+    if n < 2:
+        return np.eye(3)
+    best, best_n = np.ones(n, bool), -1
+    for _ in range(iterations):
+        i, j = rng.choice(n, 2, replace=False)
+        if abs(a[i] @ a[j]) > 0.9999995:
+            continue
+        R = _kabsch(a[[i, j]], b[[i, j]])
+        inl = np.linalg.norm(a @ R.T - b, axis=1) < thr
+        cnt = int(inl.sum())
+        if cnt > best_n:
+            best, best_n = inl, cnt
+    R = _kabsch(a[best], b[best]) if best.sum() >= 2 else np.eye(3)
+    for _ in range(3):
+        inl = np.linalg.norm(a @ R.T - b, axis=1) < thr
+        if inl.sum() >= 3:
+            R = _kabsch(a[inl], b[inl])
+    return R
+
+
 def _kabsch(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Rotation R minimising sum |R a_i - b_i|^2 (unit vectors [N, 3])."""
     U, _, Vt = np.linalg.svd(b.T @ a)
@@ -248,7 +273,8 @@ def initialise_tracking(obs: TrackingObservations, focal_px: np.ndarray, centre:
     """
     T = obs.frame_count
     cx, cy = principal
-    # relative rotations R_t R_{t-1}^T: Kabsch on the bearings of the homography inliers of (t-1, t)
+    # relative rotations R_t R_{t-1}^T: robust Kabsch on the bearings of the matches of (t-1, t)
+    rng = np.random.default_rng(options.seed)
     rel = [np.eye(3)]
     cons = (obs.m2_j - obs.m2_i) == 1
     for t in range(1, T):
@@ -258,7 +284,7 @@ def initialise_tracking(obs: TrackingObservations, focal_px: np.ndarray, centre:
             continue
         bi = _bearings(obs.m2_ui[sel], focal_px[t - 1], cx, cy)
         bj = _bearings(obs.m2_uj[sel], focal_px[t], cx, cy)
-        rel.append(_kabsch(bi, bj) @ rel[-1])
+        rel.append(_ransac_rotation(bi, bj, 2.0 / focal_px[t], rng, 200) @ rel[-1])
     rel = np.asarray(rel)
     # pooled bearings in the frame-0 orientation
     t3 = obs.m3_frame
@@ -271,24 +297,9 @@ def initialise_tracking(obs: TrackingObservations, focal_px: np.ndarray, centre:
     d = obs.m3_X - centre
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     thr = options.ransac_px / np.median(focal_px)
-    rng = np.random.default_rng(options.seed)
-    best, best_n = None, -1
     n = len(b)
-    for _ in range(options.ransac_iterations):
-        i, j = rng.choice(n, 2, replace=False)
-        if abs(d[i] @ d[j]) > 0.99995:
-            continue
-        R0 = _kabsch(d[[i, j]], b[[i, j]])
-        err = np.linalg.norm(d @ R0.T - b, axis=1)
-        inl = err < thr
-        cnt = int(inl.sum())
-        if cnt > best_n:
-            best, best_n = inl, cnt
-    R0 = _kabsch(d[best], b[best])
-    for _ in range(3):
-        inl = np.linalg.norm(d @ R0.T - b, axis=1) < thr
-        if inl.sum() >= 3:
-            R0 = _kabsch(d[inl], b[inl])
+    R0 = _ransac_rotation(d, b, thr, rng, options.ransac_iterations)
+    inl = np.linalg.norm(d @ R0.T - b, axis=1) < thr
     R = rel @ R0
     C = np.repeat(np.asarray(centre, np.float64)[None], T, 0)
     return R, C, np.asarray(focal_px, np.float64).copy(), {"ransac_inliers": int(inl.sum()), "matches_3d": n,
@@ -614,21 +625,30 @@ def _per_frame_residuals(st, bt, o, b, Tb) -> dict:
 
 # --------------------------------------------------------------------------- the whole stage
 
-def calibrate_tracking_cameras(frames: Mapping[str, Sequence[np.ndarray]],
-                               encoder: Mapping[str, tuple[np.ndarray, np.ndarray]],
-                               focal_px_per_mm: Mapping[str, float], mounts: Mapping[str, np.ndarray],
-                               reference: StaticReference, options: TrackingOptions = TrackingOptions()
-                               ) -> dict[str, TrackingSolution]:
-    """Register and refine every tracking camera at every frame.
+@dataclass
+class TrackingProblem:
+    """Observations and initial values of every tracking camera (see :func:`prepare_tracking`)."""
+
+    ids: list[str]
+    obs: list[TrackingObservations]
+    inits: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
+    priors_px: list[np.ndarray]
+    principal: np.ndarray
+    mounts: list[np.ndarray]
+    info: dict
+
+
+def prepare_tracking(frames: Mapping[str, Sequence[np.ndarray]],
+                     encoder: Mapping[str, tuple[np.ndarray, np.ndarray]],
+                     focal_px_per_mm: Mapping[str, float], mounts: Mapping[str, np.ndarray],
+                     reference: StaticReference, options: TrackingOptions = TrackingOptions()) -> TrackingProblem:
+    """Features, matches, the encoder prior and the initial values of every tracking camera.
 
     ``frames``: id -> T linear RGB images [H, W, 3] (take indices 0..T-1); ``encoder``: id ->
     (take indices [S], focal mm [S]) lens-encoder readings; ``focal_px_per_mm``: id -> sensor
-    pixels per mm; ``mounts``: id -> nominal centre [3]; ``reference``: the static model.
-    Returns id -> :class:`TrackingSolution`. An empty ``frames`` returns {}.
+    pixels per mm; ``mounts``: id -> nominal centre [3] (metres); ``reference``: the static model.
     """
     ids = sorted(frames)
-    if not ids:
-        return {}
     obs, inits, priors, pps, info = [], [], [], [], {}
     for cid in ids:
         seq = frames[cid]
@@ -643,10 +663,31 @@ def calibrate_tracking_cameras(frames: Mapping[str, Sequence[np.ndarray]],
         priors.append(prior)
         pps.append(pp)
         info[cid] = {**st, "observe_s": ob.seconds}
-    sols = refine_tracking(obs, inits, priors, np.asarray(pps), [np.asarray(mounts[c], np.float64) for c in ids],
+    return TrackingProblem(ids, obs, inits, priors, np.asarray(pps, np.float64).reshape(-1, 2),
+                           [np.asarray(mounts[c], np.float64) for c in ids], info)
+
+
+def solve_tracking(problem: TrackingProblem, options: TrackingOptions = TrackingOptions()
+                   ) -> dict[str, TrackingSolution]:
+    """Refine a prepared problem (``options.mode`` picks priors / free / independent)."""
+    if not problem.ids:
+        return {}
+    sols = refine_tracking(problem.obs, problem.inits, problem.priors_px, problem.principal, problem.mounts,
                            options)
     out = {}
-    for cid, s in zip(ids, sols):
-        s.stats.update(info[cid])
+    for cid, s in zip(problem.ids, sols):
+        s.stats.update(problem.info[cid])
         out[cid] = s
     return out
+
+
+def calibrate_tracking_cameras(frames: Mapping[str, Sequence[np.ndarray]],
+                               encoder: Mapping[str, tuple[np.ndarray, np.ndarray]],
+                               focal_px_per_mm: Mapping[str, float], mounts: Mapping[str, np.ndarray],
+                               reference: StaticReference, options: TrackingOptions = TrackingOptions()
+                               ) -> dict[str, TrackingSolution]:
+    """Register and refine every tracking camera at every frame: :func:`prepare_tracking` then
+    :func:`solve_tracking`. Returns id -> :class:`TrackingSolution`; {} for no tracking camera."""
+    if not frames:
+        return {}
+    return solve_tracking(prepare_tracking(frames, encoder, focal_px_per_mm, mounts, reference, options), options)

@@ -1,0 +1,168 @@
+"""Geometry helpers, lidar alignment and lifting, the torch bundle adjuster, COLMAP export."""
+
+from __future__ import annotations
+
+import cv2  # noqa: F401  (before pycolmap)
+import numpy as np
+import pycolmap
+import pytest
+
+from volcap_core.calibration.bundle import BundleOptions, bundle_adjust
+from volcap_core.calibration.colmap_export import export_colmap
+from volcap_core.calibration.geometry import (Similarity, look_at_rotation, pose_matrix, robust_umeyama,
+                                              rotation_angle_deg, so3_exp, triangulate_points, umeyama)
+from volcap_core.calibration.lidar import LidarScan, align_to_lidar, decode_ply_points, lift_to_lidar
+
+
+def _cam(C, look=(0.0, 0.0, 1.0)):
+    R = look_at_rotation(C, look)
+    return pose_matrix(R, -R @ np.asarray(C, float))
+
+
+def _room(spacing=0.1, seed=0):
+    """Lidar-like samples of a box room (walls, floor) plus a crate, with normals."""
+    rng = np.random.default_rng(seed)
+    pts, nrm = [], []
+    for axis, val, n in ((0, -4.0, (1, 0, 0)), (0, 4.0, (-1, 0, 0)), (1, -5.0, (0, 1, 0)), (1, 5.0, (0, -1, 0)),
+                         (2, 0.0, (0, 0, 1))):
+        k = int(80 / spacing ** 2 / 10)
+        p = np.stack([rng.uniform(-4, 4, k), rng.uniform(-5, 5, k), rng.uniform(0, 3, k)], 1)
+        p[:, axis] = val
+        pts.append(p)
+        nrm.append(np.tile(n, (k, 1)))
+    k = 2000
+    for cx in (-1.5, 1.5):                         # two crates: front faces (-y) and side faces (+-x)
+        front = np.stack([cx + rng.uniform(-0.5, 0.5, k), np.full(k, 1.0), rng.uniform(0, 1, k)], 1)
+        side = np.stack([np.full(k, cx - np.sign(cx) * 0.5), rng.uniform(1.0, 2.0, k), rng.uniform(0, 1, k)], 1)
+        pts += [front, side]
+        nrm += [np.tile((0, -1, 0), (k, 1)), np.tile((-np.sign(cx), 0, 0), (k, 1))]
+    return LidarScan(np.concatenate(pts), np.concatenate(nrm).astype(float))
+
+
+def test_similarity_pose_mapping_keeps_projections():
+    rng = np.random.default_rng(0)
+    T = Similarity(1.7, so3_exp([0.1, -0.3, 0.2]), np.array([0.5, -1.0, 2.0]))
+    W = _cam([3.0, 1.0, 1.5])
+    X = rng.normal(0, 1, (20, 3))
+    Xc_old = X @ W[:3, :3].T + W[:3, 3]
+    W2 = T.apply_pose(W)
+    Xc_new = T.apply(X) @ W2[:3, :3].T + W2[:3, 3]
+    np.testing.assert_allclose(Xc_new, T.s * Xc_old, atol=1e-9)   # same image, depths scaled
+
+
+def test_umeyama_and_robust_variant():
+    rng = np.random.default_rng(1)
+    T = Similarity(0.8, so3_exp([0.2, 0.1, -0.4]), np.array([1.0, 2.0, 3.0]))
+    src = rng.normal(0, 2, (30, 3))
+    dst = T.apply(src)
+    U = umeyama(src, dst)
+    assert U.s == pytest.approx(0.8) and np.allclose(U.R, T.R) and np.allclose(U.t, T.t)
+    dst[:5] += rng.normal(0, 3, (5, 3))
+    V, inl = robust_umeyama(src, dst, threshold=0.1)
+    assert inl[5:].all() and not inl[:5].any()
+    assert V.s == pytest.approx(0.8, abs=1e-6)
+
+
+def test_triangulation_dlt():
+    rng = np.random.default_rng(2)
+    X = rng.normal(0, 0.5, (50, 3)) + [0, 0, 1]
+    K = np.array([[400.0, 0, 160], [0, 400, 120], [0, 0, 1]])
+    Ws = [_cam([4 * np.cos(a), 4 * np.sin(a), 1.5]) for a in (0.0, 0.5, 1.0)]
+    P = np.stack([K @ W[:3] for W in Ws])
+    obs_p, obs_c, obs_xy = [], [], []
+    for c in range(3):
+        x = np.c_[X, np.ones(50)] @ P[c].T
+        obs_p.append(np.arange(50))
+        obs_c.append(np.full(50, c))
+        obs_xy.append(x[:, :2] / x[:, 2:])
+    Y = triangulate_points(P, np.concatenate(obs_p), np.concatenate(obs_c), np.concatenate(obs_xy), 51)
+    np.testing.assert_allclose(Y[:50], X, atol=1e-8)
+    assert np.isnan(Y[50]).all()
+
+
+def test_ply_decoding(tmp_path):
+    pts = np.random.default_rng(3).normal(size=(10, 3)).astype(np.float32)
+    nrm = np.tile(np.float32([0, 0, 1]), (10, 1))
+    header = "ply\nformat binary_little_endian 1.0\nelement vertex 10\n" + "".join(
+        f"property float {n}\n" for n in ("x", "y", "z", "nx", "ny", "nz")) + "end_header\n"
+    data = header.encode() + np.concatenate([pts, nrm], 1).astype("<f4").tobytes()
+    p, n = decode_ply_points(data)
+    np.testing.assert_allclose(p, pts, atol=1e-7)
+    np.testing.assert_allclose(n, nrm)
+
+
+def test_icp_recovers_a_similarity_onto_the_scan():
+    scan = _room()
+    rng = np.random.default_rng(4)
+    true = scan.points[rng.choice(len(scan.points), 800, replace=False)]
+    T = Similarity(1.03, so3_exp([0.02, -0.03, 0.05]), np.array([0.2, -0.15, 0.1]))
+    model = (true - T.t) @ T.R / T.s                       # T maps model -> stage
+    U, st = align_to_lidar(model, scan, init=Similarity())
+    np.testing.assert_allclose(U.apply(model), true, atol=5e-3)
+    assert st["rms_plane_m"] < 2e-3
+
+
+def test_lift_to_lidar_hits_the_nearest_surface():
+    scan = _room(spacing=0.05)
+    K = np.array([[300.0, 0, 159.5], [0, 300, 89.5], [0, 0, 1]])
+    W = _cam([0.0, -4.5, 1.5], (0.0, 5.0, 1.0))
+    uv = np.array([[159.5, 89.5], [40.0, 60.0], [300.0, 170.0]])
+    X, ok = lift_to_lidar(K, W, uv, scan, 320, 180)
+    assert ok.all()
+    assert abs(X[0, 1] - 5.0) < 0.02                                  # the far wall, between the crates
+    assert abs(X[1, 1] - 5.0) < 0.02 or abs(X[1, 0] + 4.0) < 0.02
+    p = X @ W[:3, :3].T + W[:3, 3]
+    np.testing.assert_allclose(p[:, :2] / p[:, 2:] @ K[:2, :2].T + K[:2, 2], uv, atol=1e-6)
+
+
+def test_bundle_adjustment_with_lidar_prior_recovers_cameras():
+    scan = _room(spacing=0.05)
+    rng = np.random.default_rng(5)
+    X = scan.points[rng.choice(len(scan.points), 1500, replace=False)]
+    Cs = [np.array([3.0 * np.cos(a), 3.0 * np.sin(a) - 1.0, 1.5]) for a in np.linspace(-1.2, 1.2, 5)]
+    Ws = [_cam(c, (0.0, 3.0, 1.0)) for c in Cs]
+    K = np.array([[300.0, 0, 159.5], [0, 300, 89.5], [0, 0, 1]])
+    oc, op, uv = [], [], []
+    for c, W in enumerate(Ws):
+        p = X @ W[:3, :3].T + W[:3, 3]
+        x = p[:, :2] / p[:, 2:] @ K[:2, :2].T + K[:2, 2]
+        vis = np.flatnonzero((p[:, 2] > 0.1) & (x[:, 0] > 0) & (x[:, 0] < 319) & (x[:, 1] > 0) & (x[:, 1] < 179))
+        oc.append(np.full(len(vis), c))
+        op.append(vis)
+        uv.append(x[vis] + rng.normal(0, 0.1, (len(vis), 2)))
+    oc, op, uv = map(np.concatenate, (oc, op, uv))
+    W0 = []
+    for W in Ws:
+        R = so3_exp(rng.normal(0, 0.005, 3)) @ W[:3, :3]
+        C = -W[:3, :3].T @ W[:3, 3] + rng.normal(0, 0.03, 3)
+        W0.append(pose_matrix(R, -R @ C))
+    res = bundle_adjust(np.stack(W0), np.full(5, 300.0 * 1.01), np.tile([159.5, 89.5], (5, 1)),
+                        X + rng.normal(0, 0.03, X.shape), oc, op, uv, scan=scan, focal_prior=np.full(5, 300.0),
+                        options=BundleOptions(focal_sigma_rel=0.05, centre_sigma_m=0.5))
+    for W, We in zip(Ws, res["world_to_camera"]):
+        assert rotation_angle_deg(W[:3, :3], We[:3, :3]) < 0.1
+        assert np.linalg.norm(-W[:3, :3].T @ W[:3, 3] + We[:3, :3].T @ We[:3, 3]) < 0.015
+    np.testing.assert_allclose(res["focal"], 300.0, rtol=4e-3)
+    assert np.median(res["reprojection_px"]) < 0.5
+
+
+@pytest.mark.parametrize("binary", [False, True])
+def test_colmap_export_reads_back(tmp_path, binary):
+    K = np.array([[310.0, 0, 159.5], [0, 311.0, 89.5], [0, 0, 1]])
+    cams = {f"S{i}": (K, _cam([4 * np.cos(i), 4 * np.sin(i), 1.5]), 320, 180) for i in range(3)}
+    X = np.random.default_rng(6).normal(size=(25, 3))
+    cols = np.random.default_rng(7).uniform(0, 1, (25, 3)).astype(np.float32)
+    obs = (np.array([0, 0, 3]), np.array([0, 2, 1]), np.array([[10.0, 20.0], [30.0, 40.0], [50.0, 60.0]]))
+    out = export_colmap(tmp_path / "model", cams, X, cols, binary=binary, observations=obs)
+    ext = ".bin" if binary else ".txt"
+    assert {"cameras" + ext, "images" + ext, "points3D" + ext} <= {p.name for p in out.iterdir()}
+    rec = pycolmap.Reconstruction(str(out))
+    assert rec.num_images() == 3 and rec.num_points3D() == 25
+    for im in rec.images.values():
+        cid = im.name[:-4]
+        np.testing.assert_allclose(im.cam_from_world().matrix(), cams[cid][1][:3], atol=1e-9)
+        cam = rec.cameras[im.camera_id]
+        np.testing.assert_allclose(cam.params, [310, 311, 160, 90])
+    got = np.array(sorted(p.xyz.tolist() for p in rec.points3D.values()))
+    np.testing.assert_allclose(got, np.array(sorted(X.tolist())), atol=1e-9)
+    assert sum(p.track.length() for p in rec.points3D.values()) == 3

@@ -1,0 +1,275 @@
+"""Calibration error measures against ground truth (synthetic captures), as one table (a dict).
+
+Measures (per camera, then mean / max over cameras):
+
+- ``rotation_deg``: angle of ``R_est R_true^T``;
+- ``centre_frac``: camera-centre error divided by the stage size (max of the stage's x and y extent),
+  so 0.005 = 0.5 % of the stage (2 cm on the 4 m demo stage);
+- ``focal_pct``: ``100 (f_est / f_true - 1)``;
+- tracking cameras, frame to frame (t -> t+1), in pixels:
+  ``pose_jitter_px`` = | (p_est(t+1) - p_est(t)) - (p_true(t+1) - p_true(t)) | for a point on the
+  tracked actor (its head centre at t, held fixed): the motion the estimate invents or misses;
+  ``focal_jitter_px`` = | dln f_est - dln f_true | x half the image diagonal: the spurious zoom
+  motion at the image corner;
+- ``reprojection_px``: median reprojection error of the fit (from the calibration stats);
+- ``actor_points_3view``: 3D points triangulated in >= 3 views that lie on an actor
+  (:func:`count_multiview_points`).
+
+Targets on the demo capture (issue): static within 0.1° and 0.5 % of the stage; tracking focal within
+1 % and jitter under 1 px.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Mapping
+
+import numpy as np
+
+from volcap_core.calibration.features import SiftOptions, extract_sift, match_descriptors
+from volcap_core.calibration.geometry import rotation_angle_deg, triangulate_points
+from volcap_core.calibration.images import to_uint8_gray
+
+TARGETS = {"static_rotation_deg": 0.1, "static_centre_frac": 0.005, "tracking_focal_pct": 1.0,
+           "tracking_jitter_px": 1.0}
+
+
+@dataclass
+class GroundTruth:
+    """Ground truth of a synthetic capture: per camera per take index (K [3, 3], world_to_camera
+    [4, 4]); per actor per take index the head centre [3] and body parts (dicts of scene.json)."""
+
+    cameras: dict[str, list[tuple[np.ndarray, np.ndarray]]]
+    roles: dict[str, str]
+    tracked_actor: dict[str, int]
+    heads: list[np.ndarray]                  # per actor [T, 3]
+    parts: list[list[list[dict]]]            # per actor, per frame, parts
+    stage_size_m: tuple[float, float, float]
+    sizes: dict[str, tuple[int, int]]
+
+    @property
+    def stage_scale_m(self) -> float:
+        return float(max(self.stage_size_m[0], self.stage_size_m[1]))
+
+
+def load_ground_truth(folder: str | Path) -> GroundTruth:
+    """Read ``ground_truth/cameras.json`` and ``scene.json`` of a synthetic capture."""
+    folder = Path(folder)
+    cams = json.loads((folder / "cameras.json").read_text())
+    scene = json.loads((folder / "scene.json").read_text())
+    out, roles, tracked, sizes = {}, {}, {}, {}
+    for cid, c in cams["cameras"].items():
+        frames = []
+        for f in c["frames"]:
+            K = np.array([[f["fx"], 0, f["cx"]], [0, f["fy"], f["cy"]], [0, 0, 1.0]])
+            frames.append((K, np.asarray(f["world_to_camera"], np.float64)))
+        out[cid] = frames
+        roles[cid] = c["role"]
+        sizes[cid] = (int(c["width"]), int(c["height"]))
+        if c.get("tracking"):
+            tracked[cid] = int(c["tracking"]["actor"])
+    heads = [np.array([f["head_centre_m"] for f in a["frames"]]) for a in scene["actors"]]
+    parts = [[f["parts"] for f in a["frames"]] for a in scene["actors"]]
+    return GroundTruth(out, roles, tracked, heads, parts, tuple(scene["stage"]["size_m"]), sizes)
+
+
+def _centre(w2c: np.ndarray) -> np.ndarray:
+    return -w2c[..., :3, :3].swapaxes(-1, -2) @ w2c[..., :3, 3:4]
+
+
+def static_errors(K: Mapping[str, np.ndarray], world_to_camera: Mapping[str, np.ndarray], gt: GroundTruth,
+                  frame: int) -> dict[str, dict[str, float]]:
+    """Per static camera: rotation_deg, centre_m, centre_frac, focal_pct."""
+    out = {}
+    for cid in sorted(K):
+        Kg, Wg = gt.cameras[cid][frame]
+        ce = float(np.linalg.norm(_centre(world_to_camera[cid]) - _centre(Wg)))
+        out[cid] = {"rotation_deg": float(rotation_angle_deg(world_to_camera[cid][:3, :3], Wg[:3, :3])),
+                    "centre_m": ce, "centre_frac": ce / gt.stage_scale_m,
+                    "focal_pct": float(100 * (K[cid][0, 0] / Kg[0, 0] - 1))}
+    return out
+
+
+def _project(K, W, X):
+    p = W[:3, :3] @ X + W[:3, 3]
+    return (K[:2, :2] @ (p[:2] / p[2])) + K[:2, 2]
+
+
+def tracking_errors(K: np.ndarray, world_to_camera: np.ndarray, gt: GroundTruth, camera_id: str) -> dict:
+    """One tracking camera over the take: ``K`` [T, 3, 3], ``world_to_camera`` [T, 4, 4]."""
+    T = len(K)
+    gts = gt.cameras[camera_id][:T]
+    w, h = gt.sizes[camera_id]
+    half_diag = 0.5 * float(np.hypot(w, h))
+    actor = gt.tracked_actor.get(camera_id, 0)
+    head = gt.heads[actor] if gt.heads else np.zeros((T, 3))
+    fe = np.array([100 * (K[t, 0, 0] / gts[t][0][0, 0] - 1) for t in range(T)])
+    re = np.array([rotation_angle_deg(world_to_camera[t, :3, :3], gts[t][1][:3, :3]) for t in range(T)])
+    ce = np.array([np.linalg.norm(_centre(world_to_camera[t]) - _centre(gts[t][1])) for t in range(T)])
+    pj, fj = [], []
+    for t in range(T - 1):
+        P = head[t]
+        de = _project(K[t + 1], world_to_camera[t + 1], P) - _project(K[t], world_to_camera[t], P)
+        dg = _project(gts[t + 1][0], gts[t + 1][1], P) - _project(gts[t][0], gts[t][1], P)
+        pj.append(float(np.linalg.norm(de - dg)))
+        dle = np.log(K[t + 1, 0, 0] / K[t, 0, 0])
+        dlg = np.log(gts[t + 1][0][0, 0] / gts[t][0][0, 0])
+        fj.append(abs(dle - dlg) * half_diag)
+    pj = np.array(pj) if pj else np.zeros(1)
+    fj = np.array(fj) if fj else np.zeros(1)
+    return {"focal_pct_mean_abs": float(np.abs(fe).mean()), "focal_pct_max_abs": float(np.abs(fe).max()),
+            "rotation_deg_mean": float(re.mean()), "rotation_deg_max": float(re.max()),
+            "centre_frac_mean": float(ce.mean() / gt.stage_scale_m), "centre_m_mean": float(ce.mean()),
+            "pose_jitter_px_mean": float(pj.mean()), "pose_jitter_px_max": float(pj.max()),
+            "focal_jitter_px_mean": float(fj.mean()), "focal_jitter_px_max": float(fj.max())}
+
+
+def calibration_table(static: Mapping[str, dict], tracking: Mapping[str, Mapping[str, dict]] | None = None,
+                      extra: Mapping[str, float] | None = None) -> dict:
+    """Summarise per-camera errors into the report table.
+
+    ``static``: :func:`static_errors` output; ``tracking``: variant name (e.g. "priors", "free") ->
+    camera id -> :func:`tracking_errors` output. Returns a nested dict with means / maxima and a
+    ``targets`` section saying which targets are met.
+    """
+    table: dict = {"static": {}, "tracking": {}, "targets": {}}
+    if static:
+        r = np.array([v["rotation_deg"] for v in static.values()])
+        c = np.array([v["centre_frac"] for v in static.values()])
+        f = np.array([abs(v["focal_pct"]) for v in static.values()])
+        table["static"] = {"cameras": len(r), "rotation_deg_mean": float(r.mean()), "rotation_deg_max": float(r.max()),
+                           "centre_frac_mean": float(c.mean()), "centre_frac_max": float(c.max()),
+                           "focal_pct_mean_abs": float(f.mean()), "focal_pct_max_abs": float(f.max()),
+                           "per_camera": {k: dict(v) for k, v in static.items()}}
+        table["targets"]["static_rotation"] = bool(r.max() <= TARGETS["static_rotation_deg"])
+        table["targets"]["static_centre"] = bool(c.max() <= TARGETS["static_centre_frac"])
+    for variant, cams in (tracking or {}).items():
+        if not cams:
+            continue
+        agg = {}
+        for key in next(iter(cams.values())):
+            vals = np.array([v[key] for v in cams.values()])
+            agg[key] = float(vals.max() if key.endswith("_max") or key.endswith("max_abs") else vals.mean())
+        agg["per_camera"] = {k: dict(v) for k, v in cams.items()}
+        table["tracking"][variant] = agg
+        if variant == "priors":
+            table["targets"]["tracking_focal"] = bool(agg["focal_pct_max_abs"] <= TARGETS["tracking_focal_pct"])
+            table["targets"]["tracking_jitter"] = bool(
+                max(agg["pose_jitter_px_mean"], agg["focal_jitter_px_mean"]) <= TARGETS["tracking_jitter_px"])
+    if extra:
+        table.update({k: v for k, v in extra.items()})
+    return table
+
+
+# --------------------------------------------------------------------------- actor points
+
+def distance_to_parts(points: np.ndarray, parts: list[dict]) -> np.ndarray:
+    """Approximate distance (m) of points [N, 3] to an actor's parts (ellipsoids, capsules) [N]."""
+    P = np.asarray(points, np.float64).reshape(-1, 3)
+    best = np.full(len(P), np.inf)
+    for p in parts:
+        if p["kind"] == "capsule":
+            a, b = np.asarray(p["a_m"]), np.asarray(p["b_m"])
+            ab = b - a
+            s = np.clip(((P - a) @ ab) / max(ab @ ab, 1e-12), 0, 1)
+            d = np.linalg.norm(P - (a + s[:, None] * ab), axis=1) - p["radius_m"]
+        else:
+            R = np.asarray(p["rotation"])
+            semi = np.asarray(p["semi_axes_m"])
+            q = (P - np.asarray(p["centre_m"])) @ R / semi
+            n = np.linalg.norm(q, axis=1)
+            d = (n - 1) * semi.min()
+        best = np.minimum(best, np.abs(d))
+    return best
+
+
+def count_multiview_points(images: Mapping[str, np.ndarray], cameras: Mapping[str, tuple[np.ndarray, np.ndarray]],
+                           *, ratio: float = 0.8, epipolar_px: float = 2.0, reproj_px: float = 2.0,
+                           min_views: int = 3, sift: SiftOptions = SiftOptions(num_octaves=6),
+                           keep: Callable[[np.ndarray], np.ndarray] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Multi-view points of one instant from calibrated cameras.
+
+    SIFT in every view, ratio-test matches between every pair kept when within ``epipolar_px`` of
+    the epipolar line the calibration predicts, tracks by union-find, DLT triangulation, then points
+    whose every observation reprojects within ``reproj_px`` and that have >= ``min_views`` views.
+    ``cameras``: id -> (K [3, 3], world_to_camera [4, 4]). ``keep``: optional filter on points
+    (e.g. "on an actor"). Returns points [N, 3] and their view counts [N]. A better calibration
+    finds more: wrong geometry rejects true matches.
+    """
+    ids = sorted(set(images) & set(cameras))
+    feats = {c: extract_sift(to_uint8_gray(images[c]), sift) for c in ids}
+    offs = {}
+    n = 0
+    for c in ids:
+        offs[c] = n
+        n += len(feats[c][0])
+    parent = np.arange(n)
+
+    def find(x):
+        while parent[x] != x:
+            parent[x] = parent[parent[x]]
+            x = parent[x]
+        return x
+
+    Ps = {c: cameras[c][0] @ cameras[c][1][:3] for c in ids}
+    for i, a in enumerate(ids):
+        for b in ids[i + 1:]:
+            m = match_descriptors(feats[a][1], feats[b][1], ratio=ratio, mutual=True)
+            if len(m) == 0:
+                continue
+            ua = feats[a][0][m[:, 0], :2].astype(np.float64)
+            ub = feats[b][0][m[:, 1], :2].astype(np.float64)
+            Fm = _fundamental(cameras[a], cameras[b])
+            d = _epipolar_distance(Fm, ua, ub)
+            for qa, qb in m[d < epipolar_px]:
+                ra, rb = find(offs[a] + qa), find(offs[b] + qb)
+                if ra != rb:
+                    parent[ra] = rb
+    roots = np.array([find(x) for x in range(n)])
+    cam_of = np.concatenate([np.full(len(feats[c][0]), k) for k, c in enumerate(ids)])
+    xy = np.concatenate([feats[c][0][:, :2] for c in ids]).astype(np.float64)
+    uniq, inv, counts = np.unique(roots, return_inverse=True, return_counts=True)
+    multi = counts[inv] >= min_views
+    # one observation per camera per track: drop tracks that hit a camera twice
+    obs_p, obs_c, obs_xy = inv[multi], cam_of[multi], xy[multi]
+    key = obs_p * len(ids) + obs_c
+    _, kc = np.unique(key, return_counts=True)
+    dup = np.unique(key[np.isin(key, np.unique(key)[kc > 1])] // len(ids))
+    ok = ~np.isin(obs_p, dup)
+    obs_p, obs_c, obs_xy = obs_p[ok], obs_c[ok], obs_xy[ok]
+    if len(obs_p) == 0:
+        return np.zeros((0, 3)), np.zeros(0, np.int64)
+    pts_ids, obs_p = np.unique(obs_p, return_inverse=True)
+    P = np.stack([Ps[c] for c in ids])
+    X = triangulate_points(P, obs_p, obs_c, obs_xy, len(pts_ids))
+    xh = np.einsum("mij,mj->mi", P[obs_c], np.c_[X[obs_p], np.ones(len(obs_p))])
+    err = np.linalg.norm(xh[:, :2] / xh[:, 2:3] - obs_xy, axis=1)
+    bad = np.zeros(len(pts_ids), bool)
+    np.logical_or.at(bad, obs_p, ~(err < reproj_px) | (xh[:, 2] <= 0))
+    views = np.bincount(obs_p, minlength=len(pts_ids))
+    good = ~bad & (views >= min_views) & np.isfinite(X).all(1)
+    X, views = X[good], views[good]
+    if keep is not None and len(X):
+        sel = keep(X)
+        X, views = X[sel], views[sel]
+    return X, views
+
+
+def _fundamental(ca, cb) -> np.ndarray:
+    Ka, Wa = ca
+    Kb, Wb = cb
+    Rab = Wb[:3, :3] @ Wa[:3, :3].T
+    tab = Wb[:3, 3] - Rab @ Wa[:3, 3]
+    tx = np.array([[0, -tab[2], tab[1]], [tab[2], 0, -tab[0]], [-tab[1], tab[0], 0]])
+    return np.linalg.inv(Kb).T @ tx @ Rab @ np.linalg.inv(Ka)
+
+
+def _epipolar_distance(F, ua, ub) -> np.ndarray:
+    ha = np.c_[ua, np.ones(len(ua))]
+    hb = np.c_[ub, np.ones(len(ub))]
+    la = ha @ F.T                      # lines in b
+    lb = hb @ F                        # lines in a
+    num = np.abs(np.einsum("ij,ij->i", hb, la))
+    return np.maximum(num / np.hypot(la[:, 0], la[:, 1]), num / np.hypot(lb[:, 0], lb[:, 1]))

@@ -1,0 +1,171 @@
+"""The whole calibration of one capture as one pure function (the task layer wraps it).
+
+Inputs are plain values: a frame source ``load(camera_id, take_index) -> linear RGB [H, W, 3]``
+(lazy, so a task can decode EXRs from the store one at a time), the rig, the lens-encoder readings
+re-indexed to take indices, and the lidar scan. Outputs: the :class:`Calibration` record (with the
+ref its tracking blob will have), the blob's bytes, and the intermediate results for reports.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Mapping
+
+import numpy as np
+
+from hardware.rig import Rig
+from volcap_core.calibration.lidar import LidarScan
+from volcap_core.calibration.photometric import background_plate
+from volcap_core.calibration.record import (Calibration, CameraCalibration, TrackingFrames,
+                                            encode_tracking_frames, matrix4, tracking_frames_ref)
+from volcap_core.calibration.static import StaticCalibration, StaticCalibrationOptions, calibrate_static_cameras
+from volcap_core.calibration.tracking import (StaticReference, TrackingOptions, TrackingSolution,
+                                              build_static_reference, calibrate_tracking_cameras)
+
+FrameSource = Callable[[str, int], np.ndarray]
+
+
+@dataclass(frozen=True)
+class CalibrationOptions:
+    static: StaticCalibrationOptions = StaticCalibrationOptions()
+    tracking: TrackingOptions = TrackingOptions()
+    #: frames (evenly spread over the take) whose median is each static camera's background plate
+    plate_frames: int = 8
+    #: None: the middle frame (the paper)
+    reference_frame: int | None = None
+
+
+@dataclass
+class CalibrationResult:
+    record: Calibration
+    tracking_bytes: bytes | None
+    static: StaticCalibration
+    tracking: dict[str, TrackingSolution]
+    reference: StaticReference | None
+    stats: dict = field(default_factory=dict)
+
+
+def calibrate_capture(load: FrameSource, rig: Rig, camera_ids: list[str], frame_count: int, fps: float, *,
+                      capture_name: str, encoder: Mapping[str, tuple[np.ndarray, np.ndarray]],
+                      scan: LidarScan | None, options: CalibrationOptions = CalibrationOptions()
+                      ) -> CalibrationResult:
+    """Calibrate every camera of a capture.
+
+    ``camera_ids``: the capture's cameras (their roles come from the rig); ``encoder``: tracking camera
+    id -> (take indices [S], focal mm [S]). Tracking cameras are skipped (with a note in ``stats``)
+    when the capture has none.
+    """
+    t0 = time.perf_counter()
+    ref_frame = frame_count // 2 if options.reference_frame is None else options.reference_frame
+    statics = [c for c in camera_ids if not rig.camera(c).role.tracks]
+    trackers = [c for c in camera_ids if rig.camera(c).role.tracks]
+    images = {c: load(c, ref_frame) for c in statics}
+    plate_idx = np.unique(np.linspace(0, frame_count - 1, max(1, min(options.plate_frames, frame_count))).round()
+                          .astype(int))
+    plates = {c: background_plate([load(c, int(k)) for k in plate_idx]) for c in statics}
+    t1 = time.perf_counter()
+    static = calibrate_static_cameras(images, rig, scan, plates=plates, options=options.static)
+    t2 = time.perf_counter()
+    stats: dict = {"time_load_s": t1 - t0, "time_static_s": t2 - t1}
+    tracking: dict[str, TrackingSolution] = {}
+    reference = None
+    blob = None
+    if trackers:
+        reference = build_static_reference({c: plates[c] for c in static.camera_ids}, static.K,
+                                           static.world_to_camera, scan)
+        frames = {c: [load(c, t) for t in range(frame_count)] for c in trackers}
+        ppm = {c: rig.camera(c).sensor.width_px / rig.camera(c).sensor.width_mm for c in trackers}
+        mounts = {c: np.asarray(rig.camera(c).mount.position_m, np.float64) for c in trackers}
+        tracking = calibrate_tracking_cameras(frames, encoder, ppm, mounts, reference, options.tracking)
+        tf = {c: TrackingFrames(np.stack([s.K[:, 0, 0], s.K[:, 1, 1], s.K[:, 0, 2], s.K[:, 1, 2]], 1),
+                                s.world_to_camera) for c, s in tracking.items()}
+        blob = encode_tracking_frames(tf)
+    else:
+        stats["tracking"] = "skipped: the capture has no tracking cameras"
+    stats["time_tracking_s"] = time.perf_counter() - t2
+    record = build_record(capture_name, rig, static, tracking, frame_count, fps, ref_frame, blob)
+    stats["time_total_s"] = time.perf_counter() - t0
+    return CalibrationResult(record, blob, static, tracking, reference, stats)
+
+
+def build_record(capture_name: str, rig: Rig, static: StaticCalibration, tracking: Mapping[str, TrackingSolution],
+                 frame_count: int, fps: float, reference_frame: int, blob: bytes | None) -> Calibration:
+    """The JSON-small record; ``blob`` (from :func:`encode_tracking_frames`) gives the tracking ref."""
+    cams = []
+    for cid in static.camera_ids:
+        K = static.K[cid]
+        w, h = static.size[cid]
+        cams.append(CameraCalibration(id=cid, role=rig.camera(cid).role.value, static=True, width=w, height=h,
+                                      intrinsics=(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])),
+                                      world_to_camera=matrix4(static.world_to_camera[cid])))
+    for cid in sorted(tracking):
+        s = rig.camera(cid).sensor
+        st = tracking[cid].stats
+        q = {k: float(v) for k, v in st.items() if isinstance(v, (int, float)) and np.isfinite(v)}
+        q["focal_gain"] = tracking[cid].gain
+        q["focal_offset_px"] = tracking[cid].offset
+        cams.append(CameraCalibration(id=cid, role=rig.camera(cid).role.value, static=False,
+                                      width=s.width_px, height=s.height_px, quality=q))
+    bstats = static.stats.get("bundle", {})
+    rec_stats = {"static_cameras": float(len(static.camera_ids)), "tracking_cameras": float(len(tracking))}
+    if "median_reprojection_px" in bstats:
+        rec_stats["static_median_reprojection_px"] = float(bstats["median_reprojection_px"])
+    return Calibration(capture=capture_name, frame_count=frame_count, fps=fps, reference_frame=reference_frame,
+                       stage_size_m=tuple(rig.stage_size_m), cameras=tuple(cams),
+                       tracking_frames=tracking_frames_ref(blob) if blob is not None else None, stats=rec_stats)
+
+
+# --------------------------------------------------------------------------- capture folders
+
+@dataclass
+class FolderCapture:
+    """A capture folder (``volcap_core.capture`` layout) read directly: for tests, benchmarks and
+    the demo. ``load(camera_id, take_index)`` decodes one frame (linear RGB float32 [H, W, 3])."""
+
+    root: Path
+    rig: Rig
+    name: str
+    fps: float
+    frame_count: int
+    camera_ids: list[str]
+    offsets: dict[str, int]
+    paths: dict[str, str]
+    encoder: dict[str, tuple[np.ndarray, np.ndarray]]
+
+    @staticmethod
+    def open(root: str | Path) -> "FolderCapture":
+        import json
+
+        from hardware.rig import load_rig
+        from volcap_core.capture import CaptureDescription
+
+        root = Path(root)
+        desc = CaptureDescription.model_validate(json.loads((root / "capture.json").read_text()))
+        rig_path = root / desc.rig
+        rig = load_rig(rig_path if rig_path.suffix == ".json" and rig_path.exists() else desc.rig)
+        offsets = {c.id: desc.take_offset(c) for c in desc.cameras}
+        enc = {}
+        for c in desc.cameras:
+            if c.lens_encoder:
+                enc[c.id] = (np.array([s.frame + offsets[c.id] for s in c.lens_encoder], np.int64),
+                             np.array([s.focal_mm for s in c.lens_encoder], np.float64))
+        return FolderCapture(root, rig, desc.name, desc.fps, desc.take.frame_count, [c.id for c in desc.cameras],
+                             offsets, {c.id: c.path for c in desc.cameras}, enc)
+
+    def load(self, camera_id: str, take_index: int) -> np.ndarray:
+        from volcap_core.imageio import read_image
+
+        folder = self.root / self.paths[camera_id]
+        n = take_index - self.offsets[camera_id]
+        for ext in ("exr", "png", "tif", "tiff", "dpx"):
+            p = folder / f"{n:06d}.{ext}"
+            if p.exists():
+                img, _ = read_image(p)
+                return np.asarray(img[..., :3], np.float32)
+        raise FileNotFoundError(f"{folder}: no frame {n:06d} (take index {take_index})")
+
+    def lidar(self) -> LidarScan | None:
+        p = self.root / "ground_truth" / "lidar.ply"
+        return LidarScan.from_ply_bytes(p.read_bytes()) if p.exists() else None
