@@ -195,12 +195,8 @@ def observe_tracking_camera(frames: Sequence[np.ndarray], reference: StaticRefer
                 continue
             a = kpi[m[:, 0], :2].astype(np.float64)
             b = kpj[m[:, 1], :2].astype(np.float64)
-            H, mask = cv2.findHomography(a, b, cv2.RANSAC, options.homography_px, maxIters=2000,
-                                         confidence=0.999)
+            H, mask = _background_homography(a, b, options)
             if H is None:
-                continue
-            mask = mask.ravel().astype(bool)
-            if mask.sum() < options.min_pair_matches:
                 continue
             if k == 1:
                 Hs[(i, j)] = H
@@ -215,6 +211,35 @@ def observe_tracking_camera(frames: Sequence[np.ndarray], reference: StaticRefer
     return TrackingObservations(T, w, h, cat(f3, (0,)).astype(np.int64), cat(uv3, (0, 2)), cat(X3, (0, 3)),
                                 cat(i2, (0,)).astype(np.int64), cat(j2, (0,)).astype(np.int64),
                                 cat(ui2, (0, 2)), cat(uj2, (0, 2)), Hs, time.perf_counter() - t0)
+
+
+def _background_homography(a: np.ndarray, b: np.ndarray, o: "TrackingOptions"):
+    """The homography of the background between two frames of a tracking camera, and its inlier mask.
+
+    A tracking camera follows an actor, so two motions compete: the background's (the camera's pan
+    and zoom) and the actor's, which stays nearly still in the image. The dominant RANSAC model is
+    sometimes the actor's; so a second model is fitted to the rest, and of the two (each with enough
+    inliers) the one that moves more in the image is taken as the background.
+    """
+    H1, m1 = cv2.findHomography(a, b, cv2.RANSAC, o.homography_px, maxIters=2000, confidence=0.999)
+    if H1 is None:
+        return None, None
+    m1 = m1.ravel().astype(bool)
+    if m1.sum() < o.min_pair_matches:
+        return None, None
+    rest = ~m1
+    if rest.sum() >= o.min_pair_matches:
+        H2, m2 = cv2.findHomography(a[rest], b[rest], cv2.RANSAC, o.homography_px, maxIters=2000, confidence=0.999)
+        if H2 is not None:
+            m2r = m2.ravel().astype(bool)
+            mask2 = np.zeros(len(a), bool)
+            mask2[np.flatnonzero(rest)[m2r]] = True
+            if mask2.sum() >= max(o.min_pair_matches, 0.3 * m1.sum()):
+                move1 = np.median(np.linalg.norm(b[m1] - a[m1], axis=1))
+                move2 = np.median(np.linalg.norm(b[mask2] - a[mask2], axis=1))
+                if move2 > move1 + 2 * o.homography_px:
+                    return H2, mask2
+    return H1, m1
 
 
 # --------------------------------------------------------------------------- initialisation
