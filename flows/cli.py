@@ -94,6 +94,7 @@ def synth(out_dir: Annotated[Path, typer.Argument(help="folder to write the capt
           rig: Annotated[str, typer.Option(help="built-in rig name or rig JSON file")] = "demo_scene",
           seed: Annotated[int, typer.Option(help="random seed (same seed, same bytes)")] = 0,
           frames: Annotated[int, typer.Option(min=1, help="frames in the take")] = 24,
+          depth: Annotated[bool, typer.Option("--depth/--no-depth", help="also write ground-truth depth maps")] = False,
           json_out: JsonOpt = False) -> None:
     """Render a synthetic capture (scene or face rig) in the layout ingest reads."""
     from hardware.rig import load_rig
@@ -104,7 +105,7 @@ def synth(out_dir: Annotated[Path, typer.Argument(help="folder to write the capt
     progress, update = _progress(f"rendering {rig}")
     with progress:
         fn = synthetic.synthesize_face_capture if kind == "face" else synthetic.synthesize_capture
-        path = fn(out_dir, rig=rig, seed=seed, frames=frames, progress=update)
+        path = fn(out_dir, rig=rig, seed=seed, frames=frames, progress=update, write_depth=depth)
     wall = time.perf_counter() - t0
     _emit({"capture_dir": str(Path(path).parent), "capture_json": str(path), "wall_s": round(wall, 3)},
           json_out, f"wrote {path} in {wall:.1f} s")
@@ -135,12 +136,124 @@ def demo(store: StoreOpt = DEFAULT_STORE,
 
     capture_dir = out / "capture"
     if not (capture_dir / "capture.json").exists():
-        synth(capture_dir, rig="demo_scene", seed=0, frames=frames, json_out=False)
-    summary = _run(demo_flow, store=_store_url(store), capture_dir=str(capture_dir.resolve()))
+        synth(capture_dir, rig="demo_scene", seed=0, frames=frames, depth=True, json_out=False)
+    summary = _run(demo_flow, store=_store_url(store), capture_dir=str(capture_dir.resolve()),
+                   out_dir=str(out.resolve()))
     refs = summary.result
     lines = [f"  {k}: {v['digest'] if isinstance(v, dict) and 'digest' in v else v}" for k, v in refs.items()]
     _emit({**refs, **summary.counts()}, json_out,
-          f"demo results in store {_store_url(store)}:\n" + "\n".join(lines))
+          f"demo results in store {_store_url(store)} and {out}:\n" + "\n".join(lines))
+
+
+@app.command()
+def reconstruct(capture: Annotated[str, typer.Argument(help="capture ref name (captures/NAME) or digest")],
+                frames: Annotated[Optional[str], typer.Option(help="take frames A:B (B exclusive); all when omitted")] = None,
+                preset: Annotated[str, typer.Option(help="training preset: test, demo, preview, production")] = "demo",
+                degrees: Annotated[str, typer.Option(help="model: poly4dgs, rotor4d, static")] = "poly4dgs",
+                segment_frames: Annotated[Optional[int], typer.Option(help="frames per segment (one segment when omitted)")] = None,
+                calibration: Annotated[Optional[str], typer.Option(help="Calibration ref; a synthetic capture's ground truth when omitted")] = None,
+                points: Annotated[Optional[str], typer.Option(help="PointCloudSequence ref; ground-truth depth points when omitted")] = None,
+                held_out: Annotated[Optional[str], typer.Option(help="comma-separated cameras never trained on")] = None,
+                seed: Annotated[int, typer.Option()] = 0,
+                store: StoreOpt = DEFAULT_STORE, json_out: JsonOpt = False) -> None:
+    """Train the Poly4DGS segments of an ingested capture; reports held-out PSNR/SSIM and wall time."""
+    from flows.reconstruct import reconstruct_flow
+
+    span = None
+    if frames:
+        try:
+            a, b = (int(x) for x in frames.split(":"))
+        except ValueError:
+            raise typer.BadParameter("expected A:B, e.g. 0:24", param_hint="--frames") from None
+        span = (a, b)
+    held = [c for c in held_out.split(",") if c] if held_out is not None else None
+    summary = _run(reconstruct_flow, store=_store_url(store), capture=capture, frames=span, preset=preset,
+                   degrees=degrees, segment_frames=segment_frames, calibration=calibration, points=points,
+                   held_out=held, seed=seed)
+    out = summary.result
+    lines = [f"  segment {s['frames'][0]}:{s['frames'][1]}: {s['model']['digest']}  {s['gaussians']} Gaussians, "
+             f"held-out PSNR {_fmt(s['held_out_psnr'])} dB, SSIM {_fmt(s['held_out_ssim'], 3)}, "
+             f"{s['train_wall_s']:.1f} s training" for s in out["segments"]]
+    _emit({**out, **summary.counts()}, json_out, "\n".join(lines))
+
+
+def _fmt(x: float | None, digits: int = 2) -> str:
+    return "n/a" if x is None else f"{x:.{digits}f}"
+
+
+def _camera_args(s, seg, camera: str | None, camera_json: Path | None, time_s: float):
+    """(K, world_to_camera, width, height) from a calibrated camera id or a camera JSON file."""
+    import numpy as np
+
+    if camera_json is not None:
+        doc = json.loads(camera_json.read_text())
+        try:
+            return np.asarray(doc["K"], float), np.asarray(doc["world_to_camera"], float), int(doc["width"]), int(doc["height"])
+        except KeyError as exc:
+            raise CommandError(f"{camera_json}: camera JSON needs K, world_to_camera, width, height (missing {exc})") from None
+    if camera is None:
+        raise CommandError("give --camera ID (a calibrated camera of the capture) or --camera-json FILE")
+    from tasks.reconstruct import load_tracking
+    from volcap_core.calibration.record import Calibration, camera_at
+
+    calib = s.get_record(seg.calibration, Calibration)
+    frame = min(max(int(round(time_s * seg.fps)), 0), calib.frame_count - 1)
+    try:
+        return camera_at(calib, camera, frame, load_tracking(s, calib))
+    except KeyError:
+        raise CommandError(f"camera {camera!r} is not in the calibration "
+                           f"({', '.join(c.id for c in calib.cameras)})") from None
+
+
+@app.command()
+def render(model: Annotated[str, typer.Argument(help="segment model ref (digest or ref name)")],
+           time_s: Annotated[float, typer.Option("--time", help="seconds on the take's clock")],
+           out: Annotated[Path, typer.Option("--out", help="output .exr (linear RGBA, half float)")],
+           camera: Annotated[Optional[str], typer.Option(help="a calibrated camera id of the capture")] = None,
+           camera_json: Annotated[Optional[Path], typer.Option(help="JSON with K, world_to_camera (OpenCV), width, height")] = None,
+           grids: Annotated[bool, typer.Option(help="apply that camera's fitted exposure/black-level grids")] = False,
+           store: StoreOpt = DEFAULT_STORE, json_out: JsonOpt = False) -> None:
+    """Render a segment model from a capture camera or any camera at time T to an EXR."""
+    from tasks.reconstruct import render_segment_exr
+    from volcap_core.reconstruction import SegmentModel
+
+    s = _open(store)
+    seg = s.get_record(s.resolve(model), SegmentModel)
+    K, w2c, w, h = _camera_args(s, seg, camera, camera_json, time_s)
+    data = render_segment_exr(s, seg, K, w2c, w, h, time_s, camera if grids else None)
+    _write_atomic(out, data)
+    _emit({"out": str(out), "width": w, "height": h, "time_s": time_s}, json_out, str(out))
+
+
+@app.command(name="export-ply")
+def export_ply_cmd(model: Annotated[str, typer.Argument(help="segment model ref (digest or ref name)")],
+                   time_s: Annotated[float, typer.Option("--time", help="seconds on the take's clock")],
+                   out: Annotated[Path, typer.Option("--out", help="output .ply (standard 3DGS layout)")],
+                   store: StoreOpt = DEFAULT_STORE, json_out: JsonOpt = False) -> None:
+    """Export the Gaussians of a segment at time T as a 3DGS PLY that splat viewers open."""
+    from volcap_core.reconstruction import SegmentModel
+    from volcap_core.splat import export_ply, load_model
+
+    s = _open(store)
+    seg = s.get_record(s.resolve(model), SegmentModel)
+    data = export_ply(load_model(s.get_bytes(seg.model)), time_s)
+    _write_atomic(out, data)
+    _emit({"out": str(out), "bytes": len(data)}, json_out, str(out))
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    import os
+    import tempfile
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
 
 
 # ---------------------------------------------------------------------------------------------

@@ -8,6 +8,8 @@ import logging
 import numpy as np
 import torch
 
+from prefect import get_run_logger
+
 from tasks.contract import current_run_key, volcap_task
 from volcap_core import imageio, reconstruction
 from volcap_core.calibration.record import Calibration, TrackingFrames, camera_at, decode_tracking_frames
@@ -104,9 +106,17 @@ def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRe
         s.set_ref(ckpt_name, s.put_bytes(blob))
 
     device = "cuda" if torch.cuda.is_available() else "cpu"
+    run_log = get_run_logger()
+    every = max(1, config.steps // 10)
+
+    def progress(step: int, total: int, info: dict) -> None:  # what a coordinator watches scroll by
+        if step % every == 0 or step == total:
+            run_log.info("segment [%d, %d): step %d/%d, loss %.4f, %d Gaussians, %.0f s", a, b, step, total,
+                         info["loss"], info["num_gaussians"], info["wall_s"])
+
     with reconstruction.deterministic_torch(device):
         result = train_segment(data, init, config, checkpoint=checkpoint if config.checkpoint_every else None,
-                               resume_from=resume, seed=seed, device=device)
+                               resume_from=resume, seed=seed, device=device, progress=progress)
     model_ref = s.put_bytes(save_model(result.model), reconstruction.SEGMENT_MODEL_MEDIA)
     grids_ref = s.put_bytes(reconstruction.encode_grids(result.grids.camera_ids, result.grids.exposure,
                                                         result.grids.black))
