@@ -16,9 +16,10 @@ from typing import Annotated, Any, Optional
 
 import typer
 
-from flows.runtime import RunSummary, quiet_prefect_defaults
+from flows.runtime import RunSummary, quiet_prefect_defaults, reproducible_cpu_defaults
 
 quiet_prefect_defaults(log_level="INFO")
+reproducible_cpu_defaults()  # before torch is imported
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="volcap: 4D volumetric capture, from camera files to Gaussian-splat performances.")

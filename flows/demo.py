@@ -12,7 +12,7 @@ from prefect import flow, get_run_logger
 
 from flows.ingest import ingest_flow
 from flows.reconstruct import reconstruct_flow
-from tasks.reconstruct import load_tracking, render_view
+from tasks.reconstruct import ViewSpec, load_tracking, render_views
 from volcap_core.calibration.record import Calibration, camera_at
 from volcap_core.reconstruction import SegmentModel
 from volcap_core.splat import export_ply, load_model
@@ -35,7 +35,8 @@ def demo_flow(store: str, capture_dir: str, out_dir: str, preset: str = "demo") 
     camera = seg.held_out_cameras[0] if seg.held_out_cameras else calib.cameras[0].id
     mid = (seg.frames[0] + seg.frames[1]) // 2
     K, w2c, w, h = camera_at(calib, camera, mid, load_tracking(s, calib))
-    view = render_view(store, seg_ref, K.tolist(), w2c.tolist(), w, h, mid / seg.fps)
+    [view] = render_views(store, seg_ref, [ViewSpec(K=K.tolist(), world_to_camera=w2c.tolist(), width=w, height=h,
+                                                    time_s=mid / seg.fps)])
     out = Path(out_dir)
     s.get_file(view, out / f"render_{camera}_frame{mid:03d}.exr")
     (out / f"gaussians_frame{mid:03d}.ply").write_bytes(export_ply(load_model(s.get_bytes(seg.model)), mid / seg.fps))

@@ -7,6 +7,7 @@ import logging
 
 import numpy as np
 import torch
+from pydantic import BaseModel, ConfigDict
 
 from prefect import get_run_logger
 
@@ -141,15 +142,25 @@ def _finite(x: float) -> float | None:
     return float(x) if x is not None and np.isfinite(x) else None
 
 
-@volcap_task(name="render-view", version="1")
-def render_view(store: str, segment: ArtifactRef, K: list[list[float]], world_to_camera: list[list[float]],
-                width: int, height: int, time_s: float, grids_of: str | None = None) -> ArtifactRef:
-    """Render a segment model from any camera at time ``time_s`` (take clock, seconds):
-    linear RGBA, half-float EXR. ``grids_of``: apply that training camera's exposure/black grids."""
+class ViewSpec(BaseModel):
+    """A camera at an instant: OpenCV intrinsics (top-left pixel centre at 0) and world-to-camera."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    K: tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]
+    world_to_camera: tuple[tuple[float, float, float, float], ...]
+    width: int
+    height: int
+    time_s: float
+
+
+@volcap_task(name="render-views", version="1")
+def render_views(store: str, segment: ArtifactRef, views: list[ViewSpec], grids_of: str | None = None) -> list[ArtifactRef]:
+    """Render a segment model from any cameras at any times (novel views, camera paths): linear
+    RGBA half-float EXRs. ``grids_of``: apply that training camera's exposure/black grids."""
     s = ArtifactStore(store)
     seg = s.get_record(segment, reconstruction.SegmentModel)
-    return s.put_bytes(render_segment_exr(s, seg, np.asarray(K), np.asarray(world_to_camera), width, height,
-                                          time_s, grids_of), MEDIA_EXR)
+    return [s.put_bytes(render_segment_exr(s, seg, np.asarray(v.K), np.asarray(v.world_to_camera), v.width, v.height,
+                                           v.time_s, grids_of), MEDIA_EXR) for v in views]
 
 
 def render_segment_exr(s: ArtifactStore, seg: reconstruction.SegmentModel, K: np.ndarray, w2c: np.ndarray,
@@ -174,5 +185,5 @@ def render_segment_exr(s: ArtifactStore, seg: reconstruction.SegmentModel, K: np
     return imageio.encode_exr(rgba, ("R", "G", "B", "A"), pixel_type="half", attributes=attrs)
 
 
-__all__ = ["ground_truth_calibration", "ground_truth_points", "train_segment_task", "render_view",
+__all__ = ["ground_truth_calibration", "ground_truth_points", "train_segment_task", "render_views", "ViewSpec",
            "render_segment_exr"]
