@@ -103,3 +103,38 @@ def test_usage_errors_exit_2_and_help_exits_0():
     assert volcap("no-such-command").returncode == 2
     for cmd in (["--help"], ["ingest", "--help"], ["store", "gc", "--help"], ["synth", "--help"], ["demo", "--help"]):
         assert volcap(*cmd).returncode == 0, cmd
+
+
+@pytest.mark.slow
+def test_reconstruct_render_and_export_ply_commands(api_env, tmp_path):
+    from volcap_core.splat.ply import read_ply
+    from volcap_core.synth import synthesize_capture
+
+    cap = synthesize_capture(tmp_path / "cap", rig="demo_scene", seed=5, frames=2, supersample=1, write_depth=True,
+                             cameras=["S000", "S001", "S002", "S003", "S004", "S005"]).parent
+    store = str(tmp_path / "store")
+    ing = volcap("ingest", str(cap), "--store", store, "--json", env=api_env)
+    assert ing.returncode == 0, ing.stderr
+    rec = volcap("reconstruct", "captures/synth-demo_scene-s5", "--preset", "test", "--held-out", "S002",
+                 "--store", store, "--json", env=api_env)
+    assert rec.returncode == 0, rec.stderr[-2000:]
+    doc = last_json(rec.stdout)
+    seg = doc["segments"][0]
+    assert seg["frames"] == [0, 2] and seg["held_out_psnr"] > 5 and doc["tasks_failed"] == 0
+    assert "held-out PSNR" in rec.stdout
+    model = seg["model"]["digest"]
+
+    exr = tmp_path / "view.exr"
+    r = volcap("render", model, "--camera", "S002", "--time", "0.04", "--out", str(exr), "--store", store)
+    assert r.returncode == 0, r.stderr
+    from volcap_core import imageio
+    px, ch = imageio.read_image(exr)
+    assert ch == ("R", "G", "B", "A") and px.shape[:2] == (180, 320)
+    ply = tmp_path / "g.ply"
+    p = volcap("export-ply", model, "--time", "0", "--out", str(ply), "--store", store)
+    assert p.returncode == 0 and len(read_ply(ply.read_bytes()).means) > 0
+
+    bad = volcap("render", model, "--camera", "NOPE", "--time", "0", "--out", str(exr), "--store", store)
+    assert bad.returncode == 1 and "camera 'NOPE' is not in the calibration" in bad.stderr
+    frames = volcap("reconstruct", "captures/synth-demo_scene-s5", "--frames", "0-2", "--store", store, env=api_env)
+    assert frames.returncode == 2

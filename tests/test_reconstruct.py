@@ -46,6 +46,7 @@ def test_split_frames():
         split_frames(0, 10, 0)
 
 
+@pytest.mark.slow
 def test_reconstruct_trains_reports_and_caches(ingested):
     store, capture = ingested
     first = _reconstruct(store, capture)
@@ -65,6 +66,7 @@ def test_reconstruct_trains_reports_and_caches(ingested):
     assert again.result == first.result
 
 
+@pytest.mark.slow
 def test_killed_training_resumes_from_its_checkpoint(ingested, tiny_capture, monkeypatch, tmp_path):
     """A segment whose training dies is retried and resumes from its last stored checkpoint.
 
@@ -101,6 +103,7 @@ def test_killed_training_resumes_from_its_checkpoint(ingested, tiny_capture, mon
     del clean_model
 
 
+@pytest.mark.slow
 def test_render_view_and_ply_export(ingested):
     store, capture = ingested
     out = _reconstruct(store, capture)
