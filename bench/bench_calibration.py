@@ -61,6 +61,7 @@ def run(capture_dir: Path, point_frames: int = 3, variants=("priors", "free", "i
         s2 = calibrate_static_cameras(images, cap.rig, sc, plates=plates, options=opts)
         e2 = static_errors(s2.K, s2.world_to_camera, gt, mid)
         variants_static[name] = {"rotation_deg_max": max(v["rotation_deg"] for v in e2.values()),
+                                 "projection_px_mean": float(np.mean([v["projection_px"] for v in e2.values()])),
                                  "rotation_deg_mean": float(np.mean([v["rotation_deg"] for v in e2.values()])),
                                  "centre_frac_max": max(v["centre_frac"] for v in e2.values()),
                                  "seconds": time.perf_counter() - t}
@@ -115,16 +116,19 @@ def _fmt(table: dict) -> str:
     lines.append(f"static cameras ({s['cameras']}): rotation mean {s['rotation_deg_mean']:.3f}° max "
                  f"{s['rotation_deg_max']:.3f}°; centre mean {100 * s['centre_frac_mean']:.2f}% max "
                  f"{100 * s['centre_frac_max']:.2f}% of stage; |focal| mean {s['focal_pct_mean_abs']:.2f}% "
-                 f"max {s['focal_pct_max_abs']:.2f}%; reprojection {table['static_median_reprojection_px']:.2f} px")
+                 f"max {s['focal_pct_max_abs']:.2f}%; projection of the stage volume mean {s['projection_px_mean']:.2f} px "
+                 f"max {s['projection_px_max']:.2f} px; reprojection {table['static_median_reprojection_px']:.2f} px")
     for k, v in table["static_variants"].items():
         lines.append(f"  {k}: rotation mean {v['rotation_deg_mean']:.3f}° max {v['rotation_deg_max']:.3f}°, "
-                     f"centre max {100 * v['centre_frac_max']:.2f}%  ({v['seconds']:.1f} s)")
+                     f"centre max {100 * v['centre_frac_max']:.2f}%, projection {v['projection_px_mean']:.2f} px  "
+                     f"({v['seconds']:.1f} s)")
     for variant, t in table["tracking"].items():
         lines.append(f"tracking [{variant}]: |focal| mean {t['focal_pct_mean_abs']:.2f}% max {t['focal_pct_max_abs']:.2f}%; "
                      f"rotation mean {t['rotation_deg_mean']:.3f}°; centre {100 * t['centre_frac_mean']:.2f}% of stage; "
                      f"pose jitter mean {t['pose_jitter_px_mean']:.2f} px max {t['pose_jitter_px_max']:.2f}; "
                      f"focal jitter mean {t['focal_jitter_px_mean']:.2f} px max {t['focal_jitter_px_max']:.2f}; "
-                     f"reprojection(2D-3D) {t['reprojection_3d_px_median']:.1f} px")
+                     f"actor-head projection {t['projection_px_mean']:.1f} px; "
+                     f"reprojection(2D-3D inliers) {t['reprojection_3d_px_median']:.1f} px")
     if table["actor_points_3view_per_frame"]:
         lines.append("actor points in >=3 views per frame: " + ", ".join(
             f"{k} {v:.1f}" for k, v in table["actor_points_3view_per_frame"].items()))

@@ -11,6 +11,10 @@ Measures (per camera, then mean / max over cameras):
   tracked actor (its head centre at t, held fixed): the motion the estimate invents or misses;
   ``focal_jitter_px`` = | dln f_est - dln f_true | x half the image diagonal: the spurious zoom
   motion at the image corner;
+- ``projection_px``: mean distance between the projections by the estimated and the true camera of
+  points where actors are (a grid over the stage, 0-2 m high; tracking cameras: the tracked actor's
+  head): what the error does to a render. A principal-point error that a rotation compensates shows
+  in ``rotation_deg`` but not here;
 - ``reprojection_px``: median reprojection error of the fit (from the calibration stats);
 - ``actor_points_3view``: 3D points triangulated in >= 3 views that lie on an actor
   (:func:`count_multiview_points`).
@@ -79,16 +83,41 @@ def _centre(w2c: np.ndarray) -> np.ndarray:
     return -w2c[..., :3, :3].swapaxes(-1, -2) @ w2c[..., :3, 3:4]
 
 
+def stage_samples(stage_size_m, n: int = 9, height_m: float = 2.0) -> np.ndarray:
+    """A grid of points [n*n*5, 3] over the stage floor area, 0..``height_m`` high (where actors are)."""
+    sx, sy = stage_size_m[0], stage_size_m[1]
+    x, y, z = np.meshgrid(np.linspace(-sx / 2, sx / 2, n), np.linspace(-sy / 2, sy / 2, n),
+                          np.linspace(0.0, height_m, 5), indexing="ij")
+    return np.stack([x.ravel(), y.ravel(), z.ravel()], 1)
+
+
+def projection_error_px(K, W, Kg, Wg, points: np.ndarray, size: tuple[int, int]) -> float:
+    """Mean distance (px) between the projections of ``points`` [N, 3] by the estimated and the true
+    camera, over the points inside the true image: what a wrong calibration does to a render. A
+    principal-point error compensated by a rotation costs nothing here (it does in ``rotation_deg``)."""
+    P = np.asarray(points, np.float64)
+    pg = P @ Wg[:3, :3].T + Wg[:3, 3]
+    pe = P @ W[:3, :3].T + W[:3, 3]
+    ok = (pg[:, 2] > 0.1) & (pe[:, 2] > 0.1)
+    ug = pg[ok, :2] / pg[ok, 2:] @ Kg[:2, :2].T + Kg[:2, 2]
+    ue = pe[ok, :2] / pe[ok, 2:] @ K[:2, :2].T + K[:2, 2]
+    inside = (ug[:, 0] >= 0) & (ug[:, 0] < size[0]) & (ug[:, 1] >= 0) & (ug[:, 1] < size[1])
+    return float(np.linalg.norm(ue[inside] - ug[inside], axis=1).mean()) if inside.any() else float("nan")
+
+
 def static_errors(K: Mapping[str, np.ndarray], world_to_camera: Mapping[str, np.ndarray], gt: GroundTruth,
                   frame: int) -> dict[str, dict[str, float]]:
-    """Per static camera: rotation_deg, centre_m, centre_frac, focal_pct."""
+    """Per static camera: rotation_deg, centre_m, centre_frac, focal_pct, projection_px (stage volume)."""
     out = {}
+    samples = stage_samples(gt.stage_size_m)
     for cid in sorted(K):
         Kg, Wg = gt.cameras[cid][frame]
         ce = float(np.linalg.norm(_centre(world_to_camera[cid]) - _centre(Wg)))
         out[cid] = {"rotation_deg": float(rotation_angle_deg(world_to_camera[cid][:3, :3], Wg[:3, :3])),
                     "centre_m": ce, "centre_frac": ce / gt.stage_scale_m,
-                    "focal_pct": float(100 * (K[cid][0, 0] / Kg[0, 0] - 1))}
+                    "focal_pct": float(100 * (K[cid][0, 0] / Kg[0, 0] - 1)),
+                    "projection_px": projection_error_px(K[cid], world_to_camera[cid], Kg, Wg, samples,
+                                                         gt.sizes[cid])}
     return out
 
 
@@ -108,7 +137,10 @@ def tracking_errors(K: np.ndarray, world_to_camera: np.ndarray, gt: GroundTruth,
     fe = np.array([100 * (K[t, 0, 0] / gts[t][0][0, 0] - 1) for t in range(T)])
     re = np.array([rotation_angle_deg(world_to_camera[t, :3, :3], gts[t][1][:3, :3]) for t in range(T)])
     ce = np.array([np.linalg.norm(_centre(world_to_camera[t]) - _centre(gts[t][1])) for t in range(T)])
-    pj, fj = [], []
+    pj, fj, pe = [], [], []
+    for t in range(T):
+        pe.append(float(np.linalg.norm(_project(K[t], world_to_camera[t], head[t])
+                                       - _project(gts[t][0], gts[t][1], head[t]))))
     for t in range(T - 1):
         P = head[t]
         de = _project(K[t + 1], world_to_camera[t + 1], P) - _project(K[t], world_to_camera[t], P)
@@ -123,6 +155,7 @@ def tracking_errors(K: np.ndarray, world_to_camera: np.ndarray, gt: GroundTruth,
             "rotation_deg_mean": float(re.mean()), "rotation_deg_max": float(re.max()),
             "centre_frac_mean": float(ce.mean() / gt.stage_scale_m), "centre_m_mean": float(ce.mean()),
             "pose_jitter_px_mean": float(pj.mean()), "pose_jitter_px_max": float(pj.max()),
+            "projection_px_mean": float(np.mean(pe)),
             "focal_jitter_px_mean": float(fj.mean()), "focal_jitter_px_max": float(fj.max())}
 
 
@@ -139,7 +172,9 @@ def calibration_table(static: Mapping[str, dict], tracking: Mapping[str, Mapping
         r = np.array([v["rotation_deg"] for v in static.values()])
         c = np.array([v["centre_frac"] for v in static.values()])
         f = np.array([abs(v["focal_pct"]) for v in static.values()])
+        pr = np.array([v.get("projection_px", np.nan) for v in static.values()])
         table["static"] = {"cameras": len(r), "rotation_deg_mean": float(r.mean()), "rotation_deg_max": float(r.max()),
+                           "projection_px_mean": float(np.nanmean(pr)), "projection_px_max": float(np.nanmax(pr)),
                            "centre_frac_mean": float(c.mean()), "centre_frac_max": float(c.max()),
                            "focal_pct_mean_abs": float(f.mean()), "focal_pct_max_abs": float(f.max()),
                            "per_camera": {k: dict(v) for k, v in static.items()}}

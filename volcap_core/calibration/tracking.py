@@ -643,8 +643,10 @@ def _per_frame_residuals(st, bt, o, b, Tb) -> dict:
     for name, s, (cam, r, _, _) in zip(names, sig, terms):
         sel = cam == b
         e = (r[sel].norm(dim=1) * s).cpu().numpy()
-        out[name + "_median"] = float(np.median(e)) if len(e) else float("nan")
-        out[name + "_inliers"] = int((e < 3 * s).sum())
+        inl = e[e < 3 * s]
+        out[name + "_median"] = float(np.median(inl)) if len(inl) else float("nan")   # over the inliers
+        out[name + "_inliers"] = int(len(inl))
+        out[name + "_matches"] = int(len(e))
     return out
 
 
