@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from volcap_core.calibration.metrics import (calibration_table, count_multiview_points, distance_to_parts,  # noqa: E402
                                              load_ground_truth, static_errors, tracking_errors)
-from volcap_core.calibration.photometric import background_plate  # noqa: E402
+from volcap_core.calibration.photometric import PhotometricOptions, background_plate  # noqa: E402
 from volcap_core.calibration.pipeline import FolderCapture  # noqa: E402
 from volcap_core.calibration.static import StaticCalibrationOptions, calibrate_static_cameras  # noqa: E402
 from volcap_core.calibration.tracking import (TrackingOptions, build_static_reference, prepare_tracking,  # noqa: E402
@@ -53,9 +53,10 @@ def run(capture_dir: Path, point_frames: int = 3, variants=("priors", "free", "i
     for k, v in static.stats["time_s"].items():
         times[f"static_{k}_s"] = v
     st_err = static_errors(static.K, static.world_to_camera, gt, mid)
-    # the same without the photometric step and without lidar, for comparison
+    # the same with the (optional) photometric step and without the lidar, for comparison
     variants_static = {}
-    for name, opts, sc in (("sfm+lidar bundle (no photometric)", StaticCalibrationOptions(photometric=None), scan),
+    for name, opts, sc in (("+ photometric refinement", StaticCalibrationOptions(
+                                photometric=PhotometricOptions(max_points=20000, centre_sigma_m=0.03)), scan),
                            ("sfm, mounts only (no lidar)", StaticCalibrationOptions(photometric=None), None)):
         t = time.perf_counter()
         s2 = calibrate_static_cameras(images, cap.rig, sc, plates=plates, options=opts)
