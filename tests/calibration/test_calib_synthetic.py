@@ -9,7 +9,6 @@ docs/calibration.md (bench/bench_calibration.py).
 from __future__ import annotations
 
 import json
-from dataclasses import replace
 
 import cv2  # noqa: F401  (before pycolmap)
 import numpy as np

@@ -18,7 +18,6 @@ updated on the left (``R <- exp(w) R``, kornia's axis-angle map). float64 throug
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass
 

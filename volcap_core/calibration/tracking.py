@@ -33,7 +33,6 @@ also drops the 2D-2D terms: every frame alone, the classic per-frame registratio
 
 from __future__ import annotations
 
-import math
 import time
 from dataclasses import dataclass, field
 from typing import Mapping, Sequence
