@@ -82,7 +82,9 @@ def _run(flow: Any, **params: Any) -> RunSummary:
 
 def _one_line(exc: BaseException) -> str:
     text = str(exc).strip() or type(exc).__name__
-    return " ".join(text.split("\n")[0].split()) if "\n" in text and len(text) > 400 else " ".join(text.split())
+    if "\n" in text and len(text) > 400:  # a long multi-line message (a traceback-like dump): its head
+        text = text.split("\n")[0]
+    return " ".join(text.split())
 
 
 # ---------------------------------------------------------------------------------------------

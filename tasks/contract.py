@@ -43,13 +43,13 @@ from typing import Any, ParamSpec, TypeVar
 
 from prefect import task
 from prefect.cache_policies import CachePolicy
-from prefect.context import FlowRunContext, TaskRunContext
+from prefect.context import TaskRunContext
 from prefect.filesystems import WritableFileSystem
 from pydantic import BaseModel
 
 from volcap_core.digest import digest_bytes
 from volcap_core.records import ArtifactRef, canonical_json
-from volcap_core.store import ArtifactStore, _digests_in, normalize_store_url
+from volcap_core.store import ArtifactStore, _digests_in
 
 P = ParamSpec("P")
 T = TypeVar("T")
@@ -64,29 +64,19 @@ LOCATION_PARAMETERS = ("store",)
 # ---------------------------------------------------------------------------------------------
 
 
-def _current_store_url() -> str:
-    """The ``store`` parameter of the running task or flow: where results belong."""
-    for ctx in (TaskRunContext.get(), FlowRunContext.get()):
-        params = getattr(ctx, "parameters", None) or {}
-        if isinstance(params.get("store"), str):
-            return normalize_store_url(params["store"])
-    raise RuntimeError("volcap result storage used outside a task or flow with a 'store' parameter")
-
-
 class StoreResultStorage(WritableFileSystem):
-    """Prefect result storage under ``<store>/prefect/results``; atomic writes.
+    """Prefect result storage under ``<store_url>/prefect/results``; atomic writes.
 
-    With ``store_url`` unset (the default used by every volcap flow) the store is the one named by
-    the running flow's or task's ``store`` parameter, so a flow run on any worker writes its cache
-    records next to its artifacts.
+    :class:`StoreCachePolicy` installs one per task run, for the store named by the task's ``store``
+    input, so a run on any worker writes its cache records next to its artifacts.
     """
 
     _block_type_name = "Volcap Store Results"
     _block_type_slug = "volcap-store-results"
-    store_url: str | None = None
+    store_url: str
 
     def _store(self) -> ArtifactStore:
-        return ArtifactStore(self.store_url or _current_store_url())
+        return ArtifactStore(self.store_url)
 
     def _resolve_path(self, path: str) -> PurePosixPath:
         # Prefect makes storage keys "absolute" through this hook and then takes them relative to

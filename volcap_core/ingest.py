@@ -145,11 +145,6 @@ def select_take(desc: CaptureDescription, cam: CameraSource, files: dict[int, Ra
     return [files[i] for i in range(n)], outside
 
 
-def scan_camera(capture_dir: Path, desc: CaptureDescription, cam: CameraSource) -> list[RawFrame]:
-    """``list_camera_files`` then ``select_take`` for one camera."""
-    return select_take(desc, cam, list_camera_files(capture_dir, desc, cam))[0]
-
-
 def check_headers(cam: CameraSource, rig_cam: RigCamera, frames: list[RawFrame]) -> imageio.ImageInfo:
     """Every file readable, at the rig sensor's resolution, with RGB channels; returns the first."""
     first: imageio.ImageInfo | None = None

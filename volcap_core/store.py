@@ -518,7 +518,7 @@ class ArtifactStore:
             return False
 
     # -- reachability, gc, verify ------------------------------------------------------------
-    def children(self, digest: str, media_type: str | None = None) -> set[str]:
+    def children(self, digest: str) -> set[str]:
         """Digests a JSON object (tree or record) mentions; other objects have none."""
         path = self._object_path(digest)
         try:

@@ -1,4 +1,4 @@
-"""Ground truth of a synthetic capture as pipeline records: the cameras as a Calibration's arrays,
+"""Ground truth of a synthetic capture as pipeline records: the cameras as a :class:`Calibration`,
 and dense per-frame points from the true depth maps.
 
 Evaluation and the reconstruction tests use these to separate Poly4DGS's errors from calibration's
