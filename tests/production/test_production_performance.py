@@ -7,7 +7,7 @@ import torch
 
 from volcap_core.production.performance import (
     Performance,
-    SegmentModel,
+    PerformanceSegment,
     render_performance,
     segments_at,
 )
@@ -29,7 +29,7 @@ def perf(spans, cores=None) -> Performance:
     cores = cores or [(a if i == 0 else a + (spans[i - 1][1] - a),
                        b if i == n - 1 else spans[i + 1][0]) for i, (a, b) in enumerate(spans)]
     return Performance(name="take", capture=ref(99), fps=FPS, segments=tuple(
-        SegmentModel(model=ref(i), frames=s, core=c) for i, (s, c) in enumerate(zip(spans, cores))))
+        PerformanceSegment(model=ref(i), frames=s, core=c) for i, (s, c) in enumerate(zip(spans, cores))))
 
 
 @pytest.fixture(autouse=True)

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from volcap_core.imageio import decode_exr
-from volcap_core.production.performance import Performance, SegmentModel
+from volcap_core.production.performance import Performance, PerformanceSegment
 from volcap_core.production.shot import (
     ShotError,
     alpha_crop_window,
@@ -244,7 +244,7 @@ def test_render_shot_frame_end_to_end():
                                  t0=torch.full((n,), 1.0), opacity=0.9, lifespan_s=100.0)
     ref = ArtifactRef(digest="blake3:" + "ab" * 32, size=1)
     perf = Performance(name="take3", capture=ref, fps=24, segments=(
-        SegmentModel(model=ref, frames=(0, 48), core=(0, 48)),))
+        PerformanceSegment(model=ref, frames=(0, 48), core=(0, 48)),))
     shot = load_shot(shot_dict())
     data = render_shot_frame(shot, perf, lambda r: model, 24, backend="torch")
     header, pixels = read_exr(data)

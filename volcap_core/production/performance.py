@@ -32,10 +32,10 @@ from volcap_core.splat.camera import Camera
 from volcap_core.splat.model import Poly4DGS, evaluate
 from volcap_core.splat.render import Backend, render
 
-__all__ = ["Performance", "SegmentModel", "render_performance", "segments_at"]
+__all__ = ["Performance", "PerformanceSegment", "render_performance", "segments_at"]
 
 
-class SegmentModel(BaseModel):
+class PerformanceSegment(BaseModel):
     """One trained segment: its model blob, the take indices ``[a, b)`` it was trained on and the
     core range no neighbour shares."""
 
@@ -60,7 +60,7 @@ class Performance(Record):
     name: str = Field(pattern=r"^[A-Za-z0-9_.-]+$")
     capture: ArtifactRef
     fps: float = Field(gt=0)
-    segments: tuple[SegmentModel, ...] = Field(min_length=1)
+    segments: tuple[PerformanceSegment, ...] = Field(min_length=1)
 
     @model_validator(mode="after")
     def _layout(self) -> "Performance":
@@ -79,7 +79,7 @@ class Performance(Record):
         """The performance of a trained :class:`SegmentPlan` (one model per segment, in order)."""
         if len(models) != len(plan.segments):
             raise ValueError(f"{len(models)} models for {len(plan.segments)} planned segments")
-        segments = tuple(SegmentModel(model=m, frames=s.frames, core=s.core)
+        segments = tuple(PerformanceSegment(model=m, frames=s.frames, core=s.core)
                          for s, m in zip(plan.segments, models, strict=True))
         return cls(name=name, capture=capture, fps=fps, segments=segments)
 
@@ -90,7 +90,7 @@ class Performance(Record):
 
 
 def segments_at(performance: Performance, t: float, *,
-                tolerance_frames: float = 0.5) -> list[tuple[SegmentModel, float]]:
+                tolerance_frames: float = 0.5) -> list[tuple[PerformanceSegment, float]]:
     """The segments to render at ``t`` seconds and their weights (sum 1, smooth in ``t``).
 
     Inside a core range: that segment, weight 1. Across an overlap: both neighbours, weights going
