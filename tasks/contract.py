@@ -197,6 +197,31 @@ class StoreCachePolicy(CachePolicy):
         return key
 
 
+def cached_output(task: Any, store: str, **inputs: Any) -> tuple[str, Any | None]:
+    """The cache key a call ``task(store, **inputs)`` would have, and its stored result if any.
+
+    Runs nothing and touches no Prefect API: a planner asks what is cached, and an orchestrator
+    collects the result of a run that happened on another machine (the record lives in the
+    store). A record whose referenced objects are gone counts as absent, as in the task itself.
+    """
+    policy = getattr(task, "cache_policy", None)
+    if not isinstance(policy, StoreCachePolicy):
+        raise TypeError(f"{getattr(task, 'name', task)!r} is not a volcap task")
+    bound = inspect.signature(task.fn).bind(store, **inputs)
+    bound.apply_defaults()
+    key = cache_key(policy.task_name, policy.version, dict(bound.arguments), policy.locations)
+    s = ArtifactStore(store)
+    record = cached_result_record(s, key)
+    if record is None:
+        return key, None
+    digests = _record_digests(record)
+    if digests is None or s.missing(digests):
+        return key, None
+    from prefect.results import ResultRecord
+
+    return key, ResultRecord.deserialize(record).result
+
+
 def current_run_key() -> str:
     """The cache key of the running volcap task: a stable name for its checkpoints.
 

@@ -140,3 +140,31 @@ def test_cache_is_shared_by_processes_that_share_the_store(prefect_api, store, t
     import json
     res = json.loads(out.stdout.strip().splitlines()[-1])
     assert res == {"calls": ["v1:7"], "run": 1, "cached": 1}
+
+
+@volcap_task(name="test-offset", version="1")
+def offset(store: str, blob: ArtifactRef, pad: int = 1, label: str = "x") -> ArtifactRef:
+    s = ArtifactStore(store)
+    return s.put_bytes(s.get_bytes(blob) + label.encode() * pad)
+
+
+@flow
+def offset_flow(store: str, blob: ArtifactRef) -> ArtifactRef:
+    return offset(store, blob, pad=2)
+
+
+def test_cached_output_predicts_the_key_and_reads_a_result_without_running(prefect_api, store):
+    """What a planner and an orchestrator of remote runs rely on: the key a call would have
+    (defaults applied) and the stored result, with nothing run; gone outputs read as absent."""
+    from tasks.contract import cached_output
+
+    blob = store.put_bytes(b"ab")
+    key, before = cached_output(offset, store.url, blob=blob, pad=2)
+    assert before is None
+    out = run_flow(offset_flow, store=store.url, blob=blob).result
+    key2, after = cached_output(offset, store.url, blob=blob, pad=2, label="x")
+    assert key2 == key and after == out and isinstance(after, ArtifactRef)
+    assert store.get_bytes(after) == b"abxx"
+    assert cached_output(offset, store.url, blob=blob, pad=3)[1] is None
+    store.fs.rm_file(store._object_path(out.digest))
+    assert cached_output(offset, store.url, blob=blob, pad=2)[1] is None
