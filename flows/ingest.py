@@ -17,7 +17,8 @@ from volcap_core.store import ArtifactStore
 def ingest_flow(store: str, capture_dir: str, nan_policy: str = "error", set_ref: bool = True) -> ArtifactRef:
     """Check the whole folder, convert every camera (fanned out), then record the capture.
 
-    Returns the Capture record's ref; also names it ``captures/<name>`` in the store.
+    Returns the Capture record's ref; also names it ``captures/<name>`` in the store. The lidar scan
+    named by ``capture.json`` is checked with the other inputs and stored with the record.
     """
     log = get_run_logger()
     folder = Path(capture_dir).resolve()
@@ -39,6 +40,7 @@ def ingest_flow(store: str, capture_dir: str, nan_policy: str = "error", set_ref
     lenses = {c.id: ingest.lens_for_take(desc, c, rig_cams[c.id]) for c in desc.cameras}
     for c in desc.cameras:
         ingest.check_headers(c, rig_cams[c.id], scans[c.id])
+    lidar_file = ingest.check_lidar(folder, desc)
     ocio_ref = None
     if desc.ocio_config:
         ocio_file = folder / desc.ocio_config
@@ -61,10 +63,11 @@ def ingest_flow(store: str, capture_dir: str, nan_policy: str = "error", set_ref
         if not gt.is_dir():
             raise ingest.IngestError(f"{folder / 'capture.json'}: ground_truth folder {gt} does not exist")
         ground_truth = s.put_directory(gt)
+    lidar = s.put_file(lidar_file, ingest.MEDIA_PLY) if lidar_file is not None else None
 
     # 3. Only when every camera converted: the record, then its name.
     capture_ref = record_capture(store, desc.name, rig, desc.fps, desc.take.start_timecode,
-                                 desc.take.frame_count, [c.result() for c in cameras], ground_truth)
+                                 desc.take.frame_count, [c.result() for c in cameras], ground_truth, lidar)
     if set_ref:
         s.set_ref(f"captures/{desc.name}", capture_ref)
     log.info("capture %s: %d cameras x %d frames -> %s", desc.name, len(desc.cameras),

@@ -60,10 +60,14 @@ def ingest_camera(store: str, capture_dir: str, camera: CameraSource, rig_camera
                          lens_encoder=tuple(lens) if lens is not None else None)
 
 
-@volcap_task(name="record-capture", version="1")
+@volcap_task(name="record-capture", version="2")
 def record_capture(store: str, name: str, rig: Rig, fps: float, start_timecode: str, frame_count: int,
-                   cameras: list[CaptureCamera], ground_truth: ArtifactRef | None) -> ArtifactRef:
-    """Assemble and store the Capture record (only once every camera converted)."""
+                   cameras: list[CaptureCamera], ground_truth: ArtifactRef | None,
+                   lidar: ArtifactRef | None = None) -> ArtifactRef:
+    """Assemble and store the Capture record (only once every camera converted).
+
+    ``lidar``: the stored lidar scan (PLY) of the static stage, the calibration's input (version 2:
+    the record gained the field)."""
     capture = Capture(name=name, rig=rig, fps=fps, start_timecode=start_timecode, frame_count=frame_count,
-                      cameras=tuple(cameras), ground_truth=ground_truth)
+                      cameras=tuple(cameras), ground_truth=ground_truth, lidar=lidar)
     return ArtifactStore(store).put_record(capture)

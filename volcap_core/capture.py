@@ -6,6 +6,8 @@ On-disk layout (documented for users in ``docs/capture-layout.md``)::
       capture.json                  CaptureDescription (below)
       <camera path>/<NNNNNN>.<ext>  one image per frame; NNNNNN = the camera's own frame number,
                                     0 at the camera's start timecode. ext: exr, dpx, tif, tiff, png
+      <lidar>.ply                   optional: the rig's lidar scan of the static stage (stage frame,
+                                    metres), named by ``CaptureDescription.lidar``; calibration input
       ground_truth/                 optional (synthetic captures): cameras per frame, geometry,
                                     lidar scan, colour chart; stored with the capture, never used
                                     by reconstruction, only by evaluation
@@ -105,11 +107,15 @@ class CaptureDescription(BaseModel):
     cameras: list[CameraSource]
     ocio_config: str | None = Field(default=None, description="OpenColorIO config, relative path")
     ground_truth: str | None = Field(default=None, description="ground-truth folder, relative path")
+    lidar: str | None = Field(default=None, description="lidar scan of the static stage: a PLY file, relative "
+                                                        "path (stage frame, metres); calibration input")
 
     @model_validator(mode="after")
     def _check(self) -> "CaptureDescription":
         if self.format != CAPTURE_FORMAT:
             raise ValueError(f"unsupported capture format {self.format!r} (expected {CAPTURE_FORMAT})")
+        if self.lidar is not None and (self.lidar.startswith("/") or ".." in self.lidar.split("/")):
+            raise ValueError(f"lidar path {self.lidar!r} must stay inside the capture folder")
         seen: set[str] = set()
         for cam in self.cameras:
             if cam.id in seen:
@@ -151,6 +157,8 @@ class Capture(Record):
     frame_count: int
     cameras: tuple[CaptureCamera, ...]
     ground_truth: ArtifactRef | None = None
+    #: the lidar scan of the static stage (PLY bytes as captured): what calibration registers to
+    lidar: ArtifactRef | None = None
 
     def camera(self, camera_id: str) -> CaptureCamera:
         for cam in self.cameras:

@@ -14,6 +14,7 @@ folder fails in seconds, and nothing is recorded unless every camera converts):
    common timecode range) with no hole. Frames recorded outside the take are left out.
 4. Each file's header is readable, its resolution is the rig sensor's, its channels hold RGB.
 5. Tracking cameras carry lens-encoder readings for every take frame.
+   The lidar scan named by ``capture.json`` (if any) is a readable PLY of finite points.
 6. While converting: damaged pixel data, and NaN/Inf pixels under the ``nan_policy``:
    ``"error"`` (default) refuses the frame, naming how many pixels; ``"repair"`` replaces NaN by 0
    and ±Inf by ±65504 (the largest half) and logs it.
@@ -187,6 +188,37 @@ def lens_for_take(desc: CaptureDescription, cam: CameraSource, rig_cam: RigCamer
         raise IngestError(f"camera {cam.id}: lens_encoder has no reading for camera frame(s) "
                           f"{', '.join(map(str, missing[:10]))}{' ...' if len(missing) > 10 else ''}")
     return tuple(samples[i] for i in sorted(samples))
+
+
+#: media type of a stored lidar scan (the PLY bytes as captured)
+MEDIA_PLY = "application/x-ply"
+#: fewer scan points than this cannot constrain a calibration: refused as a wrong file
+MIN_LIDAR_POINTS = 100
+
+
+def check_lidar(capture_dir: Path, desc: CaptureDescription) -> Path | None:
+    """The capture's lidar scan file, checked to be a PLY with at least ``MIN_LIDAR_POINTS`` finite
+    points (and finite normals when it has them); None when the capture names no scan."""
+    if desc.lidar is None:
+        return None
+    path = Path(capture_dir) / desc.lidar
+    if not path.is_file():
+        raise IngestError(f"{Path(capture_dir) / 'capture.json'}: lidar scan {path} does not exist")
+    from volcap_core.calibration.lidar import decode_ply_points
+
+    try:
+        points, normals = decode_ply_points(path.read_bytes())
+    except (ValueError, KeyError, IndexError, UnicodeDecodeError) as exc:
+        # a truncated binary body, a header without x/y/z or a bad ASCII row all land here
+        raise IngestError(f"lidar scan {path}: not a readable PLY point cloud ({type(exc).__name__}: {exc})") from exc
+    if len(points) < MIN_LIDAR_POINTS:
+        raise IngestError(f"lidar scan {path}: {len(points)} point(s), need at least {MIN_LIDAR_POINTS}")
+    bad = ~np.isfinite(points).all(1)
+    if normals is not None:
+        bad |= ~np.isfinite(normals).all(1)
+    if bad.any():
+        raise IngestError(f"lidar scan {path}: {int(bad.sum())} point(s) hold NaN or Inf")
+    return path
 
 
 def fingerprint(frames: list[RawFrame]) -> list[dict]:

@@ -24,6 +24,9 @@ from volcap_core.synth.stage import build_face_stage, build_room_stage
 TAKE_START = "01:00:00:00"
 FRAMES_DIR = "frames"
 GT_DIR = "ground_truth"
+#: the rig's lidar scan of the static set, a capture input (calibration reads it); the same bytes are
+#: kept in ground_truth/lidar.ply for evaluation
+LIDAR_FILE = "lidar.ply"
 Progress = Callable[[int, int], None]
 
 
@@ -214,7 +217,7 @@ def _synthesize(out_dir: Path, rig_name: str | Path, seed: int, frames: int, kin
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     # a rerun into the same folder replaces what a previous synthesis wrote (and nothing else)
-    for old in (out_dir / "capture.json", out_dir / "rig.json"):
+    for old in (out_dir / "capture.json", out_dir / "rig.json", out_dir / LIDAR_FILE):
         old.unlink(missing_ok=True)
     for old in (out_dir / FRAMES_DIR, out_dir / GT_DIR):
         if old.is_dir():
@@ -268,7 +271,8 @@ def _synthesize(out_dir: Path, rig_name: str | Path, seed: int, frames: int, kin
             "frames": res["frames"]}
     desc = CaptureDescription(
         name=name or f"synth-{rig.name}-s{seed}", rig=rig_ref, fps=fps,
-        take=Take(start_timecode=TAKE_START, frame_count=frames), cameras=sources, ground_truth=GT_DIR)
+        take=Take(start_timecode=TAKE_START, frame_count=frames), cameras=sources, ground_truth=GT_DIR,
+        lidar=LIDAR_FILE)
     # ground truth
     sio.write_json(gt_dir / "cameras.json", {
         "format": "volcap-synth-cameras/1",
@@ -302,6 +306,7 @@ def _synthesize(out_dir: Path, rig_name: str | Path, seed: int, frames: int, kin
     pts, nrm = stage.lidar(_rng(seed, "lidar"), lidar_spacing_m)
     sio.write_ply(gt_dir / "lidar.ply", pts, nrm,
                   comment="volcap synthetic lidar scan of the static set, world frame, metres")
+    shutil.copyfile(gt_dir / "lidar.ply", out_dir / LIDAR_FILE)
     sio.write_json(out_dir / "capture.json", desc.model_dump(mode="json", exclude_none=True))
     return out_dir / "capture.json"
 
