@@ -363,6 +363,80 @@ def store_du(store: StoreOpt = DEFAULT_STORE, json_out: JsonOpt = False) -> None
         typer.echo(json.dumps(d, sort_keys=True))
 
 
+# ---------------------------------------------------------------------------------------------
+# production: plan / run / worker
+# ---------------------------------------------------------------------------------------------
+
+SpecArg = Annotated[Path, typer.Argument(exists=True, dir_okay=False, help="production spec (YAML)")]
+ShotsOpt = Annotated[Optional[list[str]], typer.Option("--shot", help="deliver only this shot (repeatable)")]
+SpecStoreOpt = Annotated[Optional[str], typer.Option(
+    "--store", help="store URL; default: the spec's store:, else $VOLCAP_STORE")]
+
+
+@app.command()
+def plan(spec: SpecArg, store: SpecStoreOpt = None, shots: ShotsOpt = None, json_out: JsonOpt = False) -> None:
+    """Print the steps a production spec needs, each cached or to run (and why); runs nothing."""
+    from flows.production import open_production, plan_production
+
+    prod = open_production(spec, _store_url(store) if store else None, shots)
+    planned = plan_production(prod)
+    todo = [p for p in planned if p.status == "to-run"]
+    lines = [f"production {prod.spec.name} (store {prod.store}): {len(planned)} steps, "
+             f"{len(planned) - len(todo)} cached, {len(todo)} to run"]
+    for p in planned:
+        lines.append(f"  {p.status:7s} {p.step.id}" + (f"  ({p.reason})" if p.reason else ""))
+    _emit({"production": prod.spec.name, "store": prod.store, "steps": [p.as_json() for p in planned]},
+          json_out, "\n".join(lines))
+
+
+@app.command(name="run")
+def run_cmd(spec: SpecArg, store: SpecStoreOpt = None, shots: ShotsOpt = None,
+            segment_runs: Annotated[str, typer.Option(
+                help="auto: runs of the train-segment deployment when the Prefect server has it, else "
+                     "in this process; local; deployment")] = "auto",
+            max_attempts: Annotated[int, typer.Option(help="runs of a segment before giving up (crashes)")] = 3,
+            json_out: JsonOpt = False) -> None:
+    """Build everything a production spec needs (only what is not cached)."""
+    from flows.production import production_flow
+
+    if segment_runs not in ("auto", "local", "deployment"):
+        raise typer.BadParameter("auto, local or deployment", param_hint="--segment-runs")
+    summary = _run(production_flow, spec=str(spec.resolve()), store=_store_url(store) if store else None,
+                   shots=shots, segment_runs=segment_runs, max_attempts=max_attempts,
+                   poll_interval_s=2.0)
+    out = summary.result
+    lines = [f"  shot {name}: {v['count']} frames -> {v['frames']}" for name, v in out["shots"].items()]
+    _emit({**out, **summary.counts()}, json_out, "\n".join(lines) or None)
+
+
+@app.command()
+def worker(pool: Annotated[str, typer.Option(help="work pool: gpu (segments) or control (productions)")],
+           name: Annotated[Optional[str], typer.Option(help="worker name (default: Prefect's)")] = None,
+           limit: Annotated[Optional[int], typer.Option(help="flow runs at once (1 per GPU)")] = None,
+           worker_type: Annotated[str, typer.Option("--type", help="worker type")] = "process") -> None:
+    """Start a Prefect worker for POOL with volcap's settings (docs/operations.md); runs until stopped.
+
+    One per GPU, each seeing only its GPU (CUDA_VISIBLE_DEVICES), with --limit 1: deploy/worker.sh
+    does that for every GPU of a machine.
+    """
+    import os
+
+    env_defaults = {"DO_NOT_TRACK": "1", "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
+                    "PREFECT_FLOWS_HEARTBEAT_FREQUENCY": "60"}
+    for k, v in env_defaults.items():
+        os.environ.setdefault(k, v)
+    if not os.environ.get("PREFECT_API_URL"):
+        raise CommandError("PREFECT_API_URL is not set: a worker needs a Prefect server "
+                           "(docs/operations.md, 1.)")
+    args = [sys.executable, "-m", "prefect", "worker", "start", "--pool", pool, "--type", worker_type]
+    if name:
+        args += ["--name", name]
+    if limit is not None:
+        args += ["--limit", str(limit)]
+    sys.stdout.flush()
+    os.execv(sys.executable, args)  # the worker replaces this process: signals reach it directly
+
+
 def main() -> None:
     """Entry point: one-line errors on stderr, exit 1 for failed work."""
     from volcap_core.store import StoreError
