@@ -1,0 +1,456 @@
+"""The production flow: one production spec in, every artifact its shots need out.
+
+It reads like the process it runs::
+
+    plan      needed_steps(spec): only what the requested shots need
+    ingest    each capture folder (cached: an unchanged folder is not converted again)
+    calibrate static cameras once, tracking cameras per camera (none without tracking cameras)
+    points    dense points for the frames of each needed segment (per frame, shared by overlaps)
+    train     every needed segment at once: runs of the `train-segment` deployment on the GPU
+              pool when a Prefect server has it, in-process task runs otherwise
+    render    each shot over a performance of its segments: cropped RGBA half-float EXR frames
+
+Every step is a cached volcap task (``docs/tasks.md``), so a rerun recomputes only what changed or
+never finished. After each step a journal entry (``volcap_core.production.journal``) records what
+it ran on, which is how ``volcap plan`` explains why a step is to run.
+
+Segment runs across machines (``docs/operations.md``): ``run_deployment`` with ``timeout=None``
+and an idempotency key made of the segment's cache key and the attempt number, so a doubled or
+retried trigger never starts the same training twice; a run that ends Crashed (its worker died;
+the zombie automation marks it) is submitted again, up to ``max_attempts``, and resumes from the
+segment's last checkpoint in the store. ``train_segment_flow`` holds one ``gpu-slots`` slot while
+it trains.
+"""
+
+from __future__ import annotations
+
+from flows.runtime import reproducible_cpu_defaults
+
+reproducible_cpu_defaults()  # before torch: workers import this module as their entrypoint
+
+import os  # noqa: E402
+from dataclasses import dataclass, field  # noqa: E402
+from pathlib import Path  # noqa: E402
+from typing import Any, Literal  # noqa: E402
+
+from prefect import flow, get_run_logger, task, unmapped  # noqa: E402
+from prefect.cache_policies import NO_CACHE  # noqa: E402
+
+from flows.calibrate import calibrate_capture, point_cloud_for_frames  # noqa: E402
+from flows.ingest import ingest_flow  # noqa: E402
+from tasks import calibrate as calibrate_tasks  # noqa: E402
+from tasks.contract import cached_output  # noqa: E402
+from tasks.ingest import fingerprint_camera, ingest_camera, record_capture  # noqa: E402
+from tasks.production import assemble_performance, render_shot  # noqa: E402
+from tasks.reconstruct import train_segment_task  # noqa: E402
+from volcap_core import reconstruction  # noqa: E402
+from volcap_core.capture import Capture  # noqa: E402
+from volcap_core.digest import digest_bytes  # noqa: E402
+from volcap_core.production.journal import (compare_fingerprints, folder_listing_digest,  # noqa: E402
+                                            read_entry, write_entry)
+from volcap_core.production.spec import (CaptureInfo, ProductionSpec, QualityPreset, Step,  # noqa: E402
+                                         capture_info_from_folder, load_spec, needed_steps)
+from volcap_core.records import ArtifactRef, canonical_json  # noqa: E402
+from volcap_core.splat.model import Poly4DGSConfig  # noqa: E402
+from volcap_core.splat.train import TrainConfig  # noqa: E402
+from volcap_core.store import ArtifactStore  # noqa: E402
+
+SEGMENT_DEPLOYMENT = "train-segment-flow/train-segment"
+#: The global concurrency limit with one slot per GPU (deploy/setup-pool.sh creates it).
+GPU_SLOTS = "gpu-slots"
+#: A slot is a lease the holder renews; a dead holder's slot frees itself after this many seconds.
+GPU_SLOT_LEASE_S = 120.0
+#: Steps of the enhancer half (Face Rig pairs, diffusion enhancer); not part of this version.
+ENHANCER_STEPS = ("face-pairs", "train-enhancer", "enhance-shot")
+SegmentRuns = Literal["auto", "local", "deployment"]
+
+
+# ---------------------------------------------------------------------------------------------
+# The production: spec, store, capture facts, needed steps
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Production:
+    """A spec resolved against a store: what :func:`plan_production` and the flow work from."""
+
+    spec: ProductionSpec
+    spec_dir: Path
+    store: str
+    steps: list[Step]
+    facts: dict[str, CaptureInfo] = field(default_factory=dict)
+
+    def folder(self, capture: str) -> Path:
+        """A folder capture's path (relative paths are relative to the spec file)."""
+        folder = Path(self.spec.captures[capture].folder)
+        return folder if folder.is_absolute() else (self.spec_dir / folder).resolve()
+
+
+def open_production(spec_path: str | Path, store: str | None = None,
+                    shots: list[str] | None = None) -> Production:
+    """Load and validate the spec, choose the store, learn each capture's facts, plan the steps.
+
+    The store: ``store`` if given, else the spec's ``store:``, else ``$VOLCAP_STORE``.
+    Nothing is run or written.
+    """
+    spec_path = Path(spec_path)
+    spec = load_spec(spec_path)
+    url = store or spec.store or os.environ.get("VOLCAP_STORE")
+    if not url:
+        raise ValueError(f"{spec_path}: no store: give --store, set 'store:' in the spec or VOLCAP_STORE")
+    prod = Production(spec=spec, spec_dir=spec_path.resolve().parent, store=ArtifactStore(url).url, steps=[])
+    s = ArtifactStore(prod.store)
+    problems: dict[str, str] = {}
+    for name, cs in spec.captures.items():
+        try:
+            if cs.folder is not None:
+                prod.facts[name] = capture_info_from_folder(prod.folder(name))
+            else:
+                prod.facts[name] = CaptureInfo.from_capture(s.get_record(s.resolve(cs.ref), Capture))
+        except Exception as exc:  # noqa: BLE001 - reported below only if the capture is needed
+            problems[name] = f"{type(exc).__name__}: {exc}"
+    try:
+        prod.steps = needed_steps(spec, prod.facts, shots=shots)
+    except ValueError as exc:
+        for name, why in problems.items():
+            if f"capture {name!r}" in str(exc):
+                raise ValueError(f"{spec_path}: captures.{name}: {why}") from None
+        raise ValueError(f"{spec_path}: {exc}") from None
+    return prod
+
+
+# ---------------------------------------------------------------------------------------------
+# Fingerprints and the plan
+# ---------------------------------------------------------------------------------------------
+
+
+def _versions(*tasks: Any) -> dict[str, str]:
+    return {t.cache_policy.task_name: t.cache_policy.version for t in tasks}
+
+
+def step_versions(step: Step, steps: list[Step]) -> dict[str, str]:
+    """Name → version of every task a step runs (a bumped version re-runs the step)."""
+    if step.kind == "ingest":
+        return _versions(fingerprint_camera, ingest_camera, record_capture)
+    if step.kind == "calibrate-static":
+        final = not any(s.kind == "calibrate-tracking" and s.parameters["capture"] == step.parameters["capture"]
+                        for s in steps)
+        return _versions(calibrate_tasks.calibrate_static,
+                         *((calibrate_tasks.assemble_calibration,) if final else ()))
+    if step.kind == "calibrate-tracking":
+        return _versions(calibrate_tasks.calibrate_tracking_camera, calibrate_tasks.assemble_calibration)
+    if step.kind == "dense-points":
+        return _versions(calibrate_tasks.dense_points_frame, calibrate_tasks.point_cloud_sequence)
+    if step.kind == "train-segment":
+        return _versions(train_segment_task)
+    if step.kind == "render-shot":
+        return _versions(assemble_performance, render_shot)
+    return {}
+
+
+def step_parameters(prod: Production, step: Step) -> dict[str, Any]:
+    """The planner's parameters plus what the flow derives from the quality preset for the step."""
+    q = prod.spec.quality_preset()
+    if step.kind == "dense-points":
+        return {**step.parameters, "max_points_per_frame": q.gaussians_per_frame}
+    if step.kind == "train-segment":
+        return {**step.parameters, "preset": _preset_name(prod.spec)}
+    return step.parameters
+
+
+def _outputs_digest(outputs: dict[str, ArtifactRef]) -> str:
+    return digest_bytes(canonical_json({k: v.digest for k, v in sorted(outputs.items())}))
+
+
+def step_fingerprint(prod: Production, step: Step, done: dict[str, dict[str, ArtifactRef]]
+                     ) -> dict[str, Any] | str:
+    """What a step's result depends on; a reason string when an input is not known yet."""
+    inputs = {}
+    for i in step.inputs:
+        if i not in done:
+            return f"after {i}, which is to run"
+        inputs[i] = _outputs_digest(done[i])
+    fp: dict[str, Any] = {"kind": step.kind, "versions": step_versions(step, prod.steps), "inputs": inputs,
+                          "parameters": step_parameters(prod, step)}
+    if step.kind == "ingest":
+        fp["source"] = folder_listing_digest(prod.folder(step.parameters["capture"]))
+    elif step.parameters.get("capture_ref"):
+        fp["source"] = ArtifactStore(prod.store).resolve(step.parameters["capture_ref"]).digest
+    return fp
+
+
+@dataclass
+class PlannedStep:
+    step: Step
+    status: Literal["cached", "to-run"]
+    reason: str | None = None
+    outputs: dict[str, ArtifactRef] = field(default_factory=dict)
+
+    def as_json(self) -> dict[str, Any]:
+        return {"id": self.step.id, "kind": self.step.kind, "status": self.status, "reason": self.reason,
+                "inputs": list(self.step.inputs), "outputs": {k: v.digest for k, v in self.outputs.items()},
+                "parameters": {k: v for k, v in self.step.parameters.items() if k != "shot_spec"}}
+
+
+def plan_production(prod: Production) -> list[PlannedStep]:
+    """Each needed step, cached or to run (with the reason), from the journal; runs nothing."""
+    s = ArtifactStore(prod.store)
+    done: dict[str, dict[str, ArtifactRef]] = {}
+    plan = []
+    for step in prod.steps:
+        if step.kind in ENHANCER_STEPS:
+            plan.append(PlannedStep(step, "to-run", "not available in this version (the enhancer half)"))
+            continue
+        fp = step_fingerprint(prod, step, done)
+        if isinstance(fp, str):
+            plan.append(PlannedStep(step, "to-run", fp))
+            continue
+        entry = read_entry(s, prod.spec.name, step.id)
+        if entry is None:
+            plan.append(PlannedStep(step, "to-run", "never run"))
+            continue
+        why = compare_fingerprints(entry.fingerprint, fp)
+        if why is None and s.missing(r.digest for r in entry.outputs.values()):
+            why = "output missing from the store"
+        if why is None:
+            done[step.id] = entry.outputs
+            plan.append(PlannedStep(step, "cached", None, entry.outputs))
+        else:
+            plan.append(PlannedStep(step, "to-run", why))
+    return plan
+
+
+# ---------------------------------------------------------------------------------------------
+# Segment training: one GPU worker per segment, or in-process
+# ---------------------------------------------------------------------------------------------
+
+
+def segment_train_config(q: QualityPreset, preset: str, gaussians: int, held_out: list[str]) -> TrainConfig:
+    """The training config of a segment from the spec's quality preset and the planned budget."""
+    base = preset if preset in reconstruction.PRESETS else "production"
+    return reconstruction.train_config(base, held_out=held_out, max_gaussians=gaussians, steps=q.train_steps,
+                                       model=Poly4DGSConfig.paper(sh_degree=q.sh_degree))
+
+
+@dataclass(frozen=True)
+class SegmentJob:
+    """The inputs of one ``train-segment`` task run."""
+
+    capture: ArtifactRef
+    calibration: ArtifactRef
+    points: ArtifactRef
+    frames: tuple[int, int]
+    config: TrainConfig
+    seed: int = 0
+
+    def task_inputs(self) -> dict[str, Any]:
+        return {"capture": self.capture, "calibration": self.calibration, "points": self.points,
+                "frames": list(self.frames), "config": self.config, "seed": self.seed}
+
+    def deployment_parameters(self, store: str) -> dict[str, Any]:
+        return {"store": store, "capture": self.capture.model_dump(mode="json"),
+                "calibration": self.calibration.model_dump(mode="json"),
+                "points": self.points.model_dump(mode="json"), "frames": list(self.frames),
+                "config": self.config.model_dump(mode="json"), "seed": self.seed}
+
+
+def segment_runs_mode(requested: SegmentRuns) -> Literal["local", "deployment"]:
+    """``auto``: the deployment when the Prefect API this process talks to has it, else local."""
+    if requested == "local":
+        return "local"
+    from prefect.client.orchestration import get_client
+    from prefect.exceptions import ObjectNotFound
+    from prefect.settings import PREFECT_API_URL
+
+    if requested == "auto" and not PREFECT_API_URL.value():
+        return "local"
+    try:
+        with get_client(sync_client=True) as client:
+            client.read_deployment_by_name(SEGMENT_DEPLOYMENT)
+    except ObjectNotFound:
+        if requested == "deployment":
+            raise ValueError(f"segment_runs='deployment' but the Prefect server at {PREFECT_API_URL.value()} "
+                             f"has no deployment {SEGMENT_DEPLOYMENT!r}: run `prefect deploy --all "
+                             "--prefect-file deploy/prefect.yaml` (docs/operations.md)") from None
+        return "local"
+    return "deployment"
+
+
+@task(name="segment-run", cache_policy=NO_CACHE, persist_result=False)
+def run_segment_deployment(store: str, job: SegmentJob, max_attempts: int = 3,
+                           poll_interval_s: float = 5.0) -> ArtifactRef:
+    """Train one segment as a run of the ``train-segment`` deployment; its SegmentModel ref.
+
+    Already cached: no run. Otherwise one run per attempt, idempotency key ``<cache key>/attempt-N``
+    (a rerun of this production finds the same runs instead of starting new ones). Crashed (the
+    worker died): the next attempt, which resumes from the segment's checkpoint. Failed or
+    Cancelled: an error naming the run.
+    """
+    from prefect.deployments import run_deployment
+
+    log = get_run_logger()
+    a, b = job.frames
+    key, ref = cached_output(train_segment_task, store, **job.task_inputs())
+    if ref is not None:
+        log.info("segment [%d, %d): cached", a, b)
+        return ref
+    for attempt in range(max_attempts):
+        run = run_deployment(SEGMENT_DEPLOYMENT, parameters=job.deployment_parameters(store), timeout=None,
+                             poll_interval=poll_interval_s, idempotency_key=f"{key}/attempt-{attempt}",
+                             flow_run_name=f"segment-{a:06d}-{b:06d}-attempt-{attempt}",
+                             tags=["volcap", "segment"])
+        state = run.state
+        if state is not None and state.is_completed():
+            break
+        if state is not None and state.is_crashed():
+            log.warning("segment [%d, %d): run %s crashed (%s); submitting attempt %d of %d", a, b, run.name,
+                        state.message, attempt + 2, max_attempts)
+            continue
+        raise RuntimeError(f"segment [{a}, {b}): run {run.name} ({run.id}) ended "
+                           f"{state.name if state else 'without a state'}: {state.message if state else ''}")
+    else:
+        raise RuntimeError(f"segment [{a}, {b}): {max_attempts} runs crashed; see the train-segment runs "
+                           f"with idempotency keys {key}/attempt-*")
+    _, ref = cached_output(train_segment_task, store, **job.task_inputs())
+    if ref is None:
+        raise RuntimeError(f"segment [{a}, {b}): run {run.name} completed but its result is not in store "
+                           f"{store}: do the workers use this store URL?")
+    return ref
+
+
+@flow(persist_result=False)
+def train_segment_flow(store: str, capture: dict, calibration: dict, points: dict, frames: list[int],
+                       config: dict, seed: int = 0) -> str:
+    """One segment on one GPU worker: hold a ``gpu-slots`` slot and run the ``train-segment`` task
+    (which resumes from the segment's last checkpoint in the store). Returns the SegmentModel digest."""
+    from prefect.concurrency.sync import concurrency
+
+    job = SegmentJob(capture=ArtifactRef.model_validate(capture), calibration=ArtifactRef.model_validate(calibration),
+                     points=ArtifactRef.model_validate(points), frames=(frames[0], frames[1]),
+                     config=TrainConfig.model_validate(config), seed=seed)
+    _, ref = cached_output(train_segment_task, store, **job.task_inputs())
+    if ref is None:
+        with concurrency(GPU_SLOTS, occupy=1, strict=True, lease_duration=GPU_SLOT_LEASE_S):
+            ref = train_segment_task(store, **job.task_inputs())
+    return ref.digest
+
+
+def train_segments(store: str, jobs: list[SegmentJob], mode: Literal["local", "deployment"],
+                   max_attempts: int, poll_interval_s: float) -> list[ArtifactRef]:
+    """Every segment at once; SegmentModel refs in the order of ``jobs``."""
+    if not jobs:
+        return []
+    if mode == "deployment":
+        futures = run_segment_deployment.map(unmapped(store), jobs, unmapped(max_attempts),
+                                             unmapped(poll_interval_s))
+    else:
+        futures = train_segment_task.map(unmapped(store), [j.capture for j in jobs],
+                                         [j.calibration for j in jobs], [j.points for j in jobs],
+                                         [list(j.frames) for j in jobs], [j.config for j in jobs],
+                                         [j.seed for j in jobs])
+    return [f.result() for f in futures]
+
+
+# ---------------------------------------------------------------------------------------------
+# The flow
+# ---------------------------------------------------------------------------------------------
+
+
+@flow(persist_result=False)
+def production_flow(spec: str, store: str | None = None, shots: list[str] | None = None,
+                    segment_runs: SegmentRuns = "auto", max_attempts: int = 3,
+                    poll_interval_s: float = 5.0) -> dict:
+    """Build what the production spec at ``spec`` (a path readable here) needs.
+
+    ``shots``: deliver only these (default all); ``segment_runs``: ``auto`` | ``local`` |
+    ``deployment`` (module doc). Returns the refs of every step's outputs and of each shot's frames.
+    """
+    log = get_run_logger()
+    prod = open_production(spec, store, shots)
+    wanted = [s.id for s in prod.steps if s.kind in ENHANCER_STEPS]
+    if wanted:
+        raise ValueError(f"{spec}: {', '.join(wanted)}: shots with enhance: true need the Face Rig pairs and "
+                         "the detail enhancer, which this version of volcap does not have yet; set "
+                         "enhance: false or leave those shots out")
+    s = ArtifactStore(prod.store)
+    plan = {p.step.id: p for p in plan_production(prod)}
+    mode = segment_runs_mode(segment_runs)
+    log.info("production %s: %d steps (%d cached by the journal), store %s, segments %s", prod.spec.name,
+             len(prod.steps), sum(p.status == "cached" for p in plan.values()), prod.store, mode)
+    done: dict[str, dict[str, ArtifactRef]] = {}
+
+    def finish(step: Step, outputs: dict[str, ArtifactRef]) -> None:
+        fp = step_fingerprint(prod, step, done)
+        assert not isinstance(fp, str), fp  # every input finished before this step
+        write_entry(s, prod.spec.name, step.id, fp, outputs)
+        done[step.id] = outputs
+
+    captures: dict[str, ArtifactRef] = {}
+    calibrations: dict[str, ArtifactRef] = {}
+    points: dict[str, ArtifactRef] = {}
+    train_steps = [st for st in prod.steps if st.kind == "train-segment"]
+    for step in prod.steps:
+        p = step.parameters
+        if step.kind == "ingest":
+            captures[p["capture"]] = ingest_flow(store=prod.store, capture_dir=str(prod.folder(p["capture"])))
+            finish(step, {"capture": captures[p["capture"]]})
+        elif step.kind == "calibrate-static":
+            cap = p["capture"]
+            captures.setdefault(cap, s.resolve(p["capture_ref"]) if p.get("capture_ref") else captures.get(cap))
+            if any(st.kind == "calibrate-tracking" and st.parameters["capture"] == cap for st in prod.steps):
+                finish(step, {"static": calibrate_tasks.calibrate_static(prod.store, captures[cap])})
+            else:
+                calibrations[cap] = calibrate_capture(prod.store, captures[cap])
+                finish(step, {"calibration": calibrations[cap]})
+        elif step.kind == "calibrate-tracking":
+            cap = p["capture"]
+            calibrations[cap] = calibrate_capture(prod.store, captures[cap])
+            finish(step, {"calibration": calibrations[cap]})
+        elif step.kind == "dense-points":
+            cap = p["capture"]
+            a, b = p["frames"]
+            points[step.id] = point_cloud_for_frames(prod.store, captures[cap], calibrations[cap], list(range(a, b)),
+                                                     max_points_per_frame=step_parameters(prod, step)[
+                                                         "max_points_per_frame"])
+            finish(step, {"points": points[step.id]})
+
+    # every needed segment at once
+    jobs = []
+    for step in train_steps:
+        p = step.parameters
+        cap = p["capture"]
+        held = reconstruction.default_held_out(s.get_record(captures[cap], Capture))
+        config = segment_train_config(prod.spec.quality_preset(), _preset_name(prod.spec), p["gaussians"], held)
+        dense = next(i for i in step.inputs if i.startswith("dense-points:"))
+        jobs.append(SegmentJob(capture=captures[cap], calibration=calibrations[cap], points=points[dense],
+                               frames=(p["frames"][0], p["frames"][1]), config=config))
+    log.info("training %d segment(s) (%s)", len(jobs), mode)
+    for step, ref in zip(train_steps, train_segments(prod.store, jobs, mode, max_attempts, poll_interval_s)):
+        finish(step, {"segment": ref})
+
+    shots_out = {}
+    for step in (st for st in prod.steps if st.kind == "render-shot"):
+        p = step.parameters
+        segs = [prod_step for prod_step in train_steps if prod_step.id in step.inputs]
+        perf = assemble_performance(prod.store, p["capture"], captures[p["capture"]],
+                                    [done[st.id]["segment"] for st in segs],
+                                    [list(st.parameters["core"]) for st in segs])
+        frames = render_shot(prod.store, perf, p["shot_spec"])
+        s.set_ref(f"productions/{prod.spec.name}/shots/{p['shot']}", frames)
+        s.set_ref(f"productions/{prod.spec.name}/performances/{p['shot']}", perf)
+        finish(step, {"performance": perf, "frames": frames})
+        shots_out[p["shot"]] = {"frames": frames.digest, "performance": perf.digest,
+                                "count": len(s.get_tree(frames))}
+        log.info("shot %s: %d frames -> %s", p["shot"], shots_out[p["shot"]]["count"], frames.digest)
+
+    return {"production": prod.spec.name, "store": prod.store, "segment_runs": mode,
+            "steps": {sid: {k: v.digest for k, v in outs.items()} for sid, outs in done.items()},
+            "shots": shots_out}
+
+
+def _preset_name(spec: ProductionSpec) -> str:
+    return spec.quality if isinstance(spec.quality, str) else spec.quality.preset
+
+
+__all__ = ["Production", "PlannedStep", "SegmentJob", "open_production", "plan_production", "production_flow",
+           "run_segment_deployment", "segment_runs_mode", "train_segment_flow", "train_segments"]

@@ -1,0 +1,53 @@
+"""Production tasks: assembling a performance from trained segments, rendering a shot over it."""
+
+from __future__ import annotations
+
+import functools
+
+import torch
+
+from tasks.contract import volcap_task
+from volcap_core import reconstruction
+from volcap_core.production.performance import Performance, PerformanceSegment
+from volcap_core.production.shot import load_shot, render_shot_frame
+from volcap_core.records import MEDIA_EXR, ArtifactRef
+from volcap_core.splat import load_model
+from volcap_core.store import ArtifactStore
+
+
+@volcap_task(name="assemble-performance", version="1")
+def assemble_performance(store: str, name: str, capture: ArtifactRef, segments: list[ArtifactRef],
+                         cores: list[list[int]]) -> ArtifactRef:
+    """A :class:`Performance` from trained segment records (take order) and their core ranges."""
+    s = ArtifactStore(store)
+    records = [s.get_record(ref, reconstruction.SegmentModel) for ref in segments]
+    for ref, rec in zip(segments, records):
+        if rec.capture.digest != capture.digest:
+            raise ValueError(f"segment {ref.digest} was trained on capture {rec.capture.digest}, "
+                             f"not {capture.digest} (performance {name})")
+    entries = tuple(PerformanceSegment(model=rec.model, frames=rec.frames, core=tuple(core))
+                    for rec, core in zip(records, cores, strict=True))
+    return s.put_record(Performance(name=name, capture=capture, fps=records[0].fps, segments=entries))
+
+
+@volcap_task(name="render-shot", version="1")
+def render_shot(store: str, performance: ArtifactRef, shot: dict) -> ArtifactRef:
+    """Every frame of ``shot`` (a shot's JSON, ``docs/shots.md``) over ``performance``: a tree of
+    ``<frame:06d>.exr`` files, linear premultiplied RGBA half float cropped to the actors, the
+    camera in each header."""
+    s = ArtifactStore(store)
+    perf = s.get_record(performance, Performance)
+    spec = load_shot(shot)
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+
+    @functools.lru_cache(maxsize=4)  # a boundary needs two models; frames walk forward
+    def model_of(ref: ArtifactRef):
+        return load_model(s.get_bytes(ref), device)
+
+    frames = {}
+    for f in spec.frame_numbers():
+        frames[f"{f:06d}.exr"] = s.put_bytes(render_shot_frame(spec, perf, model_of, f, device=device), MEDIA_EXR)
+    return s.put_tree(frames)
+
+
+__all__ = ["assemble_performance", "render_shot"]
