@@ -202,10 +202,9 @@ def default_held_out(capture: Capture, n: int = 1) -> list[str]:
 
 
 def encode_grids(camera_ids: Sequence[str], exposure: torch.Tensor, black: torch.Tensor) -> bytes:
-    from safetensors.torch import save
+    from volcap_core.splat.model import safetensors_bytes
 
-    return save({"exposure": exposure.detach().cpu().contiguous(), "black": black.detach().cpu().contiguous()},
-                metadata={"cameras": ",".join(camera_ids)})
+    return safetensors_bytes({"exposure": exposure, "black": black}, {"cameras": ",".join(camera_ids)})
 
 
 def decode_grids(data: bytes):

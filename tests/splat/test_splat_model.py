@@ -11,6 +11,7 @@ from volcap_core.splat.model import (
     evaluate,
     load_model,
     opacity_envelope,
+    safetensors_bytes,
     save_model,
 )
 
@@ -93,6 +94,30 @@ def test_save_load_round_trip_bytes():
     assert Poly4DGSConfig.model_validate_json(m.config.model_dump_json()) == m.config
     with pytest.raises(ValueError):
         load_model(blob[:20])
+
+
+def test_saved_bytes_depend_only_on_the_content():
+    """safetensors.torch.save writes its metadata in a random order (a Rust HashMap): the same
+    model gave two different artifacts. save_model must not."""
+    from safetensors.torch import load as st_load
+    from safetensors.torch import save as st_save
+
+    m = _model(Poly4DGSConfig.paper(sh_degree=1), n=9)
+    blobs = {save_model(m) for _ in range(30)}
+    assert len(blobs) == 1
+    # a copy built in another order, with the metadata in another order, gives the same bytes
+    tensors = {k: v.detach() for k, v in m.params.items()}
+    rev = dict(reversed(list(tensors.items())))
+    meta = {"format": "f", "volcap.config": "c", "a": "1"}
+    assert safetensors_bytes(tensors, meta) == safetensors_bytes(rev, dict(reversed(meta.items())))
+    # the format is safetensors': with one metadata key (no ordering to randomise), mixed
+    # dtypes, a scalar and an empty tensor it is byte for byte what safetensors writes
+    mixed = {"rng": torch.arange(5, dtype=torch.uint8), "w": torch.randn(3, 2),
+             "d": torch.randn(4, dtype=torch.float64), "s": torch.tensor(2.5),
+             "e": torch.zeros(0, 3), "i": torch.arange(3)}
+    assert safetensors_bytes(mixed, {"format": "x"}) == st_save(mixed, metadata={"format": "x"})
+    back = st_load(safetensors_bytes(mixed, meta))
+    assert set(back) == set(mixed) and all(torch.equal(back[k], v) for k, v in mixed.items())
 
 
 def test_opacity_envelope_lambda_zero_is_constant():

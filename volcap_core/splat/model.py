@@ -49,7 +49,6 @@ from typing import Literal
 import torch
 from pydantic import BaseModel, ConfigDict, Field, model_serializer
 from safetensors.torch import load as st_load
-from safetensors.torch import save as st_save
 
 from volcap_core.splat.sh import num_sh_bases
 
@@ -62,6 +61,7 @@ __all__ = [
     "evaluate",
     "load_model",
     "opacity_envelope",
+    "safetensors_bytes",
     "save_model",
 ]
 
@@ -326,12 +326,57 @@ def evaluate(model: Poly4DGS, t: float, *, min_opacity: float = ALPHA_MIN) -> Ga
                        ids=ids, colour_space=c.colour_space)
 
 
+#: torch dtype -> safetensors name, in the order of safetensors' ``Dtype`` enum (it lays tensors
+#: out by that order, largest first, then by name)
+_ST_DTYPES = {torch.bool: "BOOL", torch.uint8: "U8", torch.int8: "I8", torch.int16: "I16",
+              torch.float16: "F16", torch.bfloat16: "BF16", torch.int32: "I32",
+              torch.float32: "F32", torch.float64: "F64", torch.int64: "I64"}
+_ST_RANK = {d: i for i, d in enumerate(_ST_DTYPES)}
+
+
+def safetensors_bytes(tensors: dict[str, torch.Tensor],
+                      metadata: dict[str, str] | None = None) -> bytes:
+    """Safetensors bytes that depend only on the tensors and the metadata (readable by
+    ``safetensors.torch.load``).
+
+    Why not ``safetensors.torch.save``: it keeps the metadata in a Rust ``HashMap``, whose
+    iteration order is randomised per map, so the same model with two metadata keys was written
+    in one of two byte orders at random (measured: 2 different encodings in 20 saves in one
+    process). A content-addressed store then sees two different artifacts, which is what broke
+    "a resumed segment's model is bit-identical to an uninterrupted one". Here the header is JSON
+    with sorted keys; tensors are laid out as safetensors does (by its dtype order, largest
+    first, then by name, so every tensor is aligned); the header is space-padded to a multiple
+    of 8 bytes. With at most one metadata key the bytes equal ``safetensors.torch.save``'s
+    (tested).
+    """
+    items = []
+    for name, t in tensors.items():
+        if t.dtype not in _ST_DTYPES:
+            raise ValueError(f"{name}: dtype {t.dtype} not supported")
+        items.append((name, t.detach().to("cpu").contiguous()))
+    items.sort(key=lambda kv: (-_ST_RANK[kv[1].dtype], kv[0]))
+    header: dict = {}
+    if metadata:
+        header["__metadata__"] = {str(k): str(v) for k, v in sorted(metadata.items())}
+    chunks, offset = [], 0
+    for name, t in items:
+        raw = t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b""
+        header[name] = {"dtype": _ST_DTYPES[t.dtype], "shape": list(t.shape),
+                        "data_offsets": [offset, offset + len(raw)]}
+        chunks.append(raw)
+        offset += len(raw)
+    head = json.dumps(header, separators=(",", ":"), ensure_ascii=False).encode("utf-8")
+    head += b" " * (-len(head) % 8)
+    return len(head).to_bytes(8, "little") + head + b"".join(chunks)
+
+
 def save_model(model: Poly4DGS) -> bytes:
     """Serialise to safetensors bytes; the config travels as JSON in the header metadata
-    (``volcap.config``), so one artifact holds the whole model. No pickle."""
+    (``volcap.config``), so one artifact holds the whole model. No pickle. The same model gives
+    the same bytes in any process (:func:`safetensors_bytes`)."""
     tensors = {k: v.detach().contiguous().cpu() for k, v in model.params.items()}
     meta = {"format": MODEL_FORMAT, "volcap.config": model.config.model_dump_json()}
-    return st_save(tensors, metadata=meta)
+    return safetensors_bytes(tensors, meta)
 
 
 def load_model(data: bytes, device: torch.device | str = "cpu") -> Poly4DGS:
@@ -340,8 +385,8 @@ def load_model(data: bytes, device: torch.device | str = "cpu") -> Poly4DGS:
     if meta.get("format") != MODEL_FORMAT:
         raise ValueError(f"not a Poly4DGS model (format {meta.get('format')!r})")
     config = Poly4DGSConfig.model_validate_json(meta["volcap.config"])
-    tensors = st_load(data)
-    return Poly4DGS(config, {k: v.to(device) for k, v in tensors.items()})
+    tensors = st_load(data)  # views on read-only buffers: own the memory (writable, aligned)
+    return Poly4DGS(config, {k: v.to(device).clone() for k, v in tensors.items()})
 
 
 def _safetensors_metadata(data: bytes) -> dict[str, str]:

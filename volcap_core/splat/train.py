@@ -33,7 +33,6 @@ import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field
 from safetensors.torch import load as st_load
-from safetensors.torch import save as st_save
 
 from volcap_core.colour import srgb_encode_unbounded
 from volcap_core.splat.camera import Camera
@@ -50,7 +49,7 @@ from volcap_core.splat.mcmc import (
     mcmc_regulariser,
     relocate_dead,
 )
-from volcap_core.splat.model import Poly4DGS, Poly4DGSConfig, evaluate
+from volcap_core.splat.model import Poly4DGS, Poly4DGSConfig, evaluate, safetensors_bytes
 from volcap_core.splat.optim import AdamState, adam_step, exponential_lr
 from volcap_core.splat.render import render
 
@@ -375,7 +374,7 @@ def _serialise(state: _State, config: TrainConfig, extra: dict) -> bytes:
             "history": [[e.step, e.wall_s, e.psnr, e.ssim] for e in state.history],
             **extra}),
     }
-    return st_save(tensors, metadata=meta)
+    return safetensors_bytes(tensors, meta)
 
 
 def _deserialise(data: bytes, device) -> tuple[_State, dict, Poly4DGSConfig]:
@@ -386,8 +385,10 @@ def _deserialise(data: bytes, device) -> tuple[_State, dict, Poly4DGSConfig]:
         raise ValueError(f"not a Poly4DGS training checkpoint (format {meta.get('format')!r})")
     info = json.loads(meta["state"])
     model_cfg = Poly4DGSConfig.model_validate_json(meta["model_config"])
-    t = st_load(data)
-    names = [k.split("/", 1)[1] for k in t if k.startswith("model/")]
+    # st_load's tensors are views on read-only per-tensor buffers; training updates them in
+    # place, so copy them into memory of our own
+    t = {k: v.clone() for k, v in st_load(data).items()}
+    names = sorted(k.split("/", 1)[1] for k in t if k.startswith("model/"))
     model = Poly4DGS(model_cfg, {k: t[f"model/{k}"].to(device).requires_grad_(True)
                                  for k in names})
     adam = AdamState({k: t[f"adam/m/{k}"].to(device) for k in names},
