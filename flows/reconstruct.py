@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from prefect import flow, get_run_logger, unmapped
 
+from flows.calibrate import calibrate_capture, point_cloud_for_frames
 from tasks.reconstruct import ground_truth_calibration, ground_truth_points, train_segment_task
 from volcap_core import reconstruction
 from volcap_core.capture import Capture
@@ -24,11 +25,13 @@ def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = 
                      degrees: str = "poly4dgs", segment_frames: int | None = None,
                      calibration: str | None = None, points: str | None = None,
                      held_out: list[str] | None = None, points_per_frame: int = 20000,
-                     max_gaussians: int | None = None, seed: int = 0) -> dict:
+                     max_gaussians: int | None = None, seed: int = 0, ground_truth: bool = False) -> dict:
     """Train the segments of ``capture`` (a ref name such as ``captures/demo`` or a digest).
 
-    ``calibration`` / ``points``: refs of a Calibration and a PointCloudSequence. When omitted,
-    a synthetic capture's ground truth stands in (true cameras, points from true depth).
+    ``calibration`` / ``points``: refs of a Calibration and a PointCloudSequence. When omitted, the
+    capture is calibrated here (the calibrate flow's tasks, cached) and dense points are computed
+    for the frames trained, at most ``points_per_frame`` each. ``ground_truth=True`` uses a synthetic
+    capture's ground truth instead (true cameras, points from true depth): benchmarks, fast tests.
     Returns the segment model refs and their held-out PSNR/SSIM and training wall time.
     """
     log = get_run_logger()
@@ -39,9 +42,21 @@ def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = 
     if not 0 <= a < b <= cap.frame_count:
         raise ValueError(f"frames {a}:{b} outside capture {cap.name}'s [0, {cap.frame_count})")
 
-    calib_ref = s.resolve(calibration) if calibration else ground_truth_calibration(store, capture_ref)
-    points_ref = s.resolve(points) if points else ground_truth_points(store, capture_ref, calib_ref,
-                                                                        points_per_frame, seed)
+    if calibration:
+        calib_ref = s.resolve(calibration)
+    elif ground_truth:
+        calib_ref = ground_truth_calibration(store, capture_ref)
+    else:
+        calib_ref = calibrate_capture(store, capture_ref)
+    if points:
+        points_ref = s.resolve(points)
+    elif ground_truth:
+        points_ref = ground_truth_points(store, capture_ref, calib_ref, points_per_frame, seed)
+    else:
+        points_ref = point_cloud_for_frames(store, capture_ref, calib_ref, list(range(a, b)), points_per_frame, seed)
+    log.info("capture %s: %s calibration %s, points %s", cap.name,
+             "given" if calibration else "ground-truth" if ground_truth else "estimated", calib_ref.digest,
+             points_ref.digest)
     held = held_out if held_out is not None else reconstruction.default_held_out(cap)
     config = reconstruction.train_config(preset, degrees=degrees, held_out=held, max_gaussians=max_gaussians)
     segments = split_frames(a, b, segment_frames)
