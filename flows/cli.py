@@ -154,30 +154,155 @@ def reconstruct(capture: Annotated[str, typer.Argument(help="capture ref name (c
                 preset: Annotated[str, typer.Option(help="training preset: test, demo, preview, production")] = "demo",
                 degrees: Annotated[str, typer.Option(help="model: poly4dgs, rotor4d, static")] = "poly4dgs",
                 segment_frames: Annotated[Optional[int], typer.Option(help="frames per segment (one segment when omitted)")] = None,
-                calibration: Annotated[Optional[str], typer.Option(help="Calibration ref; a synthetic capture's ground truth when omitted")] = None,
-                points: Annotated[Optional[str], typer.Option(help="PointCloudSequence ref; ground-truth depth points when omitted")] = None,
+                calibration: Annotated[Optional[str], typer.Option(help="Calibration ref; estimated here (cached) when omitted")] = None,
+                points: Annotated[Optional[str], typer.Option(help="PointCloudSequence ref; dense points of the frames when omitted")] = None,
+                ground_truth: Annotated[bool, typer.Option("--ground-truth", help="use a synthetic capture's true cameras and depth points instead of estimating them")] = False,
                 held_out: Annotated[Optional[str], typer.Option(help="comma-separated cameras never trained on")] = None,
                 seed: Annotated[int, typer.Option()] = 0,
                 store: StoreOpt = DEFAULT_STORE, json_out: JsonOpt = False) -> None:
     """Train the Poly4DGS segments of an ingested capture; reports held-out PSNR/SSIM and wall time."""
     from flows.reconstruct import reconstruct_flow
 
-    span = None
-    if frames:
-        try:
-            a, b = (int(x) for x in frames.split(":"))
-        except ValueError:
-            raise typer.BadParameter("expected A:B, e.g. 0:24", param_hint="--frames") from None
-        span = (a, b)
+    span = _frame_span(frames)
     held = [c for c in held_out.split(",") if c] if held_out is not None else None
     summary = _run(reconstruct_flow, store=_store_url(store), capture=capture, frames=span, preset=preset,
                    degrees=degrees, segment_frames=segment_frames, calibration=calibration, points=points,
-                   held_out=held, seed=seed)
+                   held_out=held, seed=seed, ground_truth=ground_truth)
     out = summary.result
     lines = [f"  segment {s['frames'][0]}:{s['frames'][1]}: {s['model']['digest']}  {s['gaussians']} Gaussians, "
              f"held-out PSNR {_fmt(s['held_out_psnr'])} dB, SSIM {_fmt(s['held_out_ssim'], 3)}, "
              f"{s['train_wall_s']:.1f} s training" for s in out["segments"]]
     _emit({**out, **summary.counts()}, json_out, "\n".join(lines))
+
+
+def _frame_span(frames: str | None) -> tuple[int, int] | None:
+    """``--frames A:B`` (B exclusive) -> (A, B); None when omitted."""
+    if not frames:
+        return None
+    try:
+        a, b = (int(x) for x in frames.split(":"))
+    except ValueError:
+        raise typer.BadParameter("expected A:B, e.g. 0:24", param_hint="--frames") from None
+    return a, b
+
+
+# ---------------------------------------------------------------------------------------------
+# calibrate / export-colmap
+# ---------------------------------------------------------------------------------------------
+
+
+@app.command()
+def calibrate(capture: Annotated[str, typer.Argument(help="capture ref name (captures/NAME) or digest")],
+              frames: Annotated[Optional[str], typer.Option(help="dense points for take frames A:B (B exclusive); all when omitted")] = None,
+              store: StoreOpt = DEFAULT_STORE, json_out: JsonOpt = False) -> None:
+    """Calibrate every camera of an ingested capture and compute per-frame dense points.
+
+    Prints the Calibration and point-cloud refs (also named calibrations/NAME and points/NAME) and,
+    for a capture with ground truth (synthetic), the error table; --json adds it all as JSON.
+    """
+    from flows.calibrate import calibrate_flow
+
+    summary = _run(calibrate_flow, store=_store_url(store), capture=capture, frames=_frame_span(frames))
+    out = summary.result
+    lines = [f"calibration: {out['calibration']['digest']}", f"points: {out['points']['digest']}"]
+    if out["errors"] is not None:
+        lines += _error_lines(out["errors"])
+    _emit({**out, **summary.counts()}, json_out, "\n".join(lines))
+
+
+def _error_lines(t: dict) -> list[str]:
+    """The calibration error table (volcap_core.calibration.metrics) as a few human lines."""
+    lines = []
+    s = t.get("static") or {}
+    if s:
+        lines.append(f"static cameras ({s['cameras']}): rotation mean {_fmt(s['rotation_deg_mean'], 3)}° max "
+                     f"{_fmt(s['rotation_deg_max'], 3)}°; centre max {_fmt(_pct(s['centre_frac_max']))}% of stage; "
+                     f"|focal| max {_fmt(s['focal_pct_max_abs'])}%; projection mean {_fmt(s['projection_px_mean'])} px")
+    for variant, v in (t.get("tracking") or {}).items():
+        lines.append(f"tracking cameras [{variant}]: |focal| mean {_fmt(v['focal_pct_mean_abs'])}% max "
+                     f"{_fmt(v['focal_pct_max_abs'])}%; rotation mean {_fmt(v['rotation_deg_mean'], 3)}°; pose jitter "
+                     f"mean {_fmt(v['pose_jitter_px_mean'])} px; focal jitter mean {_fmt(v['focal_jitter_px_mean'])} px")
+    p = t.get("points") or {}
+    if p.get("per_frame"):
+        med = p.get("median_distance_m")
+        lines.append(f"dense points: {p['points_mean']:.0f} per frame over {len(p['per_frame'])} frame(s), median "
+                     f"distance to the true surface {_fmt(None if med is None else 1000 * med, 1)} mm")
+    if t.get("targets"):
+        lines.append("targets: " + ", ".join(f"{k} {'met' if v else 'not met'}" for k, v in t["targets"].items()))
+    return lines
+
+
+def _pct(x: float | None) -> float | None:
+    return None if x is None else 100 * x
+
+
+@app.command(name="export-colmap")
+def export_colmap_cmd(calibration: Annotated[str, typer.Argument(help="Calibration ref (digest or calibrations/NAME)")],
+                      frame: Annotated[int, typer.Option("--frame", help="take index")],
+                      out: Annotated[Path, typer.Option("--out", help="output folder (a COLMAP model)")],
+                      points: Annotated[Optional[str], typer.Option(help="PointCloudSequence ref whose points of that frame go in points3D")] = None,
+                      binary: Annotated[bool, typer.Option("--binary", help="write .bin files instead of .txt")] = False,
+                      store: StoreOpt = DEFAULT_STORE, json_out: JsonOpt = False) -> None:
+    """Write one frame's cameras (and dense points) as a COLMAP model that gsplat, nerfstudio and
+    COLMAP's GUI open."""
+    from tasks.reconstruct import load_tracking
+    from volcap_core.calibration.colmap_export import cameras_at, export_colmap
+    from volcap_core.calibration.record import Calibration
+    from volcap_core.pointcloud import PointCloudSequence, decode_points
+
+    s = _open(store)
+    calib_ref = s.resolve(calibration)
+    calib = s.get_record(calib_ref, Calibration)
+    if not 0 <= frame < calib.frame_count:
+        raise CommandError(f"frame {frame} outside [0, {calib.frame_count}) of the calibration of {calib.capture}")
+    cams = cameras_at(calib, frame, load_tracking(s, calib))
+    xyz = rgb = None
+    if points:
+        seq = s.get_record(s.resolve(points), PointCloudSequence)
+        if seq.calibration.digest != calib_ref.digest:
+            raise CommandError(f"points {points} were made with calibration {seq.calibration.digest}, "
+                               f"not {calib_ref.digest}")
+        try:
+            pf = seq.at(frame)
+        except KeyError:
+            raise CommandError(f"points {points} have no frame {frame} (frames "
+                               f"{', '.join(str(f.frame) for f in seq.frames) or 'none'})") from None
+        xyz, rgb = decode_points(s.get_bytes(pf.points))
+    _replace_dir_atomic(out, lambda tmp: export_colmap(tmp, cams, xyz, rgb, binary=binary))
+    _emit({"out": str(out), "frame": frame, "cameras": len(cams), "points": 0 if xyz is None else len(xyz),
+           "binary": binary}, json_out, f"{out}: {len(cams)} cameras, {0 if xyz is None else len(xyz)} points "
+                                        f"({'binary' if binary else 'text'})")
+
+
+COLMAP_MODEL_FILES = {f"{n}.{e}" for n in ("cameras", "images", "points3D", "rigs", "frames") for e in ("txt", "bin")}
+
+
+def _replace_dir_atomic(path: Path, write) -> None:
+    """``write(tmp_dir)`` into a temporary folder beside ``path``, then rename it to ``path``. An
+    existing COLMAP model there is replaced; any other existing content is refused."""
+    import os
+    import shutil
+    import tempfile
+
+    if path.exists():
+        if not path.is_dir() or not {p.name for p in path.iterdir()} <= COLMAP_MODEL_FILES:
+            raise CommandError(f"{path} exists and is not a COLMAP model folder: choose another --out")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part"))
+    old = None
+    try:
+        write(tmp)
+        if path.exists():
+            old = path.with_name(f".{path.name}.{os.getpid()}.old")
+            os.replace(path, old)
+        os.replace(tmp, path)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if old is not None and not path.exists():
+            os.replace(old, path)
+        raise
+    if old is not None:
+        shutil.rmtree(old, ignore_errors=True)
 
 
 def _fmt(x: float | None, digits: int = 2) -> str:
