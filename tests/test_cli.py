@@ -101,7 +101,8 @@ def test_store_put_get_gc_and_errors(tmp_path):
 
 def test_usage_errors_exit_2_and_help_exits_0():
     assert volcap("no-such-command").returncode == 2
-    for cmd in (["--help"], ["ingest", "--help"], ["store", "gc", "--help"], ["synth", "--help"], ["demo", "--help"]):
+    for cmd in (["--help"], ["ingest", "--help"], ["store", "gc", "--help"], ["synth", "--help"], ["demo", "--help"],
+                ["calibrate", "--help"], ["export-colmap", "--help"]):
         assert volcap(*cmd).returncode == 0, cmd
 
 
@@ -116,7 +117,7 @@ def test_reconstruct_render_and_export_ply_commands(api_env, tmp_path):
     ing = volcap("ingest", str(cap), "--store", store, "--json", env=api_env)
     assert ing.returncode == 0, ing.stderr
     rec = volcap("reconstruct", "captures/synth-demo_scene-s5", "--preset", "test", "--held-out", "S002",
-                 "--store", store, "--json", env=api_env)
+                 "--ground-truth", "--store", store, "--json", env=api_env)
     assert rec.returncode == 0, rec.stderr[-2000:]
     doc = last_json(rec.stdout)
     seg = doc["segments"][0]
