@@ -45,7 +45,6 @@ panels: PSNR against wall-clock and against CPU seconds) and, with ``--json``, e
 from __future__ import annotations
 
 import argparse
-import functools
 import json
 import math
 import os
@@ -65,13 +64,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from poly4dgs_data import BenchScene, load_scene, subsample_points  # noqa: E402
 
 from volcap_core.splat.grids import ExposureGrids, upsample_grid  # noqa: E402
-from volcap_core.colour import srgb_encode_unbounded  # noqa: E402
-from volcap_core.splat.loss import display_metrics  # noqa: E402
+from volcap_core.splat.loss import display_metrics, reconstruction_loss  # noqa: E402
 from volcap_core.splat.mcmc import MCMCConfig  # noqa: E402
 from volcap_core.splat.model import Poly4DGS, Poly4DGSConfig, evaluate  # noqa: E402
 from volcap_core.splat.optim import AdamState, adam_step  # noqa: E402
 from volcap_core.splat.render import render  # noqa: E402
 from volcap_core.splat.train import (  # noqa: E402
+    LearningRates,
     PointsAtTime,
     SegmentData,
     TrainConfig,
@@ -113,6 +112,8 @@ class Settings:
     eval_fit_steps: int = 100
     sh_degree: int = 3
     seed: int = 0
+    lr_exposure: float | None = None   # None: the library's LearningRates default
+    lr_black: float | None = None
 
     @classmethod
     def full(cls) -> "Settings":
@@ -132,58 +133,13 @@ def mcmc_for(steps: int, cap: int) -> MCMCConfig:
 
 # ---------------------------------------------------------------------------------- evaluation
 
-@functools.lru_cache(maxsize=16)
-def _blur_matrix(n: int, size: int = 11, sigma: float = 1.5) -> torch.Tensor:
-    """``[n, n]``: the 1D Gaussian window of :func:`volcap_core.splat.loss.ssim` with zero
-    padding ("same") as a banded matrix."""
-    x = torch.arange(size, dtype=torch.float64) - (size - 1) / 2
-    g = torch.exp(-x * x / (2 * sigma * sigma))
-    g = g / g.sum()
-    m = torch.zeros(n, n, dtype=torch.float64)
-    for k in range(size):
-        off = k - size // 2
-        idx = torch.arange(max(0, -off), min(n, n - off))
-        m[idx, idx + off] = g[k]
-    return m.float()
-
-
-def _ssim_same(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    """Mean SSIM of ``[..., H, W, C]`` images: :func:`volcap_core.splat.loss.ssim` with
-    ``padding="same"`` (the training loss's SSIM) computed with two matmuls per blur instead of
-    ``conv2d``, whose single-thread CPU backward costs ~8 ms per 90×160 blur (it made the
-    held-out grid fit as expensive as the training). Same value to float rounding."""
-    H, W = x.shape[-3:-1]
-    gh, gw = _blur_matrix(H), _blur_matrix(W)
-
-    def blur(t):                                  # [..., C, H, W]
-        return gh @ t @ gw.T
-
-    a, b = x.movedim(-1, -3), y.movedim(-1, -3)
-    mu_a, mu_b = blur(a), blur(b)
-    var_a = blur(a * a) - mu_a * mu_a
-    var_b = blur(b * b) - mu_b * mu_b
-    cov = blur(a * b) - mu_a * mu_b
-    c1, c2 = 0.01 ** 2, 0.03 ** 2
-    num = (2 * mu_a * mu_b + c1) * (2 * cov + c2)
-    return (num / ((mu_a ** 2 + mu_b ** 2 + c1) * (var_a + var_b + c2))).mean()
-
-
-def _fit_loss(pred_linear: torch.Tensor, target_linear: torch.Tensor,
-              ssim_weight: float) -> torch.Tensor:
-    """:func:`volcap_core.splat.loss.reconstruction_loss` (L1 + SSIM in unbounded sRGB) with the
-    matmul SSIM."""
-    p = srgb_encode_unbounded(pred_linear)
-    t = srgb_encode_unbounded(target_linear)
-    return (1 - ssim_weight) * (p - t).abs().mean() + ssim_weight * (1 - _ssim_same(p, t))
-
-
 def evaluate_views(model_at, views: list[View], *, fit_steps: int, grid_size: int = 32,
                    lr: float = 1e-2, ssim_weight: float = 0.2) -> tuple[float, float]:
     """The paper's held-out protocol, as :func:`volcap_core.splat.train.evaluate_held_out` (same
     numbers to float rounding), for a model given per time: ``model_at(time) -> Poly4DGS``
     (per-frame GS has one per frame). Every held-out camera's exposure and black-level grids are
     fitted jointly over its views; the views of one camera are batched (the library loops over
-    views) and the SSIM of the fit is computed with matmuls (:func:`_ssim_same`)."""
+    views). The fit's loss is the library's :func:`reconstruction_loss`, on a batch."""
     with torch.no_grad():
         renders = [render(evaluate(model_at(v.time), v.time), v.camera, backend="torch")["rgb"]
                    for v in views]
@@ -205,7 +161,8 @@ def evaluate_views(model_at, views: list[View], *, fit_steps: int, grid_size: in
         for t in fit.values():
             t.grad = None
         # mean over views of the per-view loss (all views of a camera have one size)
-        loss = sum(len(by_cam[c]) * _fit_loss(adjusted(j, c), T[c], ssim_weight)
+        loss = sum(len(by_cam[c]) * reconstruction_loss(adjusted(j, c), T[c],
+                                                        ssim_weight=ssim_weight)[0]
                    for j, c in enumerate(cam_ids)) / len(views)
         loss.backward()
         adam_step(fit, {"exposure": lr, "black": lr}, state)
@@ -268,8 +225,10 @@ def train_with_snapshots(data: SegmentData, points: list[PointsAtTime], cfg: Tra
 
 def base_config(s: Settings, *, model: Poly4DGSConfig, steps: int, cap: int,
                 checkpoint_every: int, **kw) -> TrainConfig:
+    lr = {k: v for k, v in (("exposure", s.lr_exposure), ("black", s.lr_black)) if v is not None}
     return TrainConfig(model=model, steps=steps, mcmc=mcmc_for(steps, cap), held_out_cameras=[],
-                       eval_every=0, checkpoint_every=checkpoint_every, backend="torch", **kw)
+                       eval_every=0, checkpoint_every=checkpoint_every, backend="torch",
+                       lr=LearningRates(**lr), **kw)
 
 
 @dataclass
@@ -512,6 +471,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--downsample", type=int, help="image downsampling factor (320x180 / d)")
     ap.add_argument("--points-per-frame", type=int)
     ap.add_argument("--snapshots", type=int, help="evaluation points along each curve")
+    ap.add_argument("--lr-exposure", type=float, help="exposure-grid learning rate "
+                    "(default: the library's)")
+    ap.add_argument("--lr-black", type=float, help="black-level-grid learning rate "
+                    "(default: the library's)")
     ap.add_argument("--methods", nargs="+", choices=METHODS, default=METHODS)
     ap.add_argument("--curves", nargs="+", choices=METHODS, default=list(CURVE_METHODS),
                     help="methods evaluated along the run (the others only at the end)")
@@ -524,7 +487,8 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
     s = Settings.quick() if args.quick else Settings.full()
     over = {k: getattr(args, k) for k in ("frames", "steps", "downsample", "points_per_frame",
-                                          "snapshots") if getattr(args, k) is not None}
+                                          "snapshots", "lr_exposure", "lr_black")
+            if getattr(args, k) is not None}
     s = Settings(**{**s.__dict__, **over})
     t_all = time.perf_counter()
     print(f"settings: {s}  threads={torch.get_num_threads()}  load average "

@@ -52,6 +52,54 @@ def test_ssim_identity_shapes_and_batch():
     assert ssim(x, x, padding="valid", reduction="none").shape == (2, 10, 14, 3)
 
 
+def _ssim_conv2d(x, y, padding, window_size=11, sigma=1.5):
+    """The SSIM map with the textbook conv2d blur: the reference for the matrix-product form."""
+    import torch.nn.functional as F
+
+    H, W, C = x.shape[-3:]
+    g = torch.arange(window_size, dtype=torch.float64) - (window_size - 1) / 2
+    g = torch.exp(-g * g / (2 * sigma * sigma))
+    g = (g / g.sum()).to(x)
+    pad = window_size // 2 if padding == "same" else 0
+
+    def blur(t):
+        t = F.conv2d(t, g.view(1, 1, -1, 1), padding=(pad, 0))
+        return F.conv2d(t, g.view(1, 1, 1, -1), padding=(0, pad))
+
+    a, b = (t.reshape(-1, H, W, C).permute(0, 3, 1, 2).reshape(-1, 1, H, W) for t in (x, y))
+    mu_a, mu_b = blur(a), blur(b)
+    var_a, var_b, cov = blur(a * a) - mu_a ** 2, blur(b * b) - mu_b ** 2, blur(a * b) - mu_a * mu_b
+    s = ((2 * mu_a * mu_b + 1e-4) * (2 * cov + 9e-4)
+         / ((mu_a ** 2 + mu_b ** 2 + 1e-4) * (var_a + var_b + 9e-4)))
+    h2, w2 = s.shape[-2:]
+    return s.reshape(-1, C, h2, w2).permute(0, 2, 3, 1).reshape(*x.shape[:-3], h2, w2, C)
+
+
+@pytest.mark.parametrize("shape", [(17, 29, 3), (2, 90, 160, 3), (12, 700, 1), (600, 13, 2)])
+@pytest.mark.parametrize("padding", ["same", "valid"])
+def test_matrix_product_ssim_equals_the_conv2d_form(shape, padding):
+    """Values and gradients, dense band matrices (short axes) and blocks (axes > 512 px)."""
+    g = torch.Generator().manual_seed(1)
+    x = torch.rand(shape, generator=g, dtype=torch.float64)
+    y = (x + 0.2 * torch.randn(shape, generator=g, dtype=torch.float64)).requires_grad_(True)
+    ref = _ssim_conv2d(x, y, padding)
+    got = ssim(x, y, padding=padding, reduction="none")
+    assert got.shape == ref.shape
+    torch.testing.assert_close(got, ref, rtol=0, atol=1e-12)
+    w = torch.rand(ref.shape, generator=g, dtype=torch.float64)
+    (gr,) = torch.autograd.grad((ref * w).sum(), y)
+    (gg,) = torch.autograd.grad((got * w).sum(), y)
+    torch.testing.assert_close(gg, gr, rtol=0, atol=1e-12)
+    x32, y32 = x.float(), y.detach().float()  # float32, the training dtype: float tolerance
+    torch.testing.assert_close(ssim(x32, y32, padding=padding), ref.mean().float(),
+                               rtol=0, atol=2e-6)
+
+
+def test_ssim_rejects_images_smaller_than_the_window():
+    with pytest.raises(ValueError):
+        ssim(torch.rand(8, 30, 3), torch.rand(8, 30, 3), padding="valid")
+
+
 def test_reconstruction_loss_is_computed_in_unbounded_srgb():
     t = torch.full((16, 16, 3), 0.2)
     p = torch.full((16, 16, 3), 0.3)

@@ -35,10 +35,57 @@ def _gauss_1d(size: int, sigma: float) -> torch.Tensor:
     return g / g.sum()
 
 
+#: Axes up to this length are blurred with one dense band matrix; longer ones in blocks of
+#: :data:`_BLOCK` outputs (see :func:`_blur_axis`).
+_DENSE_MAX = 512
+_BLOCK = 64
+
+
+@functools.lru_cache(maxsize=32)
+def _band_matrix(n_out: int, window_size: int, sigma: float) -> torch.Tensor:
+    """``M [n_out + window_size - 1, n_out]`` float64 with ``M[j + k, j] = g[k]``: ``x @ M`` is the
+    valid correlation of ``x`` with the Gaussian window (symmetric, so also the convolution)."""
+    g = _gauss_1d(window_size, sigma)
+    m = torch.zeros(n_out + window_size - 1, n_out, dtype=torch.float64)
+    for j in range(n_out):
+        m[j:j + window_size, j] = g
+    return m
+
+
+def _blur_axis(t: torch.Tensor, window_size: int, sigma: float, same: bool) -> torch.Tensor:
+    """1D Gaussian filter along the last axis of ``t``, zero padding (``same``) or none (valid),
+    as matrix products: an axis of up to :data:`_DENSE_MAX` samples is one product with a band
+    matrix; a longer one is cut into blocks of :data:`_BLOCK` outputs that each read their
+    ``_BLOCK + window_size - 1`` inputs (an ``unfold`` view), so the work stays linear in the
+    length (a dense 1920-wide band matrix would do 170x the multiply-adds of the filter)."""
+    n = t.shape[-1]
+    halo = window_size - 1
+    n_out = n if same else n - halo
+    if n_out < 1:
+        raise ValueError(f"image axis of {n} px is shorter than the {window_size}-px window")
+    b = n_out if n_out <= _DENSE_MAX else _BLOCK
+    nb = -(-n_out // b)
+    left = window_size // 2 if same else 0
+    right = nb * b + halo - n - left
+    p = F.pad(t, (left, right)) if left or right else t
+    m = _band_matrix(b, window_size, sigma).to(t)
+    if nb == 1:
+        out = p @ m
+    else:
+        out = (p.unfold(-1, b + halo, b) @ m).flatten(-2)
+    return out[..., :n_out] if out.shape[-1] != n_out else out
+
+
 def ssim(x: torch.Tensor, y: torch.Tensor, *, data_range: float = 1.0, window_size: int = 11,
          sigma: float = 1.5, padding: Literal["same", "valid"] = "same",
          reduction: Literal["mean", "none"] = "mean") -> torch.Tensor:
     """Structural similarity of channel-last images.
+
+    The Gaussian blurs are separable and computed as matrix products (:func:`_blur_axis`), not
+    ``conv2d``: on one CPU thread the ``conv2d`` backward of a one-channel 11-tap filter
+    dominated a training step (SSIM forward+backward of a 90×160 RGB pair: 109 ms with
+    ``conv2d``, 12.5 ms as matrix products; 320×180: 462 against 62 ms). Same values to float
+    rounding (tested against the ``conv2d`` form).
 
     Args:
         x, y: ``[..., H, W, C]`` images (any leading batch dims), same shape.
@@ -52,16 +99,13 @@ def ssim(x: torch.Tensor, y: torch.Tensor, *, data_range: float = 1.0, window_si
     """
     if x.shape != y.shape:
         raise ValueError(f"shape mismatch {tuple(x.shape)} vs {tuple(y.shape)}")
-    *lead, H, W, C = x.shape
-    to_nchw = lambda t: t.reshape(-1, H, W, C).permute(0, 3, 1, 2).reshape(-1, 1, H, W)  # noqa: E731
-    g = _gauss_1d(window_size, sigma).to(x)
-    pad = window_size // 2 if padding == "same" else 0
+    same = padding == "same"
 
-    def blur(t):  # separable Gaussian filter, [B, 1, H, W]
-        t = F.conv2d(t, g.view(1, 1, -1, 1), padding=(pad, 0))
-        return F.conv2d(t, g.view(1, 1, 1, -1), padding=(0, pad))
+    def blur(t):  # [..., C, H, W] -> [..., C, H', W']: along W, then along H
+        t = _blur_axis(t, window_size, sigma, same)
+        return _blur_axis(t.transpose(-1, -2), window_size, sigma, same).transpose(-1, -2)
 
-    a, b = to_nchw(x), to_nchw(y)
+    a, b = x.movedim(-1, -3), y.movedim(-1, -3)   # channel-first views
     mu_a, mu_b = blur(a), blur(b)
     var_a = blur(a * a) - mu_a * mu_a
     var_b = blur(b * b) - mu_b * mu_b
@@ -71,8 +115,7 @@ def ssim(x: torch.Tensor, y: torch.Tensor, *, data_range: float = 1.0, window_si
     s = num / ((mu_a ** 2 + mu_b ** 2 + c1) * (var_a + var_b + c2))
     if reduction == "mean":
         return s.mean()
-    h2, w2 = s.shape[-2:]
-    return s.reshape(-1, C, h2, w2).permute(0, 2, 3, 1).reshape(*lead, h2, w2, C)
+    return s.movedim(-3, -1)
 
 
 def psnr(x: torch.Tensor, y: torch.Tensor, data_range: float = 1.0) -> torch.Tensor:
