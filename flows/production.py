@@ -66,6 +66,49 @@ SegmentRuns = Literal["auto", "local", "deployment"]
 
 
 # ---------------------------------------------------------------------------------------------
+# Store credentials: the environment, or a Prefect Secret block
+# ---------------------------------------------------------------------------------------------
+
+#: Names a Prefect ``Secret`` block whose value is a JSON object of environment variables for the
+#: store (``AWS_ACCESS_KEY_ID``, ``AWS_SECRET_ACCESS_KEY``, ``AWS_DEFAULT_REGION``, ``AWS_ENDPOINT_URL``).
+STORE_SECRET_ENV = "VOLCAP_STORE_SECRET"
+STORE_SECRET_KEYS = ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_SESSION_TOKEN", "AWS_DEFAULT_REGION",
+                     "AWS_REGION", "AWS_ENDPOINT_URL", "AWS_ENDPOINT_URL_S3")
+
+
+def store_credentials_from_block() -> list[str]:
+    """Put the store credentials of the Secret block named by ``$VOLCAP_STORE_SECRET`` into this
+    process's environment (variables already set win). Returns the names set; [] without a block."""
+    name = os.environ.get(STORE_SECRET_ENV)
+    if not name:
+        return []
+    from prefect.blocks.system import Secret
+
+    try:
+        value = Secret.load(name).get()
+    except ValueError as exc:
+        raise ValueError(f"{STORE_SECRET_ENV}={name}: no such Secret block on the Prefect server ({exc})") from None
+    if isinstance(value, str):
+        import json
+
+        try:
+            value = json.loads(value)
+        except ValueError:
+            value = None
+    if not isinstance(value, dict) or not all(isinstance(v, str) for v in value.values()):
+        raise ValueError(f"Secret block {name!r} must hold a JSON object of strings, e.g. "
+                         '{"AWS_ACCESS_KEY_ID": "...", "AWS_SECRET_ACCESS_KEY": "..."}')
+    unknown = sorted(set(value) - set(STORE_SECRET_KEYS))
+    if unknown:
+        raise ValueError(f"Secret block {name!r}: unexpected keys {', '.join(unknown)} "
+                         f"(allowed: {', '.join(STORE_SECRET_KEYS)})")
+    applied = [k for k in value if k not in os.environ]
+    for k in applied:
+        os.environ[k] = value[k]
+    return applied
+
+
+# ---------------------------------------------------------------------------------------------
 # The production: spec, store, capture facts, needed steps
 # ---------------------------------------------------------------------------------------------
 
@@ -325,6 +368,7 @@ def train_segment_flow(store: str, capture: dict, calibration: dict, points: dic
     (which resumes from the segment's last checkpoint in the store). Returns the SegmentModel digest."""
     from prefect.concurrency.sync import concurrency
 
+    store_credentials_from_block()
     job = SegmentJob(capture=ArtifactRef.model_validate(capture), calibration=ArtifactRef.model_validate(calibration),
                      points=ArtifactRef.model_validate(points), frames=(frames[0], frames[1]),
                      config=TrainConfig.model_validate(config), seed=seed)
@@ -366,6 +410,7 @@ def production_flow(spec: str, store: str | None = None, shots: list[str] | None
     ``deployment`` (module doc). Returns the refs of every step's outputs and of each shot's frames.
     """
     log = get_run_logger()
+    store_credentials_from_block()
     prod = open_production(spec, store, shots)
     wanted = [s.id for s in prod.steps if s.kind in ENHANCER_STEPS]
     if wanted:

@@ -1,0 +1,300 @@
+"""The production across machines, for real: a Prefect server, an S3 server, two GPU-pool workers.
+
+One test, in the order a studio lives it:
+
+1. ``prefect server start`` on loopback with a temporary home (SQLite), moto's S3 server;
+   ``deploy/setup-pool.sh`` makes the pools and the ``gpu-slots`` limit, ``prefect deploy`` the
+   deployments of ``deploy/prefect.yaml``, and the zombie automation of ``deploy/automations`` is
+   installed with a short window; two ``volcap worker --pool gpu --limit 1`` processes start.
+2. ``volcap run`` on a production spec over the demo capture (rendered here, a few frames) whose
+   quality makes three segments, with the store on S3.
+3. While a worker trains its second segment (a checkpoint of it is in the store), the worker and
+   its flow-run process are killed (SIGKILL). The run is marked Crashed by the automation, the
+   production submits it again, the other worker resumes it from the checkpoint.
+4. The production completes: both workers trained segments, the resumed segment's model is
+   bit-identical to an uninterrupted training of the same segment in this process.
+5. ``volcap run`` again: nothing is trained or computed again.
+
+Every process started is killed at the end, whatever happened.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import time
+import urllib.request
+from pathlib import Path
+
+import pytest
+import yaml
+
+from tests.s3_server import s3_endpoint  # noqa: F401  (fixture)
+
+pytestmark = pytest.mark.slow
+
+REPO = Path(__file__).resolve().parents[2]
+BIN = Path(sys.executable).parent
+#: segment runs send heartbeats every 60 s (deploy/prefect.yaml); the test automation crashes a run
+#: after 75 s without one (production: 300 s)
+ZOMBIE_WITHIN_S = 75
+
+
+def _free_port() -> int:
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return sock.getsockname()[1]
+
+
+def _descendants(pid: int) -> list[int]:
+    """Every process below ``pid`` (from /proc; children of children too)."""
+    children: dict[int, list[int]] = {}
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            stat = (entry / "stat").read_text()
+        except OSError:
+            continue
+        ppid = int(stat.rsplit(")", 1)[1].split()[1])
+        children.setdefault(ppid, []).append(int(entry.name))
+    out, frontier = [], [pid]
+    while frontier:
+        nxt = [c for p in frontier for c in children.get(p, [])]
+        out += nxt
+        frontier = nxt
+    return out
+
+
+def _kill_tree(proc: subprocess.Popen) -> None:
+    for pid in [*_descendants(proc.pid), proc.pid]:
+        try:
+            os.kill(pid, signal.SIGKILL)
+        except ProcessLookupError:
+            pass
+    try:
+        proc.wait(timeout=10)
+    except subprocess.TimeoutExpired:
+        pass
+
+
+class Cluster:
+    """The processes of a small studio; ``stop()`` kills them all."""
+
+    def __init__(self, tmp: Path, s3_env: dict[str, str]):
+        self.tmp = tmp
+        self.port = _free_port()
+        self.env = {**os.environ, **s3_env,
+                    "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}",
+                    "PREFECT_HOME": str(tmp / "prefect-home"),
+                    "PREFECT_API_URL": f"http://127.0.0.1:{self.port}/api",
+                    "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "DO_NOT_TRACK": "1",
+                    "PREFECT_LOGGING_LEVEL": "INFO",
+                    "PREFECT_WORKER_QUERY_SECONDS": "2", "PREFECT_WORKER_PREFETCH_SECONDS": "2",
+                    "PREFECT_FLOWS_HEARTBEAT_FREQUENCY": "30",
+                    "VOLCAP_HOME": str(REPO), "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+                    "PYTHONPATH": str(REPO)}
+        self.env.pop("PREFECT_PROFILES_PATH", None)
+        self.procs: dict[str, subprocess.Popen] = {}
+
+    def log(self, name: str) -> Path:
+        return self.tmp / f"{name}.log"
+
+    def start(self, name: str, args: list[str]) -> subprocess.Popen:
+        out = open(self.log(name), "wb")
+        proc = subprocess.Popen(args, cwd=REPO, env=self.env, stdout=out, stderr=subprocess.STDOUT,
+                                start_new_session=True)
+        self.procs[name] = proc
+        return proc
+
+    def run(self, args: list[str], timeout: float = 120, check: bool = True) -> subprocess.CompletedProcess:
+        res = subprocess.run(args, cwd=REPO, env=self.env, capture_output=True, text=True, timeout=timeout)
+        if check and res.returncode != 0:
+            raise AssertionError(f"{' '.join(args)} -> {res.returncode}\n{res.stdout[-3000:]}\n{res.stderr[-3000:]}")
+        return res
+
+    def start_server(self) -> None:
+        self.start("server", [str(BIN / "prefect"), "server", "start", "--host", "127.0.0.1",
+                              "--port", str(self.port)])
+        deadline = time.monotonic() + 90
+        while time.monotonic() < deadline:
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{self.port}/api/health", timeout=2) as r:
+                    if r.status == 200:
+                        return
+            except OSError:
+                time.sleep(0.5)
+            if self.procs["server"].poll() is not None:
+                break
+        raise AssertionError("prefect server did not start:\n" + self.log("server").read_text()[-3000:])
+
+    def stop(self) -> None:
+        for proc in self.procs.values():
+            _kill_tree(proc)
+
+    def api(self, path: str, body: dict | None = None) -> object:
+        req = urllib.request.Request(f"http://127.0.0.1:{self.port}/api/{path}",
+                                     data=json.dumps(body or {}).encode(), method="POST",
+                                     headers={"Content-Type": "application/json"})
+        with urllib.request.urlopen(req, timeout=30) as r:
+            return json.loads(r.read())
+
+    def segment_runs(self) -> list[dict]:
+        runs = self.api("flow_runs/filter", {"flow_runs": {"tags": {"all_": ["segment"]}}, "limit": 200})
+        return list(runs)
+
+
+@pytest.fixture
+def cluster(tmp_path, s3_endpoint):  # noqa: F811
+    c = Cluster(tmp_path, s3_endpoint.env)
+    try:
+        yield c
+    finally:
+        c.stop()
+
+
+def _submissions(log: Path) -> list[str]:
+    """Flow-run ids a worker's log says it started."""
+    text = log.read_text(errors="replace") if log.exists() else ""
+    return re.findall(r"[Ss]ubmitting flow run '([0-9a-f-]{36})'", text)
+
+
+def _spec(tmp: Path, capture: Path, store: str) -> Path:
+    shot = {"name": "orbit", "performance": "demo", "frames": [0, 7], "fps": 24, "resolution": [64, 36],
+            "sensor_mm": 36,
+            "keyframes": [{"frame": 0, "position": [5.0, -2.0, 1.8], "look_at": [0.0, 0.0, 1.0], "focal_mm": 24},
+                          {"frame": 6, "position": [5.0, 2.0, 1.8], "look_at": [0.0, 0.0, 1.0], "focal_mm": 28}]}
+    spec = {"format": "volcap-production/1", "name": "cluster-test", "store": store,
+            # three segments over 7 frames; enough steps that a segment is still training when the
+            # worker is killed after its first checkpoint (every 10 steps in the test preset)
+            "quality": {"preset": "test", "max_segment_frames": 3, "overlap": 1, "train_steps": 30},
+            "captures": {"demo": {"folder": str(capture)}}, "shots": [shot]}
+    path = tmp / "spec.yaml"
+    path.write_text(yaml.safe_dump(spec, sort_keys=False))
+    return path
+
+
+def test_production_over_two_workers_survives_a_killed_worker_and_reruns_cached(cluster, tmp_path, s3_endpoint):  # noqa: F811
+    from volcap_core.synth import synthesize_capture
+
+    capture = synthesize_capture(tmp_path / "demo", rig="demo_scene", seed=0, frames=7, supersample=1).parent
+    store = s3_endpoint.store_url()
+    spec = _spec(tmp_path, capture, store)
+
+    # -- 1. the studio
+    cluster.start_server()
+    cluster.run(["bash", "deploy/setup-pool.sh", "--gpus", "2"])
+    automation = yaml.safe_load((REPO / "deploy/automations/crash-zombie-flows.yaml").read_text())
+    automation["trigger"]["within"] = ZOMBIE_WITHIN_S
+    short = tmp_path / "zombie.yaml"
+    short.write_text(yaml.safe_dump({**automation, "name": "volcap test: crash zombie flow runs"}))
+    cluster.run([str(BIN / "prefect"), "automation", "delete", "volcap: crash zombie flow runs"], check=False)
+    cluster.run([str(BIN / "prefect"), "automation", "create", "--from-file", str(short)])
+    cluster.run([str(BIN / "prefect"), "--no-prompt", "deploy", "--all", "--prefect-file", "deploy/prefect.yaml"])
+    for name in ("w1", "w2"):
+        cluster.start(name, [str(BIN / "volcap"), "worker", "--pool", "gpu", "--name", name, "--limit", "1"])
+
+    # -- 2. the production, with the store on S3
+    run = cluster.start("run1", [str(BIN / "volcap"), "run", str(spec), "--segment-runs", "deployment", "--json"])
+
+    # -- 3. kill the worker that is on its second segment once that segment has a checkpoint
+    from volcap_core.store import ArtifactStore
+
+    s = ArtifactStore(store)
+    victim = None
+    deadline = time.monotonic() + 900
+    while victim is None and time.monotonic() < deadline and run.poll() is None:
+        time.sleep(0.5)
+        for name in ("w1", "w2"):
+            if len(_submissions(cluster.log(name))) >= 2 and s.list_refs("checkpoints/"):
+                victim = name
+                break
+    assert victim is not None, ("no worker reached a second segment with a checkpoint\n"
+                                + cluster.log("run1").read_text()[-4000:])
+    _kill_tree(cluster.procs[victim])
+    survivor = "w2" if victim == "w1" else "w1"
+
+    assert run.wait(timeout=900) == 0, cluster.log("run1").read_text()[-6000:]
+    result = json.loads(cluster.log("run1").read_text().strip().splitlines()[-1])
+
+    # -- 4. what happened
+    assert result["segment_runs"] == "deployment"
+    assert result["shots"]["orbit"]["count"] == 7
+    segments = {k: v["segment"] for k, v in result["steps"].items() if k.startswith("train-segment:")}
+    assert len(segments) == 3
+    runs = cluster.segment_runs()
+    crashed = [r for r in runs if r["state_type"] == "CRASHED"]
+    assert crashed, [(r["name"], r["state_type"]) for r in runs]
+    assert all(r["state_type"] in ("COMPLETED", "CRASHED") for r in runs)
+    assert len([r for r in runs if r["state_type"] == "COMPLETED"]) == 3
+    assert len(_submissions(cluster.log(victim))) >= 2 and _submissions(cluster.log(survivor))
+    survivor_log = cluster.log(survivor).read_text(errors="replace")
+    assert "resuming from checkpoints/" in survivor_log, survivor_log[-4000:]
+    assert not s.list_refs("checkpoints/"), "a finished segment leaves no checkpoint behind"
+
+    # the resumed segment ends bit-identical to an uninterrupted training of it
+    frames = re.search(r"segment-(\d{6})-(\d{6})-attempt-0", crashed[0]["name"]).groups()
+    resumed_id = f"train-segment:demo:{frames[0]}-{frames[1]}"
+    _assert_bit_identical_to_uninterrupted(s, segments[resumed_id])
+
+    # -- 5. a rerun trains and computes nothing
+    before = len(runs)
+    again = cluster.run([str(BIN / "volcap"), "run", str(spec), "--segment-runs", "deployment", "--json"],
+                        timeout=600)
+    rerun = json.loads(again.stdout.strip().splitlines()[-1])
+    assert rerun["tasks_run"] == 0 and rerun["tasks_failed"] == 0, rerun
+    assert rerun["steps"] == result["steps"] and rerun["shots"] == result["shots"]
+    assert len(cluster.segment_runs()) == before
+    plan = json.loads(cluster.run([str(BIN / "volcap"), "plan", str(spec), "--json"]).stdout.strip().splitlines()[-1])
+    assert {p["status"] for p in plan["steps"]} == {"cached"}
+
+
+def _assert_bit_identical_to_uninterrupted(s, segment_digest: str) -> None:
+    """Train the segment again here, uninterrupted and without checkpoints, from the same inputs."""
+    import torch
+
+    from volcap_core import reconstruction
+    from volcap_core.calibration.record import Calibration
+    from volcap_core.capture import Capture
+    from volcap_core.pointcloud import PointCloudSequence, decode_points
+    from volcap_core.splat import save_model, train_segment
+    from volcap_core.splat.train import TrainConfig
+
+    rec = s.get_record(segment_digest, reconstruction.SegmentModel)
+    cap = s.get_record(rec.capture, Capture)
+    calib = s.get_record(rec.calibration, Calibration)
+    tracking = reconstruction_tracking(s, calib)
+    config = TrainConfig.model_validate({**rec.config, "checkpoint_every": 0})
+    data = reconstruction.segment_data(cap, calib, tracking, rec.frames, reconstruction.FrameCache(s.get_bytes))
+    pts = s.get_record(_points_of(s, segment_digest), PointCloudSequence)
+    init = reconstruction.segment_points(pts, rec.frames, lambda ref: decode_points(s.get_bytes(ref)))
+    torch.set_num_threads(1)
+    with reconstruction.deterministic_torch("cpu"):
+        result = train_segment(data, init, config, seed=0, device="cpu")
+    assert save_model(result.model) == s.get_bytes(rec.model)
+
+
+def reconstruction_tracking(s, calib):
+    from tasks.reconstruct import load_tracking
+
+    return load_tracking(s, calib)
+
+
+def _points_of(s, segment_digest: str):
+    """The PointCloudSequence a segment was trained from (the production journal has it)."""
+    for name in s.list_refs("productions/cluster-test/steps/train-segment/"):
+        from volcap_core.production.journal import StepEntry
+
+        entry = s.get_record(s.get_ref(name), StepEntry)
+        if entry.outputs["segment"].digest == segment_digest:
+            dense = next(k for k in entry.fingerprint["inputs"] if k.startswith("dense-points:"))
+            dense_entry = s.get_record(s.get_ref("productions/cluster-test/steps/" + dense.replace(":", "/")),
+                                       StepEntry)
+            return dense_entry.outputs["points"]
+    raise AssertionError(f"no journal entry for segment {segment_digest}")
