@@ -21,133 +21,21 @@ Every process started is killed at the end, whatever happened.
 from __future__ import annotations
 
 import json
-import os
 import re
-import shutil
-import signal
-import socket
-import subprocess
-import sys
 import time
-import urllib.request
 from pathlib import Path
 
 import pytest
 import yaml
 
+from tests.prefect_cluster import BIN, Cluster, kill_tree, set_up_studio, start_gpu_workers, submissions
 from tests.s3_server import s3_endpoint  # noqa: F401  (fixture)
 
 pytestmark = pytest.mark.slow
 
-REPO = Path(__file__).resolve().parents[2]
-BIN = Path(sys.executable).parent
 #: segment runs send heartbeats every 60 s (deploy/prefect.yaml); the test automation crashes a run
 #: after 75 s without one (production: 300 s)
 ZOMBIE_WITHIN_S = 75
-
-
-def _free_port() -> int:
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        return sock.getsockname()[1]
-
-
-def _descendants(pid: int) -> list[int]:
-    """Every process below ``pid`` (from /proc; children of children too)."""
-    children: dict[int, list[int]] = {}
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            stat = (entry / "stat").read_text()
-        except OSError:
-            continue
-        ppid = int(stat.rsplit(")", 1)[1].split()[1])
-        children.setdefault(ppid, []).append(int(entry.name))
-    out, frontier = [], [pid]
-    while frontier:
-        nxt = [c for p in frontier for c in children.get(p, [])]
-        out += nxt
-        frontier = nxt
-    return out
-
-
-def _kill_tree(proc: subprocess.Popen) -> None:
-    for pid in [*_descendants(proc.pid), proc.pid]:
-        try:
-            os.kill(pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
-    try:
-        proc.wait(timeout=10)
-    except subprocess.TimeoutExpired:
-        pass
-
-
-class Cluster:
-    """The processes of a small studio; ``stop()`` kills them all."""
-
-    def __init__(self, tmp: Path, s3_env: dict[str, str]):
-        self.tmp = tmp
-        self.port = _free_port()
-        self.env = {**os.environ, **s3_env,
-                    "PATH": f"{BIN}{os.pathsep}{os.environ.get('PATH', '')}",
-                    "PREFECT_HOME": str(tmp / "prefect-home"),
-                    "PREFECT_API_URL": f"http://127.0.0.1:{self.port}/api",
-                    "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "DO_NOT_TRACK": "1",
-                    "PREFECT_LOGGING_LEVEL": "INFO",
-                    "PREFECT_WORKER_QUERY_SECONDS": "2", "PREFECT_WORKER_PREFETCH_SECONDS": "2",
-                    "PREFECT_FLOWS_HEARTBEAT_FREQUENCY": "30",
-                    "VOLCAP_HOME": str(REPO), "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
-                    "PYTHONPATH": str(REPO)}
-        self.env.pop("PREFECT_PROFILES_PATH", None)
-        self.procs: dict[str, subprocess.Popen] = {}
-
-    def log(self, name: str) -> Path:
-        return self.tmp / f"{name}.log"
-
-    def start(self, name: str, args: list[str]) -> subprocess.Popen:
-        out = open(self.log(name), "wb")
-        proc = subprocess.Popen(args, cwd=REPO, env=self.env, stdout=out, stderr=subprocess.STDOUT,
-                                start_new_session=True)
-        self.procs[name] = proc
-        return proc
-
-    def run(self, args: list[str], timeout: float = 120, check: bool = True) -> subprocess.CompletedProcess:
-        res = subprocess.run(args, cwd=REPO, env=self.env, capture_output=True, text=True, timeout=timeout)
-        if check and res.returncode != 0:
-            raise AssertionError(f"{' '.join(args)} -> {res.returncode}\n{res.stdout[-3000:]}\n{res.stderr[-3000:]}")
-        return res
-
-    def start_server(self) -> None:
-        self.start("server", [str(BIN / "prefect"), "server", "start", "--host", "127.0.0.1",
-                              "--port", str(self.port)])
-        deadline = time.monotonic() + 90
-        while time.monotonic() < deadline:
-            try:
-                with urllib.request.urlopen(f"http://127.0.0.1:{self.port}/api/health", timeout=2) as r:
-                    if r.status == 200:
-                        return
-            except OSError:
-                time.sleep(0.5)
-            if self.procs["server"].poll() is not None:
-                break
-        raise AssertionError("prefect server did not start:\n" + self.log("server").read_text()[-3000:])
-
-    def stop(self) -> None:
-        for proc in self.procs.values():
-            _kill_tree(proc)
-
-    def api(self, path: str, body: dict | None = None) -> object:
-        req = urllib.request.Request(f"http://127.0.0.1:{self.port}/api/{path}",
-                                     data=json.dumps(body or {}).encode(), method="POST",
-                                     headers={"Content-Type": "application/json"})
-        with urllib.request.urlopen(req, timeout=30) as r:
-            return json.loads(r.read())
-
-    def segment_runs(self) -> list[dict]:
-        runs = self.api("flow_runs/filter", {"flow_runs": {"tags": {"all_": ["segment"]}}, "limit": 200})
-        return list(runs)
 
 
 @pytest.fixture
@@ -157,12 +45,6 @@ def cluster(tmp_path, s3_endpoint):  # noqa: F811
         yield c
     finally:
         c.stop()
-
-
-def _submissions(log: Path) -> list[str]:
-    """Flow-run ids a worker's log says it started."""
-    text = log.read_text(errors="replace") if log.exists() else ""
-    return re.findall(r"[Ss]ubmitting flow run '([0-9a-f-]{36})'", text)
 
 
 def _spec(tmp: Path, capture: Path, store: str) -> Path:
@@ -188,17 +70,8 @@ def test_production_over_two_workers_survives_a_killed_worker_and_reruns_cached(
     spec = _spec(tmp_path, capture, store)
 
     # -- 1. the studio
-    cluster.start_server()
-    cluster.run(["bash", "deploy/setup-pool.sh", "--gpus", "2"])
-    automation = yaml.safe_load((REPO / "deploy/automations/crash-zombie-flows.yaml").read_text())
-    automation["trigger"]["within"] = ZOMBIE_WITHIN_S
-    short = tmp_path / "zombie.yaml"
-    short.write_text(yaml.safe_dump({**automation, "name": "volcap test: crash zombie flow runs"}))
-    cluster.run([str(BIN / "prefect"), "automation", "delete", "volcap: crash zombie flow runs"], check=False)
-    cluster.run([str(BIN / "prefect"), "automation", "create", "--from-file", str(short)])
-    cluster.run([str(BIN / "prefect"), "--no-prompt", "deploy", "--all", "--prefect-file", "deploy/prefect.yaml"])
-    for name in ("w1", "w2"):
-        cluster.start(name, [str(BIN / "volcap"), "worker", "--pool", "gpu", "--name", name, "--limit", "1"])
+    set_up_studio(cluster, gpus=2, zombie_within_s=ZOMBIE_WITHIN_S)
+    start_gpu_workers(cluster, ["w1", "w2"])
 
     # -- 2. the production, with the store on S3
     run = cluster.start("run1", [str(BIN / "volcap"), "run", str(spec), "--segment-runs", "deployment", "--json"])
@@ -212,12 +85,12 @@ def test_production_over_two_workers_survives_a_killed_worker_and_reruns_cached(
     while victim is None and time.monotonic() < deadline and run.poll() is None:
         time.sleep(0.5)
         for name in ("w1", "w2"):
-            if len(_submissions(cluster.log(name))) >= 2 and s.list_refs("checkpoints/"):
+            if len(submissions(cluster.log(name))) >= 2 and s.list_refs("checkpoints/"):
                 victim = name
                 break
     assert victim is not None, ("no worker reached a second segment with a checkpoint\n"
                                 + cluster.log("run1").read_text()[-4000:])
-    _kill_tree(cluster.procs[victim])
+    kill_tree(cluster.procs[victim])
     survivor = "w2" if victim == "w1" else "w1"
 
     assert run.wait(timeout=900) == 0, cluster.log("run1").read_text()[-6000:]
@@ -233,7 +106,7 @@ def test_production_over_two_workers_survives_a_killed_worker_and_reruns_cached(
     assert crashed, [(r["name"], r["state_type"]) for r in runs]
     assert all(r["state_type"] in ("COMPLETED", "CRASHED") for r in runs)
     assert len([r for r in runs if r["state_type"] == "COMPLETED"]) == 3
-    assert len(_submissions(cluster.log(victim))) >= 2 and _submissions(cluster.log(survivor))
+    assert len(submissions(cluster.log(victim))) >= 2 and submissions(cluster.log(survivor))
     survivor_log = cluster.log(survivor).read_text(errors="replace")
     assert "resuming from checkpoints/" in survivor_log, survivor_log[-4000:]
     assert not s.list_refs("checkpoints/"), "a finished segment leaves no checkpoint behind"
