@@ -13,8 +13,8 @@
 #   VOLCAP_STORE         the shared store, e.g. s3://studio-volcap/store
 #   AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY, AWS_DEFAULT_REGION [, AWS_ENDPOINT_URL]
 #                        store credentials (or a Prefect Secret block the flows read)
-# `volcap worker` is provided by the flows layer (flows/cli.py): a `prefect worker start` with
-# volcap's settings. Until it exists, VOLCAP_WORKER_CMD="prefect worker start" works the same.
+# `volcap worker` (flows/cli.py) is `prefect worker start` with volcap's settings (DO_NOT_TRACK,
+# heartbeats every 60 s); VOLCAP_WORKER_CMD overrides the command.
 set -euo pipefail
 
 GPU_LIST=""
