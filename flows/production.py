@@ -441,7 +441,9 @@ def production_flow(spec: str, store: str | None = None, shots: list[str] | None
             finish(step, {"capture": captures[p["capture"]]})
         elif step.kind == "calibrate-static":
             cap = p["capture"]
-            captures.setdefault(cap, s.resolve(p["capture_ref"]) if p.get("capture_ref") else captures.get(cap))
+            if p.get("capture_ref"):
+                captures[cap] = s.resolve(p["capture_ref"])
+            _check_rig(prod, cap, s.get_record(captures[cap], Capture), log)
             if any(st.kind == "calibrate-tracking" and st.parameters["capture"] == cap for st in prod.steps):
                 finish(step, {"static": calibrate_tasks.calibrate_static(prod.store, captures[cap])})
             else:
@@ -491,6 +493,21 @@ def production_flow(spec: str, store: str | None = None, shots: list[str] | None
     return {"production": prod.spec.name, "store": prod.store, "segment_runs": mode,
             "steps": {sid: {k: v.digest for k, v in outs.items()} for sid, outs in done.items()},
             "shots": shots_out}
+
+
+def _check_rig(prod: Production, capture: str, record: Capture, log) -> None:
+    """The spec may name a capture's rig; the capture's own record is what calibration uses."""
+    from hardware.rig import load_rig
+
+    name = prod.spec.captures[capture].rig
+    if name is None:
+        return
+    source = prod.spec.rigs[name]
+    path = prod.spec_dir / source
+    rig = load_rig(path if path.suffix == ".json" and path.exists() else source)
+    if rig.name != record.rig.name:
+        log.warning("captures.%s.rig is %s (%s) but the capture was recorded with rig %s: calibrating with %s",
+                    capture, name, rig.name, record.rig.name, record.rig.name)
 
 
 def _preset_name(spec: ProductionSpec) -> str:
