@@ -226,20 +226,6 @@ def static_calibration(rec: StaticCalibrationRecord) -> StaticCalibration:
                              unregistered=list(rec.unregistered), stats=stats)
 
 
-def _sparse_reference_inputs(static: StaticCalibration) -> tuple[np.ndarray, np.ndarray]:
-    """The SfM points with one SIFT descriptor each (the first camera that saw it)."""
-    model = static.model
-    desc = np.zeros((len(model.points), 128), np.uint8)
-    have = np.zeros(len(model.points), bool)
-    for cid in model.camera_ids:
-        pok = np.asarray(model.point_of_keypoint[cid])
-        k = np.flatnonzero(pok >= 0)
-        new = k[~have[pok[k]]]
-        desc[pok[new]] = model.descriptors[cid][new]
-        have[pok[new]] = True
-    return np.asarray(model.points)[have], desc[have]
-
-
 # ---------------------------------------------------------------------------------------------
 # Tasks
 # ---------------------------------------------------------------------------------------------
@@ -250,7 +236,7 @@ def calibrate_static(store: str, capture: ArtifactRef) -> ArtifactRef:
     """Static cameras on the middle frame (+ background plates), registered to the capture's lidar.
 
     With tracking cameras in the capture, also builds the static reference they register against
-    (SIFT of the plates lifted onto the lidar; without a scan, the SfM points)."""
+    (SIFT of the plates lifted onto the lidar, which such a capture must therefore have)."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
     statics, trackers = split_cameras(cap)
@@ -258,8 +244,15 @@ def calibrate_static(store: str, capture: ArtifactRef) -> ArtifactRef:
         raise CalibrationInputError(f"capture {cap.name}: static calibration needs at least two static cameras, "
                                     f"it has {len(statics)} ({', '.join(statics) or 'none'})")
     scan = load_lidar(s, cap)
+    if scan is None and trackers:
+        # Measured: against the SfM points alone (no scan) the tracking cameras' absolute orientation
+        # came out 70-145° wrong on the test capture. Refuse rather than hand out such a calibration.
+        raise CalibrationInputError(
+            f"capture {cap.name} has tracking cameras ({', '.join(trackers)}) but no lidar scan: they register "
+            "against the static set lifted onto the scan; name the scan in capture.json's 'lidar'")
     if scan is None:
-        log.warning("capture %s has no lidar scan: the static cameras are placed by their mounts only", cap.name)
+        log.warning("capture %s has no lidar scan: the static cameras are placed by the SfM and their mounts only",
+                    cap.name)
     load = frame_loader(s, cap)
     T = cap.frame_count
     ref_frame = T // 2 if OPTIONS.reference_frame is None else OPTIONS.reference_frame
@@ -282,9 +275,8 @@ def calibrate_static(store: str, capture: ArtifactRef) -> ArtifactRef:
                     cap.name, ", ".join(static.unregistered), ref_frame)
     reference = None
     if trackers:
-        sparse = _sparse_reference_inputs(static) if scan is None else (None, None)
         ref = build_static_reference({c: plates[c] for c in static.camera_ids}, static.K, static.world_to_camera,
-                                     scan, sparse_points=sparse[0], sparse_descriptors=sparse[1])
+                                     scan)
         reference = s.put_bytes(encode_reference(ref), MEDIA_SAFETENSORS)
     cams = tuple(StaticCamera(id=c, K=_matrix(static.K[c]), world_to_camera=_matrix(static.world_to_camera[c]),
                               width=static.size[c][0], height=static.size[c][1]) for c in static.camera_ids)
@@ -415,7 +407,7 @@ def point_cloud_sequence(store: str, calibration: ArtifactRef, frames: list[Arti
         raise CalibrationInputError(f"point-cloud sequence: frame(s) given twice: {sorted(seen)}")
     out, dense_counts = [], []
     for r in recs:
-        if r.calibration != calibration:
+        if r.calibration.digest != calibration.digest:
             raise CalibrationInputError(f"dense points of frame {r.frame} were made with calibration "
                                         f"{r.calibration.digest}, not {calibration.digest}")
         ref, count = r.points, r.count

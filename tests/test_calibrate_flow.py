@@ -135,13 +135,27 @@ def _cached_ref(store: str, task, **inputs) -> ArtifactRef:
     return result if isinstance(result, ArtifactRef) else ArtifactRef.model_validate(result)
 
 
-def test_bad_inputs_name_the_capture_and_camera(calibrated, tmp_path):
+def test_bad_inputs_name_the_capture_and_camera(calibrated, capture_dir, tmp_path):
     store, capture, _ = calibrated
     static = _cached_ref(store, calibrate_static, capture=capture)
     with pytest.raises(CalibrationInputError, match=f"capture {NAME} has no camera 'S099'"):
         calibrate_tracking_camera.fn(store, capture, static, "S099")
     with pytest.raises(CalibrationInputError, match=f"capture {NAME}: camera S002 is a static camera"):
         calibrate_tracking_camera.fn(store, capture, static, "S002")
+
+    # tracking cameras but no lidar scan: refused before any work (they register against the scan)
+    root = tmp_path / "no-lidar"
+    root.mkdir()
+    (root / "frames").symlink_to(capture_dir / "frames")
+    desc = json.loads((capture_dir / "capture.json").read_text())
+    desc.pop("lidar")
+    desc.pop("ground_truth")
+    desc["name"] = "no-lidar"
+    (root / "capture.json").write_text(json.dumps(desc))
+    no_lidar = ingest_flow(store=store, capture_dir=str(root))
+    assert ArtifactStore(store).get_record(no_lidar, Capture).lidar is None
+    with pytest.raises(CalibrationInputError, match="capture no-lidar has tracking cameras .*S008, S010.* no lidar scan"):
+        calibrate_static.fn(store, no_lidar)
 
     from tests.test_ingest import make_capture
 
