@@ -78,7 +78,7 @@ def ground_truth_points(store: str, capture: ArtifactRef, calibration: ArtifactR
                                            method=f"ground-truth depth, {points_per_frame} per frame"))
 
 
-@volcap_task(name="train-segment", version="2", retries=1)
+@volcap_task(name="train-segment", version="3", retries=1)
 def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRef, points: ArtifactRef,
                        frames: list[int], config: TrainConfig, seed: int) -> ArtifactRef:
     """Train one Poly4DGS segment; resumable from its checkpoints in the store.

@@ -74,6 +74,12 @@ def deterministic_torch(device: str = "cpu"):
     bit-identical resumption from a checkpoint. ``torch.use_deterministic_algorithms`` fixed it but
     took 12 s per step instead of 0.7 s; one thread is deterministic and, on a busy 2-core machine,
     no slower. On CUDA nothing changes (bit-identity is promised on CPU only).
+
+    Safe with concurrently mapped tasks in one process: with torch's OpenMP back-end the intra-op
+    thread count is per calling thread (checked: a thread kept 1 while another thread switched
+    ``torch.set_num_threads`` between 2 and 1 a hundred times), so a task restoring its setting on
+    exit does not change the count of a task still training in another thread; a new thread
+    starts from the last value set anywhere, and this context sets its own before training.
     """
     if device != "cpu":
         yield
