@@ -195,7 +195,7 @@ def step_parameters(prod: Production, step: Step) -> dict[str, Any]:
     """The planner's parameters plus what the flow derives from the quality preset for the step."""
     q = prod.spec.quality_preset()
     if step.kind == "dense-points":
-        return {**step.parameters, "max_points_per_frame": q.gaussians_per_frame}
+        return {**step.parameters, "max_points_per_frame": q.gaussians_per_frame, "dense_scale": q.dense_scale}
     if step.kind == "train-segment":
         return {**step.parameters, "preset": _preset_name(prod.spec)}
     return step.parameters
@@ -430,6 +430,7 @@ def production_flow(spec: str, store: str | None = None, shots: list[str] | None
         write_entry(s, prod.spec.name, step.id, fp, outputs)
         done[step.id] = outputs
 
+    q = prod.spec.quality_preset()
     captures: dict[str, ArtifactRef] = {}
     calibrations: dict[str, ArtifactRef] = {}
     points: dict[str, ArtifactRef] = {}
@@ -457,8 +458,8 @@ def production_flow(spec: str, store: str | None = None, shots: list[str] | None
             cap = p["capture"]
             a, b = p["frames"]
             points[step.id] = point_cloud_for_frames(prod.store, captures[cap], calibrations[cap], list(range(a, b)),
-                                                     max_points_per_frame=step_parameters(prod, step)[
-                                                         "max_points_per_frame"])
+                                                     max_points_per_frame=q.gaussians_per_frame,
+                                                     scale=q.dense_scale)
             finish(step, {"points": points[step.id]})
 
     # every needed segment at once

@@ -88,6 +88,7 @@ class QualityPreset(BaseModel):
     max_segment_frames: int | None = Field(None, gt=0, description="cap on segment length")
     overlap: int = Field(DEFAULT_OVERLAP, ge=0, description="frames shared by neighbours")
     train_scale: float = Field(1.0, gt=0, le=1, description="training resolution / capture")
+    dense_scale: float = Field(1.0, gt=0, le=1, description="dense-point matching resolution / capture")
     sh_degree: int = Field(3, ge=0, le=3)
     face_subsequences: int = Field(60, gt=0, description="Face Rig sub-sequences per actor")
     face_subsequence_frames: int = Field(8, gt=0)
@@ -110,7 +111,7 @@ class QualityPreset(BaseModel):
 PRESETS: dict[str, QualityPreset] = {
     # CI and laptops: a handful of steps on tiny segments
     "test": QualityPreset(train_steps=50, gaussians_per_frame=500, max_gaussians_per_segment=8_000,
-                          max_segment_frames=8, overlap=2, train_scale=0.25, sh_degree=0,
+                          max_segment_frames=8, overlap=2, train_scale=0.25, dense_scale=0.5, sh_degree=0,
                           face_subsequences=2, face_subsequence_frames=4, face_camera_paths=2,
                           face_hq_gaussians_per_frame=2_000, face_lq_gaussians=(200, 500),
                           pair_resolution=128, enhancer_steps=20),
