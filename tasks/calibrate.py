@@ -388,8 +388,9 @@ def dense_points_frame(store: str, capture: ArtifactRef, calibration: ArtifactRe
     cams = {c: camera_at(calib, c, frame)[:2] for c in ids}
     if not 0 < scale <= 1:
         raise CalibrationInputError(f"dense points: scale must be in (0, 1], got {scale}")
-    # scale < 1 matches downscaled images (a quarter of the work at 0.5): previews and tests
-    out = dense_points(images, cams, options=replace(DENSE_OPTIONS, scale=DENSE_OPTIONS.scale * scale))
+    # scale < 1 matches downscaled images (a quarter of the work at 0.5): previews and tests.
+    # DenseOptions.scale is the library's downscale *factor* (2 = half size), hence the division.
+    out = dense_points(images, cams, options=replace(DENSE_OPTIONS, scale=DENSE_OPTIONS.scale / scale))
     pos, col = out["positions"], out["colours"]
     if len(pos) == 0:
         log.warning("capture %s, frame %d: no dense point passed the consistency check", cap.name, frame)
