@@ -133,6 +133,7 @@ class FolderCapture:
     offsets: dict[str, int]
     paths: dict[str, str]
     encoder: dict[str, tuple[np.ndarray, np.ndarray]]
+    lidar_path: str | None = None
 
     @staticmethod
     def open(root: str | Path) -> "FolderCapture":
@@ -152,7 +153,7 @@ class FolderCapture:
                 enc[c.id] = (np.array([s.frame + offsets[c.id] for s in c.lens_encoder], np.int64),
                              np.array([s.focal_mm for s in c.lens_encoder], np.float64))
         return FolderCapture(root, rig, desc.name, desc.fps, desc.take.frame_count, [c.id for c in desc.cameras],
-                             offsets, {c.id: c.path for c in desc.cameras}, enc)
+                             offsets, {c.id: c.path for c in desc.cameras}, enc, desc.lidar)
 
     def load(self, camera_id: str, take_index: int) -> np.ndarray:
         from volcap_core.imageio import read_image
@@ -167,5 +168,7 @@ class FolderCapture:
         raise FileNotFoundError(f"{folder}: no frame {n:06d} (take index {take_index})")
 
     def lidar(self) -> LidarScan | None:
-        p = self.root / "ground_truth" / "lidar.ply"
-        return LidarScan.from_ply_bytes(p.read_bytes()) if p.exists() else None
+        """The scan ``capture.json`` names (``lidar``): an input of the capture, not ground truth."""
+        if self.lidar_path is None:
+            return None
+        return LidarScan.from_ply_bytes((self.root / self.lidar_path).read_bytes())
