@@ -1,7 +1,7 @@
 """Production benchmark: segment fan-out overhead through a Prefect server and workers, against
 in-process, and the cached-rerun time of the demo production.
 
-    python bench/bench_production.py [--segments 6] [--workers 2] [--steps 5] [--skip-demo]
+    python bench/bench_production.py [--segments 6] [--workers 2] [--steps 5] [--skip-demo | --only-demo]
 
 Fan-out: a capture of the demo rig with ``segments`` frames and a spec whose quality makes
 ``segments`` one-frame segments (no overlap), each trained for a handful of steps, so a segment
@@ -121,20 +121,15 @@ def main() -> None:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--steps", type=int, default=5)
     ap.add_argument("--skip-demo", action="store_true")
+    ap.add_argument("--only-demo", action="store_true", help="only the demo production's first run and rerun")
     args = ap.parse_args()
     print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
           f"load {os.getloadavg()[0]:.1f}")
     with tempfile.TemporaryDirectory(prefix="volcap-bench-prod-") as tmp:
-        res = {"fan_out": fan_out(Path(tmp) / "fan", args.segments, args.workers, args.steps)}
-        f = res["fan_out"]
-        print(f"fan-out, {f['segments_planned']} segments x {args.steps}+ steps, {args.workers} workers:")
-        print(f"  first run (in-process, everything)   {f['first_run_local_s']:7.1f} s")
-        print(f"  segments in-process                  {f['segments_local_s']:7.1f} s")
-        print(f"  segments through server + workers    {f['segments_deployment_s']:7.1f} s "
-              f"(studio set-up {f['studio_setup_s']:.1f} s, not included)")
-        print(f"  overhead per segment                 {f['overhead_per_segment_s']:7.1f} s")
-        print(f"  cached rerun: in-process {f['cached_rerun_local_s']:.1f} s, "
-              f"through the server {f['cached_rerun_deployment_s']:.1f} s")
+        res = {}
+        if not args.only_demo:
+            res["fan_out"] = fan_out(Path(tmp) / "fan", args.segments, args.workers, args.steps)
+            print_fan_out(res["fan_out"], args)
         if not args.skip_demo:
             res["demo"] = demo_production(Path(tmp) / "demo")
             d = res["demo"]
@@ -142,6 +137,17 @@ def main() -> None:
                   f"{d['cached_rerun_s']:.1f} s ({d['cached_rerun_tasks']} tasks cached)")
         print(f"load after: {os.getloadavg()[0]:.1f}")
         print(json.dumps(res))
+
+
+def print_fan_out(f: dict, args) -> None:
+    print(f"fan-out, {f['segments_planned']} segments x {args.steps}+ steps, {args.workers} workers:")
+    print(f"  first run (in-process, everything)   {f['first_run_local_s']:7.1f} s")
+    print(f"  segments in-process                  {f['segments_local_s']:7.1f} s")
+    print(f"  segments through server + workers    {f['segments_deployment_s']:7.1f} s "
+          f"(studio set-up {f['studio_setup_s']:.1f} s, not included)")
+    print(f"  overhead per segment                 {f['overhead_per_segment_s']:7.1f} s")
+    print(f"  cached rerun: in-process {f['cached_rerun_local_s']:.1f} s, "
+          f"through the server {f['cached_rerun_deployment_s']:.1f} s")
 
 
 if __name__ == "__main__":
