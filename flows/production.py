@@ -272,7 +272,8 @@ def segment_train_config(q: QualityPreset, preset: str, gaussians: int, held_out
     """The training config of a segment from the spec's quality preset and the planned budget."""
     base = preset if preset in reconstruction.PRESETS else "production"
     return reconstruction.train_config(base, held_out=held_out, max_gaussians=gaussians, steps=q.train_steps,
-                                       model=Poly4DGSConfig.paper(sh_degree=q.sh_degree))
+                                       model=Poly4DGSConfig.paper(sh_degree=q.sh_degree),
+                                       image_scale=q.train_scale)
 
 
 @dataclass(frozen=True)

@@ -93,7 +93,7 @@ def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRe
     pts = s.get_record(points, PointCloudSequence)
     a, b = frames
     data = reconstruction.segment_data(cap, calib, load_tracking(s, calib), (a, b),
-                                       reconstruction.FrameCache(s.get_bytes))
+                                       reconstruction.FrameCache(s.get_bytes), scale=config.image_scale)
     init = reconstruction.segment_points(pts, (a, b), lambda ref: decode_points(s.get_bytes(ref)))
 
     ckpt_name = f"checkpoints/{current_run_key()}"

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from prefect import flow
 
 import tasks.reconstruct as reconstruct_tasks
 from flows.ingest import ingest_flow
@@ -137,3 +138,36 @@ def test_train_config_presets():
     assert cfg.model.mean_degree == 1 and cfg.held_out_cameras == ["S001"]
     with pytest.raises(ValueError, match="unknown preset"):
         train_config("nope")
+
+
+@flow
+def _true_calibration(store: str, capture: str):
+    s = ArtifactStore(store)
+    return reconstruct_tasks.ground_truth_calibration(store, s.resolve(capture))
+
+
+def test_segment_data_at_a_fraction_of_the_resolution(ingested):
+    """``image_scale`` trains on area-averaged images with intrinsics scaled to match: the same
+    world point lands on the same (scaled) pixel, and the image is the mean of the full one."""
+    from volcap_core.calibration.record import Calibration
+    from volcap_core.capture import Capture
+    from volcap_core.reconstruction import FrameCache, segment_data
+
+    store, capture = ingested
+    s = ArtifactStore(store)
+    cap = s.get_record(capture, Capture)
+    calib = s.get_record(run_flow(_true_calibration, store=store, capture=capture).result, Calibration)
+    full = segment_data(cap, calib, None, (0, 2), FrameCache(s.get_bytes), camera_ids=["S000"])
+    half = segment_data(cap, calib, None, (0, 2), FrameCache(s.get_bytes), camera_ids=["S000"], scale=0.5)
+    vf, vh = full.views[0], half.views[0]
+    assert (vh.camera.width, vh.camera.height) == (vf.camera.width // 2, vf.camera.height // 2)
+    img_f, img_h = vf.load(), vh.load()
+    assert img_h.shape == (vf.camera.height // 2, vf.camera.width // 2, 3)
+    assert torch.allclose(img_h, img_f.reshape(img_h.shape[0], 2, img_h.shape[1], 2, 3).mean((1, 3)), atol=1e-6)
+    X = torch.tensor([0.3, -0.2, 1.1, 1.0])
+    def project(cam):
+        p = cam.K @ (cam.world_to_camera @ X)[:3]
+        return p[:2] / p[2]
+    assert torch.allclose(project(vh.camera), project(vf.camera) * 0.5, atol=1e-4)
+    with pytest.raises(ValueError, match="scale"):
+        segment_data(cap, calib, None, (0, 2), FrameCache(s.get_bytes), scale=1.5)

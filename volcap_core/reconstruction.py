@@ -165,8 +165,14 @@ class FrameCache:
 
 def segment_data(capture: Capture, calibration: Calibration, tracking: dict[str, TrackingFrames] | None,
                  frames: tuple[int, int], load_frame: Callable[[ArtifactRef], torch.Tensor],
-                 camera_ids: Sequence[str] | None = None) -> SegmentData:
-    """Views of take frames [a, b) of every (or the given) camera, images loaded lazily."""
+                 camera_ids: Sequence[str] | None = None, scale: float = 1.0) -> SegmentData:
+    """Views of take frames [a, b) of every (or the given) camera, images loaded lazily.
+
+    ``scale`` < 1 trains at that fraction of the capture's resolution: images are area-averaged
+    (what a smaller sensor of the same optics would integrate) and intrinsics scaled to match.
+    """
+    if not 0 < scale <= 1:
+        raise ValueError(f"scale must be in (0, 1], got {scale}")
     a, b = frames
     if not 0 <= a < b <= capture.frame_count:
         raise ValueError(f"capture {capture.name}: frames [{a}, {b}) outside [0, {capture.frame_count})")
@@ -175,11 +181,17 @@ def segment_data(capture: Capture, calibration: Calibration, tracking: dict[str,
     if missing:
         raise ValueError(f"calibration lacks camera(s) {', '.join(missing)} of capture {capture.name}")
 
-    def load_image(cam: str, f: int) -> torch.Tensor:
-        return load_frame(capture.camera(cam).frames[f])
-
     def camera_for(cam: str, f: int) -> Camera:
-        return splat_camera(*camera_at(calibration, cam, f, tracking))
+        camera = splat_camera(*camera_at(calibration, cam, f, tracking))
+        return camera if scale == 1 else camera.scaled(scale)
+
+    def load_image(cam: str, f: int) -> torch.Tensor:
+        image = load_frame(capture.camera(cam).frames[f])
+        if scale == 1:
+            return image
+        size = camera_for(cam, f)
+        return torch.nn.functional.interpolate(image.permute(2, 0, 1)[None], size=(size.height, size.width),
+                                               mode="area")[0].permute(1, 2, 0).contiguous()
 
     return SegmentData.build(frames=frames, camera_ids=ids, fps=capture.fps, load_image=load_image,
                              camera_for=camera_for)

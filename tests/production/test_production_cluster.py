@@ -144,7 +144,8 @@ def _assert_bit_identical_to_uninterrupted(s, segment_digest: str) -> None:
     calib = s.get_record(rec.calibration, Calibration)
     tracking = reconstruction_tracking(s, calib)
     config = TrainConfig.model_validate({**rec.config, "checkpoint_every": 0})
-    data = reconstruction.segment_data(cap, calib, tracking, rec.frames, reconstruction.FrameCache(s.get_bytes))
+    data = reconstruction.segment_data(cap, calib, tracking, rec.frames, reconstruction.FrameCache(s.get_bytes),
+                                       scale=config.image_scale)
     pts = s.get_record(_points_of(s, segment_digest), PointCloudSequence)
     init = reconstruction.segment_points(pts, rec.frames, lambda ref: decode_points(s.get_bytes(ref)))
     torch.set_num_threads(1)

@@ -205,6 +205,8 @@ class TrainConfig(BaseModel):
     optimise_exposure: bool = True
     optimise_black_level: bool = True
     grid_size: int = Field(32, ge=1, description="exposure/black grid cells per axis")
+    image_scale: float = Field(1.0, gt=0, le=1, description="training resolution / capture resolution: "
+                               "the caller loads area-downsampled images and scaled cameras")
     alpha_weight: float = Field(0.0, ge=0, description="L1 on alpha when images are RGBA")
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     held_out_cameras: list[str] = Field(default_factory=list)
