@@ -8,7 +8,8 @@ import torch
 
 from tasks.contract import volcap_task
 from volcap_core import reconstruction
-from volcap_core.production.performance import Performance, PerformanceSegment
+from volcap_core.capture import Capture
+from volcap_core.production.performance import Performance, PerformanceSegment, stage_volume
 from volcap_core.production.shot import load_shot, render_shot_frame
 from volcap_core.records import MEDIA_EXR, ArtifactRef
 from volcap_core.splat import load_model
@@ -30,14 +31,16 @@ def assemble_performance(store: str, name: str, capture: ArtifactRef, segments: 
     return s.put_record(Performance(name=name, capture=capture, fps=records[0].fps, segments=entries))
 
 
-@volcap_task(name="render-shot", version="1")
+@volcap_task(name="render-shot", version="2")
 def render_shot(store: str, performance: ArtifactRef, shot: dict) -> ArtifactRef:
     """Every frame of ``shot`` (a shot's JSON, ``docs/shots.md``) over ``performance``: a tree of
     ``<frame:06d>.exr`` files, linear premultiplied RGBA half float cropped to the actors, the
-    camera in each header."""
+    camera in each header. ``content: stage`` shots render only the Gaussians inside the
+    capture's stage volume (the performers, not the set)."""
     s = ArtifactStore(store)
     perf = s.get_record(performance, Performance)
     spec = load_shot(shot)
+    stage = stage_volume(s.get_record(perf.capture, Capture).rig.stage_size_m)
     device = "cuda" if torch.cuda.is_available() else "cpu"
 
     @functools.lru_cache(maxsize=4)  # a boundary needs two models; frames walk forward
@@ -46,7 +49,7 @@ def render_shot(store: str, performance: ArtifactRef, shot: dict) -> ArtifactRef
 
     frames = {}
     for f in spec.frame_numbers():
-        frames[f"{f:06d}.exr"] = s.put_bytes(render_shot_frame(spec, perf, model_of, f, device=device), MEDIA_EXR)
+        frames[f"{f:06d}.exr"] = s.put_bytes(render_shot_frame(spec, perf, model_of, f, device=device, stage=stage), MEDIA_EXR)
     return s.put_tree(frames)
 
 

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from volcap_core.imageio import decode_exr
-from volcap_core.production.performance import Performance, PerformanceSegment
+from volcap_core.production.performance import Performance, PerformanceSegment, stage_volume
 from volcap_core.production.shot import (
     ShotError,
     alpha_crop_window,
@@ -234,22 +234,35 @@ def test_empty_frame_keeps_a_pixel():
 
 
 def test_render_shot_frame_end_to_end():
+    """An actor (a cluster at 1.5 m) on a floor of Gaussians (the set): a ``stage`` shot renders
+    and crops to the actor; an ``all`` shot shows the floor too, and its crop grows."""
     torch.set_num_threads(1)
     g = torch.Generator().manual_seed(0)
-    n = 30
+    n, m = 30, 400
     cfg = Poly4DGSConfig(mean_degree=1, quat_degree=0, scale_degree=0, opacity_degree=1,
                          sh_degree=0)
-    model = Poly4DGS.from_points(cfg, torch.randn(n, 3, generator=g) * 0.15 + torch.tensor([0, 0, 1.5]),
-                                 torch.rand(n, 3, generator=g), scales=torch.full((n,), 0.05),
-                                 t0=torch.full((n,), 1.0), opacity=0.9, lifespan_s=100.0)
+    actor = torch.randn(n, 3, generator=g) * 0.15 + torch.tensor([0, 0, 1.5])
+    floor = torch.cat([(torch.rand(m, 2, generator=g) - 0.5) * 6, torch.zeros(m, 1)], 1)
+    model = Poly4DGS.from_points(cfg, torch.cat([actor, floor]), torch.rand(n + m, 3, generator=g),
+                                 scales=torch.full((n + m,), 0.05), t0=torch.full((n + m,), 1.0), opacity=0.9,
+                                 lifespan_s=100.0)
     ref = ArtifactRef(digest="blake3:" + "ab" * 32, size=1)
     perf = Performance(name="take3", capture=ref, fps=24, segments=(
         PerformanceSegment(model=ref, frames=(0, 48), core=(0, 48)),))
+    stage = stage_volume((4.0, 4.0, 3.5))
+    windows = {}
+    for content in ("stage", "all"):
+        shot = load_shot({**shot_dict(), "content": content, "resolution": [256, 144]})
+        data = render_shot_frame(shot, perf, lambda r: model, 0, backend="torch", stage=stage)  # the wide end
+        header, pixels = read_exr(data)
+        (x0, y0), (x1, y1) = (tuple(v) for v in header["dataWindow"])
+        windows[content] = (x1 - x0 + 1) * (y1 - y0 + 1)
+        assert pixels[..., 3].max() > 0.5 and header["volcap.frame"] == 0
+        assert header["volcap.content"] == content
+    assert 0 < windows["stage"] < 0.5 * 256 * 144             # cropped to the actor
+    assert windows["all"] > 1.5 * windows["stage"]            # the floor widens it
     shot = load_shot(shot_dict())
-    data = render_shot_frame(shot, perf, lambda r: model, 24, backend="torch")
-    header, pixels = read_exr(data)
-    (x0, y0), (x1, y1) = (tuple(v) for v in header["dataWindow"])
-    assert 0 < x1 - x0 + 1 < 64 or 0 < y1 - y0 + 1 < 36        # cropped to the actor
-    assert pixels[..., 3].max() > 0.5 and header["volcap.frame"] == 24
+    with pytest.raises(ValueError, match="stage volume"):
+        render_shot_frame(shot, perf, lambda r: model, 24, backend="torch")
     with pytest.raises(ValueError, match="outside its frames"):
-        render_shot_frame(shot, perf, lambda r: model, 48, backend="torch")
+        render_shot_frame(shot, perf, lambda r: model, 48, backend="torch", stage=stage)

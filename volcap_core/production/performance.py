@@ -32,7 +32,7 @@ from volcap_core.splat.camera import Camera
 from volcap_core.splat.model import Poly4DGS, evaluate
 from volcap_core.splat.render import Backend, render
 
-__all__ = ["Performance", "PerformanceSegment", "render_performance", "segments_at"]
+__all__ = ["Box", "Performance", "PerformanceSegment", "render_performance", "segments_at", "stage_volume"]
 
 
 class PerformanceSegment(BaseModel):
@@ -105,9 +105,22 @@ def segments_at(performance: Performance, t: float, *,
     return [(performance.segments[i], w) for i, w in weights]
 
 
+Box = tuple[tuple[float, float, float], tuple[float, float, float]]
+
+
+def stage_volume(stage_size_m: Sequence[float], floor_clearance_m: float = 0.03) -> Box:
+    """The performance volume of a rig's stage (centred on the origin, floor at z = 0): the box
+    ``[-x/2, x/2] × [-y/2, y/2] × [floor_clearance, height]``. Gaussians of the set (walls, the
+    floor itself, rigging beyond the stage) fall outside it; the performers and what stands on the
+    stage fall inside."""
+    sx, sy, sz = (float(v) for v in stage_size_m)
+    return (-sx / 2, -sy / 2, floor_clearance_m), (sx / 2, sy / 2, sz)
+
+
 def render_performance(performance: Performance, load_model: Callable[[ArtifactRef], Poly4DGS],
                        camera: Camera, t: float, backend: Backend = "auto", *,
-                       background: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+                       background: torch.Tensor | None = None, volume: Box | None = None
+                       ) -> dict[str, torch.Tensor]:
     """Render the performance at ``t`` seconds into ``camera``.
 
     Args:
@@ -116,6 +129,8 @@ def render_performance(performance: Performance, load_model: Callable[[ArtifactR
         backend: as :func:`volcap_core.splat.render.render`.
         background: ``[3]`` linear colour composited under the blend (default: none, so ``rgb``
             is premultiplied by ``alpha``).
+        volume: ``((x0, y0, z0), (x1, y1, z1))``: render only the Gaussians whose centre at ``t``
+            is inside this box (:func:`stage_volume`: the performers without the set); None: all.
     Returns:
         ``{"rgb": [H,W,3], "alpha": [H,W,1], "depth": [H,W,1]}``: ``rgb`` and ``alpha`` are the
         weighted sums of the segments' premultiplied renders; ``depth`` the alpha-weighted mean of
@@ -126,7 +141,13 @@ def render_performance(performance: Performance, load_model: Callable[[ArtifactR
     with torch.no_grad():
         for seg, w in parts:
             model = load_model(seg.model)
-            out = render(evaluate(model, t), camera, backend=backend)
+            gaussians = evaluate(model, t)
+            if volume is not None:
+                lo = torch.tensor(volume[0], dtype=gaussians.means.dtype, device=gaussians.means.device)
+                hi = torch.tensor(volume[1], dtype=gaussians.means.dtype, device=gaussians.means.device)
+                inside = ((gaussians.means >= lo) & (gaussians.means <= hi)).all(dim=1)
+                gaussians = gaussians.select(torch.nonzero(inside).squeeze(1))
+            out = render(gaussians, camera, backend=backend)
             wa = w * out["alpha"]
             if rgb is None:
                 rgb, alpha, depth_acc = w * out["rgb"], wa, wa * out["depth"]

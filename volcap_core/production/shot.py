@@ -49,7 +49,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from volcap_core.production._errors import format_validation_error
-from volcap_core.production.performance import Performance, render_performance
+from volcap_core.production.performance import Box, Performance, render_performance
 from volcap_core.records import ArtifactRef
 from volcap_core.splat.camera import Camera
 from volcap_core.splat.model import Poly4DGS
@@ -143,6 +143,9 @@ class Shot(BaseModel):
     far: float = Field(1000.0, gt=0)
     interpolation: Interpolation = Field(default_factory=Interpolation)
     enhance: bool = Field(False, description="close-up: run the detail enhancer on this shot")
+    content: Literal["stage", "all"] = Field(
+        "stage", description="stage: only what is inside the capture's stage volume (the performers, "
+                             "without the set), so alpha and the crop follow the actors; all: everything")
     crop: CropSettings = Field(default_factory=CropSettings)
     keyframes: tuple[Keyframe, ...] = Field(min_length=1)
 
@@ -495,7 +498,8 @@ def encode_shot_exr(rgba: np.ndarray, camera: Camera, shot: Shot, frame: int, *,
 
 def render_shot_frame(shot: Shot, performance: Performance,
                       load_model: Callable[[ArtifactRef], Poly4DGS], frame: int, *,
-                      backend: Backend = "auto", device: torch.device | str | None = None) -> bytes:
+                      backend: Backend = "auto", device: torch.device | str | None = None,
+                      stage: Box | None = None) -> bytes:
     """Render shot frame ``frame`` of ``performance`` and encode it (:func:`encode_shot_exr`):
     linear premultiplied RGBA, half float, cropped to the actors, camera in the header.
 
@@ -507,6 +511,9 @@ def render_shot_frame(shot: Shot, performance: Performance,
     camera = camera_at(shot, frame)
     if device is not None:
         camera = camera.to(device)
-    out = render_performance(performance, load_model, camera, shot.time_at(frame), backend)
+    if shot.content == "stage" and stage is None:
+        raise ValueError(f"shot {shot.name}: content 'stage' needs the capture's stage volume")
+    out = render_performance(performance, load_model, camera, shot.time_at(frame), backend,
+                             volume=stage if shot.content == "stage" else None)
     rgba = torch.cat([out["rgb"], out["alpha"]], dim=-1).float().cpu().numpy()
-    return encode_shot_exr(rgba, camera, shot, frame)
+    return encode_shot_exr(rgba, camera, shot, frame, extra={"content": shot.content})
