@@ -62,9 +62,7 @@ def calibrate_flow(store: str, capture: str, frames: tuple[int, int] | None = No
     s = ArtifactStore(store)
     capture_ref = s.resolve(capture)
     cap = s.get_record(capture_ref, Capture)
-    a, b = frames if frames is not None else (0, cap.frame_count)
-    if not 0 <= a < b <= cap.frame_count:
-        raise ValueError(f"frames {a}:{b} outside capture {cap.name}'s [0, {cap.frame_count})")
+    a, b = cap.take_range(frames)
     trackers = tracking_camera_ids(cap)
     log.info("capture %s: %d static + %d tracking cameras, dense points for frames %d:%d", cap.name,
              len(cap.cameras) - len(trackers), len(trackers), a, b)

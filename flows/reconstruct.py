@@ -38,9 +38,7 @@ def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = 
     s = ArtifactStore(store)
     capture_ref = s.resolve(capture)
     cap = s.get_record(capture_ref, Capture)
-    a, b = frames if frames is not None else (0, cap.frame_count)
-    if not 0 <= a < b <= cap.frame_count:
-        raise ValueError(f"frames {a}:{b} outside capture {cap.name}'s [0, {cap.frame_count})")
+    a, b = cap.take_range(frames)
 
     if calibration:
         calib_ref = s.resolve(calibration)

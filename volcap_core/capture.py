@@ -166,6 +166,13 @@ class Capture(Record):
                 return cam
         raise KeyError(f"capture {self.name} has no camera {camera_id!r}")
 
+    def take_range(self, frames: tuple[int, int] | None = None) -> tuple[int, int]:
+        """``frames`` as take indices ``[a, b)`` checked against the take (the whole take when None)."""
+        a, b = frames if frames is not None else (0, self.frame_count)
+        if not 0 <= a < b <= self.frame_count:
+            raise ValueError(f"frames {a}:{b} outside capture {self.name}'s [0, {self.frame_count})")
+        return a, b
+
     def frame_time(self, index: int) -> float:
         """Seconds since the take start for take index ``index``."""
         return index / self.fps

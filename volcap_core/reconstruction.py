@@ -173,9 +173,7 @@ def segment_data(capture: Capture, calibration: Calibration, tracking: dict[str,
     """
     if not 0 < scale <= 1:
         raise ValueError(f"scale must be in (0, 1], got {scale}")
-    a, b = frames
-    if not 0 <= a < b <= capture.frame_count:
-        raise ValueError(f"capture {capture.name}: frames [{a}, {b}) outside [0, {capture.frame_count})")
+    a, b = capture.take_range(frames)
     ids = list(camera_ids) if camera_ids is not None else [c.id for c in capture.cameras]
     missing = [c for c in ids if c not in {cc.id for cc in calibration.cameras}]
     if missing:
