@@ -171,15 +171,18 @@ def _versions(*tasks: Any) -> dict[str, str]:
     return {t.cache_policy.task_name: t.cache_policy.version for t in tasks}
 
 
+def has_tracking_step(steps: list[Step], capture: str) -> bool:
+    """Whether the plan calibrates ``capture``'s tracking cameras (then the static step is not final)."""
+    return any(s.kind == "calibrate-tracking" and s.parameters["capture"] == capture for s in steps)
+
+
 def step_versions(step: Step, steps: list[Step]) -> dict[str, str]:
     """Name → version of every task a step runs (a bumped version re-runs the step)."""
     if step.kind == "ingest":
         return _versions(fingerprint_camera, ingest_camera, record_capture)
     if step.kind == "calibrate-static":
-        final = not any(s.kind == "calibrate-tracking" and s.parameters["capture"] == step.parameters["capture"]
-                        for s in steps)
-        return _versions(calibrate_tasks.calibrate_static,
-                         *((calibrate_tasks.assemble_calibration,) if final else ()))
+        final = () if has_tracking_step(steps, step.parameters["capture"]) else (calibrate_tasks.assemble_calibration,)
+        return _versions(calibrate_tasks.calibrate_static, *final)
     if step.kind == "calibrate-tracking":
         return _versions(calibrate_tasks.calibrate_tracking_camera, calibrate_tasks.assemble_calibration)
     if step.kind == "dense-points":
@@ -419,10 +422,8 @@ def production_flow(spec: str, store: str | None = None, shots: list[str] | None
                          "the detail enhancer, which this version of volcap does not have yet; set "
                          "enhance: false or leave those shots out")
     s = ArtifactStore(prod.store)
-    plan = {p.step.id: p for p in plan_production(prod)}
     mode = segment_runs_mode(segment_runs)
-    log.info("production %s: %d steps (%d cached by the journal), store %s, segments %s", prod.spec.name,
-             len(prod.steps), sum(p.status == "cached" for p in plan.values()), prod.store, mode)
+    log.info("production %s: %d steps, store %s, segments %s", prod.spec.name, len(prod.steps), prod.store, mode)
     done: dict[str, dict[str, ArtifactRef]] = {}
 
     def finish(step: Step, outputs: dict[str, ArtifactRef]) -> None:
@@ -433,6 +434,7 @@ def production_flow(spec: str, store: str | None = None, shots: list[str] | None
 
     q = prod.spec.quality_preset()
     captures: dict[str, ArtifactRef] = {}
+    records: dict[str, Capture] = {}
     calibrations: dict[str, ArtifactRef] = {}
     points: dict[str, ArtifactRef] = {}
     train_steps = [st for st in prod.steps if st.kind == "train-segment"]
@@ -445,8 +447,9 @@ def production_flow(spec: str, store: str | None = None, shots: list[str] | None
             cap = p["capture"]
             if p.get("capture_ref"):
                 captures[cap] = s.resolve(p["capture_ref"])
-            _check_rig(prod, cap, s.get_record(captures[cap], Capture), log)
-            if any(st.kind == "calibrate-tracking" and st.parameters["capture"] == cap for st in prod.steps):
+            records[cap] = s.get_record(captures[cap], Capture)
+            _check_rig(prod, cap, records[cap], log)
+            if has_tracking_step(prod.steps, cap):
                 finish(step, {"static": calibrate_tasks.calibrate_static(prod.store, captures[cap])})
             else:
                 calibrations[cap] = calibrate_capture(prod.store, captures[cap])
@@ -468,8 +471,8 @@ def production_flow(spec: str, store: str | None = None, shots: list[str] | None
     for step in train_steps:
         p = step.parameters
         cap = p["capture"]
-        held = reconstruction.default_held_out(s.get_record(captures[cap], Capture))
-        config = segment_train_config(prod.spec.quality_preset(), _preset_name(prod.spec), p["gaussians"], held)
+        held = reconstruction.default_held_out(records[cap])
+        config = segment_train_config(q, _preset_name(prod.spec), p["gaussians"], held)
         dense = next(i for i in step.inputs if i.startswith("dense-points:"))
         jobs.append(SegmentJob(capture=captures[cap], calibration=calibrations[cap], points=points[dense],
                                frames=(p["frames"][0], p["frames"][1]), config=config))

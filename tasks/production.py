@@ -49,7 +49,8 @@ def render_shot(store: str, performance: ArtifactRef, shot: dict) -> ArtifactRef
 
     frames = {}
     for f in spec.frame_numbers():
-        frames[f"{f:06d}.exr"] = s.put_bytes(render_shot_frame(spec, perf, model_of, f, device=device, stage=stage), MEDIA_EXR)
+        exr = render_shot_frame(spec, perf, model_of, f, device=device, stage=stage)
+        frames[f"{f:06d}.exr"] = s.put_bytes(exr, MEDIA_EXR)
     return s.put_tree(frames)
 
 

@@ -132,6 +132,7 @@ def _assert_bit_identical_to_uninterrupted(s, segment_digest: str) -> None:
     """Train the segment again here, uninterrupted and without checkpoints, from the same inputs."""
     import torch
 
+    from tasks.reconstruct import load_tracking
     from volcap_core import reconstruction
     from volcap_core.calibration.record import Calibration
     from volcap_core.capture import Capture
@@ -142,7 +143,7 @@ def _assert_bit_identical_to_uninterrupted(s, segment_digest: str) -> None:
     rec = s.get_record(segment_digest, reconstruction.SegmentModel)
     cap = s.get_record(rec.capture, Capture)
     calib = s.get_record(rec.calibration, Calibration)
-    tracking = reconstruction_tracking(s, calib)
+    tracking = load_tracking(s, calib)
     config = TrainConfig.model_validate({**rec.config, "checkpoint_every": 0})
     data = reconstruction.segment_data(cap, calib, tracking, rec.frames, reconstruction.FrameCache(s.get_bytes),
                                        scale=config.image_scale)
@@ -152,12 +153,6 @@ def _assert_bit_identical_to_uninterrupted(s, segment_digest: str) -> None:
     with reconstruction.deterministic_torch("cpu"):
         result = train_segment(data, init, config, seed=0, device="cpu")
     assert save_model(result.model) == s.get_bytes(rec.model)
-
-
-def reconstruction_tracking(s, calib):
-    from tasks.reconstruct import load_tracking
-
-    return load_tracking(s, calib)
 
 
 def _points_of(s, segment_digest: str):
