@@ -47,6 +47,16 @@ def cluster(tmp_path, s3_endpoint):  # noqa: F811
         c.stop()
 
 
+def _past_first_checkpoint_of_second_run(log: Path) -> bool:
+    """The worker's second flow run has logged a training step after its first checkpoint (10)."""
+    text = log.read_text(errors="replace") if log.exists() else ""
+    marks = [m.start() for m in re.finditer(r"[Ss]ubmitting flow run '", text)]
+    if len(marks) < 2:
+        return False
+    steps = [int(k) for k in re.findall(r"\): step (\d+)/\d+", text[marks[1]:])]
+    return any(10 < k for k in steps)
+
+
 def _spec(tmp: Path, capture: Path, store: str) -> Path:
     shot = {"name": "orbit", "performance": "demo", "frames": [0, 7], "fps": 24, "resolution": [64, 36],
             "sensor_mm": 36,
@@ -54,8 +64,9 @@ def _spec(tmp: Path, capture: Path, store: str) -> Path:
                           {"frame": 6, "position": [5.0, 2.0, 1.8], "look_at": [0.0, 0.0, 1.0], "focal_mm": 28}]}
     spec = {"format": "volcap-production/1", "name": "cluster-test", "store": store,
             # three segments over 7 frames; enough steps that a segment is still training when the
-            # worker is killed after its first checkpoint (every 10 steps in the test preset)
-            "quality": {"preset": "test", "max_segment_frames": 3, "overlap": 1, "train_steps": 30},
+            # worker is killed after its first checkpoint (every 10 steps in the test preset): at the
+            # preset's quarter resolution a step takes ~0.1 s on a quiet core
+            "quality": {"preset": "test", "max_segment_frames": 3, "overlap": 1, "train_steps": 300},
             "captures": {"demo": {"folder": str(capture)}}, "shots": [shot]}
     path = tmp / "spec.yaml"
     path.write_text(yaml.safe_dump(spec, sort_keys=False))
@@ -77,6 +88,8 @@ def test_production_over_two_workers_survives_a_killed_worker_and_reruns_cached(
     run = cluster.start("run1", [str(BIN / "volcap"), "run", str(spec), "--segment-runs", "deployment", "--json"])
 
     # -- 3. kill the worker that is on its second segment once that segment has a checkpoint
+    # (its own progress lines past the first checkpoint, at step 10: not any checkpoint in the store,
+    # which may be the other worker's, nor a run still Pending, which sends no heartbeat yet)
     from volcap_core.store import ArtifactStore
 
     s = ArtifactStore(store)
@@ -85,7 +98,7 @@ def test_production_over_two_workers_survives_a_killed_worker_and_reruns_cached(
     while victim is None and time.monotonic() < deadline and run.poll() is None:
         time.sleep(0.5)
         for name in ("w1", "w2"):
-            if len(submissions(cluster.log(name))) >= 2 and s.list_refs("checkpoints/"):
+            if _past_first_checkpoint_of_second_run(cluster.log(name)):
                 victim = name
                 break
     assert victim is not None, ("no worker reached a second segment with a checkpoint\n"
