@@ -107,6 +107,8 @@ def run(capture_dir: Path, point_frames: int = 3, variants=("priors", "free", "i
         "static_variants": variants_static,
         "actor_points_3view_per_frame": points,
         "static_median_reprojection_px": static.stats["bundle"]["median_reprojection_px"],
+        "static_guided": {k: static.stats["guided"][k] for k in ("tracks", "observations", "median_reprojection_px")}
+        if "guided" in static.stats else None,
         "times_s": times, "frames": T, "static_cameras": len(statics), "tracking_cameras": len(trackers)})
     return table
 
@@ -118,7 +120,12 @@ def _fmt(table: dict) -> str:
                  f"{s['rotation_deg_max']:.3f}°; centre mean {100 * s['centre_frac_mean']:.2f}% max "
                  f"{100 * s['centre_frac_max']:.2f}% of stage; |focal| mean {s['focal_pct_mean_abs']:.2f}% "
                  f"max {s['focal_pct_max_abs']:.2f}%; projection of the stage volume mean {s['projection_px_mean']:.2f} px "
-                 f"max {s['projection_px_max']:.2f} px; reprojection {table['static_median_reprojection_px']:.2f} px")
+                 f"max {s['projection_px_max']:.2f} px; reprojection {table['static_median_reprojection_px']:.2f} px "
+                 f"(SIFT tracks)")
+    if table.get("static_guided"):
+        g = table["static_guided"]
+        lines.append(f"  guided tracks: {g['tracks']} tracks, {g['observations']} observations, reprojection "
+                     f"{g['median_reprojection_px']:.3f} px")
     for k, v in table["static_variants"].items():
         lines.append(f"  {k}: rotation mean {v['rotation_deg_mean']:.3f}° max {v['rotation_deg_max']:.3f}°, "
                      f"centre max {100 * v['centre_frac_max']:.2f}%, projection {v['projection_px_mean']:.2f} px  "

@@ -232,7 +232,7 @@ def static_calibration(rec: StaticCalibrationRecord) -> StaticCalibration:
 # ---------------------------------------------------------------------------------------------
 
 
-@volcap_task(name="calibrate-static", version="1")
+@volcap_task(name="calibrate-static", version="2")
 def calibrate_static(store: str, capture: ArtifactRef) -> ArtifactRef:
     """Static cameras on the middle frame (+ background plates), registered to the capture's lidar.
 

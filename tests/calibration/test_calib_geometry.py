@@ -146,6 +146,41 @@ def test_bundle_adjustment_with_lidar_prior_recovers_cameras():
     assert np.median(res["reprojection_px"]) < 0.5
 
 
+def test_bundle_adjustment_refines_principal_points_only_when_asked():
+    # the room scan seen by 5 cameras whose principal points are ~1 px off the image centre (as
+    # the synthetic sensors'): with the prior the adjustment finds them and the rotations come out
+    # right; held at the centre, a rotation absorbs the offset
+    scan = _room(spacing=0.05)
+    rng = np.random.default_rng(11)
+    X = scan.points[rng.choice(len(scan.points), 3000, replace=False)]
+    Cs = [np.array([3.0 * np.cos(a), 3.0 * np.sin(a) - 1.0, 1.5]) for a in np.linspace(-1.2, 1.2, 5)]
+    Ws = [_cam(c, (0.0, 3.0, 1.0)) for c in Cs]
+    true_pp = np.array([159.5, 89.5]) + rng.normal(0, 1.0, (5, 2))
+    oc, op, uv = [], [], []
+    for c, W in enumerate(Ws):
+        p = X @ W[:3, :3].T + W[:3, 3]
+        x = p[:, :2] / p[:, 2:] * 300.0 + true_pp[c]
+        vis = np.flatnonzero((p[:, 2] > 0.1) & (x[:, 0] > 0) & (x[:, 0] < 319) & (x[:, 1] > 0) & (x[:, 1] < 179))
+        oc.append(np.full(len(vis), c))
+        op.append(vis)
+        uv.append(x[vis] + rng.normal(0, 0.05, (len(vis), 2)))
+    oc, op, uv = map(np.concatenate, (oc, op, uv))
+    centred = np.tile([159.5, 89.5], (5, 1))
+
+    def adjust(principal_sigma_px):
+        return bundle_adjust(np.stack(Ws), np.full(5, 300.0), centred, X + rng.normal(0, 0.02, X.shape), oc, op,
+                             uv, scan=scan, options=BundleOptions(pixel_sigma=0.1, focal_sigma_rel=0.03,
+                                                                  centre_sigma_m=0.3,
+                                                                  principal_sigma_px=principal_sigma_px))
+
+    free, held = adjust(2.0), adjust(None)
+    np.testing.assert_array_equal(held["principal"], centred)
+    assert np.abs(free["principal"] - true_pp).max() < 0.35, free["principal"] - true_pp
+    rot = [rotation_angle_deg(W[:3, :3], We[:3, :3]) for W, We in zip(Ws, free["world_to_camera"])]
+    rot_held = [rotation_angle_deg(W[:3, :3], We[:3, :3]) for W, We in zip(Ws, held["world_to_camera"])]
+    assert max(rot) < 0.06 and min(rot_held) > 0.15, (rot, rot_held)
+
+
 @pytest.mark.parametrize("binary", [False, True])
 def test_colmap_export_reads_back(tmp_path, binary):
     K = np.array([[310.0, 0, 159.5], [0, 311.0, 89.5], [0, 0, 1]])

@@ -9,10 +9,12 @@ calibration needs (all robust, Cauchy, in units of their sigma):
 - a prior on each camera's log focal length around the lens metadata (``focal_sigma_rel``; None
   holds focal lengths fixed, as the paper does);
 - a weak prior on each camera centre around a seed (the rig's nominal mounts), which only fixes
-  what nothing else observes.
+  what nothing else observes;
+- optionally a prior on each principal point around the image centre (``principal_sigma_px``; None,
+  the default, holds the principal points where they are given).
 
 Levenberg-Marquardt on the normal equations with the points eliminated by a Schur complement:
-the reduced camera system is dense [7C, 7C] (C cameras), the point blocks are 3x3. Rotations are
+the reduced camera system is dense [9C, 9C] (C cameras), the point blocks are 3x3. Rotations are
 updated on the left (``R <- exp(w) R``, kornia's axis-angle map). float64 throughout.
 """
 
@@ -27,7 +29,7 @@ from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
 from volcap_core.calibration.lidar import LidarScan
 
-NCAM = 7  # rotation (3), centre (3), log focal (1)
+NCAM = 9  # rotation (3), centre (3), log focal (1), principal point (2)
 
 
 @dataclass(frozen=True)
@@ -37,6 +39,8 @@ class BundleOptions:
     lidar_gates_m: tuple[float, ...] = (0.3, 0.15, 0.08, 0.05)
     focal_sigma_rel: float | None = 0.05
     centre_sigma_m: float = 1.0
+    #: None holds the principal points fixed; a value (px) refines them around the ones given
+    principal_sigma_px: float | None = None
     iterations: int = 15
     #: after each round, observations reprojecting worse than this (px) are dropped
     outlier_px: tuple[float, ...] = (8.0, 4.0, 3.0, 2.0)
@@ -59,12 +63,12 @@ def _cauchy_cost(r2: torch.Tensor) -> torch.Tensor:
 
 
 class _State:
-    def __init__(self, R, C, logf, X):
-        self.R, self.C, self.logf, self.X = R, C, logf, X
+    def __init__(self, R, C, logf, pp, X):
+        self.R, self.C, self.logf, self.pp, self.X = R, C, logf, pp, X
 
     def updated(self, dc: torch.Tensor, dp: torch.Tensor) -> "_State":
         dR = axis_angle_to_rotation_matrix(dc[:, :3])
-        return _State(dR @ self.R, self.C + dc[:, 3:6], self.logf + dc[:, 6], self.X + dp)
+        return _State(dR @ self.R, self.C + dc[:, 3:6], self.logf + dc[:, 6], self.pp + dc[:, 7:9], self.X + dp)
 
 
 def bundle_adjust(world_to_camera: np.ndarray, focal: np.ndarray, principal: np.ndarray,
@@ -75,11 +79,11 @@ def bundle_adjust(world_to_camera: np.ndarray, focal: np.ndarray, principal: np.
     """Refine static cameras and points.
 
     Shapes: ``world_to_camera`` [C, 4, 4] (OpenCV), ``focal`` [C] px (fx = fy), ``principal``
-    [C, 2] OpenCV px (held fixed), ``points`` [P, 3] metres, observations ``obs_camera`` [M],
+    [C, 2] OpenCV px (held fixed unless ``options.principal_sigma_px``), ``points`` [P, 3] metres, observations ``obs_camera`` [M],
     ``obs_point`` [M], ``obs_xy`` [M, 2] OpenCV px. ``focal_prior`` [C] px (default: ``focal``),
     ``centre_prior`` [C, 3] (default: the initial centres).
 
-    Returns a dict: ``world_to_camera`` [C, 4, 4], ``focal`` [C], ``points`` [P, 3],
+    Returns a dict: ``world_to_camera`` [C, 4, 4], ``focal`` [C], ``principal`` [C, 2], ``points`` [P, 3],
     ``on_lidar`` [P] bool (points that carried a lidar term in the last round), ``reprojection_px``
     [M], ``inlier`` [M] bool (observations kept in the last round) and ``stats``.
     """
@@ -90,7 +94,7 @@ def bundle_adjust(world_to_camera: np.ndarray, focal: np.ndarray, principal: np.
     R = w2c[:, :3, :3].clone()
     C = -(R.transpose(1, 2) @ w2c[:, :3, 3:4])[..., 0]
     logf = torch.log(torch.as_tensor(np.asarray(focal, np.float64), **f64))
-    pp = torch.as_tensor(np.asarray(principal, np.float64), **f64)
+    pp0 = torch.as_tensor(np.asarray(principal, np.float64), **f64).reshape(-1, 2)
     X = torch.as_tensor(np.asarray(points, np.float64), **f64).reshape(-1, 3)
     oc = torch.as_tensor(np.asarray(obs_camera), dtype=torch.long, device=dev)
     op = torch.as_tensor(np.asarray(obs_point), dtype=torch.long, device=dev)
@@ -101,7 +105,7 @@ def bundle_adjust(world_to_camera: np.ndarray, focal: np.ndarray, principal: np.
     fix_focal = options.focal_sigma_rel is None
     pairs = _observation_pairs(op, npt)
 
-    state = _State(R, C, logf, X)
+    state = _State(R, C, logf, pp0.clone(), X)
     on_lidar = torch.zeros(npt, dtype=torch.bool, device=dev)
     history = []
     gates = options.lidar_gates_m if scan is not None else (None,) * len(options.outlier_px)
@@ -110,7 +114,7 @@ def bundle_adjust(world_to_camera: np.ndarray, focal: np.ndarray, principal: np.
     for rnd, gate in enumerate(gates):
         if rnd > 0 and options.outlier_px:
             thr = options.outlier_px[min(rnd - 1, len(options.outlier_px) - 1)]
-            keep = _residual_px(state, pp, oc_all, op_all, uv_all).norm(dim=1) < thr
+            keep = _residual_px(state, oc_all, op_all, uv_all).norm(dim=1) < thr
             cnt = torch.bincount(op_all[keep], minlength=npt)
             keep &= cnt[op_all] >= 2
             oc, op, uv = oc_all[keep], op_all[keep], uv_all[keep]
@@ -120,12 +124,12 @@ def bundle_adjust(world_to_camera: np.ndarray, focal: np.ndarray, principal: np.
         else:
             plane_n = plane_d = None
         lam = 1e-3
-        cost = _cost(state, pp, oc, op, uv, plane_n, plane_d, on_lidar, logf0, C0, options, fix_focal)
+        cost = _cost(state, pp0, oc, op, uv, plane_n, plane_d, on_lidar, logf0, C0, options, fix_focal)
         for _ in range(options.iterations):
-            dc, dp = _lm_step(state, pp, oc, op, uv, plane_n, plane_d, on_lidar, logf0, C0, options,
+            dc, dp = _lm_step(state, pp0, oc, op, uv, plane_n, plane_d, on_lidar, logf0, C0, options,
                               fix_focal, pairs, lam, ncam, npt)
             new = state.updated(dc, dp)
-            new_cost = _cost(new, pp, oc, op, uv, plane_n, plane_d, on_lidar, logf0, C0, options, fix_focal)
+            new_cost = _cost(new, pp0, oc, op, uv, plane_n, plane_d, on_lidar, logf0, C0, options, fix_focal)
             if new_cost < cost:
                 rel = (cost - new_cost) / max(cost, 1e-12)
                 state, cost = new, new_cost
@@ -141,8 +145,9 @@ def bundle_adjust(world_to_camera: np.ndarray, focal: np.ndarray, principal: np.
     out_w2c = torch.eye(4, **f64).repeat(ncam, 1, 1)
     out_w2c[:, :3, :3] = Rn
     out_w2c[:, :3, 3] = -(Rn @ Cn[..., None])[..., 0]
-    res = _residual_px(state, pp, oc_all, op_all, uv_all)
+    res = _residual_px(state, oc_all, op_all, uv_all)
     return {"world_to_camera": out_w2c.cpu().numpy(), "focal": torch.exp(state.logf).cpu().numpy(),
+            "principal": state.pp.cpu().numpy(),
             "points": state.X.cpu().numpy(), "on_lidar": on_lidar.cpu().numpy(),
             "reprojection_px": res.norm(dim=1).cpu().numpy(), "inlier": keep.cpu().numpy(),
             "stats": {"cost_per_round": history, "seconds": time.perf_counter() - t0,
@@ -179,7 +184,7 @@ def _associate(scan: LidarScan, X: torch.Tensor, gate: float, dev):
             torch.as_tensor(ok, device=dev))
 
 
-def _project(state: _State, pp, oc, op):
+def _project(state: _State, oc, op):
     R = state.R[oc]
     Xc = (R @ (state.X[op] - state.C[oc])[..., None])[..., 0]
     f = torch.exp(state.logf)[oc]
@@ -188,13 +193,13 @@ def _project(state: _State, pp, oc, op):
     return Xc, z, xn, f, R
 
 
-def _residual_px(state, pp, oc, op, uv):
-    _, _, xn, f, _ = _project(state, pp, oc, op)
-    return f[:, None] * xn + pp[oc] - uv
+def _residual_px(state, oc, op, uv):
+    _, _, xn, f, _ = _project(state, oc, op)
+    return f[:, None] * xn + state.pp[oc] - uv
 
 
-def _cost(state, pp, oc, op, uv, plane_n, plane_d, on_lidar, logf0, C0, o: BundleOptions, fix_focal):
-    r = _residual_px(state, pp, oc, op, uv) / o.pixel_sigma
+def _cost(state, pp0, oc, op, uv, plane_n, plane_d, on_lidar, logf0, C0, o: BundleOptions, fix_focal):
+    r = _residual_px(state, oc, op, uv) / o.pixel_sigma
     c = _cauchy_cost((r ** 2).sum(1))
     if plane_n is not None and on_lidar.any():
         rl = ((plane_n * state.X).sum(1) - plane_d)[on_lidar] / o.lidar_sigma_m
@@ -202,13 +207,15 @@ def _cost(state, pp, oc, op, uv, plane_n, plane_d, on_lidar, logf0, C0, o: Bundl
     if not fix_focal:
         c = c + (((state.logf - logf0) / o.focal_sigma_rel) ** 2).sum()
     c = c + (((state.C - C0) / o.centre_sigma_m) ** 2).sum()
+    if o.principal_sigma_px is not None:
+        c = c + (((state.pp - pp0) / o.principal_sigma_px) ** 2).sum()
     return float(c)
 
 
-def _lm_step(state, pp, oc, op, uv, plane_n, plane_d, on_lidar, logf0, C0, o: BundleOptions, fix_focal,
+def _lm_step(state, pp0, oc, op, uv, plane_n, plane_d, on_lidar, logf0, C0, o: BundleOptions, fix_focal,
              pairs, lam, ncam, npt):
-    Xc, z, xn, f, R = _project(state, pp, oc, op)
-    r = (f[:, None] * xn + pp[oc] - uv) / o.pixel_sigma                     # [M, 2]
+    Xc, z, xn, f, R = _project(state, oc, op)
+    r = (f[:, None] * xn + state.pp[oc] - uv) / o.pixel_sigma                     # [M, 2]
     w = _cauchy_weight((r ** 2).sum(1)).sqrt()                              # [M]
     # d pi / d Xc  [M, 2, 3]
     dpi = torch.zeros(len(z), 2, 3, dtype=z.dtype, device=z.device)
@@ -219,9 +226,12 @@ def _lm_step(state, pp, oc, op, uv, plane_n, plane_d, on_lidar, logf0, C0, o: Bu
     Jw = dpi @ (-_skew(Xc))
     JC = dpi @ (-R)
     Jf = (f[:, None] * xn)[..., None]
-    Jc = torch.cat([Jw, JC, Jf], 2)                                         # [M, 2, 7]
+    Jpp = torch.eye(2, dtype=z.dtype, device=z.device).expand(len(z), 2, 2)
+    Jc = torch.cat([Jw, JC, Jf, Jpp], 2)                                    # [M, 2, 9]
     if fix_focal:
         Jc[..., 6] = 0.0
+    if o.principal_sigma_px is None:
+        Jc[..., 7:9] = 0.0
     Jp = dpi @ R                                                            # [M, 2, 3]
     s = (w / o.pixel_sigma)[:, None, None]
     Jc, Jp = Jc * s, Jp * s
@@ -234,7 +244,7 @@ def _lm_step(state, pp, oc, op, uv, plane_n, plane_d, on_lidar, logf0, C0, o: Bu
     gp = torch.zeros(npt, 3, dtype=z.dtype, device=z.device)
     Hpp.index_add_(0, op, Jp.transpose(1, 2) @ Jp)
     gp.index_add_(0, op, (Jp.transpose(1, 2) @ rw[..., None])[..., 0])
-    Hcp = Jc.transpose(1, 2) @ Jp                                           # [M, 7, 3]
+    Hcp = Jc.transpose(1, 2) @ Jp                                           # [M, 9, 3]
     if plane_n is not None and on_lidar.any():
         rl = ((plane_n * state.X).sum(1) - plane_d) / o.lidar_sigma_m
         wl = _cauchy_weight(rl ** 2) * on_lidar.to(rl.dtype)
@@ -250,15 +260,21 @@ def _lm_step(state, pp, oc, op, uv, plane_n, plane_d, on_lidar, logf0, C0, o: Bu
     else:
         Hcc[:, 6, 6] += 1.0 / o.focal_sigma_rel ** 2
         gc[:, 6] += (state.logf - logf0) / o.focal_sigma_rel ** 2
+    idx = torch.arange(7, 9, device=z.device)
+    if o.principal_sigma_px is None:
+        Hcc[:, idx, idx] += 1.0
+    else:
+        Hcc[:, idx, idx] += 1.0 / o.principal_sigma_px ** 2
+        gc[:, 7:9] += (state.pp - pp0) / o.principal_sigma_px ** 2
     # Levenberg-Marquardt damping
-    eye7 = torch.eye(NCAM, dtype=z.dtype, device=z.device)
+    eyec = torch.eye(NCAM, dtype=z.dtype, device=z.device)
     eye3 = torch.eye(3, dtype=z.dtype, device=z.device)
-    Hcc_d = Hcc + lam * (Hcc.diagonal(dim1=1, dim2=2)[..., None] * eye7) + 1e-12 * eye7
+    Hcc_d = Hcc + lam * (Hcc.diagonal(dim1=1, dim2=2)[..., None] * eyec) + 1e-12 * eyec
     Hpp_d = Hpp + lam * (Hpp.diagonal(dim1=1, dim2=2)[..., None] * eye3) + 1e-9 * eye3
     Hpp_inv = torch.linalg.inv(Hpp_d)
     # Schur complement on the points
     a, b = pairs
-    blocks = Hcp[a] @ Hpp_inv[op[a]] @ Hcp[b].transpose(1, 2)              # [Q, 7, 7]
+    blocks = Hcp[a] @ Hpp_inv[op[a]] @ Hcp[b].transpose(1, 2)              # [Q, 9, 9]
     S = torch.zeros(ncam * ncam, NCAM, NCAM, dtype=z.dtype, device=z.device)
     S.index_add_(0, oc[a] * ncam + oc[b], -blocks)
     S = S.view(ncam, ncam, NCAM, NCAM)

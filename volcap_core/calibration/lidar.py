@@ -11,6 +11,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.ndimage import minimum_filter
 from scipy.spatial import cKDTree
 
 from volcap_core.calibration.geometry import Similarity, so3_exp
@@ -195,3 +196,19 @@ def lift_to_lidar(K: np.ndarray, world_to_camera: np.ndarray, uv: np.ndarray, sc
         out[i] = C + lam * rays[i]
         ok[i] = True
     return out, ok
+
+
+def depth_buffer(K: np.ndarray, world_to_camera: np.ndarray, width: int, height: int, points: np.ndarray,
+                 splat_px: int = 4) -> np.ndarray:
+    """The camera's z-buffer of scan points: nearest depth (metres along the optical axis) per pixel
+    [H, W], min-filtered over ``2 splat_px + 1`` pixels to close the gaps between scan samples;
+    inf where no point projects."""
+    pc = np.asarray(points, np.float64) @ world_to_camera[:3, :3].T + world_to_camera[:3, 3]
+    z = pc[:, 2]
+    ok = z > 0.1
+    uv = pc[ok, :2] / z[ok, None] @ K[:2, :2].T + K[:2, 2]
+    ix = np.round(uv).astype(np.int64)
+    inside = (ix[:, 0] >= 0) & (ix[:, 0] < width) & (ix[:, 1] >= 0) & (ix[:, 1] < height)
+    zbuf = np.full((height, width), np.inf)
+    np.minimum.at(zbuf, (ix[inside, 1], ix[inside, 0]), z[ok][inside])
+    return minimum_filter(zbuf, size=2 * splat_px + 1, mode="nearest")

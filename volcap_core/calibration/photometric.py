@@ -29,10 +29,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
-from scipy.ndimage import minimum_filter
 
 from volcap_core.calibration.images import exposure_normalise, luminance
-from volcap_core.calibration.lidar import LidarScan
+from volcap_core.calibration.lidar import LidarScan, depth_buffer
 
 NCAM = 9   # rotation (3), centre (3), log focal (1), principal point (2)
 
@@ -98,9 +97,7 @@ def scan_visibility(K: np.ndarray, world_to_camera: np.ndarray, width: int, heig
     cosv = np.einsum("ij,ij->i", normals, to_cam) / np.maximum(np.linalg.norm(to_cam, axis=1), 1e-9)
     ok &= np.abs(cosv) > min_view_cos
     ix = np.round(uv[ok]).astype(np.int64)
-    zbuf = np.full((height, width), np.inf)
-    np.minimum.at(zbuf, (ix[:, 1], ix[:, 0]), z[ok])
-    zbuf = minimum_filter(zbuf, size=2 * splat_px + 1, mode="nearest")
+    zbuf = depth_buffer(K, world_to_camera, width, height, points[ok], splat_px)
     vis = np.zeros(len(points), bool)
     vis[np.flatnonzero(ok)] = z[ok] <= zbuf[ix[:, 1], ix[:, 0]] * (1 + depth_tol) + 0.02
     return vis

@@ -11,7 +11,11 @@ Pipeline (each step a pure function of the previous one's output):
    seeded poses are already in the stage frame);
 4. bundle adjustment in torch with the lidar as a prior on the points, a focal prior around the
    lens metadata and a centre prior around the mounts (:mod:`volcap_core.calibration.bundle`);
-5. optionally, direct photometric refinement against the lidar
+5. with a lidar scan: lidar-guided patch matching of the background plates between the cameras of
+   step 4 (:mod:`volcap_core.calibration.guided`, ~30x the observations, over the whole image) and
+   a second bundle adjustment on those tracks that also refines the principal points and leaves the
+   centres to the data (the mounts only a weak prior);
+6. optionally, direct photometric refinement against the lidar
    (:mod:`volcap_core.calibration.photometric`): every textured background pixel seen by two cameras
    votes (off by default: it did not improve the demo capture).
 """
@@ -28,6 +32,7 @@ from hardware.rig import Rig, RigCamera
 from volcap_core.calibration.bundle import BundleOptions, bundle_adjust
 from volcap_core.calibration.geometry import (Similarity, look_at_rotation, pose_matrix, robust_umeyama,
                                               triangulate_points)
+from volcap_core.calibration.guided import GuidedMatchOptions, guided_tracks
 from volcap_core.calibration.lidar import LidarScan, align_to_lidar
 from volcap_core.calibration.photometric import PhotometricOptions, refine_photometric
 from volcap_core.calibration.sfm import Intrinsics, SparseModel, StaticSfmOptions, reconstruct_static
@@ -39,6 +44,14 @@ class StaticCalibrationOptions:
     #: seed the SfM with the rig's nominal mount poses (False: COLMAP's incremental mapper alone)
     seeded: bool = True
     bundle: BundleOptions = BundleOptions(focal_sigma_rel=0.03, centre_sigma_m=0.03)
+    #: lidar-guided patch matching after the first adjustment (None skips it and the second one)
+    guided: GuidedMatchOptions | None = GuidedMatchOptions()
+    #: the adjustment on the guided tracks: observations weighted as what they are (NCC matches
+    #: reproject to ~0.05 px: at the first adjustment's 1 px the priors outweighed them along the
+    #: principal-point/rotation valley), principal points refined (σ 2 px around the image centre),
+    #: centres left to the data (σ 0.3 m around the mounts)
+    guided_bundle: BundleOptions = BundleOptions(pixel_sigma=0.1, focal_sigma_rel=0.03, centre_sigma_m=0.3,
+                                                 principal_sigma_px=2.0)
     #: None (default) skips the photometric refinement: on the demo capture it did not beat the
     #: lidar-constrained bundle adjustment (rotation 0.19° vs 0.17° mean, centres 0.8 % vs 0.5 % of
     #: the stage) at ten times the cost; ``PhotometricOptions(max_points=20000, centre_sigma_m=0.03)``
@@ -80,8 +93,9 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
 
     ``images``: static camera id -> scene-linear RGB [H, W, 3] float at the middle frame.
     ``plates``: optional background plates (:func:`~volcap_core.calibration.photometric.background_plate`)
-    for the photometric step (default: ``images``). ``scan``: the lidar scan of the static stage in
-    the stage frame (None: metric frame from the mounts only, no lidar terms, no photometric step).
+    for the guided matching and the photometric step (default: ``images``; plates have no actors, whom
+    the scan does not have). ``scan``: the lidar scan of the static stage in the stage frame (None:
+    metric frame from the mounts only, no lidar terms, no guided matching, no photometric step).
     """
     t0 = time.perf_counter()
     ids = sorted(images)
@@ -115,6 +129,25 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
     stats["bundle"] = dict(res["stats"])
     stats["bundle"]["median_reprojection_px"] = float(np.median(res["reprojection_px"][res["inlier"]]))
     t2 = time.perf_counter()
+    if scan is not None and options.guided is not None:
+        tracks = guided_tracks({c: (plates if plates is not None else images)[c] for c in reg}, K, w2c, scan,
+                               options.guided)
+        order = [tracks.camera_ids.index(c) for c in reg]
+        obs_camera = np.argsort(order)[tracks.obs_camera]      # tracks' camera order -> ``reg`` order
+        P = np.stack([K[c] @ w2c[c][:3] for c in reg])
+        start = triangulate_points(P, tracks.obs_point, obs_camera, tracks.obs_xy, len(tracks.points))
+        start = np.where(np.isfinite(start), start, tracks.points)
+        g = bundle_adjust(np.stack([w2c[c] for c in reg]), np.array([K[c][0, 0] for c in reg]),
+                          np.array([[intr[c].cx, intr[c].cy] for c in reg]), start, obs_camera, tracks.obs_point,
+                          tracks.obs_xy, scan=scan, focal_prior=np.array([intr[c].fx for c in reg]),
+                          centre_prior=np.stack([mounts[c] for c in reg]), options=options.guided_bundle)
+        K = {c: np.array([[g["focal"][i], 0, g["principal"][i, 0]], [0, g["focal"][i], g["principal"][i, 1]],
+                          [0, 0, 1.0]]) for i, c in enumerate(reg)}
+        w2c = {c: g["world_to_camera"][i] for i, c in enumerate(reg)}
+        stats["guided"] = {**tracks.stats, **g["stats"],
+                           "inliers": int(g["inlier"].sum()),
+                           "median_reprojection_px": float(np.median(g["reprojection_px"][g["inlier"]]))}
+    t_guided = time.perf_counter()
     if scan is not None and options.photometric is not None:
         src_imgs = plates if plates is not None else images
         ph = refine_photometric({c: src_imgs[c] for c in reg}, K, w2c, scan, centre_prior=mounts,
@@ -132,7 +165,8 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
     model.world_to_camera = dict(w2c)
     model.intrinsics = {c: Intrinsics(K[c][0, 0], K[c][1, 1], K[c][0, 2], K[c][1, 2], intr[c].width,
                                       intr[c].height) for c in reg}
-    stats["time_s"] = {"sfm": t1 - t0, "bundle": t2 - t1, "photometric": t3 - t2, "total": time.perf_counter() - t0}
+    stats["time_s"] = {"sfm": t1 - t0, "bundle": t2 - t1, "guided": t_guided - t2, "photometric": t3 - t_guided,
+                       "total": time.perf_counter() - t0}
     return StaticCalibration(camera_ids=reg, K=K, world_to_camera=w2c,
                              size={c: (intr[c].width, intr[c].height) for c in reg}, model=model,
                              unregistered=list(model.unregistered), stats=stats)
