@@ -289,7 +289,7 @@ def calibrate_static(store: str, capture: ArtifactRef) -> ArtifactRef:
                                                 stats=stats))
 
 
-@volcap_task(name="calibrate-tracking-camera", version="1")
+@volcap_task(name="calibrate-tracking-camera", version="2")
 def calibrate_tracking_camera(store: str, capture: ArtifactRef, static: ArtifactRef, camera: str) -> ArtifactRef:
     """One tracking camera at every frame of the take, against the fixed static reference.
 

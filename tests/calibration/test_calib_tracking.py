@@ -15,8 +15,9 @@ import numpy as np
 import pytest
 
 from volcap_core.calibration.geometry import look_at_rotation, rotation_angle_deg
-from volcap_core.calibration.tracking import (TrackingObservations, TrackingOptions, initialise_tracking,
-                                              refine_tracking, smooth_encoder_focal)
+from volcap_core.calibration.tracking import (TrackingObservations, TrackingOptions, TrackingProblem,
+                                              dolly_zoom_start, initialise_tracking, refine_tracking,
+                                              smooth_encoder_focal, solve_tracking)
 
 T, W, H = 24, 320, 180
 CX, CY = (W - 1) / 2, (H - 1) / 2
@@ -137,3 +138,35 @@ def test_without_priors_it_is_worse(solved):
     assert free[3] > 2 * with_p[3], (free, with_p)          # jitter
     assert indep[3] > 5 * with_p[3], (indep, with_p)
     assert indep[0] > with_p[0]                              # focal
+
+
+def test_dolly_zoom_start_keeps_the_scene_its_size():
+    # a start 3 % further along the zoom/dolly valley: the 2D-3D points (the oblique back wall, so
+    # not one distance) keep their spread in the image within 1.5 %, where zooming alone grows it
+    # by 3 % (a shift of the whole pattern is left to the rotations)
+    obs, C, R, f, enc, mount = _scene()
+    init = (R, np.repeat(C[None], T, 0), f)
+    Rs, Cs, fs = dolly_zoom_start(init, obs, 1.03)
+    np.testing.assert_allclose(fs, 1.03 * f)
+    assert np.allclose(Rs, R)
+
+    def spread(X, Ct, ft, Rt):
+        q = (X - Ct) @ Rt.T
+        uv = ft * q[:, :2] / q[:, 2:]
+        return np.sqrt(((uv - uv.mean(0)) ** 2).sum(1).mean())
+
+    for t in (0, T // 2, T - 1):
+        X = obs.m3_X[obs.m3_frame == t]
+        assert abs(spread(X, Cs[t], fs[t], R[t]) / spread(X, C, f[t], R[t]) - 1) < 0.015
+
+
+def test_solve_tracking_keeps_the_lowest_cost_start():
+    obs, C, R, f, enc, mount = _scene()
+    prior = smooth_encoder_focal(np.arange(T), enc * 1.02, T, 4.0)          # a 2.8 % encoder error
+    Ri, Ci, fi, _ = initialise_tracking(obs, prior, mount, (CX, CY))
+    problem = TrackingProblem(["S"], [obs], [(Ri, Ci, fi)], [prior], np.array([[CX, CY]]), [mount], {"S": {}})
+    one = solve_tracking(problem, TrackingOptions(focal_scale_starts=(1.0,)))["S"]
+    scan = solve_tracking(problem)["S"]
+    assert scan.stats["focal_scale_start"] in TrackingOptions().focal_scale_starts
+    assert scan.stats["cost"] <= one.stats["cost"] + 1e-6
+    assert _errors(scan, C, R, f)[0] < 1.0
