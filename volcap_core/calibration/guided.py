@@ -21,7 +21,7 @@ props near the cameras, which descriptors cannot match at those grazing angles. 
 The tracks carry no lidar positions into the adjustment: the bundle adjuster triangulates them
 freely and uses the scan only as a point-to-plane prior, so scan noise does not bias the cameras
 (unlike a photometric residual evaluated at scan points, :mod:`~volcap_core.calibration.photometric`).
-On the demo capture this gives ~6 000 tracks and ~18 000 observations over the whole image, and
+On the demo capture this gives ~8 000 tracks and ~24 000 observations over the whole image, and
 with them the bundle adjuster can also refine principal points.
 """
 
@@ -58,6 +58,8 @@ class GuidedMatchOptions:
     min_view_cos: float = 0.2
     #: the predicted point must be within this relative depth of the other camera's scan z-buffer
     occlusion_rel: float = 0.03
+    #: anchors matched at once (bounds the memory of the NCC search)
+    chunk_anchors: int = 512
 
 
 @dataclass
@@ -112,6 +114,45 @@ def _ncc(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return (a * b).sum(-1) / (a.norm(dim=-1) * b.norm(dim=-1) + 1e-6)
 
 
+def _match_patches(image: torch.Tensor, template: torch.Tensor, warped: np.ndarray,
+                   options: GuidedMatchOptions) -> tuple[np.ndarray, np.ndarray]:
+    """Where each warped template sits in ``image``: the NCC peak over shifts within
+    ``options.search_px`` (a grid of ``search_step_px``), refined by a parabola through the peak.
+
+    ``image`` [H, W] float32 log luminance; ``template`` [n, Q] its values at the anchor camera;
+    ``warped`` [n, Q, 2] the template's pixels mapped into this camera (OpenCV px, the centre pixel
+    at ``Q // 2``). Returns the matches [n, 2] (OpenCV px) and which of them are good [n]: a peak
+    above ``min_ncc``, inside the window, and sharp. Anchors go ``chunk_anchors`` at a time, so
+    memory stays ~100 MB whatever their number (all at once it was ~1 GB per camera pair on the
+    demo).
+    """
+    steps = torch.arange(-options.search_px, options.search_px + 1e-9, options.search_step_px)
+    ns = len(steps)
+    shifts = torch.stack(torch.meshgrid(steps, steps, indexing="xy"), -1).reshape(-1, 2)     # [S, 2]
+    n, centre_q = len(warped), warped.shape[1] // 2
+    matches, good = np.zeros((n, 2)), np.zeros(n, bool)
+    for lo in range(0, n, options.chunk_anchors):
+        hi = min(n, lo + options.chunk_anchors)
+        w = torch.as_tensor(warped[lo:hi], dtype=torch.float32)
+        values = _sample(image, w[:, None] + shifts[None, :, None, :])                        # [m, S, Q]
+        score = _ncc(template[lo:hi, None], values).reshape(hi - lo, ns, ns)                  # [m, y, x]
+        peak, best = score.reshape(hi - lo, -1).max(1)
+        by, bx = best // ns, best % ns
+        ok = (peak > options.min_ncc) & (by > 0) & (by < ns - 1) & (bx > 0) & (bx < ns - 1)
+        m = torch.arange(hi - lo)
+        by, bx = by.clamp(1, ns - 2), bx.clamp(1, ns - 2)
+        c0 = score[m, by, bx]
+        left, right = score[m, by, bx - 1], score[m, by, bx + 1]
+        up, down = score[m, by - 1, bx], score[m, by + 1, bx]
+        dx = 0.5 * (left - right) / (left - 2 * c0 + right - 1e-9)
+        dy = 0.5 * (up - down) / (up - 2 * c0 + down - 1e-9)
+        ok &= (dx.abs() < 0.6) & (dy.abs() < 0.6)
+        shift = torch.stack([steps[bx] + dx * options.search_step_px, steps[by] + dy * options.search_step_px], -1)
+        matches[lo:hi] = warped[lo:hi, centre_q] + shift.double().numpy()
+        good[lo:hi] = ok.numpy()
+    return matches, good
+
+
 def guided_tracks(images: Mapping[str, np.ndarray], K: Mapping[str, np.ndarray],
                   world_to_camera: Mapping[str, np.ndarray], scan: LidarScan,
                   options: GuidedMatchOptions = GuidedMatchOptions()) -> GuidedTracks:
@@ -129,10 +170,6 @@ def guided_tracks(images: Mapping[str, np.ndarray], K: Mapping[str, np.ndarray],
     zbuf = {c: depth_buffer(K[c], world_to_camera[c], *size[c], scan.points) for c in ids}
     grid = torch.arange(-h, h + 1, dtype=torch.float64)
     offsets = torch.stack(torch.meshgrid(grid, grid, indexing="xy"), -1).reshape(-1, 2)     # [Q, 2]
-    steps = torch.arange(-options.search_px, options.search_px + 1e-9, options.search_step_px, dtype=torch.float64)
-    ns = len(steps)
-    shifts = torch.stack(torch.meshgrid(steps, steps, indexing="xy"), -1).reshape(-1, 2)     # [S, 2]
-    centre_q = h * (2 * h + 1) + h
     points, obs = [], []            # obs rows: (track, camera index, x, y)
     n_anchor = 0
     margin = h + options.search_px + 1
@@ -175,25 +212,8 @@ def guided_tracks(images: Mapping[str, np.ndarray], K: Mapping[str, np.ndarray],
             if not len(sel):
                 continue
             warped, _ = project(K[b], world_to_camera[b], template_world[sel].reshape(-1, 3))
-            warped = torch.as_tensor(warped.reshape(len(sel), -1, 2))                          # [n, Q, 2]
-            values = _sample(logl[b], warped[:, None] + shifts[None, :, None, :])              # [n, S, Q]
-            score = _ncc(template[sel][:, None], values).reshape(len(sel), ns, ns)             # [n, y, x]
-            flat = score.reshape(len(sel), -1)
-            peak, best = flat.max(1)
-            by, bx = best // ns, best % ns
-            good = (peak > options.min_ncc) & (by > 0) & (by < ns - 1) & (bx > 0) & (bx < ns - 1)
-            n = torch.arange(len(sel))
-            by, bx = by.clamp(1, ns - 2), bx.clamp(1, ns - 2)
-            c0 = score[n, by, bx]
-            l, r = score[n, by, bx - 1], score[n, by, bx + 1]
-            u, d = score[n, by - 1, bx], score[n, by + 1, bx]
-            dx = 0.5 * (l - r) / (l - 2 * c0 + r - 1e-9)
-            dy = 0.5 * (u - d) / (u - 2 * c0 + d - 1e-9)
-            good &= (dx.abs() < 0.6) & (dy.abs() < 0.6)
-            match = warped[:, centre_q] + torch.stack([steps[bx] + dx * options.search_step_px,
-                                                        steps[by] + dy * options.search_step_px], -1)
-            g = good.numpy()
-            obs.append(np.c_[track[sel[g]], np.full(int(g.sum()), ib), match.numpy()[g]])
+            match, good = _match_patches(logl[b], template[sel], warped.reshape(len(sel), -1, 2), options)
+            obs.append(np.c_[track[sel[good]], np.full(int(good.sum()), ib), match[good]])
     obs_all = np.concatenate(obs) if obs else np.zeros((0, 4))
     count = np.bincount(obs_all[:, 0].astype(np.int64), minlength=n_anchor)
     obs_all = obs_all[count[obs_all[:, 0].astype(np.int64)] >= 2]
