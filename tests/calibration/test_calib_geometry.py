@@ -115,22 +115,27 @@ def test_lift_to_lidar_hits_the_nearest_surface():
     np.testing.assert_allclose(p[:, :2] / p[:, 2:] @ K[:2, :2].T + K[:2, 2], uv, atol=1e-6)
 
 
+def _room_views(X, principal, noise_px, rng, focal=300.0):
+    """Five cameras on an arc looking into the room at (0, 3, 1) and their noisy observations of
+    ``X`` [P, 3] (principal points [5, 2], 320x180): (world_to_camera list, obs_camera, obs_point, obs_xy)."""
+    Cs = [np.array([3.0 * np.cos(a), 3.0 * np.sin(a) - 1.0, 1.5]) for a in np.linspace(-1.2, 1.2, 5)]
+    Ws = [_cam(c, (0.0, 3.0, 1.0)) for c in Cs]
+    oc, op, uv = [], [], []
+    for c, W in enumerate(Ws):
+        p = X @ W[:3, :3].T + W[:3, 3]
+        x = p[:, :2] / p[:, 2:] * focal + principal[c]
+        vis = np.flatnonzero((p[:, 2] > 0.1) & (x[:, 0] > 0) & (x[:, 0] < 319) & (x[:, 1] > 0) & (x[:, 1] < 179))
+        oc.append(np.full(len(vis), c))
+        op.append(vis)
+        uv.append(x[vis] + rng.normal(0, noise_px, (len(vis), 2)))
+    return (Ws, *map(np.concatenate, (oc, op, uv)))
+
+
 def test_bundle_adjustment_with_lidar_prior_recovers_cameras():
     scan = _room(spacing=0.05)
     rng = np.random.default_rng(5)
     X = scan.points[rng.choice(len(scan.points), 1500, replace=False)]
-    Cs = [np.array([3.0 * np.cos(a), 3.0 * np.sin(a) - 1.0, 1.5]) for a in np.linspace(-1.2, 1.2, 5)]
-    Ws = [_cam(c, (0.0, 3.0, 1.0)) for c in Cs]
-    K = np.array([[300.0, 0, 159.5], [0, 300, 89.5], [0, 0, 1]])
-    oc, op, uv = [], [], []
-    for c, W in enumerate(Ws):
-        p = X @ W[:3, :3].T + W[:3, 3]
-        x = p[:, :2] / p[:, 2:] @ K[:2, :2].T + K[:2, 2]
-        vis = np.flatnonzero((p[:, 2] > 0.1) & (x[:, 0] > 0) & (x[:, 0] < 319) & (x[:, 1] > 0) & (x[:, 1] < 179))
-        oc.append(np.full(len(vis), c))
-        op.append(vis)
-        uv.append(x[vis] + rng.normal(0, 0.1, (len(vis), 2)))
-    oc, op, uv = map(np.concatenate, (oc, op, uv))
+    Ws, oc, op, uv = _room_views(X, np.tile([159.5, 89.5], (5, 1)), 0.1, rng)
     W0 = []
     for W in Ws:
         R = so3_exp(rng.normal(0, 0.005, 3)) @ W[:3, :3]
@@ -153,18 +158,8 @@ def test_bundle_adjustment_refines_principal_points_only_when_asked():
     scan = _room(spacing=0.05)
     rng = np.random.default_rng(11)
     X = scan.points[rng.choice(len(scan.points), 3000, replace=False)]
-    Cs = [np.array([3.0 * np.cos(a), 3.0 * np.sin(a) - 1.0, 1.5]) for a in np.linspace(-1.2, 1.2, 5)]
-    Ws = [_cam(c, (0.0, 3.0, 1.0)) for c in Cs]
     true_pp = np.array([159.5, 89.5]) + rng.normal(0, 1.0, (5, 2))
-    oc, op, uv = [], [], []
-    for c, W in enumerate(Ws):
-        p = X @ W[:3, :3].T + W[:3, 3]
-        x = p[:, :2] / p[:, 2:] * 300.0 + true_pp[c]
-        vis = np.flatnonzero((p[:, 2] > 0.1) & (x[:, 0] > 0) & (x[:, 0] < 319) & (x[:, 1] > 0) & (x[:, 1] < 179))
-        oc.append(np.full(len(vis), c))
-        op.append(vis)
-        uv.append(x[vis] + rng.normal(0, 0.05, (len(vis), 2)))
-    oc, op, uv = map(np.concatenate, (oc, op, uv))
+    Ws, oc, op, uv = _room_views(X, true_pp, 0.05, rng)
     centred = np.tile([159.5, 89.5], (5, 1))
 
     def adjust(principal_sigma_px):

@@ -37,14 +37,15 @@ import torch
 import torch.nn.functional as F
 
 from volcap_core.calibration.geometry import camera_centre, project
+from volcap_core.calibration.images import luminance
 from volcap_core.calibration.lidar import LidarScan, depth_buffer, lift_to_lidar
 
 
 @dataclass(frozen=True)
 class GuidedMatchOptions:
     #: Shi-Tomasi corners per camera (``cv2.goodFeaturesToTrack``), their quality level and spacing:
-    #: every textured pixel (the principal points are noise-limited: 4000 corners 3 px apart gave
-    #: 0.12° max rotation on the demo capture, these 0.084°)
+    #: every textured pixel (the principal points are noise-limited: adjusted at 1 px, 4000 corners
+    #: 3 px apart gave 0.12° max rotation on the demo capture, these 0.084°)
     max_corners: int = 30000
     corner_quality: float = 0.001
     min_corner_distance_px: float = 1.0
@@ -78,9 +79,7 @@ class GuidedTracks:
 
 def log_luminance(linear: np.ndarray) -> np.ndarray:
     """Linear RGB [H, W, 3] -> log luminance [H, W] float32 (a gain becomes an offset NCC ignores)."""
-    img = np.asarray(linear, np.float32)
-    lum = img[..., 0] * 0.2126 + img[..., 1] * 0.7152 + img[..., 2] * 0.0722
-    return np.log(np.maximum(lum, 1e-4)).astype(np.float32)
+    return np.log(np.maximum(luminance(linear), 1e-4)).astype(np.float32)
 
 
 def anchor_corners(linear: np.ndarray, options: GuidedMatchOptions = GuidedMatchOptions()) -> np.ndarray:
@@ -158,12 +157,13 @@ def guided_tracks(images: Mapping[str, np.ndarray], K: Mapping[str, np.ndarray],
                   options: GuidedMatchOptions = GuidedMatchOptions()) -> GuidedTracks:
     """Tracks between calibrated cameras, matched through the lidar scan (module docstring).
 
-    ``images``: camera id -> linear RGB [H, W, 3] (background plates: actors are not in the scan);
+    ``images``: camera id -> linear RGB [H, W, 3] (background plates: actors are not in the scan),
+    whose order is the tracks' camera order;
     ``K`` [3, 3] and ``world_to_camera`` [4, 4] per camera, good to a pixel or so (the search
     window is ``options.search_px``).
     """
     t0 = time.perf_counter()
-    ids = sorted(images)
+    ids = list(images)
     h = options.template_half_px
     size = {c: (images[c].shape[1], images[c].shape[0]) for c in ids}
     logl = {c: torch.as_tensor(log_luminance(images[c])) for c in ids}

@@ -129,28 +129,25 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
     stats["bundle"] = dict(res["stats"])
     stats["bundle"]["median_reprojection_px"] = float(np.median(res["reprojection_px"][res["inlier"]]))
     t2 = time.perf_counter()
+    background = plates if plates is not None else images
     if scan is not None and options.guided is not None:
-        tracks = guided_tracks({c: (plates if plates is not None else images)[c] for c in reg}, K, w2c, scan,
-                               options.guided)
-        order = [tracks.camera_ids.index(c) for c in reg]
-        obs_camera = np.argsort(order)[tracks.obs_camera]      # tracks' camera order -> ``reg`` order
+        # the tracks' cameras come in ``reg`` order, the order of the dict passed
+        tracks = guided_tracks({c: background[c] for c in reg}, K, w2c, scan, options.guided)
         P = np.stack([K[c] @ w2c[c][:3] for c in reg])
-        start = triangulate_points(P, tracks.obs_point, obs_camera, tracks.obs_xy, len(tracks.points))
+        start = triangulate_points(P, tracks.obs_point, tracks.obs_camera, tracks.obs_xy, len(tracks.points))
         start = np.where(np.isfinite(start), start, tracks.points)
         g = bundle_adjust(np.stack([w2c[c] for c in reg]), np.array([K[c][0, 0] for c in reg]),
-                          np.array([[intr[c].cx, intr[c].cy] for c in reg]), start, obs_camera, tracks.obs_point,
-                          tracks.obs_xy, scan=scan, focal_prior=np.array([intr[c].fx for c in reg]),
+                          np.array([[intr[c].cx, intr[c].cy] for c in reg]), start, tracks.obs_camera,
+                          tracks.obs_point, tracks.obs_xy, scan=scan, focal_prior=np.array([intr[c].fx for c in reg]),
                           centre_prior=np.stack([mounts[c] for c in reg]), options=options.guided_bundle)
         K = {c: np.array([[g["focal"][i], 0, g["principal"][i, 0]], [0, g["focal"][i], g["principal"][i, 1]],
                           [0, 0, 1.0]]) for i, c in enumerate(reg)}
         w2c = {c: g["world_to_camera"][i] for i, c in enumerate(reg)}
-        stats["guided"] = {**tracks.stats, **g["stats"],
-                           "inliers": int(g["inlier"].sum()),
+        stats["guided"] = {**tracks.stats, "bundle": g["stats"], "inliers": int(g["inlier"].sum()),
                            "median_reprojection_px": float(np.median(g["reprojection_px"][g["inlier"]]))}
     t_guided = time.perf_counter()
     if scan is not None and options.photometric is not None:
-        src_imgs = plates if plates is not None else images
-        ph = refine_photometric({c: src_imgs[c] for c in reg}, K, w2c, scan, centre_prior=mounts,
+        ph = refine_photometric({c: background[c] for c in reg}, K, w2c, scan, centre_prior=mounts,
                                 focal_prior={c: intr[c].fx for c in reg}, options=options.photometric)
         K, w2c = ph["K"], ph["world_to_camera"]
         stats["photometric"] = {k: ph[k] for k in ("samples", "points", "rms_per_level", "seconds")}
