@@ -203,16 +203,95 @@ def test_lidar_scan_is_static_set(scene):
 
 
 def test_deterministic_by_seed(tmp_path):
-    kw = dict(frames=1, supersample=1, cameras=["S002", "S009"], lidar_spacing_m=0.2)
+    kw = dict(frames=1, supersample=1, cameras=["S002", "S009"], lidar_spacing_m=0.2, write_depth=True)
     a = synthesize_capture(tmp_path / "a", seed=5, **kw).parent
     b = synthesize_capture(tmp_path / "b", seed=5, **kw).parent
     c = synthesize_capture(tmp_path / "c", seed=6, **kw).parent
     files = sorted(p.relative_to(a) for p in a.rglob("*") if p.is_file())
     assert len(files) >= 6
+    assert Path("ground_truth/masks/S009/000000.exr") in files and Path("ground_truth/depth/S002/000000.exr") in files
     assert files == sorted(p.relative_to(b) for p in b.rglob("*") if p.is_file())
     for rel in files:
         assert (a / rel).read_bytes() == (b / rel).read_bytes(), rel
     assert (a / "ground_truth/scene.json").read_bytes() != (c / "ground_truth/scene.json").read_bytes()
+
+
+def _part_surface_distance(points: np.ndarray, parts: list[dict]) -> np.ndarray:
+    """Per point, roughly how far it is from the nearest actor part's surface (metres)."""
+    best = np.full(len(points), np.inf)
+    for p in parts:
+        if p["kind"] == "capsule":
+            a, b = np.array(p["a_m"]), np.array(p["b_m"])
+            ab = b - a
+            s = np.clip((points - a) @ ab / max(ab @ ab, 1e-12), 0, 1)
+            d = np.abs(np.linalg.norm(points - (a + s[:, None] * ab), axis=1) - p["radius_m"])
+        else:
+            semi = np.array(p["semi_axes_m"])
+            local = (points - np.array(p["centre_m"])) @ np.array(p["rotation"])
+            d = np.abs(np.linalg.norm(local / semi, axis=1) - 1) * semi.min()
+        best = np.minimum(best, d)
+    return best
+
+
+def _part_spheres(parts: list[dict]) -> tuple[np.ndarray, np.ndarray]:
+    """Bounding spheres (centres [N, 3], radii [N]) of the actor parts."""
+    centres, radii = [], []
+    for p in parts:
+        if p["kind"] == "capsule":
+            a, b = np.array(p["a_m"]), np.array(p["b_m"])
+            centres.append((a + b) / 2)
+            radii.append(np.linalg.norm(b - a) / 2 + p["radius_m"])
+        else:
+            centres.append(np.array(p["centre_m"]))
+            radii.append(max(p["semi_axes_m"]))
+    return np.array(centres), np.array(radii)
+
+
+def test_performer_masks(tmp_path):
+    """ground_truth/masks: per take frame, the actor coverage; 1 on actor surfaces, 0 away from them."""
+    from volcap_core.synth.ground_truth import backproject_depth, performer_mask
+
+    frames = 2
+    root = synthesize_capture(tmp_path / "m", seed=3, frames=frames, supersample=2, cameras=["S003", "S010"],
+                              write_depth=True, lidar_spacing_m=0.3).parent
+    cams = _gt(root, "cameras.json")["cameras"]
+    actors = _gt(root, "scene.json")["actors"]
+    assert any(c["take_offset"] < 0 for c in cams.values())       # pre-roll frames get no mask
+    for cid, c in cams.items():
+        files = sorted((root / "ground_truth" / "masks" / cid).iterdir())
+        assert [f.name for f in files] == [f"{k:06d}.exr" for k in range(frames)]
+        for k in range(frames):
+            mask = performer_mask((root / "ground_truth" / "masks" / cid / f"{k:06d}.exr").read_bytes())
+            assert mask.dtype == np.float32 and mask.shape == (c["height"], c["width"])
+            assert mask.min() >= 0 and mask.max() <= 1
+            assert set(np.unique(mask)) <= {0.0, 0.25, 0.5, 0.75, 1.0}     # 2x2 sub-sample coverage
+            assert (mask == 1).sum() > 200, (cid, k)                      # both see an actor
+            assert ((mask > 0) & (mask < 1)).any()                        # soft silhouette edges
+            f = c["frames"][k]
+            parts = [p for a in actors for p in a["frames"][k]["parts"]]
+            depth = read_exr(root / "ground_truth" / "depth" / cid / f"{k:06d}.exr")
+            K = np.array([[f["fx"], 0, f["cx"]], [0, f["fy"], f["cy"]], [0, 0, 1]])
+            w2c = np.array(f["world_to_camera"])
+            # full coverage: the visible surface is an actor part's
+            full = np.where(mask == 1, depth, np.nan)
+            xyz, _ = backproject_depth(full, np.zeros((*mask.shape, 3), np.float32), K, w2c)
+            d = _part_surface_distance(xyz.astype(np.float64), parts)
+            assert len(d) == (mask == 1).sum() and np.percentile(d, 95) < 0.015 and d.max() < 0.04, (cid, k)
+            # no coverage: the set (only where feet touch the floor is it within 1 cm of a part)
+            none = np.where(mask == 0, depth, np.nan)
+            xyz, _ = backproject_depth(none, np.zeros((*mask.shape, 3), np.float32), K, w2c)
+            assert (_part_surface_distance(xyz.astype(np.float64), parts) < 0.01).mean() < 0.01, (cid, k)
+            # no coverage anywhere off the parts' projected bounding spheres (only the set there)
+            centres, radii = _part_spheres(parts)
+            uv, z = _project(f, centres)
+            assert (z > radii).all()
+            r_px = 1.5 * f["fx"] * radii / np.sqrt(z ** 2 - radii ** 2) + 3     # generous: off-axis ellipses
+            v, u = np.mgrid[0:c["height"], 0:c["width"]]
+            near = np.zeros(mask.shape, bool)
+            for (uc, vc), r in zip(uv, r_px):
+                near |= (u - uc) ** 2 + (v - vc) ** 2 <= r ** 2
+            assert (~near).sum() > 0.3 * mask.size
+            assert (mask[~near] == 0).all(), (cid, k)
 
 
 def test_face_capture(tmp_path):

@@ -1,5 +1,5 @@
 """Ground truth of a synthetic capture as pipeline records: the cameras as a :class:`Calibration`,
-and dense per-frame points from the true depth maps.
+dense per-frame points from the true depth maps, and the performer masks.
 
 Evaluation and the reconstruction tests use these to separate Poly4DGS's errors from calibration's
 (the Poly4DGS issue trains on them until estimated calibration is available). Formats:
@@ -81,3 +81,16 @@ def subsample(xyz: np.ndarray, rgb: np.ndarray, budget: int, seed: int) -> tuple
         return xyz, rgb
     idx = np.sort(np.random.default_rng(seed).choice(len(xyz), size=budget, replace=False))
     return xyz[idx], rgb[idx]
+
+
+def performer_mask(exr_bytes: bytes) -> np.ndarray:
+    """A ``ground_truth/masks/<camera>/<take index>.exr`` file's bytes → the performer coverage
+    [H, W] float32 in [0, 1]: the fraction of the pixel where an actor is the visible surface
+    (1 = only actor, 0 = only set). Restrict image metrics to the performers with it (e.g. ``> 0.5``,
+    or as a weight)."""
+    from volcap_core import imageio   # OpenImageIO: imported only by the code that reads EXRs
+
+    pixels, channels = imageio.decode_exr_native(exr_bytes, "performer mask")
+    if pixels.ndim != 3 or pixels.shape[-1] != 1:
+        raise ValueError(f"performer mask: expected one channel, got {channels}")
+    return np.clip(pixels[..., 0].astype(np.float32), 0.0, 1.0)

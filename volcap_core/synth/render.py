@@ -60,9 +60,14 @@ def background(world: World, cam: PinholeCamera, ss: int, bg_ss: int | None = No
 
 def render(world: World, cam: PinholeCamera, t_sec: float, ss: int,
            cache: BackgroundCache | None = None, prims: list[Prim] | None = None, bg_ss: int | None = None,
-           want_depth: bool = False) -> tuple[np.ndarray, np.ndarray | None]:
-    """Radiance (H, W, 3) float32 and, if asked, depth along the optical axis (H, W; nearest
-    sub-sample)."""
+           want_depth: bool = False, want_mask: bool = False
+           ) -> tuple[np.ndarray, np.ndarray | None] | tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """``(radiance, depth)``: radiance (H, W, 3) float32 and, if asked, depth along the optical axis
+    (H, W float32; nearest sub-sample), else None.
+
+    ``want_mask=True`` returns ``(radiance, depth, mask)`` instead: the performer coverage (H, W)
+    float32 in [0, 1], the fraction of each pixel's ss x ss sub-samples whose visible surface is an
+    actor part (0 where only the set, props, targets or chart are seen)."""
     if cache is None:
         cache = background(world, cam, ss, bg_ss)
     dirs = cache.dirs
@@ -85,17 +90,29 @@ def render(world: World, cam: PinholeCamera, t_sec: float, ss: int,
     world.stage.draw_timed(cam, dirs, ss, t_sec, tbuf, rad)
     if prims is None:
         prims = world.prims(t_sec)
-    draw_prims(world, cam, dirs, ss, tbuf, rad, prims)
+    idx = draw_prims(world, cam, dirs, ss, tbuf, rad, prims)
     H, W = cam.height, cam.width
     out = rad if ss == 1 else cv2.resize(rad, (W, H), interpolation=cv2.INTER_AREA)
     depth = None
     if want_depth:
         zfac = dirs @ cam.R[2].astype(np.float32)
         depth = (tbuf * zfac).reshape(H, ss, W, ss).min(axis=(1, 3)).astype(np.float32)
+    if want_mask:
+        return out.astype(np.float32), depth, performer_coverage(idx, ss)
     return out.astype(np.float32), depth
 
 
+def performer_coverage(idx: np.ndarray, ss: int) -> np.ndarray:
+    """:func:`draw_prims`'s per-sub-sample part index (H*ss, W*ss) → the fraction of each pixel's
+    ss x ss sub-samples where an actor part is visible, (H, W) float32 in [0, 1]."""
+    h, w = idx.shape[0] // ss, idx.shape[1] // ss
+    hits = (idx >= 0).reshape(h, ss, w, ss).sum(axis=(1, 3), dtype=np.int32)
+    return (hits / np.float32(ss * ss)).astype(np.float32)
+
+
 def draw_prims(world: World, cam: PinholeCamera, dirs, ss, tbuf, rad, prims: list[Prim]) -> np.ndarray:
+    """Z-buffer the actor parts into ``tbuf``/``rad`` (in place); return, per sub-sample, the index
+    into ``prims`` of the part that is the visible surface there, -1 where no part is."""
     o = cam.centre
     idx = np.full(tbuf.shape, -1, np.int16)
     rects = []

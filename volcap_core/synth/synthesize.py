@@ -177,8 +177,9 @@ def _face_actor(seed: int) -> Actor:
 # --------------------------------------------------------------------------- the writer
 
 def _render_camera(plan: CameraPlan, world: World, fps: float, frames: int, seed: int, ss: int,
-                   cam_dir: Path, depth_dir: Path | None, tick) -> dict:
-    """Render and write all of one camera's frames; return its ground truth and encoder samples."""
+                   cam_dir: Path, depth_dir: Path | None, tick, mask_dir: Path | None = None) -> dict:
+    """Render and write all of one camera's frames (and, for take frames, the depth maps and performer
+    masks when their folders are given); return its ground truth and encoder samples."""
     cache = background(world, plan.static, ss) if not plan.tracks else None
     bg_ss = 1   # moving cameras: the set at one sample per pixel (mip-filtered), actors at ss
     gt_frames, samples = [], []
@@ -187,7 +188,10 @@ def _render_camera(plan: CameraPlan, world: World, fps: float, frames: int, seed
         k = n - plan.pre_roll
         t = k / fps
         cam, f_mm, focus = camera_at(plan, world, t)
-        rad, depth = render(world, cam, t, ss, cache=cache, bg_ss=bg_ss, want_depth=depth_dir is not None)
+        # pre-roll frames (k < 0) have no ground-truth maps: no mask to compute
+        want_mask = mask_dir is not None and k >= 0
+        rad, depth, *mask = render(world, cam, t, ss, cache=cache, bg_ss=bg_ss,
+                                   want_depth=depth_dir is not None, want_mask=want_mask)
         img = plan.sensor.apply(rad, _rng(seed, "noise", plan.cam.id, n))
         sio.write_exr(cam_dir / f"{n:06d}.exr", img)
         if plan.encoder is not None:
@@ -199,6 +203,9 @@ def _render_camera(plan: CameraPlan, world: World, fps: float, frames: int, seed
                               "world_to_camera": np.round(cam.world_to_camera, 9).tolist()})
             if depth_dir is not None:
                 sio.write_exr(depth_dir / f"{k:06d}.exr", depth, half=False)
+            if want_mask:
+                # coverage j / ss^2 (exact in half for ss = 1, 2, 4); one channel "Z" like depth
+                sio.write_exr(mask_dir / f"{k:06d}.exr", mask[0], half=True)
         tick()
     return {"frames": gt_frames, "samples": samples}
 
@@ -252,11 +259,13 @@ def _synthesize(out_dir: Path, rig_name: str | Path, seed: int, frames: int, kin
         cid = plan.cam.id
         cam_dir = out_dir / FRAMES_DIR / cid
         cam_dir.mkdir(parents=True, exist_ok=True)
-        depth_dir = None
+        depth_dir = mask_dir = None
         if write_depth:
             depth_dir = gt_dir / "depth" / cid
             depth_dir.mkdir(parents=True, exist_ok=True)
-        res = _render_camera(plan, world, fps, frames, seed, ss, cam_dir, depth_dir, tick)
+            mask_dir = gt_dir / "masks" / cid
+            mask_dir.mkdir(parents=True, exist_ok=True)
+        res = _render_camera(plan, world, fps, frames, seed, ss, cam_dir, depth_dir, tick, mask_dir)
         sources.append(CameraSource(
             id=cid, path=f"{FRAMES_DIR}/{cid}", start_timecode=frames_to_timecode(take_tc - plan.pre_roll, fps),
             encoding=Encoding.linear, lens_encoder=res["samples"] or None))
@@ -318,7 +327,9 @@ def synthesize_capture(out_dir: Path, rig: str = "demo_scene", seed: int = 0, fr
     """Render a Scene Rig capture of ``actors`` walking, talking actors; returns capture.json's path.
 
     ``rig``: a built-in rig name or a rig JSON file (copied into the capture). ``cameras`` renders a
-    subset of the rig (tests). ``supersample``: ss x ss samples per pixel. Same arguments, same bytes.
+    subset of the rig (tests). ``supersample``: ss x ss samples per pixel. ``write_depth``: also write
+    ground-truth depth maps and performer masks per camera and take frame (``ground_truth/depth/``,
+    ``ground_truth/masks/``). Same arguments, same bytes.
     """
     if not 1 <= actors <= 3:
         raise ValueError("actors must be 1, 2 or 3")
