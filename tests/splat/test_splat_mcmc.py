@@ -86,6 +86,85 @@ def test_noise_moves_transparent_gaussians_not_opaque_ones():
     assert (moved[10:] > 0).all()
 
 
+@pytest.mark.parametrize("logit", [-200.0, -math.inf])
+def test_all_opacities_zero_means_nothing_to_sample(logit):
+    # every o_0 underflowed to 0 (float32 sigmoid of < -104, reached at 300-1000x the learning
+    # rate): before, add_gaussians divided 0/0 and torch.multinomial raised
+    m = _model(20)
+    m.params["opacities"].fill_(logit)
+    assert float(torch.sigmoid(m.params["opacities"]).max()) == 0.0
+    before = {k: v.clone() for k, v in m.params.items()}
+    adam = AdamState.zeros_like(m.params)
+    gen = torch.Generator().manual_seed(0)
+    state = gen.get_state()
+    assert relocate_dead(m, adam, MCMCConfig(), gen) == 0
+    assert add_gaussians(m, adam, MCMCConfig(), gen) == 0
+    assert len(m) == 20 and all(v.shape[0] == 20 for v in adam.exp_avg.values())
+    for k, v in m.params.items():
+        assert torch.equal(v, before[k]), k
+    assert torch.equal(gen.get_state(), state)          # no random draw was spent either
+
+
+def test_non_finite_opacities_are_never_sampled():
+    # before: a NaN o_0 counted as alive, its NaN weight reached torch.multinomial, which raised
+    m = _model(40)
+    m.params["opacities"][:10] = -10.0                   # dead
+    m.params["opacities"][10:14] = math.nan
+    m.params["opacities"][14:16] = math.inf              # o_0 = 1, but a non-finite logit
+    adam = AdamState.zeros_like(m.params)
+    gen = torch.Generator().manual_seed(0)
+    # the dead and the NaN Gaussians are replaced by copies of live finite ones
+    assert relocate_dead(m, adam, MCMCConfig(), gen) == 14
+    logit = m.params["opacities"]
+    assert torch.isfinite(logit[:14]).all() and (torch.sigmoid(logit[:14]) >= 0.005).all()
+    assert torch.equal(logit[14:16], torch.full((2,), math.inf))   # never a source: untouched
+    for i in range(14):
+        assert any(torch.equal(m.params["means_t"][i], m.params["means_t"][j])
+                   for j in range(16, 40))
+    # growth samples only finite ones; with only non-finite left there is nothing to sample
+    assert add_gaussians(m, adam, MCMCConfig(), gen) == 2
+    assert torch.isfinite(m.params["opacities"][40:]).all()
+    m.params["opacities"][:] = math.nan
+    m.params["opacities"][:3] = math.inf
+    assert relocate_dead(m, adam, MCMCConfig(), gen) == 0
+    assert add_gaussians(m, adam, MCMCConfig(), gen) == 0
+
+
+def test_noise_is_scale_invariant():
+    # a scene k times larger (means and scales × k) trained with lr × k and scene_scale × k moves
+    # by exactly k times as much: the noise is relative to the scene, like gsplat's in its
+    # normalised world. Before, the noise scaled as Σ · lr = k³ (no scene_scale argument).
+    # (float64 so that reading the displacement back off the means loses nothing)
+    def model(k):
+        m = _model(30, seed=2)
+        for name in m.params:
+            m.params[name] = m.params[name].double()
+        m.params["opacities"][:15] = -7.0                # transparent: they move
+        m.params["means"].mul_(k)
+        m.params["scales"].add_(math.log(k))             # log-scales: s × k
+        return m
+
+    def displacement(k, lr, scene_scale):
+        m = model(k)
+        before = m.params["means"].clone()
+        inject_noise(m, lr, MCMCConfig(), torch.Generator().manual_seed(5),
+                     scene_scale=scene_scale)
+        return m.params["means"] - before
+
+    base = displacement(1.0, 1.6e-4 * 2.0, 2.0)
+    assert base[:15].norm(dim=1).min() > 0
+    for k in (7.3, 0.01, 1e3):
+        torch.testing.assert_close(displacement(k, 1.6e-4 * 2.0 * k, 2.0 * k), k * base,
+                                   rtol=1e-9, atol=1e-15 * k)
+    # scene_scale divides the noise by scene_scale²; the default is 1 (the old formula)
+    torch.testing.assert_close(displacement(1.0, 1.6e-4 * 2.0, 1.0), 4.0 * base,
+                               rtol=1e-12, atol=0.0)
+    m = model(1.0)
+    before = m.params["means"].clone()
+    inject_noise(m, 1.6e-4 * 2.0, MCMCConfig(), torch.Generator().manual_seed(5))
+    torch.testing.assert_close(m.params["means"] - before, 4.0 * base, rtol=1e-12, atol=0.0)
+
+
 def test_regulariser_is_differentiable():
     m = _model(10)
     for v in m.params.values():

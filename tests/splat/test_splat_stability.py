@@ -11,12 +11,12 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _splat_scenes, any import mode
 
-from _splat_scenes import ring_cameras  # noqa: E402
+from _splat_scenes import random_gaussians, ring_cameras  # noqa: E402
 
 from volcap_core.splat.grids import apply_grids  # noqa: E402
 from volcap_core.splat.loss import grid_regularisers, reconstruction_loss  # noqa: E402
 from volcap_core.splat.mcmc import MCMCConfig, inject_noise, mcmc_regulariser  # noqa: E402
-from volcap_core.splat.model import Poly4DGS, Poly4DGSConfig, evaluate  # noqa: E402
+from volcap_core.splat.model import Gaussians3D, Poly4DGS, Poly4DGSConfig, evaluate  # noqa: E402
 from volcap_core.splat.render import render  # noqa: E402
 
 CAM = ring_cameras(1, size=16)[0]
@@ -118,3 +118,44 @@ def test_noise_with_extreme_scales_stays_finite():
         m.params["opacities"][:] = -50.0
     inject_noise(m, 1.6e-4, MCMCConfig(), torch.Generator().manual_seed(0))
     assert torch.isfinite(m.params["means"]).all()
+
+
+_NAMES = ("means", "quats", "scales", "opacities", "sh")
+
+
+def _image_and_grads(g: Gaussians3D):
+    """Render, apply exposure/black grids, loss, backward: the output and every gradient."""
+    leaves = {n: getattr(g, n).clone().requires_grad_(True) for n in _NAMES}
+    E = torch.full((3, 4, 4), 1.1).requires_grad_(True)
+    B = torch.full((3, 4, 4), 0.01).requires_grad_(True)
+    out = render(Gaussians3D(**leaves, ids=g.ids), CAM, backend="torch")
+    pred = apply_grids(out["rgb"], E, B)
+    loss = reconstruction_loss(pred, torch.full((16, 16, 3), 0.3))[0] + out["depth"].mean() * 1e-3
+    loss = loss + out["alpha"].mean()
+    loss.backward()
+    return out, {n: leaves[n].grad for n in _NAMES}, E.grad, B.grad
+
+
+def test_non_finite_gaussians_are_culled_without_poisoning_the_others():
+    # before: the NaN colour made the image and every gradient NaN, the grids' included
+    valid = random_gaussians(6, seed=3, sh_degree=1, scale=(0.05, 0.2))
+    bad = random_gaussians(4, seed=4, sh_degree=1, scale=(0.05, 0.2))
+    bad.means = valid.means[:4] + 0.01           # in view, on top of valid ones
+    bad.sh[0, 1] = math.nan                      # NaN colour (SH), finite geometry
+    bad.scales[1, 0] = math.inf                  # infinite scale
+    bad.sh[2, 0] = 1e30                          # finite SH whose decoded colour overflows to inf
+    bad.means[3, 2] = -math.inf                  # infinite mean
+    both = Gaussians3D(*(torch.cat([getattr(bad, n)[:2], getattr(valid, n), getattr(bad, n)[2:]])
+                         for n in _NAMES), ids=torch.arange(10))
+    out_v, grads_v, E_v, B_v = _image_and_grads(valid)
+    out_b, grads_b, E_b, B_b = _image_and_grads(both)
+    assert out_v["alpha"].max() > 0.3
+    for k in out_v:
+        assert torch.isfinite(out_b[k]).all(), k
+        assert torch.equal(out_b[k], out_v[k]), k
+    assert torch.equal(E_b, E_v) and torch.equal(B_b, B_v)
+    for n in _NAMES:
+        assert torch.isfinite(grads_b[n]).all(), n
+        assert torch.equal(grads_b[n][2:8], grads_v[n]), n
+        # the culled Gaussians themselves: exactly zero gradient, like any culled Gaussian
+        assert (grads_b[n][:2] == 0).all() and (grads_b[n][8:] == 0).all(), n

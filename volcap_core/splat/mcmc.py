@@ -13,9 +13,15 @@ What it does, with the defaults of :class:`MCMCConfig` (gsplat's ``MCMCStrategy`
 * **Growth** at the same steps: ``grow_rate`` = 5% more Gaussians, sampled the same way, up to
   ``cap_max``.
 * **SGLD noise** after every optimiser step:
-  ``Δμ_0 = lr_μ · noise_lr · σ(-100 (o_0 - 0.005)) · Σ η``
-  with ``Σ = R diag(s_0)² Rᵀ``, ``η ~ N(0, I)``, ``noise_lr = 5e5``: nearly transparent Gaussians
-  explore, opaque ones stay put.
+  ``Δμ_0 = lr_μ · noise_lr · σ(-100 (o_0 - 0.005)) · Σ η / s²``
+  with ``Σ = R diag(s_0)² Rᵀ`` (metres²), ``η ~ N(0, I)``, ``noise_lr = 5e5`` and ``s`` the scene
+  scale (metres; ``lr_μ`` already includes it): nearly transparent Gaussians explore, opaque ones
+  stay put. The ``/ s²`` makes the displacement relative to the scene equal to gsplat's in its
+  normalised (scale ~1) world, for which ``noise_lr`` was tuned (derivation in
+  :func:`inject_noise`).
+* **Nothing to sample from**: relocation and growth sample live Gaussians with a finite,
+  positive ``o_0``; when there is none (all opacities underflowed to 0, or non-finite) they do
+  nothing and return 0.
 * **Regularisers** added to the loss: ``opacity_reg · mean(o_0) + scale_reg · mean(exp(s_0))``,
   0.01 each, pushing unused Gaussians towards death (and so relocation).
 
@@ -89,12 +95,27 @@ def relocation_opacity_scale(opacities: torch.Tensor, scales: torch.Tensor, rati
     return o_new.to(opacities.dtype), (coef[:, None] * scales.to(torch.float64)).to(scales.dtype)
 
 
+def _sampleable(model: Poly4DGS) -> torch.Tensor:
+    """``[N]`` bool: Gaussians that may be sampled as a source, i.e. whose opacity logit is finite
+    and whose ``o_0`` is finite and > 0 (an ``o_0`` underflowed to 0 has nothing to give; a NaN or
+    ±inf one must never be copied)."""
+    logit = model.params["opacities"].detach()
+    o0 = torch.sigmoid(logit)
+    return torch.isfinite(logit) & torch.isfinite(o0) & (o0 > 0)
+
+
 def _sample_by_opacity(o0: torch.Tensor, candidates: torch.Tensor, n: int,
-                       generator: torch.Generator) -> torch.Tensor:
+                       generator: torch.Generator) -> torch.Tensor | None:
+    """``n`` indices drawn from ``candidates`` with probability ∝ ``o0``; None when the weights
+    do not sum to a positive finite number (nothing alive to sample from): no 0/0 and no
+    ``torch.multinomial`` error, and no draw is taken from ``generator`` then."""
     # sampled on the CPU with the (CPU) generator whatever the device: one RNG stream to checkpoint
     probs = o0[candidates].detach().to("cpu", torch.float64)
-    probs = probs / probs.sum()
-    pick = torch.multinomial(probs, n, replacement=True, generator=generator)
+    probs = torch.where(torch.isfinite(probs) & (probs > 0), probs, 0.0)
+    total = float(probs.sum())
+    if n <= 0 or not (0.0 < total < math.inf):
+        return None
+    pick = torch.multinomial(probs / total, n, replacement=True, generator=generator)
     return candidates[pick.to(candidates.device)]
 
 
@@ -118,16 +139,23 @@ def relocate_dead(model: Poly4DGS, adam: AdamState | None, cfg: MCMCConfig,
                   generator: torch.Generator) -> int:
     """Move dead Gaussians (``o_0 < min_opacity``) onto live ones sampled by opacity.
 
+    A Gaussian whose ``o_0`` is NaN counts as dead (it is overwritten by a live copy). Only live,
+    finite Gaussians are sampled (:func:`_sampleable`); when there is none (every opacity dead or
+    underflowed to 0, or non-finite) nothing changes and 0 is returned.
+
     Modifies ``model.params`` (in place) and ``adam`` moments. Returns the number relocated.
     """
     p = model.params
     o0 = torch.sigmoid(p["opacities"])
-    dead = o0 < cfg.min_opacity
+    dead = ~(o0 >= cfg.min_opacity)                    # NaN is dead too
     n_dead = int(dead.sum())
-    if n_dead == 0 or n_dead == len(model):
+    live = torch.nonzero(~dead & _sampleable(model)).squeeze(1)
+    if n_dead == 0 or len(live) == 0:
         return 0
     dead_idx = torch.nonzero(dead).squeeze(1)
-    sampled = _sample_by_opacity(o0, torch.nonzero(~dead).squeeze(1), n_dead, generator)
+    sampled = _sample_by_opacity(o0, live, n_dead, generator)
+    if sampled is None:
+        return 0
     _split_into(model, sampled, cfg)
     for t in p.values():
         t[dead_idx] = t[sampled]
@@ -144,6 +172,9 @@ def add_gaussians(model: Poly4DGS, adam: AdamState | None, cfg: MCMCConfig,
                   generator: torch.Generator) -> int:
     """Grow by ``grow_rate`` (up to ``cap_max``): sampled Gaussians split, the copies are appended.
 
+    Only finite Gaussians with ``o_0 > 0`` are sampled (:func:`_sampleable`); when there is none
+    (every opacity underflowed to 0, or non-finite) nothing changes and 0 is returned.
+
     Replaces the tensors of ``model.params`` (new leaves, same ``requires_grad``) and extends the
     Adam moments with zeros. Returns the number added.
     """
@@ -153,7 +184,10 @@ def add_gaussians(model: Poly4DGS, adam: AdamState | None, cfg: MCMCConfig,
         return 0
     p = model.params
     o0 = torch.sigmoid(p["opacities"])
-    sampled = _sample_by_opacity(o0, torch.arange(n, device=o0.device), n_new, generator)
+    sampled = _sample_by_opacity(o0, torch.nonzero(_sampleable(model)).squeeze(1), n_new,
+                                 generator)
+    if sampled is None:
+        return 0
     _split_into(model, sampled, cfg)
     for name, t in list(p.items()):
         grown = torch.cat([t.detach(), t.detach()[sampled]]).requires_grad_(t.requires_grad)
@@ -169,10 +203,32 @@ def add_gaussians(model: Poly4DGS, adam: AdamState | None, cfg: MCMCConfig,
 
 @torch.no_grad()
 def inject_noise(model: Poly4DGS, lr_means: float, cfg: MCMCConfig,
-                 generator: torch.Generator) -> None:
-    """SGLD exploration of μ_0 (see module doc), in place."""
+                 generator: torch.Generator, *, scene_scale: float = 1.0) -> None:
+    """SGLD exploration of μ_0, in place:
+    ``Δμ_0 = lr_means · noise_lr · σ(-100 (o_0 - min_opacity)) · Σ η / scene_scale²``.
+
+    Why ``/ s²`` (``s = scene_scale``, metres): gsplat's ``noise_lr = 5e5`` is tuned for a scene
+    normalised to scale ~1. Normalising ours, ``x' = x / s``, gives ``Σ' = Σ / s²`` and a means
+    learning rate ``lr' = lr_means / s`` (the trainer passes ``lr_means`` already multiplied by
+    ``s``). gsplat's step in that world is ``Δ' = lr' · noise_lr · gate · Σ' η``; in metres
+    ``Δ = s Δ' = s · (lr_means / s) · noise_lr · gate · (Σ / s²) η
+    = lr_means · noise_lr · gate · Σ η / s²``. So the displacement relative to the scene is
+    gsplat's, whatever unit the scene is in: scaling the scene (means, scales) by ``k`` with
+    ``lr_means`` and ``scene_scale`` scaled by ``k`` scales the noise by exactly ``k``. Without
+    it (``s = 1`` on a scene in metres) the noise is ``s²`` times too strong relative to the
+    scene (~40-50x on a ~7 m stage).
+
+    Args:
+        model: the model; ``params["means"]`` is modified.
+        lr_means: learning rate of the means this step (metres, scene scale included).
+        cfg: ``noise_lr``, ``min_opacity``.
+        generator: the RNG of ``η``.
+        scene_scale: the scene's scale ``s`` (metres), the one ``lr_means`` was multiplied by.
+    """
     if cfg.noise_lr <= 0 or lr_means <= 0:
         return
+    if not (scene_scale > 0 and math.isfinite(scene_scale)):
+        raise ValueError(f"scene_scale must be positive and finite, got {scene_scale}")
     p = model.params
     o0 = torch.sigmoid(p["opacities"])
     gate = torch.sigmoid(-100.0 * (o0 - cfg.min_opacity))
@@ -180,7 +236,8 @@ def inject_noise(model: Poly4DGS, lr_means: float, cfg: MCMCConfig,
                                                                        LOG_SCALE_MAX)))
     eta = torch.randn(p["means"].shape, generator=generator,
                       dtype=p["means"].dtype).to(p["means"].device)
-    noise = (cov @ (eta * (gate * lr_means * cfg.noise_lr)[:, None])[..., None])[..., 0]
+    step = lr_means * cfg.noise_lr / (scene_scale * scene_scale)
+    noise = (cov @ (eta * (gate * step)[:, None])[..., None])[..., 0]
     p["means"].add_(noise)
 
 

@@ -9,7 +9,9 @@ back-ends agree on the same inputs:
   Mip-Splatting compensation ``sqrt(det Σ / det(Σ + 0.3 I))``;
 * culling: depth outside ``(near, far)``, compensated opacity below 1/255, footprint off-image;
 * footprint ``radius = ceil(min(3.33, sqrt(2 ln(255 o))) · σ_axis)`` per axis (the box that holds
-  every fragment with α >= 1/255, so tiling never changes the image);
+  every fragment with α >= 1/255, so tiling never changes the image); not clamped to the image
+  (only capped at 2^30 px for int32): the tile range is clipped to the tile grid instead, so a
+  large Gaussian centred off-image or near an edge keeps every fragment that lands on the image;
 * per pixel, front to back by camera depth: ``α = min(0.999, o · exp(-σ))``, fragments with
   α < 1/255 skipped, compositing stops before the fragment that would bring the transmittance to
   ``<= 1e-4``; gradients do not flow through these selections (as in gsplat).
@@ -44,6 +46,8 @@ ALPHA_MAX = 0.999
 TRANSMITTANCE_MIN = 1e-4
 EPS2D = 0.3
 EXTEND_MAX = 3.33
+#: cap on the int32 footprint radii (px): far above any image, far below int32 overflow
+RADIUS_MAX = 1 << 30
 #: ln of the opacity given to padding slots: exp(-1e4) == 0 exactly, so they never contribute.
 _DUMMY_LOG_OPACITY = -1e4
 
@@ -79,7 +83,8 @@ class Projected:
             ``[[a, b], [b, c]]`` in 1/px².
         opacities: ``[M]`` opacity times the antialiasing compensation.
         depths: ``[M]`` camera-space z (metres).
-        radii: ``[M, 2]`` int32 footprint half-extents (px), not differentiable.
+        radii: ``[M, 2]`` int32 footprint half-extents (px), not differentiable; not clamped to
+            the image (capped at :data:`RADIUS_MAX`).
     """
 
     ids: torch.Tensor
@@ -132,7 +137,8 @@ def project_gaussians(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
 
     Culling is decided without gradient on all Gaussians; the differentiable quantities are then
     recomputed for the survivors only. So a culled Gaussian (behind the camera, at the camera plane,
-    degenerate, NaN) contributes exactly zero gradient instead of ``0 · inf = NaN``.
+    degenerate, any non-finite projected quantity) contributes exactly zero gradient instead of
+    ``0 · inf = NaN``.
 
     Args:
         means: ``[N, 3]`` world positions. quats: ``[N, 4]`` wxyz. scales: ``[N, 3]`` (metres).
@@ -150,9 +156,10 @@ def project_gaussians(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
         ahead = camera.centre.to(means) + camera.world_to_camera[2, :3].to(means)
         safe_means = torch.where(ok[:, None], means, ahead)
         covars = quat_scale_to_covar(quats, scales)
-        m2d, a, c, det, _, opac, _ = _project(safe_means, covars, opacities, camera, eps2d,
-                                              antialiased)
+        m2d, a, c, det, conics, opac, z = _project(safe_means, covars, opacities, camera, eps2d,
+                                                   antialiased)
         ok &= (det > 0) & torch.isfinite(det) & torch.isfinite(m2d).all(-1) & torch.isfinite(opac)
+        ok &= torch.isfinite(conics).all(-1) & torch.isfinite(z)
         ok &= opac >= ALPHA_THRESHOLD
         extend = torch.clamp(torch.sqrt(2.0 * torch.log(opac.clamp(min=ALPHA_THRESHOLD)
                                                         / ALPHA_THRESHOLD)), max=EXTEND_MAX)
@@ -162,9 +169,11 @@ def project_gaussians(means: torch.Tensor, quats: torch.Tensor, scales: torch.Te
         ok &= ~((m2d[:, 0] + rx <= 0) | (m2d[:, 0] - rx >= camera.width)
                 | (m2d[:, 1] + ry <= 0) | (m2d[:, 1] - ry >= camera.height))
         ids = torch.nonzero(ok).squeeze(1)
-        # a footprint never needs to exceed the image (and int32 must not overflow)
-        radii = torch.stack([rx[ids].clamp(max=camera.width), ry[ids].clamp(max=camera.height)],
-                            dim=-1).to(torch.int32)
+        # NOT clamped to the image: a large Gaussian centred off-image or near an edge needs its
+        # whole footprint for its tile range (rasterize_tiles clips the range to the tile grid, as
+        # gsplat does). Clamping it to the image size cut such Gaussians along tile lines or
+        # dropped them. Only capped so the int32 cannot overflow (a footprint of 2^30 px).
+        radii = torch.stack([rx[ids], ry[ids]], dim=-1).clamp(max=RADIUS_MAX).to(torch.int32)
     covars = quat_scale_to_covar(quats[ids], scales[ids])
     m2d, _, _, _, conics, opac, z = _project(means[ids], covars, opacities[ids], camera, eps2d,
                                              antialiased)
@@ -279,6 +288,26 @@ def _composite_chunk(table: torch.Tensor, values: torch.Tensor, idx: torch.Tenso
     return _Composite.apply(coef, values[idx], monomials)
 
 
+def _zero_link(*tensors: torch.Tensor) -> torch.Tensor | None:
+    """A scalar exactly 0 in the autograd graph of those ``tensors`` that require grad (0, not
+    NaN, even for non-finite inputs; zero gradient to each); None when none requires grad."""
+    out = None
+    for t in tensors:
+        if t.requires_grad:
+            z = torch.where(torch.zeros_like(t, dtype=torch.bool), t, 0.0).sum()
+            out = z if out is None else out + z
+    return out
+
+
+def _tile_range(lo: torch.Tensor, hi: torch.Tensor, ts: int, n: int):
+    """Half-open tile index range ``[first, last)`` covering pixel interval ``[lo, hi]``, clipped
+    to ``[0, n]`` (empty when the interval misses the grid or is NaN). Float64 in, int64 out: the
+    division, rounding and clipping happen before the cast, so nothing can overflow."""
+    first = torch.nan_to_num(torch.floor(lo / ts), nan=float(n)).clamp(0, n).long()
+    last = torch.nan_to_num(torch.ceil(hi / ts), nan=0.0).clamp(0, n).long()
+    return first, torch.maximum(last, first)
+
+
 def rasterize_tiles(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor,
                     depths: torch.Tensor, radii: torch.Tensor, values: torch.Tensor,
                     width: int, height: int, *, tile_size: int = 8,
@@ -309,11 +338,12 @@ def rasterize_tiles(means2d: torch.Tensor, conics: torch.Tensor, opacities: torc
     P = ts * ts
     M = means2d.shape[0]
     with torch.no_grad():
-        r = radii.to(dtype)
-        x0 = torch.floor((means2d[:, 0] - r[:, 0]) / ts).clamp(0, tw).long()
-        x1 = torch.ceil((means2d[:, 0] + r[:, 0]) / ts).clamp(0, tw).long()
-        y0 = torch.floor((means2d[:, 1] - r[:, 1]) / ts).clamp(0, th).long()
-        y1 = torch.ceil((means2d[:, 1] + r[:, 1]) / ts).clamp(0, th).long()
+        # tile ranges in float64 (exact for int32 radii and float32 means, no overflow whatever
+        # the footprint), clipped to the tile grid before the cast (a NaN gives an empty range)
+        r = radii.to(torch.float64)
+        m = means2d.detach().to(torch.float64)
+        x0, x1 = _tile_range(m[:, 0] - r[:, 0], m[:, 0] + r[:, 0], ts, tw)
+        y0, y1 = _tile_range(m[:, 1] - r[:, 1], m[:, 1] + r[:, 1], ts, th)
         nx = x1 - x0
         count = nx * (y1 - y0)
         order = torch.argsort(depths, stable=True)            # front to back
@@ -358,6 +388,10 @@ def rasterize_tiles(means2d: torch.Tensor, conics: torch.Tensor, opacities: torc
     base = torch.zeros(n_tiles, P, D + 1, device=device, dtype=dtype)
     if outs:
         base = base.index_copy(0, torch.cat(out_tiles), torch.cat(outs))
+    elif (link := _zero_link(means2d, conics, opacities, values)) is not None:
+        # nothing drawn (no Gaussians, or none reaches a tile): an exact-zero term that links the
+        # image to the inputs, so backward works and gives them zero gradient
+        base = base + link
     img = base.reshape(th, tw, ts, ts, D + 1).permute(0, 2, 1, 3, 4)
     img = img.reshape(th * ts, tw * ts, D + 1)
     img = img[:height, :width]

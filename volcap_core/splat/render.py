@@ -14,7 +14,11 @@ Back-ends:
 * ``"gsplat"`` — ``gsplat.rasterization(..., rasterize_mode="antialiased")`` with the precomputed
   colours; CUDA only. gsplat is an optional dependency, imported only when used.
 * ``"torch"`` — :mod:`volcap_core.splat.rasterize`, pure PyTorch, any device, autograd backward,
-  same conventions as gsplat.
+  same conventions as gsplat. Gaussians with any non-finite geometry (mean, quaternion, scale,
+  opacity, or what they project to) or a non-finite colour after SH evaluation and decoding are
+  culled: exactly zero contribution and zero gradient, so one NaN Gaussian cannot poison the
+  image or the other parameters' gradients. Zero Gaussians render the background (alpha 0,
+  depth 0), still differentiable.
 * ``"auto"`` (default) — gsplat when the tensors are on CUDA and gsplat imports, else torch.
 """
 
@@ -30,6 +34,7 @@ from volcap_core.splat.camera import Camera
 from volcap_core.splat.model import Gaussians3D
 from volcap_core.splat.rasterize import (
     EPS2D,
+    Projected,
     TileStats,
     project_gaussians,
     rasterize_tiles,
@@ -97,10 +102,21 @@ def render(gaussians: Gaussians3D, camera: Camera, *, backend: Backend = "auto",
 
 
 def _render_torch(g: Gaussians3D, cam: Camera, tile_size: int, stats: TileStats | None):
+    # geometry: project_gaussians culls (without gradient) anything non-finite or degenerate
     proj = project_gaussians(g.means, g.quats, g.scales, g.opacities, cam, eps2d=EPS2D,
                              antialiased=True)
     # colours only for the survivors: SH of culled Gaussians is never needed
     colours = gaussian_colours(g.select(proj.ids), cam)
+    finite = torch.isfinite(colours.detach()).all(-1)
+    if not bool(finite.all()):
+        # a non-finite colour (NaN/inf SH, or a decode overflow) is culled like a culled
+        # geometry: dropped from every projected tensor and its colour recomputed without it, so
+        # no graph ever holds it (0·NaN would otherwise reach its own and the others' gradients)
+        keep = torch.nonzero(finite).squeeze(1)
+        proj = Projected(ids=proj.ids[keep], means2d=proj.means2d[keep],
+                         conics=proj.conics[keep], opacities=proj.opacities[keep],
+                         depths=proj.depths[keep], radii=proj.radii[keep])
+        colours = gaussian_colours(g.select(proj.ids), cam)
     values = torch.cat([colours, proj.depths[:, None]], dim=-1)
     acc, trans = rasterize_tiles(proj.means2d, proj.conics, proj.opacities, proj.depths,
                                  proj.radii, values, cam.width, cam.height, tile_size=tile_size,
