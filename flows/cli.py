@@ -159,8 +159,11 @@ def reconstruct(capture: Annotated[str, typer.Argument(help="capture ref name (c
                 ground_truth: Annotated[bool, typer.Option("--ground-truth", help="use a synthetic capture's true cameras and depth points instead of estimating them")] = False,
                 held_out: Annotated[Optional[str], typer.Option(help="comma-separated cameras never trained on")] = None,
                 seed: Annotated[int, typer.Option()] = 0,
+                out: Annotated[Path, typer.Option(help="folder for each segment's contact sheet PNG")] = Path("reconstruct"),
                 store: StoreOpt = DEFAULT_STORE, json_out: JsonOpt = False) -> None:
-    """Train the Poly4DGS segments of an ingested capture; reports held-out PSNR/SSIM and wall time."""
+    """Train the Poly4DGS segments of an ingested capture; reports held-out PSNR/SSIM (per-camera gain/offset
+    fitted on other frames), raw and on the performers, beside the empty- and untrained-model floors, and
+    writes a contact sheet (footage | render | error) per segment."""
     from flows.reconstruct import reconstruct_flow
 
     span = _frame_span(frames)
@@ -168,11 +171,23 @@ def reconstruct(capture: Annotated[str, typer.Argument(help="capture ref name (c
     summary = _run(reconstruct_flow, store=_store_url(store), capture=capture, frames=span, preset=preset,
                    degrees=degrees, segment_frames=segment_frames, calibration=calibration, points=points,
                    held_out=held, seed=seed, ground_truth=ground_truth)
-    out = summary.result
-    lines = [f"  segment {s['frames'][0]}:{s['frames'][1]}: {s['model']['digest']}  {s['gaussians']} Gaussians, "
-             f"held-out PSNR {_fmt(s['held_out_psnr'])} dB, SSIM {_fmt(s['held_out_ssim'], 3)}, "
-             f"{s['train_wall_s']:.1f} s training" for s in out["segments"]]
-    _emit({**out, **summary.counts()}, json_out, "\n".join(lines))
+    result = summary.result
+    st = _open(_store_url(store))
+    lines = []
+    for seg in result["segments"]:
+        a, b = seg["frames"]
+        if seg["contact_sheet"]:
+            path = out / f"contact_sheet_{a:06d}_{b:06d}.png"
+            st.get_file(seg["contact_sheet"]["digest"], path)
+            seg["contact_sheet_png"] = str(path)
+        lines.append(f"  segment {a}:{b}: {seg['model']['digest']}  {seg['gaussians']} Gaussians, "
+                     f"{seg['train_wall_s']:.1f} s training\n"
+                     f"    held-out PSNR {_fmt(seg['held_out_psnr'])} dB, SSIM {_fmt(seg['held_out_ssim'], 3)} "
+                     f"(raw {_fmt(seg['held_out_psnr_raw'])} dB; performers {_fmt(seg['held_out_psnr_performers'])} dB)\n"
+                     f"    floors on the same views: empty model {_fmt(seg['floor_empty_psnr'])} dB, untrained "
+                     f"{_fmt(seg['floor_initial_psnr'])} dB; training views {_fmt(seg['training_psnr'])} dB\n"
+                     f"    contact sheet: {seg.get('contact_sheet_png', 'none')}")
+    _emit({**result, **summary.counts()}, json_out, "\n".join(lines))
 
 
 def _frame_span(frames: str | None) -> tuple[int, int] | None:

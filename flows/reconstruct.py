@@ -20,17 +20,37 @@ def split_frames(a: int, b: int, segment_frames: int | None) -> list[tuple[int, 
     return [(s, min(s + segment_frames, b)) for s in range(a, b, segment_frames)]
 
 
+def segment_summary(rec: reconstruction.SegmentModel, ref) -> dict:
+    """What a coordinator reads of a trained segment: held-out PSNR/SSIM under the protocol, raw,
+    on the performers, and the floors measured on the same views (empty and untrained models)."""
+    held = rec.scores.get("held_out", {})
+    trained, empty, initial = held.get("trained", {}), held.get("empty", {}), held.get("initial", {})
+    training = rec.scores.get("training", {})
+    return {"model": ref.model_dump(mode="json"), "frames": list(rec.frames), "gaussians": rec.gaussians,
+            "held_out_psnr": rec.held_out_psnr, "held_out_ssim": rec.held_out_ssim,
+            "held_out_psnr_raw": trained.get("psnr_raw"),
+            "held_out_psnr_performers": trained.get("psnr_performers"),
+            "held_out_ssim_performers": trained.get("ssim_performers"),
+            "floor_empty_psnr": empty.get("psnr"), "floor_empty_ssim": empty.get("ssim"),
+            "floor_initial_psnr": initial.get("psnr"), "floor_initial_ssim": initial.get("ssim"),
+            "training_psnr": training.get("psnr"), "training_ssim": training.get("ssim"),
+            "scores": rec.scores,
+            "contact_sheet": rec.contact_sheet.model_dump(mode="json") if rec.contact_sheet else None,
+            "train_wall_s": round(rec.wall_s, 3)}
+
+
 @flow(name="reconstruct", persist_result=False)
 def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = None, preset: str = "demo",
                      degrees: str = "poly4dgs", segment_frames: int | None = None,
                      calibration: str | None = None, points: str | None = None,
-                     held_out: list[str] | None = None, points_per_frame: int = 20000,
+                     held_out: list[str] | None = None, points_per_frame: int | None = None,
                      max_gaussians: int | None = None, seed: int = 0, ground_truth: bool = False) -> dict:
     """Train the segments of ``capture`` (a ref name such as ``captures/demo`` or a digest).
 
     ``calibration`` / ``points``: refs of a Calibration and a PointCloudSequence. When omitted, the
     capture is calibrated here (the calibrate flow's tasks, cached) and dense points are computed
-    for the frames trained, at most ``points_per_frame`` each. ``ground_truth=True`` uses a synthetic
+    for the frames trained (at most ``points_per_frame`` each when given; training thins them to its
+    own budget, so the default keeps every point for the static/moving split to see). ``ground_truth=True`` uses a synthetic
     capture's ground truth instead (true cameras, points from true depth): benchmarks, fast tests.
     Returns the segment model refs and their held-out PSNR/SSIM and training wall time.
     """
@@ -49,7 +69,8 @@ def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = 
     if points:
         points_ref = s.resolve(points)
     elif ground_truth:
-        points_ref = ground_truth_points(store, capture_ref, calib_ref, points_per_frame, seed)
+        # true depth of every pixel of every camera is millions of points: a budget is needed here
+        points_ref = ground_truth_points(store, capture_ref, calib_ref, points_per_frame or 150_000, seed)
     else:
         points_ref = point_cloud_for_frames(store, capture_ref, calib_ref, list(range(a, b)), points_per_frame, seed)
     log.info("capture %s: %s calibration %s, points %s", cap.name,
@@ -64,11 +85,6 @@ def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = 
                                      unmapped(points_ref), [list(seg) for seg in segments], unmapped(config),
                                      unmapped(seed))
     models = [f.result() for f in futures]
-    report = []
-    for ref, seg in zip(models, segments):
-        rec = s.get_record(ref, reconstruction.SegmentModel)
-        report.append({"model": ref.model_dump(mode="json"), "frames": list(seg), "gaussians": rec.gaussians,
-                       "held_out_psnr": rec.held_out_psnr, "held_out_ssim": rec.held_out_ssim,
-                       "train_wall_s": round(rec.wall_s, 3)})
+    report = [segment_summary(s.get_record(ref, reconstruction.SegmentModel), ref) for ref in models]
     return {"capture": capture_ref.model_dump(mode="json"), "calibration": calib_ref.model_dump(mode="json"),
             "points": points_ref.model_dump(mode="json"), "segments": report}

@@ -11,13 +11,16 @@ from pydantic import BaseModel, ConfigDict
 
 from prefect import get_run_logger
 
+from tasks.artifacts import ProgressArtifact, artifact_key, publish_image, publish_table
 from tasks.contract import current_run_key, volcap_task
+from volcap_core.contact_sheet import contact_sheet, encode_png
 from volcap_core import imageio, reconstruction
 from volcap_core.calibration.record import Calibration, TrackingFrames, camera_at, decode_tracking_frames
 from volcap_core.capture import Capture
 from volcap_core.pointcloud import POINTS_MEDIA, PointCloudFrame, PointCloudSequence, decode_points, encode_points
-from volcap_core.records import MEDIA_EXR, MEDIA_SAFETENSORS, ArtifactRef
+from volcap_core.records import MEDIA_EXR, MEDIA_PNG, MEDIA_SAFETENSORS, ArtifactRef
 from volcap_core.splat import evaluate, load_model, render, save_model, train_segment
+from volcap_core.splat.report import score_segment
 from volcap_core.splat.train import TrainConfig
 from volcap_core.store import ArtifactStore, MissingRefError
 from volcap_core.synth import ground_truth
@@ -78,14 +81,15 @@ def ground_truth_points(store: str, capture: ArtifactRef, calibration: ArtifactR
                                            method=f"ground-truth depth, {points_per_frame} per frame"))
 
 
-@volcap_task(name="train-segment", version="3", retries=1)
+@volcap_task(name="train-segment", version="4", retries=1)
 def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRef, points: ArtifactRef,
                        frames: list[int], config: TrainConfig, seed: int) -> ArtifactRef:
-    """Train one Poly4DGS segment; resumable from its checkpoints in the store.
+    """Train one Poly4DGS segment, score it against its floors and draw its contact sheet.
 
     Every ``config.checkpoint_every`` steps the training state is stored and named
     ``checkpoints/<this run's cache key>``; a killed or retried run of the same segment resumes from
-    it, and ends with the same model as an uninterrupted run (on CPU, bit for bit).
+    it, and ends with the same model as an uninterrupted run (on CPU, bit for bit). The Prefect UI
+    shows the training progress, the score table and the contact sheet as artifacts of this run.
     """
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
@@ -93,8 +97,12 @@ def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRe
     pts = s.get_record(points, PointCloudSequence)
     a, b = frames
     data = reconstruction.segment_data(cap, calib, load_tracking(s, calib), (a, b),
-                                       reconstruction.FrameCache(s.get_bytes), scale=config.image_scale)
-    init = reconstruction.segment_points(pts, (a, b), lambda ref: decode_points(s.get_bytes(ref)))
+                                       reconstruction.FrameCache(s.get_bytes), scale=config.image_scale,
+                                       load_mask=_mask_loader(s, cap))
+    init = reconstruction.segment_points(
+        pts, (a, b), lambda ref: decode_points(s.get_bytes(ref)),
+        static_scan=s.get_bytes(cap.lidar) if cap.lidar else None,
+        background=reconstruction.background_views(data, cap, config.held_out_cameras))
 
     ckpt_name = f"checkpoints/{current_run_key()}"
     try:
@@ -109,8 +117,12 @@ def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRe
     device = "cuda" if torch.cuda.is_available() else "cpu"
     run_log = get_run_logger()
     every = max(1, config.steps // 10)
+    key = f"segment-{a}-{b}"
+    progress_artifact = ProgressArtifact(artifact_key(key, "training"),
+                                         f"Training of segment [{a}, {b}) of {cap.name}: steps done")
 
     def progress(step: int, total: int, info: dict) -> None:  # what a coordinator watches scroll by
+        progress_artifact.update(step, total)
         if step % every == 0 or step == total:
             run_log.info("segment [%d, %d): step %d/%d, loss %.4f, %d Gaussians, %.0f s", a, b, step, total,
                          info["loss"], info["num_gaussians"], info["wall_s"])
@@ -118,24 +130,49 @@ def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRe
     with reconstruction.deterministic_torch(device):
         result = train_segment(data, init, config, checkpoint=checkpoint if config.checkpoint_every else None,
                                resume_from=resume, seed=seed, device=device, progress=progress)
+        report = score_segment(result.model, result.grids, data, init, config, seed=seed, device=device)
+    progress_artifact.finish()
+    sheet = encode_png(contact_sheet(report.sheet_rows, title=f"{cap.name} frames {a}:{b}: footage | render | error"))
+    sheet_ref = s.put_bytes(sheet, MEDIA_PNG)
     model_ref = s.put_bytes(save_model(result.model), reconstruction.SEGMENT_MODEL_MEDIA)
     grids_ref = s.put_bytes(reconstruction.encode_grids(result.grids.camera_ids, result.grids.exposure,
                                                         result.grids.black))
-    last = result.history[-1] if result.history else None
+    trained = report.held_out["trained"]
     record = reconstruction.SegmentModel(
         capture=capture, calibration=calibration, frames=(a, b), fps=cap.fps, model=model_ref, grids=grids_ref,
         grid_cameras=tuple(result.grids.camera_ids), held_out_cameras=tuple(config.held_out_cameras),
         gaussians=len(result.model), steps=result.steps, wall_s=result.wall_s,
-        held_out_psnr=_finite(last.psnr) if last else None, held_out_ssim=_finite(last.ssim) if last else None,
+        held_out_psnr=_finite(trained.psnr), held_out_ssim=_finite(trained.ssim),
+        scores=reconstruction.segment_scores_json(report), contact_sheet=sheet_ref,
         history=tuple(reconstruction.EvalSample(step=h.step, wall_s=h.wall_s, psnr=_finite(h.psnr),
                                                 ssim=_finite(h.ssim)) for h in result.history),
         config=config.model_dump(mode="json"))
     ref = s.put_record(record)
+    publish_table(artifact_key(key, "scores"), report.table(),
+                  f"Segment [{a}, {b}) of {cap.name}: held-out scores (per-camera gain/offset fitted on other "
+                  f"frames) beside the empty and untrained floors, and the training views")
+    publish_image(artifact_key(key, "contact-sheet"), sheet,
+                  f"Segment [{a}, {b}) of {cap.name}: footage | render | error")
     try:  # the model is stored: its checkpoint has done its job (gc may take it)
         s.delete_ref(ckpt_name)
     except MissingRefError:
         pass
     return ref
+
+
+def _mask_loader(s: ArtifactStore, cap: Capture):
+    """Performer masks of a synthetic capture (``ground_truth/masks``), or None without them."""
+    if cap.ground_truth is None:
+        return None
+    tree = s.get_tree(cap.ground_truth)
+    if not any(p.startswith("masks/") for p in tree):
+        return None
+
+    def load(cam: str, frame: int):
+        entry = tree.get(f"masks/{cam}/{frame:06d}.exr")
+        return None if entry is None else ground_truth.performer_mask(s.get_bytes(entry.digest))
+
+    return load
 
 
 def _finite(x: float) -> float | None:

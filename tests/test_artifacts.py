@@ -11,8 +11,8 @@ import re
 import numpy as np
 import pytest
 
-import flows.artifacts as fa
-from flows.artifacts import ProgressArtifact, artifact_key, publish_image, publish_markdown, publish_table
+import tasks.artifacts as fa
+from tasks.artifacts import ProgressArtifact, artifact_key, publish_image, publish_markdown, publish_table
 from volcap_core.contact_sheet import SheetRow, contact_sheet, encode_png
 
 
@@ -62,7 +62,7 @@ def test_failures_are_logged_not_raised(monkeypatch):
     # a handler on the module's logger itself: Prefect's logging setup replaces root handlers,
     # where pytest's caplog listens
     records = _Records()
-    logging.getLogger("flows.artifacts").addHandler(records)
+    logging.getLogger("tasks.artifacts").addHandler(records)
 
     def unreachable(*a, **k):
         raise httpx.ConnectError("All connection attempts failed")
@@ -78,7 +78,7 @@ def test_failures_are_logged_not_raised(monkeypatch):
         p = ProgressArtifact("k", "d")
         p.update(5, 5)
     finally:
-        logging.getLogger("flows.artifacts").removeHandler(records)
+        logging.getLogger("tasks.artifacts").removeHandler(records)
     assert p.artifact_id is None
     assert sum("ConnectError" in m for m in records.messages) == 4
     assert any("expects PNG bytes" in m for m in records.messages)

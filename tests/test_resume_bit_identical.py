@@ -30,7 +30,7 @@ def _config():
 
     # MCMC relocation and growth on both sides of the checkpoint at step 4
     return train_config("test", held_out=["S002"], max_gaussians=1500, steps=8, checkpoint_every=4,
-                        eval_fit_steps=3, eval_max_views=1,
+                        eval_max_views=1,
                         mcmc=MCMCConfig(refine_start=2, refine_every=2, refine_stop=8, cap_max=1600))
 
 

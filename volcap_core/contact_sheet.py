@@ -26,7 +26,7 @@ area averaging, small ones (a 160x90 test capture) are enlarged with nearest nei
 pixels stay visible as pixels rather than being blurred into something that looks better than it
 is. The output is deterministic (same input, same bytes).
 
-This module is pure numpy/OpenCV (no Prefect): ``flows/artifacts.py`` puts the PNG in the UI.
+This module is pure numpy/OpenCV (no Prefect): ``tasks/artifacts.py`` puts the PNG in the UI.
 """
 
 from __future__ import annotations

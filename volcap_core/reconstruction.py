@@ -31,9 +31,9 @@ SEGMENT_MODEL_MEDIA = "application/vnd.volcap.poly4dgs+safetensors"
 #: Named training presets: the step counts trade time for quality. ``demo`` keeps the built-in demo
 #: under a few minutes on 2 CPU cores; ``production`` is the paper's 30k steps.
 PRESETS: dict[str, dict[str, Any]] = {
-    "test": {"steps": 20, "grid_size": 4, "eval_every": 0, "eval_fit_steps": 5, "eval_max_views": 2,
+    "test": {"steps": 20, "grid_size": 4, "eval_every": 0, "eval_max_views": 2,
              "checkpoint_every": 10, "mcmc": {"refine_start": 5, "refine_every": 5, "refine_stop": 15}},
-    "demo": {"steps": 200, "grid_size": 8, "eval_every": 100, "eval_fit_steps": 30, "eval_max_views": 4,
+    "demo": {"steps": 200, "grid_size": 8, "eval_every": 100, "eval_max_views": 4,
              "checkpoint_every": 100, "mcmc": {"refine_start": 50, "refine_every": 50, "refine_stop": 160}},
     "preview": {"steps": 3000, "eval_every": 500, "checkpoint_every": 500,
                 "mcmc": {"refine_start": 300, "refine_every": 100, "refine_stop": 2500}},
@@ -115,8 +115,13 @@ class SegmentModel(Record):
     gaussians: int
     steps: int
     wall_s: float
+    #: the trained model's held-out PSNR/SSIM under the protocol of ``splat.scoring``
     held_out_psnr: float | None = None
     held_out_ssim: float | None = None
+    #: every figure with its floors: {"held_out": {"trained"|"initial"|"empty": Scores JSON},
+    #: "training": Scores JSON} (see :func:`segment_scores_json`)
+    scores: dict[str, Any] = {}
+    contact_sheet: ArtifactRef | None = None   # PNG: footage | render | error
     history: tuple[EvalSample, ...] = ()
     config: dict[str, Any]
 
@@ -124,6 +129,12 @@ class SegmentModel(Record):
     def time_range(self) -> tuple[float, float]:
         """Seconds on the take's clock covered by the segment's frames."""
         return self.frames[0] / self.fps, (self.frames[1] - 1) / self.fps
+
+
+def segment_scores_json(report) -> dict[str, Any]:
+    """The JSON kept in :attr:`SegmentModel.scores` from a :class:`~volcap_core.splat.report.SegmentScores`."""
+    return {"held_out": {k: v.to_json() for k, v in report.held_out.items()},
+            "training": report.training.to_json()}
 
 
 def splat_camera(K: np.ndarray, world_to_camera: np.ndarray, width: int, height: int) -> Camera:
@@ -165,11 +176,14 @@ class FrameCache:
 
 def segment_data(capture: Capture, calibration: Calibration, tracking: dict[str, TrackingFrames] | None,
                  frames: tuple[int, int], load_frame: Callable[[ArtifactRef], torch.Tensor],
-                 camera_ids: Sequence[str] | None = None, scale: float = 1.0) -> SegmentData:
+                 camera_ids: Sequence[str] | None = None, scale: float = 1.0,
+                 load_mask: Callable[[str, int], np.ndarray | None] | None = None) -> SegmentData:
     """Views of take frames [a, b) of every (or the given) camera, images loaded lazily.
 
     ``scale`` < 1 trains at that fraction of the capture's resolution: images are area-averaged
     (what a smaller sensor of the same optics would integrate) and intrinsics scaled to match.
+    ``load_mask(camera, take index)``: performer coverage ``[H, W]`` at the capture's resolution
+    (a synthetic capture's ground truth), area-averaged like the images; scoring only.
     """
     if not 0 < scale <= 1:
         raise ValueError(f"scale must be in (0, 1], got {scale}")
@@ -191,20 +205,60 @@ def segment_data(capture: Capture, calibration: Calibration, tracking: dict[str,
         return torch.nn.functional.interpolate(image.permute(2, 0, 1)[None], size=(size.height, size.width),
                                                mode="area")[0].permute(1, 2, 0).contiguous()
 
+    def mask_for(cam: str, f: int) -> torch.Tensor | None:
+        m = load_mask(cam, f) if load_mask is not None else None
+        if m is None:
+            return None
+        m = torch.from_numpy(np.asarray(m, np.float32))
+        if scale == 1:
+            return m
+        size = camera_for(cam, f)
+        return torch.nn.functional.interpolate(m[None, None], size=(size.height, size.width), mode="area")[0, 0]
+
     return SegmentData.build(frames=frames, camera_ids=ids, fps=capture.fps, load_image=load_image,
-                             camera_for=camera_for)
+                             camera_for=camera_for, load_mask=mask_for if load_mask is not None else None)
 
 
 def segment_points(points: PointCloudSequence, frames: tuple[int, int],
-                   load_points: Callable[[ArtifactRef], tuple[np.ndarray, np.ndarray]]) -> list[PointsAtTime]:
-    """The dense points of frames [a, b), one :class:`PointsAtTime` per frame."""
-    out = []
+                   load_points: Callable[[ArtifactRef], tuple[np.ndarray, np.ndarray]],
+                   static_scan: bytes | None = None, background: Sequence | None = None) -> list[PointsAtTime]:
+    """The dense points of frames [a, b), one :class:`PointsAtTime` per frame, each point marked
+    static or moving (:func:`volcap_core.splat.init.classify_static`): on the capture's lidar scan
+    of the empty stage (``static_scan``, PLY bytes in the calibration's world frame) or present in
+    most other frames of the segment.
+
+    With a scan and ``background`` views (the static cameras at the segment's middle frame), the
+    scan itself, coloured by those views (:func:`~volcap_core.splat.init.colour_scan`), is added
+    as one more static cloud: it covers what the plane sweep finds no match on (a plain ceiling,
+    the far walls), where the model would otherwise have nothing to draw.
+    """
+    from volcap_core.calibration.lidar import LidarScan
+    from volcap_core.splat.init import classify_static, colour_scan
+
+    clouds = []
     for f in range(*frames):
         pf = points.at(f)
         xyz, rgb = load_points(pf.points)
-        out.append(PointsAtTime(time=pf.time, xyz=torch.from_numpy(np.asarray(xyz, np.float32)),
-                                rgb=torch.from_numpy(np.asarray(rgb, np.float32))))
+        clouds.append((pf.time, np.asarray(xyz, np.float32), np.asarray(rgb, np.float32)))
+    scan = LidarScan.from_ply_bytes(static_scan) if static_scan is not None else None
+    static = classify_static([c[1] for c in clouds],
+                             scan_distance=None if scan is None else scan.surface_distance)
+    out = [PointsAtTime(time=t, xyz=torch.from_numpy(xyz), rgb=torch.from_numpy(rgb),
+                        static=torch.from_numpy(st)) for (t, xyz, rgb), st in zip(clouds, static)]
+    if scan is not None and background:
+        rgb, seen = colour_scan(scan.points, background)
+        xyz = scan.points[seen].astype(np.float32)
+        mid = 0.5 * (clouds[0][0] + clouds[-1][0])
+        out.append(PointsAtTime(time=mid, xyz=torch.from_numpy(xyz), rgb=torch.from_numpy(rgb[seen]),
+                                static=torch.ones(len(xyz), dtype=torch.bool)))
     return out
+
+
+def background_views(data: SegmentData, capture: Capture, held_out: Sequence[str] = ()) -> list:
+    """The static training cameras' views at the segment's middle frame (what colours the scan)."""
+    mid = data.frames[0] + (data.frames[1] - data.frames[0]) // 2
+    static = {c.id for c in capture.cameras if not capture.rig.camera(c.id).role.tracks}
+    return [v for v in data.views if v.frame == mid and v.camera_id in static and v.camera_id not in held_out]
 
 
 def default_held_out(capture: Capture, n: int = 1) -> list[str]:

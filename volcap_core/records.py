@@ -23,6 +23,7 @@ MEDIA_EXR = "image/x-exr"
 MEDIA_SAFETENSORS = "application/vnd.safetensors"
 MEDIA_JSON = "application/json"
 MEDIA_BYTES = "application/octet-stream"
+MEDIA_PNG = "image/png"
 
 
 class ArtifactRef(BaseModel):

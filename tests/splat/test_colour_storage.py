@@ -150,7 +150,7 @@ def test_init_stores_point_colours_in_the_configured_space():
 
 def test_both_storages_train_and_the_default_is_unchanged():
     data, points, _ = moving_scene()
-    base = dict(grid_size=4, eval_fit_steps=10, checkpoint_every=0, held_out_cameras=["3"],
+    base = dict(grid_size=4, checkpoint_every=0, held_out_cameras=["3"],
                 steps=30, eval_every=0,
                 mcmc=dict(refine_start=10, refine_every=10, refine_stop=10_000, cap_max=600))
     default = train_segment(data, points, TrainConfig(model=Poly4DGSConfig.paper(sh_degree=1),

@@ -20,7 +20,7 @@ pytestmark = pytest.mark.usefixtures("single_thread")
 
 
 def _config(**kw):
-    base = dict(model=Poly4DGSConfig.paper(sh_degree=0), grid_size=4, eval_fit_steps=30,
+    base = dict(model=Poly4DGSConfig.paper(sh_degree=0), grid_size=4,
                 checkpoint_every=0, held_out_cameras=["3"],
                 mcmc=dict(refine_start=60, refine_every=40, refine_stop=10_000, cap_max=600))
     base.update(kw)

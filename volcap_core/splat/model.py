@@ -74,6 +74,9 @@ MAX_ABS_DT = 1e6
 LOG_SCALE_MIN, LOG_SCALE_MAX = -30.0, 10.0
 #: Each opacity-envelope term λ_i dt^(2i) is capped at exp(80) ≈ 5.5e34 (float32-safe sum).
 _LOG_TERM_CAP = 80.0
+#: log λ of a Gaussian that lives for the whole segment (static set): λ = e^-40, so λ·dt² < 1e-14
+#: for any |dt| < 1 day; an exact zero would put log λ at -inf, whose Adam update is NaN
+STATIC_LOG_LAMBDA = -40.0
 MODEL_FORMAT = "volcap-poly4dgs/1"
 
 #: What the SH colour ``c(d) = SH(d) + 0.5`` of a Gaussian is. ``"srgb_unbounded"`` (the paper's
@@ -203,7 +206,7 @@ class Poly4DGS:
     @classmethod
     def from_points(cls, config: Poly4DGSConfig, xyz: torch.Tensor, colour: torch.Tensor, *,
                     scales: torch.Tensor, t0: torch.Tensor | None = None,
-                    opacity: float = 0.5, lifespan_s: float = 1.0) -> "Poly4DGS":
+                    opacity: float = 0.5, lifespan_s: float | torch.Tensor = 1.0) -> "Poly4DGS":
         """One isotropic Gaussian per point, no motion.
 
         Args:
@@ -213,8 +216,10 @@ class Poly4DGS:
             scales: ``[N]`` or ``[N, 3]`` initial standard deviations (metres), > 0.
             t0: ``[N]`` temporal centres (seconds); required when the config is temporal.
             opacity: initial o_0 in (0, 1).
-            lifespan_s: initial temporal standard deviation σ_t (seconds): λ_1 = 1/σ_t², and
-                λ_i = 0.01 / σ_t^(2i) for i >= 2 (a near-Gaussian envelope the optimiser reshapes).
+            lifespan_s: initial temporal standard deviation σ_t (seconds), one for all or ``[N]``:
+                λ_1 = 1/σ_t², and λ_i = 0.01 / σ_t^(2i) for i >= 2 (a near-Gaussian envelope the
+                optimiser reshapes). ``inf`` = lives for ever (what does not move): log λ =
+                :data:`STATIC_LOG_LAMBDA`.
         """
         n = xyz.shape[0]
         dev, dt = xyz.device, torch.float32
@@ -237,8 +242,11 @@ class Poly4DGS:
             p["scales_t"] = torch.zeros(n, c.scale_degree, 3, device=dev)
         if c.opacity_degree:
             i = torch.arange(1, c.opacity_degree + 1, device=dev, dtype=dt)
-            log_lam = -2 * i * math.log(lifespan_s) + torch.where(i > 1, math.log(0.01), 0.0)
-            p["log_lambdas"] = log_lam.repeat(n, 1)
+            life = torch.as_tensor(lifespan_s, dtype=dt, device=dev).expand(n)
+            log_lam = (-2 * i[None] * torch.log(life.clamp(min=1e-9))[:, None]
+                       + torch.where(i > 1, math.log(0.01), 0.0)[None])
+            p["log_lambdas"] = torch.where(torch.isinf(life)[:, None],
+                                           torch.full_like(log_lam, STATIC_LOG_LAMBDA), log_lam)
         if c.temporal:
             if t0 is None:
                 raise ValueError("a temporal config needs t0 per point")

@@ -11,10 +11,10 @@ grid and MCMC regularisers; Adam with per-parameter learning rates; MCMC relocat
 refine steps and SGLD noise on the means after every step.
 
 Held-out cameras are never trained on. Evaluation (every ``eval_every`` steps and at the end)
-renders them with the frozen model, fits *only* their own exposure and black-level grids for
-``eval_fit_steps`` steps (the paper's protocol: the model's exposure is arbitrary relative to a
-camera it never saw), then reports PSNR/SSIM on the display encoding (sRGB, clamped) against the
-training wall time so far (evaluation and checkpoint time excluded).
+renders them with the frozen model and scores them under :mod:`volcap_core.splat.scoring`'s
+protocol (a per-camera gain/offset fitted on the camera's *other* frames only), reporting PSNR/SSIM
+on the display encoding (sRGB, clamped) against the training wall time so far (evaluation and
+checkpoint time excluded).
 
 Checkpoints are safetensors bytes (tensors + JSON metadata, no pickle) holding the model, both Adam
 states, the grids, the RNG state, the step and the evaluation history. ``resume_from`` continues
@@ -49,9 +49,16 @@ from volcap_core.splat.mcmc import (
     mcmc_regulariser,
     relocate_dead,
 )
-from volcap_core.splat.model import Poly4DGS, Poly4DGSConfig, evaluate, safetensors_bytes
+from volcap_core.splat.model import (
+    STATIC_LOG_LAMBDA,
+    Poly4DGS,
+    Poly4DGSConfig,
+    evaluate,
+    safetensors_bytes,
+)
 from volcap_core.splat.optim import AdamState, adam_step, exponential_lr
 from volcap_core.splat.render import render
+from volcap_core.splat.scoring import ViewScore, score_views, summarise
 
 __all__ = [
     "EvalPoint",
@@ -82,6 +89,8 @@ class View:
         camera: intrinsics/extrinsics at this frame (zoom cameras may change per frame).
         image: ``[H, W, 3]`` or ``[H, W, 4]`` linear float (RGB, or premultiplied RGBA), or a
             zero-argument callable returning it (loaded lazily, e.g. from the artifact store).
+        mask: where the performers are, ``[H, W]`` in [0, 1] (a synthetic capture's ground
+            truth), a callable returning it or None; only scoring reads it.
     """
 
     camera_id: str
@@ -89,6 +98,17 @@ class View:
     time: float
     camera: Camera
     image: torch.Tensor | Callable[[], torch.Tensor]
+    mask: torch.Tensor | Callable[[], torch.Tensor | None] | None = None
+
+    def load_mask(self) -> torch.Tensor | None:
+        m = self.mask() if callable(self.mask) else self.mask
+        if m is None:
+            return None
+        m = torch.as_tensor(m, dtype=torch.float32).reshape(-1)
+        if m.numel() != self.camera.height * self.camera.width:
+            raise ValueError(f"view {self.camera_id}@{self.frame}: mask has {m.numel()} pixels, camera "
+                             f"{self.camera.width}x{self.camera.height}")
+        return m.reshape(self.camera.height, self.camera.width)
 
     def load(self) -> torch.Tensor:
         img = self.image() if callable(self.image) else self.image
@@ -111,7 +131,8 @@ class SegmentData:
     @classmethod
     def build(cls, *, frames: tuple[int, int], camera_ids: Sequence[str], fps: float,
               load_image: Callable[[str, int], torch.Tensor],
-              camera_for: Callable[[str, int], Camera], lazy: bool = True) -> "SegmentData":
+              camera_for: Callable[[str, int], Camera], lazy: bool = True,
+              load_mask: Callable[[str, int], torch.Tensor | None] | None = None) -> "SegmentData":
         """Assemble from an ingested capture and a calibration.
 
         Args:
@@ -123,6 +144,8 @@ class SegmentData:
             lazy: defer ``load_image`` until a view is used (default), else load now. A lazy
                 loader runs every time its view is drawn: cache inside it (e.g. an LRU of decoded
                 frames) when decoding is expensive.
+            load_mask: ``(camera_id, take_index) -> [H, W]`` performer coverage or None, read
+                lazily, only when views are scored.
         """
         a, b = frames
         if not 0 <= a < b:
@@ -131,7 +154,8 @@ class SegmentData:
         for cam in camera_ids:
             for f in range(a, b):
                 img = (lambda c=cam, i=f: load_image(c, i)) if lazy else load_image(cam, f)
-                views.append(View(cam, f, f / fps, camera_for(cam, f), img))
+                mask = (lambda c=cam, i=f: load_mask(c, i)) if load_mask is not None else None
+                views.append(View(cam, f, f / fps, camera_for(cam, f), img, mask))
         return cls((a, b), views)
 
     @property
@@ -146,11 +170,14 @@ class SegmentData:
 @dataclass(frozen=True)
 class PointsAtTime:
     """A dense point cloud of one frame: ``xyz [P, 3]`` metres, ``rgb [P, 3]`` linear colour,
-    ``time`` seconds (becomes the t0 of the Gaussians made from it)."""
+    ``time`` seconds (becomes the t0 of the moving Gaussians made from it), ``static [P]`` bool
+    or None: which points belong to what does not move (:func:`volcap_core.splat.init.classify_static`;
+    None = all moving)."""
 
     time: float
     xyz: torch.Tensor
     rgb: torch.Tensor
+    static: torch.Tensor | None = None
 
 
 # --------------------------------------------------------------------------------------- config
@@ -211,14 +238,20 @@ class TrainConfig(BaseModel):
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     held_out_cameras: list[str] = Field(default_factory=list)
     init_opacity: float = Field(0.5, gt=0, lt=1)
-    init_lifespan_frames: float = Field(1.5, gt=0,
-                                        description="initial temporal σ, in frame intervals")
-    init_max_points: int | None = Field(None, gt=0, description="subsample init points to this")
+    init_lifespan_frames: float = Field(0.7, gt=0,
+                                        description="initial temporal σ of moving Gaussians, in frame intervals")
+    init_max_points: int | None = Field(None, gt=0, description="thin the initial points to this")
+    init_cap_fraction: float = Field(0.7, gt=0, le=1, description="initial Gaussians at most this "
+                                     "fraction of mcmc.cap_max (room for growth)")
+    init_static_share: float = Field(0.6, ge=0, le=1, description="share of the initial budget "
+                                     "for the static pool")
+    init_scale_factor: float = Field(0.5, gt=0, description="initial scale / RMS distance to the 3 "
+                                     "nearest neighbours")
+    init_max_scale_ratio: float = Field(4.0, gt=0, description="cap on the initial scale, × the "
+                                        "median initial scale of its pool")
     time_scale_s: float | None = Field(None, gt=0, description="default: half the segment")
     checkpoint_every: int = Field(1000, ge=0)
     eval_every: int = Field(1000, ge=0, description="0: only at the end")
-    eval_fit_steps: int = Field(100, ge=0)
-    eval_fit_lr: float = 1e-2
     eval_max_views: int = Field(24, gt=0)
     backend: Literal["auto", "gsplat", "torch"] = "auto"
     tile_size: int = Field(8, ge=1)
@@ -245,40 +278,49 @@ class TrainResult:
 
 # ---------------------------------------------------------------------------------------- init
 
-def _nn_scale(xyz: np.ndarray, k: int = 3) -> np.ndarray:
-    """RMS distance to the k nearest neighbours (3DGS's initial scale), floored."""
-    from scipy.spatial import cKDTree
-
-    if len(xyz) < 2:
-        return np.full(len(xyz), 0.01)
-    kk = min(k, len(xyz) - 1)
-    d, _ = cKDTree(xyz).query(xyz, k=kk + 1)
-    d = d[:, 1:]
-    s = np.sqrt((d * d).mean(axis=1))
-    return np.maximum(s, 1e-7)
-
-
 def init_model(points: Sequence[PointsAtTime], config: TrainConfig, *, frame_interval_s: float,
                generator: torch.Generator | None = None) -> Poly4DGS:
-    """One Gaussian per point: t0 = its frame time, colour = its colour (unbounded sRGB, or linear
-    as it is when ``config.model.colour_space == "linear"``), isotropic
-    scale = RMS distance to its 3 nearest neighbours within its own frame, opacity
-    ``init_opacity``, no motion, temporal σ = ``init_lifespan_frames`` frame intervals."""
-    if not points:
-        raise ValueError("no initial points")
-    xyz = torch.cat([p.xyz.float() for p in points])
-    rgb = torch.cat([p.rgb.float() for p in points])
-    t0 = torch.cat([torch.full((len(p.xyz),), float(p.time)) for p in points])
-    scales = torch.cat([torch.from_numpy(_nn_scale(p.xyz.double().numpy())).float()
-                        for p in points])
-    n_max = min(config.init_max_points or len(xyz), config.mcmc.cap_max)
-    if len(xyz) > n_max:
-        keep = torch.randperm(len(xyz), generator=generator)[:n_max].sort().values
-        xyz, rgb, t0, scales = xyz[keep], rgb[keep], t0[keep], scales[keep]
+    """The untrained model of a segment (:mod:`volcap_core.splat.init`).
+
+    Static points (``PointsAtTime.static``) of every frame are pooled into one set of Gaussians
+    that live for the whole segment (centred mid-segment, λ = 0); each frame's moving points,
+    isolated ones dropped, become Gaussians centred on their frame's time with temporal σ =
+    ``init_lifespan_frames`` frame intervals. Both are thinned on voxel grids to
+    ``init_budget(config)`` Gaussians (``init_static_share`` of it for the static pool). Colour =
+    the point's colour (unbounded sRGB, or linear as it is when ``config.model.colour_space ==
+    "linear"``), isotropic scale = ``init_scale_factor`` × the RMS distance to the 3 nearest
+    neighbours of its pool (at most ``init_max_scale_ratio`` × the pool's median), opacity
+    ``init_opacity``, no motion.
+    """
+    from volcap_core.splat.init import initial_gaussians
+
+    if not points or sum(len(p.xyz) for p in points) == 0:
+        raise ValueError("no initial points: the segment's dense point clouds are empty")
+    seed = int(torch.randint(2 ** 31 - 1, (1,), generator=generator)) if generator is not None else 0
+    frames = [(p.time, p.xyz.double().numpy(), p.rgb.double().numpy(),
+               None if p.static is None else p.static.numpy()) for p in points]
+    split = initial_gaussians(frames, budget=init_budget(config), static_share=config.init_static_share,
+                              scale_factor=config.init_scale_factor,
+                              max_scale_ratio=config.init_max_scale_ratio,
+                              seed=seed)
+    if len(split.xyz) == 0:
+        raise ValueError("no initial points left after dropping isolated moving points")
+    rgb = torch.from_numpy(split.rgb).float()
     colour = rgb if config.model.colour_space == "linear" else srgb_encode_unbounded(rgb)
-    return Poly4DGS.from_points(config.model, xyz, colour, scales=scales,
-                                t0=t0, opacity=config.init_opacity,
-                                lifespan_s=config.init_lifespan_frames * frame_interval_s)
+    lifespan = torch.where(torch.from_numpy(split.static), torch.tensor(float("inf")),
+                           torch.tensor(config.init_lifespan_frames * frame_interval_s))
+    return Poly4DGS.from_points(config.model, torch.from_numpy(split.xyz).float(), colour,
+                                scales=torch.from_numpy(split.scale).float(),
+                                t0=torch.from_numpy(split.t0).float(), opacity=config.init_opacity,
+                                lifespan_s=lifespan)
+
+
+def init_budget(config: TrainConfig) -> int:
+    """Initial Gaussians: ``init_max_points`` but at most ``init_cap_fraction`` of MCMC's cap, so
+    growth has room to act."""
+    cap = config.mcmc.cap_max
+    budget = max(1, int(config.init_cap_fraction * cap))
+    return min(config.init_max_points or budget, budget)
 
 
 def _scene_scale(cameras: Sequence[Camera]) -> float:
@@ -307,40 +349,52 @@ def _learning_rates(cfg: TrainConfig, step: int, scene_scale: float, time_scale:
     return out
 
 
+def _non_finite(model: Poly4DGS) -> str:
+    bad = {k: int((~torch.isfinite(v.detach())).any(dim=tuple(range(1, v.ndim))).sum()) if v.ndim > 1
+           else int((~torch.isfinite(v.detach())).sum()) for k, v in model.params.items()}
+    return ", ".join(f"{k} in {n} Gaussian(s)" for k, n in bad.items() if n) or "none"
+
+
+def _freeze_static_lifespans(model: Poly4DGS) -> None:
+    """No lifespan update for Gaussians that live for ever: their log λ gradient is ~1e-19, and
+    Adam (ε = 1e-15) would turn it into full-size steps that, over a long run, make the static
+    set flicker out."""
+    g = model.params.get("log_lambdas")
+    if g is None or g.grad is None:
+        return
+    static = g.detach()[:, 0] <= STATIC_LOG_LAMBDA + 10.0
+    g.grad[static] = 0.0
+
+
 # ---------------------------------------------------------------------------------- evaluation
 
-def evaluate_held_out(model: Poly4DGS, views: Sequence[View], config: TrainConfig, *,
-                      device: torch.device | str = "cpu") -> tuple[float, float]:
-    """Mean (PSNR dB, SSIM) over ``views`` after fitting each camera's exposure and black-level
-    grids to them for ``eval_fit_steps`` Adam steps with the model frozen."""
-    if not views:
-        return float("nan"), float("nan")
+def render_views(model: Poly4DGS | None, views: Sequence[View], config: TrainConfig, *,
+                 device: torch.device | str = "cpu") -> list[torch.Tensor]:
+    """Linear renders ``[H, W, 3]`` of ``model`` for ``views`` (no grid applied); ``None`` = the
+    empty model (it renders the background)."""
     bg = torch.tensor(config.background, device=device)
+    out = []
     with torch.no_grad():
-        renders = [render(evaluate(model, v.time), v.camera, backend=config.backend,
-                          background=bg, tile_size=config.tile_size)["rgb"] for v in views]
-    targets = [v.load()[..., :3].to(device) for v in views]
-    cam_ids = sorted({v.camera_id for v in views})
-    grids = ExposureGrids.identity(cam_ids, config.grid_size, device)
-    fit = {"exposure": grids.exposure.requires_grad_(config.optimise_exposure),
-           "black": grids.black.requires_grad_(config.optimise_black_level)}
-    state = AdamState.zeros_like(fit)
-    rows = [cam_ids.index(v.camera_id) for v in views]
-    lrs = {k: config.eval_fit_lr for k in fit}
-    for _ in range(config.eval_fit_steps if (config.optimise_exposure
-                                             or config.optimise_black_level) else 0):
-        for t in fit.values():
-            t.grad = None
-        loss = sum(reconstruction_loss(apply_grids(r, fit["exposure"][i], fit["black"][i]), t,
-                                       ssim_weight=config.ssim_weight)[0]
-                   for r, t, i in zip(renders, targets, rows)) / len(views)
-        loss.backward()
-        adam_step(fit, lrs, state)
-    scores = []
-    with torch.no_grad():
-        for r, t, i in zip(renders, targets, rows):
-            scores.append(display_metrics(apply_grids(r, fit["exposure"][i], fit["black"][i]), t))
-    return float(np.mean([s[0] for s in scores])), float(np.mean([s[1] for s in scores]))
+        for v in views:
+            if model is None:
+                out.append(bg.expand(v.camera.height, v.camera.width, 3).clone())
+            else:
+                out.append(render(evaluate(model, v.time), v.camera, backend=config.backend,
+                                  background=bg, tile_size=config.tile_size)["rgb"])
+    return out
+
+
+def evaluate_held_out(model: Poly4DGS | None, views: Sequence[View], config: TrainConfig, *,
+                      device: torch.device | str = "cpu") -> list[ViewScore]:
+    """Score ``model`` on held-out ``views`` under the protocol of :mod:`volcap_core.splat.scoring`
+    (per-camera gain/offset fitted on the camera's *other* frames, raw figures beside, performer
+    figures where views carry masks). ``model=None`` scores the empty model (a floor)."""
+    if not views:
+        return []
+    renders = render_views(model, views, config, device=device)
+    return score_views(renders, [v.load()[..., :3].to(renders[0]) for v in views],
+                       [v.camera_id for v in views], [v.frame for v in views],
+                       [v.load_mask() for v in views])
 
 
 def _eval_subset(views: Sequence[View], n: int) -> list[View]:
@@ -486,8 +540,8 @@ def train_segment(views: SegmentData, init_points: Sequence[PointsAtTime], confi
 
     def run_eval() -> None:
         if eval_views and (not state.history or state.history[-1].step != state.step):
-            p, s = evaluate_held_out(state.model, eval_views, config, device=device)
-            state.history.append(EvalPoint(state.step, state.wall_s, p, s))
+            sc = summarise(evaluate_held_out(state.model, eval_views, config, device=device))
+            state.history.append(EvalPoint(state.step, state.wall_s, sc.psnr, sc.ssim))
 
     if state.step == 0 and config.eval_every:
         run_eval()
@@ -515,14 +569,20 @@ def train_segment(views: SegmentData, init_points: Sequence[PointsAtTime], confi
             exposure_weight=config.exposure_weight if config.optimise_exposure else 0.0,
             black_weight=config.black_weight if config.optimise_black_level else 0.0)
         loss = loss + reg + mcmc_regulariser(model, config.mcmc)
+        if not torch.isfinite(loss):
+            raise FloatingPointError(
+                f"step {step}: loss is {float(loss)} on view {view.camera_id}@{view.frame} "
+                f"({len(model)} Gaussians; non-finite parameters: {_non_finite(model)}; target "
+                f"{'finite' if bool(torch.isfinite(target).all()) else 'has NaN/Inf pixels'})")
         loss.backward()
+        _freeze_static_lifespans(model)
         adam_step(model.params, lrs, state.adam)
         adam_step(grid_params, grid_lrs, state.grid_adam)
 
         if config.mcmc.is_refine_step(step):
             relocate_dead(model, state.adam, config.mcmc, state.generator)
             add_gaussians(model, state.adam, config.mcmc, state.generator)
-        inject_noise(model, float(lrs["means"]), config.mcmc, state.generator)
+        inject_noise(model, float(lrs["means"]), config.mcmc, state.generator, scene_scale=scene_scale)
         state.step = step
         state.wall_s += time.perf_counter() - t_start
 

@@ -1,0 +1,140 @@
+"""Initial Gaussians of a segment: static/moving split, floater filter, voxel thinning, the coloured
+scan, and what the model makes of them (shared static Gaussians, short-lived moving ones)."""
+
+import numpy as np
+import pytest
+import torch
+
+from volcap_core.splat.camera import look_at
+from volcap_core.splat.init import (
+    classify_static,
+    colour_scan,
+    drop_isolated,
+    initial_gaussians,
+    voxel_thin,
+)
+from volcap_core.splat.model import Poly4DGSConfig, evaluate
+from volcap_core.splat.train import PointsAtTime, TrainConfig, View, init_budget, init_model
+
+
+def _wall(rng, n=4000):
+    """Points on the plane y = 3 (a wall), x, z in [-2, 2]."""
+    return np.stack([rng.uniform(-2, 2, n), np.full(n, 3.0), rng.uniform(-2, 2, n)], 1)
+
+
+def _blob(rng, centre, n=600, r=0.15):
+    return np.asarray(centre) + rng.normal(0, r / 2, (n, 3))
+
+
+def test_static_split_by_scan_and_by_persistence():
+    rng = np.random.default_rng(0)
+    wall = _wall(rng)                                          # on the scan
+    prop = _blob(rng, (1.0, 1.0, 0.5), 300, 0.1)               # not on the scan, never moves
+    frames = []
+    for f in range(4):
+        actor = _blob(rng, (-1.0 + 0.4 * f, 1.0, 1.0))         # moves 0.4 m per frame
+        frames.append(np.concatenate([wall[rng.choice(len(wall), 2000)],
+                                      prop + rng.normal(0, 0.003, prop.shape), actor]))
+    scan = wall
+
+    def scan_distance(x):
+        return np.abs(x[:, 1] - 3.0) + 10 * (np.abs(x[:, 0]) > 2)
+
+    out = classify_static(frames, scan_distance=scan_distance)
+    for f, st in zip(frames, out):
+        assert st[:2000].all()                                  # the scanned wall
+        assert st[2000:2300].mean() > 0.95                      # the prop, by persistence
+        assert st[2300:].mean() < 0.05                          # the actor moves
+    # without a scan, a single frame has nothing to call static
+    assert not classify_static([frames[0]])[0].any()
+    assert scan is wall
+
+
+def test_drop_isolated_removes_sparse_floaters_keeps_dense_surfaces():
+    rng = np.random.default_rng(1)
+    actor = _blob(rng, (0, 0, 1), 3000, 0.3)
+    floaters = rng.uniform(-4, 4, (100, 3))
+    keep = drop_isolated(np.concatenate([actor, floaters]))
+    assert keep[:3000].mean() > 0.97 and keep[3000:].mean() < 0.1
+    # scale-free: the same cloud in millimetres gives the same answer
+    keep_mm = drop_isolated(1000 * np.concatenate([actor, floaters]))
+    assert (keep_mm == keep).all()
+    assert drop_isolated(actor[:5]).all()                       # too few points to judge
+
+
+def test_voxel_thin_meets_the_budget_and_spreads_points():
+    rng = np.random.default_rng(2)
+    # a dense patch and a sparse far region: uniform sampling would keep mostly the dense patch
+    dense = rng.uniform(0, 0.5, (20000, 3))
+    sparse = rng.uniform(0, 5, (2000, 3)) + np.array([5, 0, 0])
+    pts = np.concatenate([dense, sparse])
+    idx = voxel_thin(pts, 2000, np.random.default_rng(0))
+    assert len(idx) == 2000 and len(np.unique(idx)) == 2000
+    assert (idx >= 20000).mean() > 0.3                          # uniform sampling: 9 %
+    again = voxel_thin(pts, 2000, np.random.default_rng(0))
+    assert (again == idx).all()                                 # deterministic for a seed
+    assert len(voxel_thin(pts[:10], 100, np.random.default_rng(0))) == 10
+
+
+def test_initial_gaussians_pool_static_once_and_respect_the_budget():
+    rng = np.random.default_rng(3)
+    wall = _wall(rng, 20000)
+    frames = []
+    for f in range(6):
+        actor = _blob(rng, (0.2 * f, 1.0, 1.0), 1500)
+        xyz = np.concatenate([wall[rng.choice(len(wall), 5000)], actor])
+        static = np.r_[np.ones(5000, bool), np.zeros(1500, bool)]
+        frames.append((f / 24, xyz, np.full((len(xyz), 3), 0.5), static))
+    split = initial_gaussians(frames, budget=6000, static_share=0.5, seed=0)
+    assert len(split.xyz) <= 6000
+    assert split.counts["static"] == 3000                       # half the budget, pooled once
+    assert np.allclose(split.t0[split.static], 2.5 / 24)        # centred mid-segment
+    moving_t0 = np.unique(split.t0[~split.static])
+    assert len(moving_t0) == 6                                  # every frame keeps its moving points
+    # scales: a fraction of the neighbour spacing of the thinned pool, never a room-sized splat
+    assert split.scale.max() < 0.5 and split.scale.min() > 0
+
+
+def test_static_gaussians_live_for_the_segment_moving_ones_for_about_a_frame():
+    rng = np.random.default_rng(4)
+    wall = _wall(rng, 3000).astype(np.float32)
+    pts = []
+    for f in range(8):
+        actor = _blob(rng, (0.1 * f, 1.0, 1.0), 400).astype(np.float32)
+        xyz = np.concatenate([wall, actor])
+        st = torch.from_numpy(np.r_[np.ones(3000, bool), np.zeros(400, bool)])
+        pts.append(PointsAtTime(f / 24, torch.from_numpy(xyz), torch.full((len(xyz), 3), 0.4), st))
+    cfg = TrainConfig(model=Poly4DGSConfig.paper(sh_degree=0), mcmc=dict(cap_max=10000))
+    assert init_budget(cfg) == 7000
+    model = init_model(pts, cfg, frame_interval_s=1 / 24, generator=torch.Generator().manual_seed(0))
+    n_static = int((model.params["log_lambdas"][:, 0] < -30).sum())
+    assert 2500 <= n_static <= 3000                              # one copy of the wall, not eight
+    alive = [len(evaluate(model, f / 24)) for f in range(8)]
+    moving_alive = [a - n_static for a in alive]
+    # at each instant: the wall plus at most about five frames' worth of actor Gaussians (σ = 0.7 frame)
+    assert all(a >= n_static for a in alive)
+    assert max(moving_alive) <= 5 * 400
+    with pytest.raises(ValueError, match="no initial points"):
+        init_model([PointsAtTime(0.0, torch.zeros(0, 3), torch.zeros(0, 3))], cfg,
+                   frame_interval_s=1 / 24)
+
+
+def test_colour_scan_takes_the_median_of_the_views_that_see_a_point():
+    # a wall at y = 3 and a pillar in front of part of it, seen by three cameras
+    rng = np.random.default_rng(5)
+    wall = _wall(rng, 6000)
+    size = 64
+    views = []
+    for k, x in enumerate((-1.0, 0.0, 1.0)):
+        cam = look_at((x, -2.0, 0.0), (0.0, 3.0, 0.0), (0.0, 0.0, 1.0), fov_x_deg=70.0,
+                      width=size, height=size)
+        img = torch.full((size, size, 3), 0.2 + 0.1 * k)        # each camera sees another shade
+        views.append(View(str(k), 0, 0.0, cam, img))
+    rgb, seen = colour_scan(wall, views)
+    assert seen.mean() > 0.3
+    # the median of 0.2, 0.3, 0.4 where all three see the point; a seen point has a real colour
+    assert np.allclose(np.median(rgb[seen], axis=0), 0.3, atol=0.051)
+    assert (rgb[~seen] == 0).all()
+    # a point hidden behind the wall (y = 4) is seen by no camera
+    _, seen_behind = colour_scan(np.concatenate([wall, [[0.0, 4.0, 0.0]]]), views)
+    assert not seen_behind[-1]

@@ -1,0 +1,271 @@
+"""Initial Gaussians of a segment from its per-frame dense points (paper: "We initialize 4D
+primitives from a sequence of dense point clouds reconstructed per frame").
+
+What does not move is one Gaussian for the whole segment, not a copy per frame:
+
+1. :func:`classify_static` marks a frame's point static when it lies on the lidar scan of the
+   empty stage (when the capture has one) or when the other frames of the segment have a point
+   within a few centimetres of it (props and sets the scan missed). Performers fail both tests.
+2. :func:`drop_isolated` removes moving points far sparser than their frame's moving cloud: a
+   plane sweep's floaters (mid-room triangulations of emissive strips, wrong matches) are sparse,
+   performers are dense.
+3. :func:`initial_gaussians` pools the static points of every frame, thins them on a voxel grid
+   to the static budget and gives them an unbounded lifespan (λ = 0, centred mid-segment); each
+   frame's moving points are thinned to the moving budget and live about one frame interval
+   around their frame's time.
+
+Initial scale: ``scale_factor`` × the RMS distance to the 3 nearest neighbours *within the pool the
+Gaussian was drawn from after thinning*, at most ``max_scale_ratio`` × the pool's median — the
+3DGS rule with a factor between 3DGS's 1 and gsplat's MCMC recipe's 0.1 (``docs/poly4dgs.md``
+says which and why). With
+1× on 2,500 points per frame a floor point near a camera covered the whole frame and half the
+Gaussians never received a gradient.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+__all__ = ["InitSplit", "classify_static", "drop_isolated", "initial_gaussians", "voxel_thin",
+           "neighbour_scale"]
+
+
+def neighbour_scale(xyz: np.ndarray, k: int = 3) -> np.ndarray:
+    """RMS distance ``[N]`` (metres) to the k nearest other points (3DGS's initial scale), floored
+    at 1e-7; 0.01 m for a cloud of one point."""
+    from scipy.spatial import cKDTree
+
+    if len(xyz) < 2:
+        return np.full(len(xyz), 0.01)
+    kk = min(k, len(xyz) - 1)
+    d, _ = cKDTree(xyz).query(xyz, k=kk + 1)
+    d = d[:, 1:]
+    return np.maximum(np.sqrt((d * d).mean(axis=1)), 1e-7)
+
+
+def classify_static(frames: Sequence[np.ndarray], *,
+                    scan_distance: Callable[[np.ndarray], np.ndarray] | None = None,
+                    scan_tolerance_m: float = 0.05, persistence_radius_m: float = 0.03,
+                    persistence: float = 0.5) -> list[np.ndarray]:
+    """Which points of each frame belong to what does not move.
+
+    Args:
+        frames: per frame, ``[P_f, 3]`` points (metres).
+        scan_distance: ``[N, 3] -> [N]`` distance to the empty stage's scanned surface (inf where
+            the scan has nothing near), or None when there is no scan.
+        scan_tolerance_m: a point this close to the scan is static.
+        persistence_radius_m, persistence: a point is also static when at least this fraction of
+            the *other* frames has a point within the radius of it (needs >= 2 frames).
+    Returns:
+        per frame, ``[P_f]`` bool.
+    """
+    from scipy.spatial import cKDTree
+
+    out = []
+    trees = [cKDTree(f) if len(f) else None for f in frames] if len(frames) > 1 else []
+    for i, xyz in enumerate(frames):
+        static = np.zeros(len(xyz), bool)
+        if len(xyz) and scan_distance is not None:
+            static |= np.asarray(scan_distance(xyz)) < scan_tolerance_m
+        if trees and len(xyz):
+            hits = np.zeros(len(xyz), np.int32)
+            for j, tree in enumerate(trees):
+                if j == i or tree is None:
+                    continue
+                d, _ = tree.query(xyz, k=1, distance_upper_bound=persistence_radius_m)
+                hits += np.isfinite(d)
+            static |= hits >= persistence * (len(frames) - 1)
+        out.append(static)
+    return out
+
+
+def drop_isolated(xyz: np.ndarray, *, neighbours: int = 8, factor: float = 3.0) -> np.ndarray:
+    """``[N]`` bool: points whose distance to their ``neighbours``-th nearest neighbour is at most
+    ``factor`` × the median of that distance over the cloud (scale-free: a cloud in millimetres or
+    kilometres, sparse or dense, is judged against its own density). Clouds of at most
+    ``neighbours`` points are kept whole."""
+    from scipy.spatial import cKDTree
+
+    if len(xyz) <= neighbours:
+        return np.ones(len(xyz), bool)
+    d, _ = cKDTree(xyz).query(xyz, k=neighbours + 1)
+    dk = d[:, -1]
+    return dk <= factor * np.median(dk)
+
+
+def voxel_thin(xyz: np.ndarray, budget: int, rng: np.random.Generator) -> np.ndarray:
+    """Indices of at most ``budget`` points spread evenly in space: one random point per cell of
+    the coarsest-needed cubic grid (bisected on the cell size), topped up at random if the grid
+    leaves room. Deterministic for a seeded ``rng``."""
+    n = len(xyz)
+    if n <= budget:
+        return np.arange(n)
+    if budget <= 0:
+        return np.zeros(0, np.int64)
+    order = rng.permutation(n)
+    pts = xyz[order]
+    extent = float(np.max(pts.max(0) - pts.min(0))) or 1.0
+    lo, hi = extent * 1e-4, extent
+
+    origin = pts.min(0)
+
+    def pick(cell: float) -> np.ndarray:
+        ijk = np.floor((pts - origin) / cell).astype(np.int64)
+        dims = ijk.max(0) + 1
+        keys = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]   # one int64 per cell
+        _, first = np.unique(keys, return_index=True)
+        return np.sort(first)
+
+    best = pick(hi)
+    for _ in range(30):
+        mid = math.sqrt(lo * hi)
+        sel = pick(mid)
+        if len(sel) > budget:
+            lo = mid
+        else:
+            hi, best = mid, sel
+        if hi / lo < 1.02:
+            break
+    if len(best) < budget:  # fill up with the points not yet taken, in the random order
+        rest = np.setdiff1d(np.arange(n), best)[: budget - len(best)]
+        best = np.sort(np.concatenate([best, rest]))
+    return np.sort(order[best])
+
+
+@dataclass
+class InitSplit:
+    """The initial Gaussians before they become a model (numpy, N rows).
+
+    Attributes:
+        xyz: ``[N, 3]`` metres. rgb: ``[N, 3]`` linear colour. scale: ``[N]`` metres.
+        t0: ``[N]`` seconds. static: ``[N]`` bool (unbounded lifespan).
+    """
+
+    xyz: np.ndarray
+    rgb: np.ndarray
+    scale: np.ndarray
+    t0: np.ndarray
+    static: np.ndarray
+
+    @property
+    def counts(self) -> dict[str, int]:
+        return {"static": int(self.static.sum()), "moving": int((~self.static).sum())}
+
+
+def initial_gaussians(frames: Sequence[tuple[float, np.ndarray, np.ndarray, np.ndarray | None]], *,
+                      budget: int, static_share: float = 0.6, scale_factor: float = 0.5,
+                      max_scale_ratio: float = 4.0, seed: int = 0) -> InitSplit:
+    """Pool and thin a segment's points into at most ``budget`` initial Gaussians.
+
+    Args:
+        frames: per frame ``(time_s, xyz [P, 3], rgb [P, 3] linear, static [P] bool or None)``;
+            ``static=None`` treats the frame's points as moving.
+        budget: most Gaussians in total.
+        static_share: fraction of the budget the static pool may take (what it leaves unused
+            goes to the moving points, and the reverse).
+        scale_factor, max_scale_ratio: initial scale = factor × RMS distance to the 3 nearest
+            neighbours in its pool, at most ``max_scale_ratio`` × that pool's median (a lone
+            point of a sparse region must not cover a camera's frame).
+        seed: thinning randomness.
+    Returns:
+        :class:`InitSplit`.
+    """
+    rng = np.random.default_rng(seed)
+    s_xyz, s_rgb, m_parts = [], [], []
+    for time_s, xyz, rgb, static in frames:
+        xyz, rgb = np.asarray(xyz, np.float64).reshape(-1, 3), np.asarray(rgb, np.float64).reshape(-1, 3)
+        st = np.zeros(len(xyz), bool) if static is None else np.asarray(static, bool)
+        s_xyz.append(xyz[st])
+        s_rgb.append(rgb[st])
+        moving = xyz[~st]
+        keep = drop_isolated(moving)
+        m_parts.append((float(time_s), moving[keep], rgb[~st][keep]))
+    s_xyz_all = np.concatenate(s_xyz) if s_xyz else np.zeros((0, 3))
+    s_rgb_all = np.concatenate(s_rgb) if s_rgb else np.zeros((0, 3))
+    # the same static point given by several frames is one point (a scan repeated per frame)
+    _, first = np.unique(s_xyz_all, axis=0, return_index=True)
+    first = np.sort(first)
+    s_xyz_all, s_rgb_all = s_xyz_all[first], s_rgb_all[first]
+    n_moving_avail = sum(len(x) for _, x, _ in m_parts)
+    static_budget = min(len(s_xyz_all), max(int(static_share * budget), budget - n_moving_avail))
+    idx = voxel_thin(s_xyz_all, static_budget, rng)
+    parts_xyz = [s_xyz_all[idx]]
+    parts_rgb = [s_rgb_all[idx]]
+    parts_scale = [_capped(neighbour_scale(s_xyz_all[idx]), max_scale_ratio)]
+    n_static = len(idx)
+    times = [f[0] for f in frames]
+    mid = 0.5 * (min(times) + max(times)) if times else 0.0
+    parts_t0 = [np.full(n_static, mid)]
+    per_frame = (budget - n_static) // max(1, len(m_parts))
+    for time_s, xyz, rgb in m_parts:
+        k = voxel_thin(xyz, per_frame, rng)
+        parts_xyz.append(xyz[k])
+        parts_rgb.append(rgb[k])
+        parts_scale.append(_capped(neighbour_scale(xyz[k]), max_scale_ratio))
+        parts_t0.append(np.full(len(k), time_s))
+    xyz = np.concatenate(parts_xyz)
+    scale = scale_factor * np.concatenate(parts_scale)
+    static = np.zeros(len(xyz), bool)
+    static[:n_static] = True
+    return InitSplit(xyz, np.concatenate(parts_rgb), scale, np.concatenate(parts_t0), static)
+
+
+def _capped(scale: np.ndarray, ratio: float) -> np.ndarray:
+    return np.minimum(scale, ratio * np.median(scale)) if len(scale) else scale
+
+
+def as_tensors(split: InitSplit) -> dict[str, torch.Tensor]:
+    """float32 torch views of a split (``static`` as bool)."""
+    return {"xyz": torch.from_numpy(split.xyz).float(), "rgb": torch.from_numpy(split.rgb).float(),
+            "scale": torch.from_numpy(split.scale).float(), "t0": torch.from_numpy(split.t0).float(),
+            "static": torch.from_numpy(split.static)}
+
+
+def colour_scan(points: np.ndarray, views: Sequence, *, min_views: int = 1, splat_px: int = 2,
+                depth_tolerance: float = 0.03) -> tuple[np.ndarray, np.ndarray]:
+    """Colour a scan of the empty stage from calibrated views (the static cameras' background).
+
+    Each scan point is projected into every view; it counts as seen where its depth is within
+    ``depth_tolerance`` (relative, plus 2 cm) of the view's z-buffer of the scan itself (so walls
+    hide what is behind them). Its colour is the per-channel median over the views that see it:
+    a performer standing in front of the set in a few views does not colour it.
+
+    Args:
+        points: ``[N, 3]`` scan points (metres, the calibration's world frame).
+        views: :class:`~volcap_core.splat.train.View` s (``camera``: pixel centres at +0.5;
+            ``load()``: ``[H, W, 3|4]`` linear).
+        min_views: a point seen by fewer views gets no colour.
+    Returns:
+        ``(rgb [N, 3] linear float32, seen [N] bool)``; rows of unseen points are 0.
+    """
+    from volcap_core.calibration.lidar import depth_buffer
+
+    pts = np.asarray(points, np.float64).reshape(-1, 3)
+    samples = np.full((len(views), len(pts), 3), np.nan, np.float32)
+    for k, v in enumerate(views):
+        K = v.camera.K.double().numpy().copy()
+        K[0, 2] -= 0.5   # to OpenCV's pixel centres at integers (what depth_buffer rounds to)
+        K[1, 2] -= 0.5
+        W = v.camera.world_to_camera.double().numpy()
+        w, h = v.camera.width, v.camera.height
+        zbuf = depth_buffer(K, W, w, h, pts, splat_px=splat_px)
+        pc = pts @ W[:3, :3].T + W[:3, 3]
+        z = pc[:, 2]
+        ok = z > 0.1
+        uv = np.zeros((len(pts), 2))
+        uv[ok] = pc[ok, :2] / z[ok, None] @ K[:2, :2].T + K[:2, 2]
+        ix = np.round(uv).astype(np.int64)
+        ok &= (ix[:, 0] >= 0) & (ix[:, 0] < w) & (ix[:, 1] >= 0) & (ix[:, 1] < h)
+        ok[ok] &= z[ok] <= zbuf[ix[ok, 1], ix[ok, 0]] * (1 + depth_tolerance) + 0.02
+        image = v.load()[..., :3].numpy()
+        samples[k, ok] = image[ix[ok, 1], ix[ok, 0]]
+    seen = np.isfinite(samples[..., 0]).sum(0) >= min_views
+    rgb = np.zeros((len(pts), 3), np.float32)
+    if seen.any():
+        rgb[seen] = np.nanmedian(samples[:, seen], axis=0)
+    return rgb, seen
