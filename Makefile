@@ -29,9 +29,16 @@ test: $(STAMP)
 test-quick: $(STAMP)
 	$(BIN)/python -m pytest -q -ra -m "not slow"
 
+# Every benchmark under bench/, one after the other (about an hour on 2 cores; figures and the
+# command of each in docs/benchmarks.md). Run one alone with `.venv/bin/python bench/NAME.py`.
 bench: $(STAMP)
+	$(BIN)/python -m pip install -q -e ".[bench]"
 	$(BIN)/python bench/bench_store.py
 	$(BIN)/python bench/bench_ingest.py
+	$(BIN)/python bench/bench_rasterizer.py
+	$(BIN)/python bench/bench_calibration.py
+	$(BIN)/python bench/bench_poly4dgs.py
+	$(BIN)/python bench/bench_production.py
 
 clean:
 	rm -rf $(VENV) .volcap demo .pytest_cache

@@ -121,11 +121,16 @@ def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRe
     progress_artifact = ProgressArtifact(artifact_key(key, "training"),
                                          f"Training of segment [{a}, {b}) of {cap.name}: steps done")
 
+    mcmc = {"relocated": 0, "grown": 0}
+
     def progress(step: int, total: int, info: dict) -> None:  # what a coordinator watches scroll by
         progress_artifact.update(step, total)
+        mcmc["relocated"] += info["relocated"]
+        mcmc["grown"] += info["grown"]
         if step % every == 0 or step == total:
-            run_log.info("segment [%d, %d): step %d/%d, loss %.4f, %d Gaussians, %.0f s", a, b, step, total,
-                         info["loss"], info["num_gaussians"], info["wall_s"])
+            run_log.info("segment [%d, %d): step %d/%d, loss %.4f, %d Gaussians (MCMC so far: %d relocated, "
+                         "%d grown), %.0f s", a, b, step, total, info["loss"], info["num_gaussians"],
+                         mcmc["relocated"], mcmc["grown"], info["wall_s"])
 
     with reconstruction.deterministic_torch(device):
         result = train_segment(data, init, config, checkpoint=checkpoint if config.checkpoint_every else None,

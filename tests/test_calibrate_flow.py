@@ -239,4 +239,6 @@ def test_reconstruct_trains_on_the_estimated_calibration(calibrated):
     assert [f.count for f in seq.frames] == [2000, 2000]
     seg = out["segments"][0]
     rec = s.get_record(seg["model"]["digest"], SegmentModel)
-    assert rec.calibration.digest == out["calibration"]["digest"] and seg["held_out_psnr"] > 5
+    assert rec.calibration.digest == out["calibration"]["digest"]
+    # on the estimated calibration too, the model is well above the floors of the same views
+    assert seg["held_out_psnr"] > seg["floor_initial_psnr"] > seg["floor_empty_psnr"] + 1.0

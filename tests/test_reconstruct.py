@@ -56,7 +56,15 @@ def test_reconstruct_trains_reports_and_caches(ingested):
     first = _reconstruct(store, capture)
     seg = first.result["segments"][0]
     assert seg["frames"] == [0, 2] and seg["gaussians"] > 0
-    assert seg["held_out_psnr"] is not None and seg["held_out_psnr"] > 5
+    # Measured (2026-11-23, test preset, 20 steps, true cameras): held-out 20.96 dB, untrained
+    # 19.94, empty model 16.15 (all under the same protocol, same views); performers 20.84.
+    # A foggy initialisation renders near the empty floor; a broken rasterizer or optimiser does
+    # not improve on the untrained model.
+    assert seg["floor_initial_psnr"] >= seg["floor_empty_psnr"] + 2.5
+    assert seg["held_out_psnr"] >= seg["floor_initial_psnr"] + 0.5
+    assert seg["held_out_psnr"] >= seg["floor_empty_psnr"] + 3.5
+    assert seg["held_out_psnr_performers"] is not None and seg["held_out_psnr_raw"] is not None
+    assert seg["training_psnr"] > seg["floor_empty_psnr"] + 3.0
     s = ArtifactStore(store)
     rec = s.get_record(seg["model"]["digest"], SegmentModel)
     assert rec.held_out_cameras == ("S002",) and "S002" not in rec.grid_cameras
@@ -64,6 +72,12 @@ def test_reconstruct_trains_reports_and_caches(ingested):
     model = load_model(s.get_bytes(rec.model))
     assert len(model) == rec.gaussians
     assert s.list_refs("checkpoints/") == {}  # finished: no checkpoint left behind
+    png = s.get_bytes(rec.contact_sheet)
+    import cv2
+    import numpy as np
+    sheet = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    assert sheet is not None and sheet.shape[0] > 300 and sheet.std() > 10   # a picture, not a blank
+    assert set(rec.scores["held_out"]) == {"trained", "initial", "empty"}
 
     again = _reconstruct(store, capture)
     assert again.tasks_run == 0 and again.tasks_cached == 3

@@ -96,3 +96,13 @@ def test_segment_data_builds_lazily_with_frame_times():
     assert loads == [("0", 3)]
     with pytest.raises(ValueError):
         View("0", 0, 0.0, cams[0], torch.zeros(4, 4, 3)).load()
+
+
+def test_a_non_finite_loss_stops_training_with_the_view_that_caused_it():
+    data, points, _ = moving_scene(n=12, frames=(0, 2), size=16, cameras=4)
+    poisoned = [View(v.camera_id, v.frame, v.time, v.camera,
+                     torch.full((16, 16, 3), float("nan")) if v.camera_id == "1" else v.image)
+                for v in data.views]
+    with pytest.raises(FloatingPointError, match=r"on view 1@\d.*target has NaN/Inf pixels"):
+        train_segment(SegmentData(data.frames, poisoned), points,
+                      _config(steps=30, eval_every=0, held_out_cameras=[]), seed=0)

@@ -569,9 +569,9 @@ def train_segment(views: SegmentData, init_points: Sequence[PointsAtTime], confi
             exposure_weight=config.exposure_weight if config.optimise_exposure else 0.0,
             black_weight=config.black_weight if config.optimise_black_level else 0.0)
         loss = loss + reg + mcmc_regulariser(model, config.mcmc)
-        if not torch.isfinite(loss):
+        if not torch.isfinite(loss.detach()):
             raise FloatingPointError(
-                f"step {step}: loss is {float(loss)} on view {view.camera_id}@{view.frame} "
+                f"step {step}: loss is {float(loss.detach())} on view {view.camera_id}@{view.frame} "
                 f"({len(model)} Gaussians; non-finite parameters: {_non_finite(model)}; target "
                 f"{'finite' if bool(torch.isfinite(target).all()) else 'has NaN/Inf pixels'})")
         loss.backward()
@@ -579,16 +579,18 @@ def train_segment(views: SegmentData, init_points: Sequence[PointsAtTime], confi
         adam_step(model.params, lrs, state.adam)
         adam_step(grid_params, grid_lrs, state.grid_adam)
 
+        relocated = grown = 0
         if config.mcmc.is_refine_step(step):
-            relocate_dead(model, state.adam, config.mcmc, state.generator)
-            add_gaussians(model, state.adam, config.mcmc, state.generator)
+            relocated = relocate_dead(model, state.adam, config.mcmc, state.generator)
+            grown = add_gaussians(model, state.adam, config.mcmc, state.generator)
         inject_noise(model, float(lrs["means"]), config.mcmc, state.generator, scene_scale=scene_scale)
         state.step = step
         state.wall_s += time.perf_counter() - t_start
 
         if progress is not None:
             progress(step, config.steps, {"loss": float(loss.detach()), **parts,
-                                          "num_gaussians": len(model), "wall_s": state.wall_s})
+                                          "num_gaussians": len(model), "relocated": relocated,
+                                          "grown": grown, "wall_s": state.wall_s})
         if config.eval_every and step % config.eval_every == 0:
             run_eval()
         if checkpoint is not None and (
