@@ -137,7 +137,11 @@ def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRe
                                resume_from=resume, seed=seed, device=device, progress=progress)
         report = score_segment(result.model, result.grids, data, init, config, seed=seed, device=device)
     progress_artifact.finish()
-    sheet = encode_png(contact_sheet(report.sheet_rows, title=f"{cap.name} frames {a}:{b}: footage | render | error"))
+    title = f"{cap.name} frames {a}:{b}: footage | render | error"
+    sheet = encode_png(contact_sheet(report.sheet_rows, title=title))
+    # the UI copy is smaller: a full-width sheet of noisy footage is several MB of PNG, too much to
+    # inline in an artifact
+    sheet_ui = encode_png(contact_sheet(report.sheet_rows, title=title, max_width=720))
     sheet_ref = s.put_bytes(sheet, MEDIA_PNG)
     model_ref = s.put_bytes(save_model(result.model), reconstruction.SEGMENT_MODEL_MEDIA)
     grids_ref = s.put_bytes(reconstruction.encode_grids(result.grids.camera_ids, result.grids.exposure,
@@ -156,7 +160,7 @@ def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRe
     publish_table(artifact_key(key, "scores"), report.table(),
                   f"Segment [{a}, {b}) of {cap.name}: held-out scores (per-camera gain/offset fitted on other "
                   f"frames) beside the empty and untrained floors, and the training views")
-    publish_image(artifact_key(key, "contact-sheet"), sheet,
+    publish_image(artifact_key(key, "contact-sheet"), sheet_ui,
                   f"Segment [{a}, {b}) of {cap.name}: footage | render | error")
     try:  # the model is stored: its checkpoint has done its job (gc may take it)
         s.delete_ref(ckpt_name)

@@ -78,6 +78,17 @@ def test_reconstruct_trains_reports_and_caches(ingested):
     sheet = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
     assert sheet is not None and sheet.shape[0] > 300 and sheet.std() > 10   # a picture, not a blank
     assert set(rec.scores["held_out"]) == {"trained", "initial", "empty"}
+    # a coordinator sees the table, the sheet and the progress in the Prefect UI
+    from prefect.client.orchestration import get_client
+    from prefect.client.schemas.filters import ArtifactFilter, ArtifactFilterFlowRunId
+
+    with get_client(sync_client=True) as client:
+        arts = client.read_artifacts(artifact_filter=ArtifactFilter(
+            flow_run_id=ArtifactFilterFlowRunId(any_=[first.flow_run_id])))
+    by_key = {a.key: a for a in arts}
+    assert by_key["segment-0-2-scores"].type == "table"
+    assert "data:image/png;base64," in by_key["segment-0-2-contact-sheet"].data
+    assert by_key["segment-0-2-training"].type == "progress" and by_key["segment-0-2-training"].data == 100
 
     again = _reconstruct(store, capture)
     assert again.tasks_run == 0 and again.tasks_cached == 3
