@@ -35,16 +35,17 @@ def calibrate_capture(store: str, capture: ArtifactRef) -> ArtifactRef:
 
 
 def point_cloud_for_frames(store: str, capture: ArtifactRef, calibration: ArtifactRef, frames: list[int],
-                           max_points_per_frame: int | None = None, seed: int = 0, scale: float = 1.0
-                           ) -> ArtifactRef:
+                           max_points_per_frame: int | None = None, seed: int = 0, scale: float = 1.0,
+                           exclude_cameras: list[str] | None = None) -> ArtifactRef:
     """The PointCloudSequence ref of ``frames`` (take indices): one dense-points task per frame
     (mapped), then the sequence record (``max_points_per_frame``: a training budget, see
-    :func:`tasks.calibrate.point_cloud_sequence`). Call it inside a flow run (any)."""
+    :func:`tasks.calibrate.point_cloud_sequence`); ``exclude_cameras``: held-out cameras, which
+    take no part. Call it inside a flow run (any)."""
     frames = sorted({int(f) for f in frames})
     dense = []
     if frames:
         futures = dense_points_frame.map(unmapped(store), unmapped(capture), unmapped(calibration), frames,
-                                         unmapped(scale))
+                                         unmapped(scale), unmapped(sorted(exclude_cameras or [])))
         dense = [f.result() for f in futures]
     return point_cloud_sequence(store, calibration, dense, max_points_per_frame, seed)
 

@@ -463,7 +463,8 @@ def production_flow(spec: str, store: str | None = None, shots: list[str] | None
             a, b = p["frames"]
             points[step.id] = point_cloud_for_frames(prod.store, captures[cap], calibrations[cap], list(range(a, b)),
                                                      max_points_per_frame=q.gaussians_per_frame,
-                                                     scale=q.dense_scale)
+                                                     scale=q.dense_scale,
+                                                     exclude_cameras=reconstruction.default_held_out(records[cap]))
             finish(step, {"points": points[step.id]})
 
     # every needed segment at once

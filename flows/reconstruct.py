@@ -66,17 +66,20 @@ def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = 
         calib_ref = ground_truth_calibration(store, capture_ref)
     else:
         calib_ref = calibrate_capture(store, capture_ref)
+    held = held_out if held_out is not None else reconstruction.default_held_out(cap)
+    # held-out cameras take no part in the initial points: their footage must not reach the model
     if points:
         points_ref = s.resolve(points)
     elif ground_truth:
         # true depth of every pixel of every camera is millions of points: a budget is needed here
-        points_ref = ground_truth_points(store, capture_ref, calib_ref, points_per_frame or 150_000, seed)
+        points_ref = ground_truth_points(store, capture_ref, calib_ref, points_per_frame or 150_000, seed,
+                                         exclude_cameras=held)
     else:
-        points_ref = point_cloud_for_frames(store, capture_ref, calib_ref, list(range(a, b)), points_per_frame, seed)
+        points_ref = point_cloud_for_frames(store, capture_ref, calib_ref, list(range(a, b)), points_per_frame, seed,
+                                            exclude_cameras=held)
     log.info("capture %s: %s calibration %s, points %s", cap.name,
              "given" if calibration else "ground-truth" if ground_truth else "estimated", calib_ref.digest,
              points_ref.digest)
-    held = held_out if held_out is not None else reconstruction.default_held_out(cap)
     config = reconstruction.train_config(preset, degrees=degrees, held_out=held, max_gaussians=max_gaussians)
     segments = split_frames(a, b, segment_frames)
     log.info("capture %s: %d segment(s) of frames %d:%d, preset %s, held out %s", cap.name, len(segments), a, b,

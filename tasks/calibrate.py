@@ -365,11 +365,13 @@ def assemble_calibration(store: str, capture: ArtifactRef, static: ArtifactRef,
     return s.put_record(record)
 
 
-@volcap_task(name="dense-points-frame", version="1")
+@volcap_task(name="dense-points-frame", version="2")
 def dense_points_frame(store: str, capture: ArtifactRef, calibration: ArtifactRef, frame: int,
-                       scale: float = 1.0) -> ArtifactRef:
+                       scale: float = 1.0, exclude_cameras: list[str] | None = None) -> ArtifactRef:
     """One frame's dense points: a plane sweep per calibrated static camera, fused by cross-view
-    consistency (``volcap_core.calibration.dense``), colours linear."""
+    consistency (``volcap_core.calibration.dense``), colours linear. ``exclude_cameras`` (a
+    reconstruction's held-out cameras) take no part: points seen or coloured by a camera would
+    leak its footage into the model it is meant to test."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
     calib = s.get_record(calibration, Calibration)
@@ -379,7 +381,7 @@ def dense_points_frame(store: str, capture: ArtifactRef, calibration: ArtifactRe
         raise CalibrationInputError(f"calibration {calibration.digest} is of capture {calib.capture}, not {cap.name}")
     # Static cameras only: the zoomed tracking views see the scene 5-7x larger, which the
     # fixed-size NCC windows of the sweep do not match across.
-    ids = [c for c in calib.static_ids if c in {cc.id for cc in cap.cameras}]
+    ids = [c for c in calib.static_ids if c in {cc.id for cc in cap.cameras} and c not in set(exclude_cameras or ())]
     if len(ids) < 2:
         raise CalibrationInputError(f"capture {cap.name}, frame {frame}: dense points need two calibrated static "
                                     f"cameras, the calibration has {len(ids)}")

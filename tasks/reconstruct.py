@@ -55,10 +55,11 @@ def load_tracking(s: ArtifactStore, calib: Calibration) -> dict[str, TrackingFra
     return decode_tracking_frames(s.get_bytes(calib.tracking_frames)) if calib.tracking_frames else None
 
 
-@volcap_task(name="ground-truth-points", version="1")
+@volcap_task(name="ground-truth-points", version="2")
 def ground_truth_points(store: str, capture: ArtifactRef, calibration: ArtifactRef, points_per_frame: int,
-                        seed: int) -> ArtifactRef:
-    """Dense points per frame from the true depth maps of every camera, coloured by its image."""
+                        seed: int, exclude_cameras: list[str] | None = None) -> ArtifactRef:
+    """Dense points per frame from the true depth maps of every camera but ``exclude_cameras``
+    (held-out ones), coloured by its image."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
     calib = s.get_record(calibration, Calibration)
@@ -67,6 +68,8 @@ def ground_truth_points(store: str, capture: ArtifactRef, calibration: ArtifactR
     for f in range(cap.frame_count):
         xyz_all, rgb_all = [], []
         for cam in cap.cameras:
+            if cam.id in set(exclude_cameras or ()):
+                continue
             depth, _ = imageio.decode_exr_native(_ground_truth_file(s, cap, f"depth/{cam.id}/{f:06d}.exr"))
             image, _ = imageio.decode_exr(s.get_bytes(cam.frames[f]))
             K, w2c, _, _ = camera_at(calib, cam.id, f, tracking)

@@ -138,3 +138,18 @@ def test_colour_scan_takes_the_median_of_the_views_that_see_a_point():
     # a point hidden behind the wall (y = 4) is seen by no camera
     _, seen_behind = colour_scan(np.concatenate([wall, [[0.0, 4.0, 0.0]]]), views)
     assert not seen_behind[-1]
+
+
+def test_the_moving_budget_goes_where_moving_points_are():
+    from volcap_core.splat.init import _fair_shares
+
+    assert _fair_shares([0, 100, 5000, 5000], 3000) == [0, 100, 1450, 1450]
+    assert _fair_shares([10, 10], 1000) == [10, 10]
+    assert _fair_shares([], 50) == []
+    rng = np.random.default_rng(6)
+    wall = _wall(rng, 5000)
+    frames = [(0.0, wall, np.full((5000, 3), 0.5), np.ones(5000, bool))]      # e.g. the coloured scan
+    frames += [(f / 24, _blob(rng, (f * 0.2, 1, 1), 800), np.full((800, 3), 0.5), None) for f in range(3)]
+    split = initial_gaussians(frames, budget=3000, static_share=0.5, seed=0)
+    # the scan-only cloud has no moving point: its share is not lost
+    assert split.counts["static"] == 1500 and split.counts["moving"] >= 1450

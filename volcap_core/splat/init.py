@@ -201,9 +201,11 @@ def initial_gaussians(frames: Sequence[tuple[float, np.ndarray, np.ndarray, np.n
     times = [f[0] for f in frames]
     mid = 0.5 * (min(times) + max(times)) if times else 0.0
     parts_t0 = [np.full(n_static, mid)]
-    per_frame = (budget - n_static) // max(1, len(m_parts))
-    for time_s, xyz, rgb in m_parts:
-        k = voxel_thin(xyz, per_frame, rng)
+    shares = _fair_shares([len(x) for _, x, _ in m_parts], budget - n_static)
+    for (time_s, xyz, rgb), share in zip(m_parts, shares):
+        if share == 0:
+            continue
+        k = voxel_thin(xyz, share, rng)
         parts_xyz.append(xyz[k])
         parts_rgb.append(rgb[k])
         parts_scale.append(_capped(neighbour_scale(xyz[k]), max_scale_ratio))
@@ -213,6 +215,18 @@ def initial_gaussians(frames: Sequence[tuple[float, np.ndarray, np.ndarray, np.n
     static = np.zeros(len(xyz), bool)
     static[:n_static] = True
     return InitSplit(xyz, np.concatenate(parts_rgb), scale, np.concatenate(parts_t0), static)
+
+
+def _fair_shares(available: Sequence[int], budget: int) -> list[int]:
+    """Split ``budget`` over clouds as evenly as possible, a cloud never getting more than it has
+    (what a small cloud leaves goes to the others)."""
+    shares = [0] * len(available)
+    left = max(0, budget)
+    order = sorted(range(len(available)), key=lambda i: available[i])
+    for rank, i in enumerate(order):
+        shares[i] = min(available[i], left // (len(order) - rank))
+        left -= shares[i]
+    return shares
 
 
 def _capped(scale: np.ndarray, ratio: float) -> np.ndarray:
