@@ -154,6 +154,8 @@ def reconstruct(capture: Annotated[str, typer.Argument(help="capture ref name (c
                 preset: Annotated[str, typer.Option(help="training preset: test, demo, preview, production")] = "demo",
                 degrees: Annotated[str, typer.Option(help="model: poly4dgs, rotor4d, static")] = "poly4dgs",
                 segment_frames: Annotated[Optional[int], typer.Option(help="frames per segment (one segment when omitted)")] = None,
+                steps: Annotated[Optional[int], typer.Option(help="train this many steps instead of the preset's (its schedule stretched to match)")] = None,
+                max_gaussians: Annotated[Optional[int], typer.Option(help="Gaussian budget (MCMC's cap; training starts at 70 % of it)")] = None,
                 calibration: Annotated[Optional[str], typer.Option(help="Calibration ref; estimated here (cached) when omitted")] = None,
                 points: Annotated[Optional[str], typer.Option(help="PointCloudSequence ref; dense points of the frames when omitted")] = None,
                 ground_truth: Annotated[bool, typer.Option("--ground-truth", help="use a synthetic capture's true cameras and depth points instead of estimating them")] = False,
@@ -170,7 +172,7 @@ def reconstruct(capture: Annotated[str, typer.Argument(help="capture ref name (c
     held = [c for c in held_out.split(",") if c] if held_out is not None else None
     summary = _run(reconstruct_flow, store=_store_url(store), capture=capture, frames=span, preset=preset,
                    degrees=degrees, segment_frames=segment_frames, calibration=calibration, points=points,
-                   held_out=held, seed=seed, ground_truth=ground_truth)
+                   held_out=held, seed=seed, ground_truth=ground_truth, steps=steps, max_gaussians=max_gaussians)
     result = summary.result
     st = _open(_store_url(store))
     lines = []

@@ -1,9 +1,11 @@
 """The demo: every stage that exists, run on the built-in synthetic capture.
 
 ingest → calibrate (static cameras, tracking cameras, dense points of the frames reconstructed) →
-reconstruct (Poly4DGS, one segment of the first 8 frames, on the estimated calibration) → a held-out
-camera's view at the segment's middle rendered to EXR and the Gaussians there exported as PLY; the
-calibration's error against the capture's ground truth is reported. Stages join as they land.
+reconstruct (Poly4DGS, one segment of the first 8 frames, on the estimated calibration, scored on a
+held-out camera against the empty- and untrained-model floors) → the segment's contact sheet
+(footage | render | error) as ``demo/contact_sheet.png``, a held-out camera's view at the segment's
+middle rendered to EXR and the Gaussians there exported as PLY; the calibration's error against the
+capture's ground truth is reported. Stages join as they land.
 """
 
 from __future__ import annotations

@@ -44,7 +44,8 @@ def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = 
                      degrees: str = "poly4dgs", segment_frames: int | None = None,
                      calibration: str | None = None, points: str | None = None,
                      held_out: list[str] | None = None, points_per_frame: int | None = None,
-                     max_gaussians: int | None = None, seed: int = 0, ground_truth: bool = False) -> dict:
+                     max_gaussians: int | None = None, seed: int = 0, ground_truth: bool = False,
+                     steps: int | None = None) -> dict:
     """Train the segments of ``capture`` (a ref name such as ``captures/demo`` or a digest).
 
     ``calibration`` / ``points``: refs of a Calibration and a PointCloudSequence. When omitted, the
@@ -80,7 +81,9 @@ def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = 
     log.info("capture %s: %s calibration %s, points %s", cap.name,
              "given" if calibration else "ground-truth" if ground_truth else "estimated", calib_ref.digest,
              points_ref.digest)
-    config = reconstruction.train_config(preset, degrees=degrees, held_out=held, max_gaussians=max_gaussians)
+    overrides = {} if steps is None else reconstruction.steps_override(preset, steps)
+    config = reconstruction.train_config(preset, degrees=degrees, held_out=held, max_gaussians=max_gaussians,
+                                         **overrides)
     segments = split_frames(a, b, segment_frames)
     log.info("capture %s: %d segment(s) of frames %d:%d, preset %s, held out %s", cap.name, len(segments), a, b,
              preset, ", ".join(held) or "none")

@@ -196,3 +196,14 @@ def test_segment_data_at_a_fraction_of_the_resolution(ingested):
     assert torch.allclose(project(vh.camera), project(vf.camera) * 0.5, atol=1e-4)
     with pytest.raises(ValueError, match="scale"):
         segment_data(cap, calib, None, (0, 2), FrameCache(s.get_bytes), scale=1.5)
+
+
+def test_steps_override_stretches_the_preset_schedule_and_keeps_the_budget():
+    from volcap_core.reconstruction import steps_override
+
+    cfg = train_config("demo", max_gaussians=5000, **steps_override("demo", 1100))
+    assert cfg.steps == 1100 and cfg.mcmc.cap_max == 5000 and cfg.init_max_points == 5000
+    base = train_config("demo")
+    assert cfg.eval_every == 2 * base.eval_every and cfg.mcmc.refine_stop == 2 * base.mcmc.refine_stop
+    with pytest.raises(ValueError):
+        steps_override("demo", 0)
