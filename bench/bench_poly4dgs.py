@@ -3,7 +3,7 @@
     python bench/bench_poly4dgs.py            # the documented run (~8-10 min, see "Time")
     python bench/bench_poly4dgs.py --quick    # smoke run (~30 s): tiny, numbers meaningless
     python bench/bench_poly4dgs.py --json out.json --plot docs/img/poly4dgs_error_vs_time.png \\
-        --sheet docs/img/poly4dgs_contact_sheet.png
+        --sheet docs/img/poly4dgs_contact_sheet.jpg
 
 Scene: ``synthesize_capture(rig="demo_scene", seed=0, frames=N, write_depth=True)`` read back from
 its files (:mod:`poly4dgs_data`): 12 cameras (8 static, 4 zoom/tracking with veiling glare), each
@@ -58,7 +58,7 @@ The full run is also scored by :func:`volcap_core.splat.report.score_segment`, a
 (its held-out figures must equal the bench's; a warning says when not): its training views with
 their learned grids (the fit itself: a ceiling, not generalisation) and a contact sheet (footage |
 render | error for the held-out and two training cameras at the first, middle and last frame),
-written to ``--sheet`` (default ``docs/img/poly4dgs_contact_sheet.png``; none with ``--quick``
+written to ``--sheet`` (default ``docs/img/poly4dgs_contact_sheet.jpg``; none with ``--quick``
 unless given).
 
 Snapshots come from ``train_segment``'s checkpoints; time on the x-axis is training time only
@@ -111,7 +111,7 @@ from poly4dgs_data import (  # noqa: E402
     subsample_points,
 )
 
-from volcap_core.contact_sheet import contact_sheet, write_png  # noqa: E402
+from volcap_core.contact_sheet import contact_sheet, write_sheet  # noqa: E402
 from volcap_core.splat.grids import ExposureGrids  # noqa: E402
 from volcap_core.splat.mcmc import MCMCConfig  # noqa: E402
 from volcap_core.splat.model import STATIC_LOG_LAMBDA, Poly4DGS, Poly4DGSConfig  # noqa: E402
@@ -150,7 +150,7 @@ PAPER = {  # Table 1 of the paper (PSNR, SSIM, LPIPS); linear storage: "about 5 
     "per_frame": (26.11, 0.9697, 0.0204), "rotor4d": (27.08, 0.9730, 0.0171),
 }
 DEFAULT_PLOT = Path("docs/img/poly4dgs_error_vs_time.png")
-DEFAULT_SHEET = Path("docs/img/poly4dgs_contact_sheet.png")
+DEFAULT_SHEET = Path("docs/img/poly4dgs_contact_sheet.jpg")
 SHEET_WIDTH = 1000
 
 
@@ -397,7 +397,7 @@ def _report(final: Poly4DGS, grids: ExposureGrids, scene: BenchScene,
     if sheet is not None:
         sheet.parent.mkdir(parents=True, exist_ok=True)
         # panels ~2x the 160x90 images (the library's 1600 px default: 3x); 4 MB at 1000 px
-        write_png(sheet, contact_sheet(report.sheet_rows, title=title, max_width=SHEET_WIDTH))
+        write_sheet(sheet, contact_sheet(report.sheet_rows, title=title, max_width=SHEET_WIDTH))
         print(f"  contact sheet: {sheet}", flush=True)
     return {"views": tr.views, **figures(tr)}
 

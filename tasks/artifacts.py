@@ -95,7 +95,7 @@ def publish_image(key: str, png: bytes, description: str, *, max_inline_bytes: i
       (:func:`prefect.artifacts.create_image_artifact`, which displays an image from a URL the
       browser can fetch).
     * larger otherwise: a markdown artifact naming ``path`` (the file the PNG was written to, e.g.
-      with :func:`volcap_core.contact_sheet.write_png`), or saying that the image was not kept.
+      with :func:`volcap_core.contact_sheet.write_sheet`), or saying that the image was not kept.
 
     Args:
         key: artifact key (normalised with :func:`artifact_key`).

@@ -6,7 +6,7 @@ import cv2
 import numpy as np
 import pytest
 
-from volcap_core.contact_sheet import GAP, SheetRow, contact_sheet, encode_png, write_png
+from volcap_core.contact_sheet import GAP, SheetRow, contact_sheet, encode_png, write_sheet
 
 INFERNO_0 = cv2.applyColorMap(np.zeros((1, 1), np.uint8), cv2.COLORMAP_INFERNO)[0, 0, ::-1]  # RGB
 INFERNO_255 = cv2.applyColorMap(np.full((1, 1), 255, np.uint8), cv2.COLORMAP_INFERNO)[0, 0, ::-1]
@@ -138,10 +138,14 @@ def test_png_round_trip(tmp_path):
     decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)[:, :, ::-1]
     assert np.array_equal(decoded, sheet)
     path = tmp_path / "sheet.png"
-    write_png(path, sheet)
+    write_sheet(path, sheet)
     assert path.read_bytes() == data
     assert [p.name for p in tmp_path.iterdir()] == ["sheet.png"]  # no temporary file left behind
     assert np.array_equal(cv2.imread(str(path), cv2.IMREAD_COLOR)[:, :, ::-1], sheet)
+    jpg = tmp_path / "sheet.jpg"           # pages embed JPEGs: a tenth of the size
+    write_sheet(jpg, sheet)
+    back = cv2.imread(str(jpg), cv2.IMREAD_COLOR)[:, :, ::-1]
+    assert jpg.read_bytes()[:2] == b"\xff\xd8" and np.abs(back.astype(int) - sheet).mean() < 4
 
 
 @pytest.mark.parametrize("rows, match", [

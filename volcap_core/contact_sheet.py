@@ -42,7 +42,7 @@ import numpy as np
 
 from volcap_core.colour import srgb_encode
 
-__all__ = ["SheetRow", "contact_sheet", "encode_png", "write_png"]
+__all__ = ["SheetRow", "contact_sheet", "encode_jpeg", "encode_png", "write_sheet"]
 
 #: Pixels between panels, and around the sheet.
 GAP = 4
@@ -136,13 +136,28 @@ def encode_png(image: np.ndarray) -> bytes:
     return buf.tobytes()
 
 
-def write_png(path: str | os.PathLike[str], image: np.ndarray) -> None:
-    """:func:`encode_png` to ``path``, atomically (temporary file in the same folder, fsync, rename):
-    a crash leaves ``path`` absent or as it was, never a truncated PNG a viewer chokes on."""
+def encode_jpeg(image: np.ndarray, quality: int = 85) -> bytes:
+    """uint8 RGB ``[H, W, 3]`` -> JPEG bytes: a tenth of the PNG for pages that embed a sheet
+    (footage with sensor noise compresses badly as PNG)."""
+    image = np.asarray(image)
+    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3 or 0 in image.shape[:2]:
+        raise ValueError(f"encode_jpeg expects a uint8 RGB image [H, W, 3], got {image.dtype} {image.shape}")
+    ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(image[:, :, ::-1]), [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:
+        raise ValueError(f"OpenCV could not encode a {image.shape} image as JPEG")
+    return buf.tobytes()
+
+
+def write_sheet(path: str | os.PathLike[str], image: np.ndarray) -> None:
+    """A sheet to ``path`` as PNG, or JPEG when the name ends in ``.jpg``/``.jpeg``, atomically
+    (temporary file in the same folder, fsync, rename): a crash leaves ``path`` absent or as it
+    was, never a truncated image a viewer chokes on."""
     # The library's one atomic-write helper (the one write_exr uses), not a second copy of it.
     from volcap_core.imageio import _atomic_write
 
-    _atomic_write(Path(path), encode_png(image))
+    path = Path(path)
+    data = encode_jpeg(image) if path.suffix.lower() in (".jpg", ".jpeg") else encode_png(image)
+    _atomic_write(path, data)
 
 
 # -- validation ------------------------------------------------------------------------------------
