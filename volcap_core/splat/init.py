@@ -29,10 +29,9 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-import torch
 
-__all__ = ["InitSplit", "classify_static", "drop_isolated", "initial_gaussians", "voxel_thin",
-           "neighbour_scale"]
+__all__ = ["InitSplit", "classify_static", "colour_scan", "drop_isolated", "initial_gaussians",
+           "neighbour_scale", "voxel_thin"]
 
 
 def neighbour_scale(xyz: np.ndarray, k: int = 3) -> np.ndarray:
@@ -231,13 +230,6 @@ def _fair_shares(available: Sequence[int], budget: int) -> list[int]:
 
 def _capped(scale: np.ndarray, ratio: float) -> np.ndarray:
     return np.minimum(scale, ratio * np.median(scale)) if len(scale) else scale
-
-
-def as_tensors(split: InitSplit) -> dict[str, torch.Tensor]:
-    """float32 torch views of a split (``static`` as bool)."""
-    return {"xyz": torch.from_numpy(split.xyz).float(), "rgb": torch.from_numpy(split.rgb).float(),
-            "scale": torch.from_numpy(split.scale).float(), "t0": torch.from_numpy(split.t0).float(),
-            "static": torch.from_numpy(split.static)}
 
 
 def colour_scan(points: np.ndarray, views: Sequence, *, min_views: int = 1, splat_px: int = 2,
