@@ -83,42 +83,49 @@ def publish_markdown(key: str, markdown: str, description: str) -> UUID | None:
         markdown=str(markdown), key=k, description=description, _sync=True))
 
 
-def publish_image(key: str, png: bytes, description: str, *, max_inline_bytes: int = 2_000_000,
+def publish_image(key: str, image: bytes, description: str, *, max_inline_bytes: int = 1_000_000,
                   path: str | None = None) -> UUID | None:
-    """Show a PNG (e.g. :func:`volcap_core.contact_sheet.encode_png` of a contact sheet) in the UI.
+    """Show a PNG or JPEG (e.g. :func:`volcap_core.contact_sheet.encode_jpeg` of a contact sheet)
+    in the UI.
 
-    * ``len(png) <= max_inline_bytes`` (the default case): a markdown artifact
-      ``![description](data:image/png;base64,...)``. The image travels inside the artifact, so the UI
-      shows it wherever it runs, unlike a path on the worker's disk that a coordinator's browser
-      cannot read. Base64 adds a third: 2 MB of PNG is ~2.7 MB stored in the Prefect database.
+    * ``len(image) <= max_inline_bytes`` (the default case): a markdown artifact
+      ``![description](data:image/...;base64,...)``. The image travels inside the artifact, so the
+      UI shows it wherever it runs, unlike a path on the worker's disk that a coordinator's browser
+      cannot read. Base64 adds a third, and the server also publishes the artifact as an event,
+      which it refuses above ~1.5 MB (measured: "Refusing to publish event of size 2369091"):
+      keep inline images small (a JPEG sheet at 720 px is ~0.2 MB).
     * larger, and ``path`` is an ``http(s)://`` URL: an image artifact
       (:func:`prefect.artifacts.create_image_artifact`, which displays an image from a URL the
       browser can fetch).
-    * larger otherwise: a markdown artifact naming ``path`` (the file the PNG was written to, e.g.
-      with :func:`volcap_core.contact_sheet.write_sheet`), or saying that the image was not kept.
+    * larger otherwise: a markdown artifact naming ``path`` (the file the image was written to,
+      e.g. with :func:`volcap_core.contact_sheet.write_sheet`), or saying that it was not kept.
 
     Args:
         key: artifact key (normalised with :func:`artifact_key`).
-        png: the PNG file bytes.
+        image: PNG or JPEG file bytes.
         description: one line; also the image's alt text.
-        max_inline_bytes: largest PNG embedded as a data URI.
-        path: where the full PNG lives (local path, ``s3://`` or ``http(s)://`` URL), if anywhere.
+        max_inline_bytes: largest image embedded as a data URI.
+        path: where the full image lives (local path, ``s3://`` or ``http(s)://`` URL), if anywhere.
 
     Returns:
         the artifact id; ``None`` outside a run or when publishing failed (logged).
     """
     def create(k: str) -> UUID:
-        data = bytes(png)
-        if not data.startswith(_PNG_SIGNATURE):
-            raise ValueError(f"publish_image expects PNG bytes, got {data[:8]!r}... ({len(data)} bytes)")
+        data = bytes(image)
+        if data.startswith(_PNG_SIGNATURE):
+            mime = "image/png"
+        elif data.startswith(b"\xff\xd8\xff"):
+            mime = "image/jpeg"
+        else:
+            raise ValueError(f"publish_image expects PNG or JPEG bytes, got {data[:8]!r}... ({len(data)} bytes)")
         alt = _markdown_text(description) or "image"
         if len(data) <= max_inline_bytes:
-            uri = "data:image/png;base64," + base64.b64encode(data).decode("ascii")
+            uri = f"data:{mime};base64," + base64.b64encode(data).decode("ascii")
             return _pa.create_markdown_artifact(markdown=f"![{alt}]({uri})", key=k, description=description,
                                                 _sync=True)
         if path is not None and re.match(r"(?i)^https?://", str(path)):
             return _pa.create_image_artifact(image_url=str(path), key=k, description=description, _sync=True)
-        size = f"{len(data) / 1e6:.1f} MB PNG, more than the {max_inline_bytes / 1e6:.1f} MB embedded in the UI"
+        size = f"{len(data) / 1e6:.1f} MB image, more than the {max_inline_bytes / 1e6:.1f} MB embedded in the UI"
         where = f"Written to `{path}`." if path is not None else "It was not written to a file."
         return _pa.create_markdown_artifact(markdown=f"**{alt}**\n\nImage not embedded ({size}). {where}",
                                             key=k, description=description, _sync=True)

@@ -13,7 +13,7 @@ from prefect import get_run_logger
 
 from tasks.artifacts import ProgressArtifact, artifact_key, publish_image, publish_table
 from tasks.contract import current_run_key, volcap_task
-from volcap_core.contact_sheet import contact_sheet, encode_png
+from volcap_core.contact_sheet import contact_sheet, encode_jpeg, encode_png
 from volcap_core import imageio, reconstruction
 from volcap_core.calibration.record import Calibration, TrackingFrames, camera_at, decode_tracking_frames
 from volcap_core.capture import Capture
@@ -102,10 +102,7 @@ def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRe
     data = reconstruction.segment_data(cap, calib, load_tracking(s, calib), (a, b),
                                        reconstruction.FrameCache(s.get_bytes), scale=config.image_scale,
                                        load_mask=_mask_loader(s, cap))
-    init = reconstruction.segment_points(
-        pts, (a, b), lambda ref: decode_points(s.get_bytes(ref)),
-        static_scan=s.get_bytes(cap.lidar) if cap.lidar else None,
-        background=reconstruction.background_views(data, cap, config.held_out_cameras))
+    init = reconstruction.segment_init(s.get_bytes, cap, pts, data, config.held_out_cameras)
 
     ckpt_name = f"checkpoints/{current_run_key()}"
     try:
@@ -144,7 +141,7 @@ def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRe
     sheet = encode_png(contact_sheet(report.sheet_rows, title=title))
     # the UI copy is smaller: a full-width sheet of noisy footage is several MB of PNG, too much to
     # inline in an artifact
-    sheet_ui = encode_png(contact_sheet(report.sheet_rows, title=title, max_width=720))
+    sheet_ui = encode_jpeg(contact_sheet(report.sheet_rows, title=title, max_width=720))
     sheet_ref = s.put_bytes(sheet, MEDIA_PNG)
     model_ref = s.put_bytes(save_model(result.model), reconstruction.SEGMENT_MODEL_MEDIA)
     grids_ref = s.put_bytes(reconstruction.encode_grids(result.grids.camera_ids, result.grids.exposure,

@@ -81,7 +81,7 @@ def test_failures_are_logged_not_raised(monkeypatch):
         logging.getLogger("tasks.artifacts").removeHandler(records)
     assert p.artifact_id is None
     assert sum("ConnectError" in m for m in records.messages) == 4
-    assert any("expects PNG bytes" in m for m in records.messages)
+    assert any("expects PNG or JPEG bytes" in m for m in records.messages)
 
 
 def test_progress_is_throttled_and_always_ends_at_100(monkeypatch):

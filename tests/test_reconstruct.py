@@ -87,7 +87,7 @@ def test_reconstruct_trains_reports_and_caches(ingested):
             flow_run_id=ArtifactFilterFlowRunId(any_=[first.flow_run_id])))
     by_key = {a.key: a for a in arts}
     assert by_key["segment-0-2-scores"].type == "table"
-    assert "data:image/png;base64," in by_key["segment-0-2-contact-sheet"].data
+    assert "data:image/jpeg;base64," in by_key["segment-0-2-contact-sheet"].data
     assert by_key["segment-0-2-training"].type == "progress" and by_key["segment-0-2-training"].data == 100
 
     again = _reconstruct(store, capture)

@@ -111,7 +111,8 @@ def test_killed_worker_resumed_in_a_fresh_process_is_bit_identical(prefect_api, 
     assert resumed["resumed"] is True
     assert resumed["checkpoints_left"] == []
     a, b = clean["record"], resumed["record"]
-    assert b["steps"] == 8 and b["gaussians"] > 1500  # trained to the end, MCMC grew it
+    # trained to the end; MCMC grew it past its start (70 % of the 1600 cap = 1120)
+    assert b["steps"] == 8 and b["gaussians"] > 1120
     assert b["model"] == a["model"]  # same digest: the model bytes are identical
     assert b["grids"] == a["grids"]
     assert b == a  # every other field too (PSNR, SSIM, history steps), timing aside

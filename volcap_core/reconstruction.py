@@ -276,6 +276,19 @@ def segment_points(points: PointCloudSequence, frames: tuple[int, int],
     return out
 
 
+def segment_init(load_bytes: Callable[[ArtifactRef], bytes], capture: Capture, points: PointCloudSequence,
+                 data: SegmentData, held_out: Sequence[str] = ()) -> list[PointsAtTime]:
+    """What a segment's training starts from, built as the ``train-segment`` task builds it: the
+    segment's dense points split static/moving, plus the capture's lidar scan (when it has one)
+    coloured by the static training cameras (:func:`segment_points`, :func:`background_views`).
+    Anything that must reproduce a stored segment (a resumed run, a check) calls this."""
+    from volcap_core.pointcloud import decode_points
+
+    return segment_points(points, data.frames, lambda ref: decode_points(load_bytes(ref)),
+                          static_scan=load_bytes(capture.lidar) if capture.lidar else None,
+                          background=background_views(data, capture, held_out))
+
+
 def background_views(data: SegmentData, capture: Capture, held_out: Sequence[str] = ()) -> list:
     """The static training cameras' views at the segment's middle frame (what colours the scan)."""
     mid = data.frames[0] + (data.frames[1] - data.frames[0]) // 2
