@@ -123,7 +123,7 @@ from volcap_core.splat.train import (  # noqa: E402
     SegmentData,
     TrainConfig,
     View,
-    _frame_interval,
+    frame_interval,
     evaluate_held_out,
     init_budget,
     init_model,
@@ -226,7 +226,7 @@ def initial_model(points: list[PointsAtTime], cfg: TrainConfig, data: SegmentDat
                   seed: int) -> Poly4DGS:
     """The model ``train_segment(data, points, cfg, seed=seed)`` starts from, rebuilt the way it
     (and ``score_segment``) builds it."""
-    return init_model(points, cfg, frame_interval_s=_frame_interval(data.times),
+    return init_model(points, cfg, frame_interval_s=frame_interval(data.times),
                       generator=torch.Generator().manual_seed(seed))
 
 

@@ -152,7 +152,7 @@ def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRe
         grid_cameras=tuple(result.grids.camera_ids), held_out_cameras=tuple(config.held_out_cameras),
         gaussians=len(result.model), steps=result.steps, wall_s=result.wall_s,
         held_out_psnr=_finite(trained.psnr), held_out_ssim=_finite(trained.ssim),
-        scores=reconstruction.segment_scores_json(report), contact_sheet=sheet_ref,
+        scores=report.to_json(), contact_sheet=sheet_ref,
         history=tuple(reconstruction.EvalSample(step=h.step, wall_s=h.wall_s, psnr=_finite(h.psnr),
                                                 ssim=_finite(h.ssim)) for h in result.history),
         config=config.model_dump(mode="json"))

@@ -141,7 +141,7 @@ class SegmentModel(Record):
     held_out_psnr: float | None = None
     held_out_ssim: float | None = None
     #: every figure with its floors: {"held_out": {"trained"|"initial"|"empty": Scores JSON},
-    #: "training": Scores JSON} (see :func:`segment_scores_json`)
+    #: "training": Scores JSON} (:meth:`volcap_core.splat.report.SegmentScores.to_json`)
     scores: dict[str, Any] = {}
     contact_sheet: ArtifactRef | None = None   # PNG: footage | render | error
     history: tuple[EvalSample, ...] = ()
@@ -151,12 +151,6 @@ class SegmentModel(Record):
     def time_range(self) -> tuple[float, float]:
         """Seconds on the take's clock covered by the segment's frames."""
         return self.frames[0] / self.fps, (self.frames[1] - 1) / self.fps
-
-
-def segment_scores_json(report) -> dict[str, Any]:
-    """The JSON kept in :attr:`SegmentModel.scores` from a :class:`~volcap_core.splat.report.SegmentScores`."""
-    return {"held_out": {k: v.to_json() for k, v in report.held_out.items()},
-            "training": report.training.to_json()}
 
 
 def splat_camera(K: np.ndarray, world_to_camera: np.ndarray, width: int, height: int) -> Camera:

@@ -30,6 +30,7 @@ from volcap_core.splat.train import (
     TrainConfig,
     View,
     evaluate_held_out,
+    frame_interval,
     init_model,
     render_views,
 )
@@ -48,6 +49,11 @@ class SegmentScores:
     training: Scores
     views: list[ViewScore] = field(default_factory=list)
     sheet_rows: list[SheetRow] = field(default_factory=list)
+
+    def to_json(self) -> dict:
+        """What :attr:`volcap_core.reconstruction.SegmentModel.scores` keeps."""
+        return {"held_out": {k: v.to_json() for k, v in self.held_out.items()},
+                "training": self.training.to_json()}
 
     def table(self) -> list[dict]:
         """One row per model and view set: what a coordinator reads (and the Prefect table)."""
@@ -84,14 +90,18 @@ def score_segment(model: Poly4DGS, grids: ExposureGrids, data: SegmentData,
     Returns:
         :class:`SegmentScores`.
     """
-    from volcap_core.splat.train import _frame_interval
-
     held = set(config.held_out_cameras)
     held_views = [v for v in data.views if v.camera_id in held]
     train_views = [v for v in data.views if v.camera_id not in held]
-    initial = init_model(init_points, config, frame_interval_s=_frame_interval(data.times),
+    initial = init_model(init_points, config, frame_interval_s=frame_interval(data.times),
                          generator=torch.Generator().manual_seed(seed)).to(device)
-    trained_views = evaluate_held_out(model, held_views, config, device=device)
+    # the trained model's held-out renders and transforms serve its scores and its sheet rows
+    held_renders = render_views(model, held_views, config, device=device)
+    held_targets = [v.load()[..., :3].to(device) for v in held_views]
+    held_ids, held_frames = [v.camera_id for v in held_views], [v.frame for v in held_views]
+    tfs = cross_fitted_transforms(held_renders, held_targets, held_ids, held_frames)
+    trained_views = score_views(held_renders, held_targets, held_ids, held_frames,
+                                [v.load_mask() for v in held_views], transforms=tfs)
     held_out = {"trained": summarise(trained_views),
                 "initial": summarise(evaluate_held_out(initial, held_views, config, device=device)),
                 "empty": summarise(evaluate_held_out(None, held_views, config, device=device))}
@@ -110,16 +120,13 @@ def score_segment(model: Poly4DGS, grids: ExposureGrids, data: SegmentData,
     held_cams = sorted(held)
     sheet_held = sheet_views(held_views, held_cams[:2])
     if sheet_held:
-        all_r = render_views(model, held_views, config, device=device)
-        tfs = cross_fitted_transforms(all_r, [v.load()[..., :3].to(device) for v in held_views],
-                                      [v.camera_id for v in held_views], [v.frame for v in held_views])
         index = {(v.camera_id, v.frame): i for i, v in enumerate(held_views)}
         score_of = {(s.camera_id, s.frame): s for s in trained_views}
         for v in sheet_held:
             i = index[(v.camera_id, v.frame)]
             sc = score_of[(v.camera_id, v.frame)]
             rows.append(_row(f"{v.camera_id} frame {v.frame} HELD-OUT  PSNR {sc.psnr:.1f} dB "
-                             f"(raw {sc.psnr_raw:.1f})", v, tfs[i].apply(all_r[i])))
+                             f"(raw {sc.psnr_raw:.1f})", v, tfs[i].apply(held_renders[i])))
     train_cams = sorted({v.camera_id for v in train_views})
     # one static and one moving (tracking) camera when both exist: their framings differ most
     pick_cams = [train_cams[0]] + ([train_cams[-1]] if len(train_cams) > 1 else [])

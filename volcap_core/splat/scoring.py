@@ -129,7 +129,8 @@ def _display_scores(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor
 
 def score_views(renders: Sequence[torch.Tensor], targets: Sequence[torch.Tensor],
                 camera_ids: Sequence[str], frames: Sequence[int],
-                masks: Sequence[torch.Tensor | None] | None = None) -> list[ViewScore]:
+                masks: Sequence[torch.Tensor | None] | None = None,
+                transforms: Sequence[ColourTransform] | None = None) -> list[ViewScore]:
     """Score held-out views under the protocol of the module doc.
 
     Args:
@@ -137,12 +138,15 @@ def score_views(renders: Sequence[torch.Tensor], targets: Sequence[torch.Tensor]
         targets: ``[H, W, 3]`` linear footage of the same views.
         camera_ids, frames: which camera and take frame each view is.
         masks: optional ``[H, W]`` performer coverage in [0, 1] per view (None entries allowed).
+        transforms: :func:`cross_fitted_transforms` of these views when the caller already has
+            them (it uses them too); fitted here otherwise.
     Returns:
         one :class:`ViewScore` per view, in the given order.
     """
     n = len(renders)
     masks = list(masks) if masks is not None else [None] * n
-    transforms = cross_fitted_transforms(renders, targets, camera_ids, frames)
+    if transforms is None:
+        transforms = cross_fitted_transforms(renders, targets, camera_ids, frames)
     out = []
     for i in range(n):
         raw_p, raw_s, _, _ = _display_scores(renders[i], targets[i], None)

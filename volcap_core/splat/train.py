@@ -69,6 +69,7 @@ __all__ = [
     "TrainResult",
     "View",
     "evaluate_held_out",
+    "frame_interval",
     "init_model",
     "train_segment",
 ]
@@ -328,7 +329,8 @@ def _scene_scale(cameras: Sequence[Camera]) -> float:
     return 1.1 * float((centres - centres.mean(0)).norm(dim=1).max().clamp(min=1e-3))
 
 
-def _frame_interval(times: Sequence[float]) -> float:
+def frame_interval(times: Sequence[float]) -> float:
+    """Seconds between a segment's frames (median spacing of ``times``; 1/30 for one frame)."""
     if len(times) < 2:
         return 1.0 / 30.0
     return float(np.median(np.diff(np.asarray(sorted(times)))))
@@ -511,7 +513,7 @@ def train_segment(views: SegmentData, init_points: Sequence[PointsAtTime], confi
         raise ValueError("no training views left after holding out cameras")
     train_cams = sorted({v.camera_id for v in train_views})
     scene_scale = _scene_scale([v.camera for v in train_views])
-    frame_dt = _frame_interval(views.times)
+    frame_dt = frame_interval(views.times)
     seg_len = max(views.times) - min(views.times)
     time_scale = config.time_scale_s or max(0.5 * seg_len, frame_dt)
     extra = {"scene_scale": scene_scale, "time_scale": time_scale, "seed": seed}
