@@ -41,6 +41,7 @@ import cv2
 import numpy as np
 
 from volcap_core.colour import srgb_encode
+from volcap_core.files import write_atomic
 
 __all__ = ["SheetRow", "contact_sheet", "encode_jpeg", "encode_png", "write_sheet"]
 
@@ -152,12 +153,9 @@ def write_sheet(path: str | os.PathLike[str], image: np.ndarray) -> None:
     """A sheet to ``path`` as PNG, or JPEG when the name ends in ``.jpg``/``.jpeg``, atomically
     (temporary file in the same folder, fsync, rename): a crash leaves ``path`` absent or as it
     was, never a truncated image a viewer chokes on."""
-    # The library's one atomic-write helper (the one write_exr uses), not a second copy of it.
-    from volcap_core.imageio import _atomic_write
-
     path = Path(path)
     data = encode_jpeg(image) if path.suffix.lower() in (".jpg", ".jpeg") else encode_png(image)
-    _atomic_write(path, data)
+    write_atomic(path, data)
 
 
 # -- validation ------------------------------------------------------------------------------------

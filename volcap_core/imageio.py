@@ -29,10 +29,11 @@ import struct
 import tempfile
 import threading
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import numpy as np
+
+from volcap_core.files import write_atomic
 
 __all__ = [
     "ImageReadError",
@@ -931,22 +932,7 @@ def write_exr(
 ) -> None:
     """:func:`encode_exr` to ``path``, atomically: the bytes go to a temporary file in the same
     folder, are flushed to disk, then renamed over ``path``; a failure at any point leaves
-    ``path`` untouched (absent or its previous content) and no temporary file behind."""
+    ``path`` untouched (absent or its previous content) and no temporary file behind
+    (:func:`volcap_core.files.write_atomic`)."""
     data = encode_exr(pixels, channels, pixel_type=pixel_type, compression=compression, attributes=attributes)
-    _atomic_write(Path(path), data)
-
-
-def _atomic_write(path: Path, data: bytes) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    write_atomic(path, data)

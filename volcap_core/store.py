@@ -42,6 +42,7 @@ import fsspec
 from fsspec.implementations.local import LocalFileSystem
 
 from volcap_core.digest import CHUNK_BYTES, StreamingDigest, digest_bytes
+from volcap_core.files import write_atomic
 from volcap_core.records import (
     DIGEST_RE,
     MEDIA_BYTES,
@@ -264,16 +265,10 @@ class ArtifactStore:
             # One PUT is atomic on object storage and in memory: the object appears whole or not.
             self.fs.pipe_file(final, bytes(data))
             return
-        tmp = self._tmp_path()
-        try:
-            with open(tmp, "wb") as f:
-                f.write(data)
-                f.flush()
-                os.fsync(f.fileno())
-            self._commit(tmp, final)
-        except BaseException:
-            self._discard(tmp)
-            raise
+        os.makedirs(os.path.dirname(final), exist_ok=True)
+        # The temporary file goes to tmp/, not beside ``final``: objects/ and refs/ must only ever
+        # hold complete entries, and gc collects what a killed writer leaves in tmp/.
+        write_atomic(final, data, tmp_dir=self._p("tmp"))
 
     def _discard(self, path: str) -> None:
         try:

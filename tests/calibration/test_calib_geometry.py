@@ -9,7 +9,8 @@ import pytest
 
 from volcap_core.calibration.bundle import BundleOptions, bundle_adjust
 from volcap_core.calibration.colmap_export import export_colmap
-from volcap_core.calibration.geometry import (Similarity, look_at_rotation, pose_matrix, robust_umeyama,
+from volcap_core.calibration.geometry import (NEAR_PARALLEL_UP_COS, Similarity, intrinsic_matrix,
+                                              look_at_rotation, pose_matrix, project, robust_umeyama,
                                               rotation_angle_deg, so3_exp, triangulate_points, umeyama)
 from volcap_core.calibration.lidar import LidarScan, align_to_lidar, decode_ply_points, lift_to_lidar
 
@@ -37,6 +38,58 @@ def _room(spacing=0.1, seed=0):
         pts += [front, side]
         nrm += [np.tile((0, -1, 0), (k, 1)), np.tile((-np.sign(cx), 0, 0), (k, 1))]
     return LidarScan(np.concatenate(pts), np.concatenate(nrm).astype(float))
+
+
+def test_look_at_is_an_opencv_world_to_camera_rotation():
+    # From -y looking along +y with z up: world +x is image right, world -z image down (exactly).
+    np.testing.assert_array_equal(look_at_rotation((0.0, -5.0, 1.0), (0.0, 0.0, 1.0)),
+                                  [[1, 0, 0], [0, 0, -1], [0, 1, 0]])
+    C, target = np.array([3.0, -2.0, 1.5]), np.array([0.2, 0.4, 1.0])
+    R = look_at_rotation(C, target)
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(R) == pytest.approx(1.0)
+    K = intrinsic_matrix(500.0, 500.0, 320.0, 240.0)
+    uv, z = project(K, pose_matrix(R, -R @ C), [target, target + [0.0, 0.0, 0.2]])
+    np.testing.assert_allclose(uv[0], [320.0, 240.0], atol=1e-9)  # the target is the image centre
+    assert z[0] == pytest.approx(np.linalg.norm(target - C))
+    assert uv[1, 0] == pytest.approx(320.0) and uv[1, 1] < 240.0  # world up is image up, no tilt
+    # roll turns the axes about the optical axis: at 90 degrees, old image-right is image-up
+    Rr = look_at_rotation(C, target, 90.0)
+    np.testing.assert_allclose(Rr[2], R[2], atol=1e-15)
+    np.testing.assert_allclose(Rr[1], -R[0], atol=1e-15)
+
+
+@pytest.mark.parametrize("direction", [(0.0, 0.0, -1.0), (0.0, 0.0, 1.0)])
+def test_look_at_straight_down_or_up_puts_world_x_at_the_image_top(direction):
+    C = np.array([0.5, 0.2, 4.0])
+    R = look_at_rotation(C, C + 3 * np.asarray(direction))
+    np.testing.assert_allclose(R, [[0, np.sign(direction[2]), 0], [-1, 0, 0], direction], atol=1e-15)
+    # The fallback holds in a cone around the vertical, not only exactly on it; just outside it,
+    # the image top is world +z projected onto the image plane again.
+    inside, outside = NEAR_PARALLEL_UP_COS + 2e-4, NEAR_PARALLEL_UP_COS - 2e-4
+    sin = np.sqrt(1 - inside**2)
+    R = look_at_rotation(C, C + np.array([0.0, sin, -inside]))
+    np.testing.assert_allclose(-R[1], [1.0, 0.0, 0.0], atol=1e-12)
+    sin = np.sqrt(1 - outside**2)
+    R = look_at_rotation(C, C + np.array([0.0, sin, -outside]))
+    np.testing.assert_allclose(-R[1], [0.0, outside, sin], atol=1e-12)
+    # Any up: the world axis most perpendicular to it, the first on ties (+y for up = +x).
+    R = look_at_rotation(C, C + (2.0, 0.0, 0.0), up=(5.0, 0.0, 0.0))
+    np.testing.assert_allclose(-R[1], [0.0, 1.0, 0.0], atol=1e-15)
+    np.testing.assert_allclose(look_at_rotation(C, C + (0.0, -2.0, 0.0), up=(0.0, 1.0, 0.0))[1],
+                               [-1.0, 0.0, 0.0], atol=1e-15)
+
+
+@pytest.mark.parametrize("position, target, up, message", [
+    ((1.0, 2.0, 3.0), (1, 2, 3), (0.0, 0.0, 1.0),
+     r"camera at \[1.0, 2.0, 3.0\] looking at \[1, 2, 3\]: no optical axis"),
+    ((0.0, 0.0, np.nan), (1.0, 0.0, 0.0), (0.0, 0.0, 1.0), r"camera at \[0.0, 0.0, nan\].*no optical axis"),
+    ((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (0.0, 0.0, 0.0), r"up \[0.0, 0.0, 0.0\] is not a direction"),
+    ((0.0, 0.0, 0.0), (1.0, 0.0, 0.0), (0.0, np.inf, 0.0), r"up \[0.0, inf, 0.0\] is not a direction"),
+])
+def test_look_at_without_a_direction_names_the_vectors(position, target, up, message):
+    with pytest.raises(ValueError, match=message):
+        look_at_rotation(position, target, up=up)
 
 
 def test_similarity_pose_mapping_keeps_projections():

@@ -1,4 +1,5 @@
-"""Small geometry helpers shared by the calibration stages (numpy, float64).
+"""Small geometry helpers shared by the calibration stages (numpy, float64). Its
+:func:`look_at_rotation` is also the one the synthetic capture and the splat renderer's cameras use.
 
 Conventions (everywhere in ``volcap_core.calibration``):
 
@@ -19,19 +20,46 @@ import numpy as np
 COLMAP_PIXEL_OFFSET = 0.5
 
 
-def look_at_rotation(position, look_at, roll_deg: float = 0.0) -> np.ndarray:
-    """World-to-camera rotation (3, 3) of a camera at ``position`` looking at ``look_at``.
+#: ``|cos|`` of the angle between the optical axis and ``up`` above which :func:`look_at_rotation`
+#: takes image "up" from a fallback axis: within ~2.6 degrees of ``up`` the image's horizontal axis
+#: would swing with the slightest change of aim (and is undefined when exactly parallel).
+NEAR_PARALLEL_UP_COS = 0.999
 
-    Image "up" is world +z (world +x when looking straight up or down); ``roll_deg`` turns the
-    image clockwise as seen by the camera. Same convention as the rig's ``Mount``.
+
+def look_at_rotation(position, target, roll_deg: float = 0.0, *, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """World-to-camera rotation ``R`` (3, 3), OpenCV camera axes (x right, y down, z forward), of a
+    camera at ``position`` (3,) whose optical axis passes through ``target`` (3,), world units.
+
+    The rows of ``R`` are the camera axes in world coordinates: ``x_cam = R @ (x_world - position)``,
+    i.e. ``t = -R @ position``; ``R.T`` is the camera-to-world rotation. The library's one look-at
+    (rig mounts, synthetic cameras, splat render cameras).
+
+    ``up`` (3,), any length: the world direction that appears upward in the image (image y points
+    the other way); default world +z, the stage's up. When the optical axis is within ~2.6 degrees
+    of ``up`` or ``-up`` (``|cos| > NEAR_PARALLEL_UP_COS``: a rig camera looking straight down),
+    the world axis most perpendicular to ``up`` is used instead, the first on ties: world +x for
+    the default, so such a camera has world +x at the top of its image. ``roll_deg`` then turns the
+    image clockwise as seen by the camera (the x/y axes rotate about the optical axis; the rig
+    ``Mount``'s ``roll_deg``).
+
+    Raises ValueError naming the vectors when ``target`` is ``position`` (no optical axis), ``up``
+    is zero, or any of them is not finite.
     """
     c = np.asarray(position, np.float64)
-    f = np.asarray(look_at, np.float64) - c
-    f = f / np.linalg.norm(f)
-    up = np.array([0.0, 0.0, 1.0])
-    if abs(f @ up) > 0.999:
-        up = np.array([1.0, 0.0, 0.0])
-    x = np.cross(f, up)
+    f = np.asarray(target, np.float64) - c
+    n = np.linalg.norm(f)
+    if not (1e-9 < n < math.inf):  # also NaN
+        raise ValueError(f"camera at {c.tolist()} looking at {np.asarray(target).tolist()}: "
+                         "no optical axis (the target is the camera position, or not finite)")
+    f = f / n
+    u = np.asarray(up, np.float64)
+    nu = np.linalg.norm(u)
+    if not (0 < nu < math.inf):
+        raise ValueError(f"up {u.tolist()} is not a direction")
+    u = u / nu
+    if abs(f @ u) > NEAR_PARALLEL_UP_COS:
+        u = np.eye(3)[int(np.argmin(np.abs(u)))]
+    x = np.cross(f, u)
     x /= np.linalg.norm(x)
     y = np.cross(f, x)
     if roll_deg:

@@ -48,6 +48,7 @@ import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from volcap_core.calibration.geometry import look_at_rotation
 from volcap_core.production._errors import format_validation_error
 from volcap_core.production.performance import Box, Performance, render_performance
 from volcap_core.records import ArtifactRef
@@ -293,16 +294,9 @@ def _slerp(q0: np.ndarray, q1: np.ndarray, u: float) -> np.ndarray:
 
 def _aim(eye: np.ndarray, target: np.ndarray, up: np.ndarray) -> np.ndarray:
     """Camera-to-world rotation (OpenCV axes as columns) of a camera at ``eye`` aimed at
-    ``target``; same construction as :func:`volcap_core.splat.camera.look_at`."""
-    z = target - eye
-    z = z / np.linalg.norm(z)
-    x = np.cross(z, up)
-    nx = np.linalg.norm(x)
-    if nx < 1e-9:
-        raise ValueError("the viewing direction is parallel to 'up'")
-    x = x / nx
-    y = np.cross(z, x)
-    return np.stack([x, y, z], axis=1)
+    ``target``: the library's one look-at (:func:`~volcap_core.calibration.geometry.look_at_rotation`),
+    transposed."""
+    return look_at_rotation(eye, target, up=up).T
 
 
 _GL_TO_CV = np.diag([1.0, -1.0, -1.0])

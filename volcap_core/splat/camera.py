@@ -13,6 +13,8 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
+from volcap_core.calibration.geometry import look_at_rotation
+
 __all__ = ["Camera", "look_at"]
 
 
@@ -75,16 +77,11 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0), *, fov_x_deg: float, width: int, he
             near: float = 0.01, far: float = 1e10) -> Camera:
     """A camera at ``eye`` looking at ``target`` (world units), square pixels, centred principal
     point, horizontal field of view ``fov_x_deg`` degrees. ``up`` is the world direction that
-    appears upward in the image (OpenCV's y axis points the other way)."""
-    eye, target, up = (np.asarray(v, dtype=np.float64) for v in (eye, target, up))
-    z = target - eye
-    z /= np.linalg.norm(z)
-    x = np.cross(z, up)
-    if np.linalg.norm(x) < 1e-9:
-        raise ValueError("up is parallel to the viewing direction")
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)  # down in the image
-    R = np.stack([x, y, z])  # rows: camera axes in world coordinates
+    appears upward in the image (OpenCV's y axis points the other way); a camera looking along
+    ``up`` or within ~2.6 degrees of it gets the fallback of
+    :func:`volcap_core.calibration.geometry.look_at_rotation`, which builds the rotation."""
+    eye = np.asarray(eye, dtype=np.float64)
+    R = look_at_rotation(eye, target, up=up)  # rows: camera axes in world coordinates
     w2c = np.eye(4)
     w2c[:3, :3] = R
     w2c[:3, 3] = -R @ eye

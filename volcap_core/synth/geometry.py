@@ -18,32 +18,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from volcap_core.calibration.geometry import look_at_rotation
+
 EPS = 1e-6
-
-
-def look_at_rotation(position, look_at, roll_deg: float = 0.0) -> np.ndarray:
-    """World-to-camera rotation (OpenCV axes) of a camera at ``position`` looking at ``look_at``.
-
-    Image "up" is world +z; a camera looking straight up or down uses world +x as image up
-    (so the image y axis points along world -x). ``roll_deg`` turns the image clockwise as seen by
-    the camera (a rotation of the x/y axes about the optical axis).
-    """
-    c = np.asarray(position, np.float64)
-    f = np.asarray(look_at, np.float64) - c
-    n = np.linalg.norm(f)
-    if n < 1e-9:
-        raise ValueError(f"camera at {tuple(c)} looks at itself")
-    f /= n
-    up = np.array([0.0, 0.0, 1.0])
-    if abs(f @ up) > 0.999:
-        up = np.array([1.0, 0.0, 0.0])
-    x = np.cross(f, up)
-    x /= np.linalg.norm(x)
-    y = np.cross(f, x)
-    if roll_deg:
-        a = math.radians(roll_deg)
-        x, y = math.cos(a) * x + math.sin(a) * y, -math.sin(a) * x + math.cos(a) * y
-    return np.stack([x, y, f])
 
 
 @dataclass(frozen=True)

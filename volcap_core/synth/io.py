@@ -1,38 +1,33 @@
 """Atomic writers (and small readers) for what the synthetic capture puts on disk: half-float EXR
-frames, canonical-ish JSON, binary PLY point scans."""
+frames, canonical-ish JSON, binary PLY point scans. Every writer encodes to bytes and hands them to
+:func:`volcap_core.files.write_atomic`."""
 
 from __future__ import annotations
 
+import io
 import json
-import os
 from pathlib import Path
 
 import numpy as np
 import OpenEXR
 
-
-def _tmp(path: Path) -> Path:
-    return path.with_name(f".{path.name}.tmp{os.getpid()}")
+from volcap_core.files import write_atomic
 
 
 def write_exr(path: Path, image: np.ndarray, half: bool = True) -> None:
     """(H, W, 3) -> R, G, B channels; (H, W) -> one channel ``Z``. ZIP-compressed, scanline.
-    Written to a temporary name in the same folder, then moved into place."""
-    path = Path(path)
+    Written atomically (temporary file in the same folder, fsync, rename)."""
     arr = np.asarray(image, np.float16 if half else np.float32)
     if arr.ndim == 3:
         channels = {c: np.ascontiguousarray(arr[..., i]) for i, c in enumerate("RGB")}
     else:
         channels = {"Z": np.ascontiguousarray(arr)}
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    tmp = _tmp(path)
-    try:
-        with OpenEXR.File(header, channels) as f:
-            f.write(str(tmp))
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
+    # The bindings encode to a stream exactly the bytes they would write to a file name.
+    out = io.BytesIO()
+    with OpenEXR.File(header, channels) as f:
+        f.write(out)
+    write_atomic(path, out.getvalue())
 
 
 def read_exr(path: Path) -> np.ndarray:
@@ -49,15 +44,11 @@ def read_exr(path: Path) -> np.ndarray:
 
 
 def write_json(path: Path, data) -> None:
-    path = Path(path)
-    tmp = _tmp(path)
-    tmp.write_text(json.dumps(data, indent=1, sort_keys=False) + "\n")
-    os.replace(tmp, path)
+    write_atomic(path, (json.dumps(data, indent=1, sort_keys=False) + "\n").encode())
 
 
 def write_ply(path: Path, points: np.ndarray, normals: np.ndarray, comment: str = "") -> None:
     """Binary little-endian PLY with float32 x y z nx ny nz per vertex."""
-    path = Path(path)
     pts = np.asarray(points, np.float32)
     nrm = np.asarray(normals, np.float32)
     data = np.concatenate([pts, nrm], axis=1).astype("<f4")
@@ -67,11 +58,7 @@ def write_ply(path: Path, points: np.ndarray, normals: np.ndarray, comment: str 
     header += [f"element vertex {len(pts)}"]
     header += [f"property float {n}" for n in ("x", "y", "z", "nx", "ny", "nz")]
     header += ["end_header"]
-    tmp = _tmp(path)
-    with open(tmp, "wb") as f:
-        f.write(("\n".join(header) + "\n").encode("ascii"))
-        f.write(data.tobytes())
-    os.replace(tmp, path)
+    write_atomic(path, ("\n".join(header) + "\n").encode("ascii") + data.tobytes())
 
 
 def read_ply(path: Path) -> tuple[np.ndarray, np.ndarray]:

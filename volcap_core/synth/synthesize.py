@@ -12,11 +12,12 @@ from typing import Callable, Sequence
 import numpy as np
 
 from hardware.rig import CameraRole, Rig, RigCamera, load_rig
+from volcap_core.calibration.geometry import look_at_rotation
 from volcap_core.capture import (CameraSource, CaptureDescription, Encoding, LensSample, Take,
                                  frames_to_timecode, timecode_to_frames)
 from volcap_core.synth import io as sio
 from volcap_core.synth.actors import Actor
-from volcap_core.synth.geometry import PinholeCamera, look_at_rotation
+from volcap_core.synth.geometry import PinholeCamera
 from volcap_core.synth.render import World, background, render
 from volcap_core.synth.sensor import EncoderModel, SensorModel, smooth_zoom
 from volcap_core.synth.stage import build_face_stage, build_room_stage
