@@ -57,7 +57,7 @@ from volcap_core.splat.model import (
     safetensors_bytes,
 )
 from volcap_core.splat.optim import AdamState, adam_step, exponential_lr
-from volcap_core.splat.render import render
+from volcap_core.splat.render import BackendChoice, render, resolve_backend
 from volcap_core.splat.scoring import ViewScore, score_views, summarise
 
 __all__ = [
@@ -275,6 +275,9 @@ class TrainResult:
     history: list[EvalPoint] = field(default_factory=list)
     steps: int = 0
     wall_s: float = 0.0
+    #: the rasterizer this run used and why (:func:`~volcap_core.splat.render.resolve_backend`
+    #: of ``TrainConfig.backend`` on the training device); ``train_segment`` always sets it
+    backend: BackendChoice | None = None
 
 
 # ---------------------------------------------------------------------------------------- init
@@ -499,9 +502,15 @@ def train_segment(views: SegmentData, init_points: Sequence[PointsAtTime], confi
             holding ``loss``, ``l1``, ``ssim``, ``num_gaussians``, ``wall_s``.
         device: where to train; default CUDA when available, else CPU.
     Returns:
-        :class:`TrainResult` (model, training grids, evaluation history).
+        :class:`TrainResult` (model, training grids, evaluation history, the back-end used).
+    Raises:
+        BackendUnavailable: ``config.backend == "gsplat"`` and gsplat cannot run on ``device``;
+            raised before any other work.
     """
     device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    # once, before anything else: an explicit back-end that cannot run fails here rather than
+    # after initialisation, and an "auto" fallback to torch on a GPU is logged and recorded
+    backend = resolve_backend(config.backend, device)
     held = set(config.held_out_cameras)
     unknown = held - set(views.camera_ids)
     if unknown:
@@ -557,7 +566,7 @@ def train_segment(views: SegmentData, init_points: Sequence[PointsAtTime], confi
         for p in (*model.params.values(), *grid_params.values()):
             p.grad = None
 
-        out = render(evaluate(model, view.time), view.camera, backend=config.backend,
+        out = render(evaluate(model, view.time), view.camera, backend=backend.name,
                      background=bg, tile_size=config.tile_size)
         row = cam_row[view.camera_id]
         pred = apply_grids(out["rgb"],
@@ -603,5 +612,5 @@ def train_segment(views: SegmentData, init_points: Sequence[PointsAtTime], confi
     final = state.model.detached()
     grids = ExposureGrids(state.grids.camera_ids, state.grids.exposure.detach().clone(),
                           state.grids.black.detach().clone())
-    return TrainResult(final, grids, list(state.history), state.step, state.wall_s)
+    return TrainResult(final, grids, list(state.history), state.step, state.wall_s, backend=backend)
 
