@@ -1,4 +1,9 @@
-"""The reconstruct flow: an ingested capture in, one trained Poly4DGS model per segment out."""
+"""The reconstruct flow: an ingested capture in, one trained Poly4DGS model per segment out.
+
+Segments and training settings come from a named preset (:mod:`volcap_core.presets`), the same
+table a production spec's ``quality:`` reads: the same capture, frames and preset give the same
+segments here as in a production (overlapping neighbours included; each is trained on its own).
+"""
 
 from __future__ import annotations
 
@@ -8,16 +13,21 @@ from flows.calibrate import calibrate_capture, point_cloud_for_frames
 from tasks.reconstruct import ground_truth_calibration, ground_truth_points, train_segment_task
 from volcap_core import reconstruction
 from volcap_core.capture import Capture
+from volcap_core.presets import named_preset
+from volcap_core.production.segments import SegmentPlan
+from volcap_core.production.spec import CaptureInfo
 from volcap_core.store import ArtifactStore
 
 
-def split_frames(a: int, b: int, segment_frames: int | None) -> list[tuple[int, int]]:
-    """[a, b) in consecutive segments of at most ``segment_frames`` frames (all of it when None)."""
-    if segment_frames is None or segment_frames >= b - a:
-        return [(a, b)]
-    if segment_frames < 1:
-        raise ValueError(f"segment_frames must be >= 1, got {segment_frames}")
-    return [(s, min(s + segment_frames, b)) for s in range(a, b, segment_frames)]
+def plan_reconstruction(info: CaptureInfo, frames: tuple[int, int], preset: str,
+                        segment_frames: int | None = None) -> SegmentPlan:
+    """The segments of take indices ``[frames[0], frames[1])``: the preset's plan (its budget at
+    the capture's largest image, its overlap), at most ``segment_frames`` frames each when given
+    (``--segment-frames``: the preset's ``max_segment_frames`` replaced, as a spec would)."""
+    quality = named_preset(preset)
+    if segment_frames is not None:
+        quality = quality.with_overrides(max_segment_frames=segment_frames)
+    return quality.plan_segments(frames, info.width, info.height)
 
 
 def segment_summary(rec: reconstruction.SegmentModel, ref) -> dict:
@@ -53,13 +63,21 @@ def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = 
     for the frames trained (at most ``points_per_frame`` each when given; training thins them to its
     own budget, so the default keeps every point for the static/moving split to see). ``ground_truth=True`` uses a synthetic
     capture's ground truth instead (true cameras, points from true depth): benchmarks, fast tests.
-    Returns the segment model refs and their held-out PSNR/SSIM and training wall time.
+
+    Segments: :func:`plan_reconstruction` (``segment_frames`` caps their length). Training: the
+    preset's TrainConfig, stretched to ``steps`` when given; the Gaussian budget is
+    ``max_gaussians`` (TrainConfig's cap when None), not the plan's per-segment figure, which here
+    only places the boundaries.
+    Returns the segment model refs and their held-out PSNR/SSIM and training wall time, each with
+    its frames and its core (the frames no neighbour shares).
     """
     log = get_run_logger()
     s = ArtifactStore(store)
     capture_ref = s.resolve(capture)
     cap = s.get_record(capture_ref, Capture)
     a, b = cap.take_range(frames)
+    # planned before anything runs: a segment length the preset's overlap cannot take fails here
+    plan = plan_reconstruction(CaptureInfo.from_capture(cap), (a, b), preset, segment_frames)
 
     if calibration:
         calib_ref = s.resolve(calibration)
@@ -81,16 +99,15 @@ def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = 
     log.info("capture %s: %s calibration %s, points %s", cap.name,
              "given" if calibration else "ground-truth" if ground_truth else "estimated", calib_ref.digest,
              points_ref.digest)
-    overrides = {} if steps is None else reconstruction.steps_override(preset, steps)
-    config = reconstruction.train_config(preset, degrees=degrees, held_out=held, max_gaussians=max_gaussians,
-                                         **overrides)
-    segments = split_frames(a, b, segment_frames)
-    log.info("capture %s: %d segment(s) of frames %d:%d, preset %s, held out %s", cap.name, len(segments), a, b,
-             preset, ", ".join(held) or "none")
+    quality = named_preset(preset) if steps is None else named_preset(preset).with_steps(steps)
+    config = quality.train_config(degrees=degrees, held_out=held, max_gaussians=max_gaussians)
+    log.info("capture %s: %d segment(s) of frames %d:%d (%d shared by neighbours), preset %s, held out %s",
+             cap.name, len(plan.segments), a, b, plan.overlap, preset, ", ".join(held) or "none")
     futures = train_segment_task.map(unmapped(store), unmapped(capture_ref), unmapped(calib_ref),
-                                     unmapped(points_ref), [list(seg) for seg in segments], unmapped(config),
-                                     unmapped(seed))
+                                     unmapped(points_ref), [list(seg.frames) for seg in plan.segments],
+                                     unmapped(config), unmapped(seed))
     models = [f.result() for f in futures]
-    report = [segment_summary(s.get_record(ref, reconstruction.SegmentModel), ref) for ref in models]
+    report = [{**segment_summary(s.get_record(ref, reconstruction.SegmentModel), ref), "core": list(seg.core)}
+              for seg, ref in zip(plan.segments, models)]
     return {"capture": capture_ref.model_dump(mode="json"), "calibration": calib_ref.model_dump(mode="json"),
             "points": points_ref.model_dump(mode="json"), "segments": report}

@@ -25,13 +25,13 @@ TIMING = {"wall_s"}  # record fields that measure time, not content
 
 
 def _config():
-    from volcap_core.reconstruction import train_config
+    from volcap_core.presets import PRESETS
     from volcap_core.splat.mcmc import MCMCConfig
 
     # MCMC relocation and growth on both sides of the checkpoint at step 4
-    return train_config("test", held_out=["S002"], max_gaussians=1500, steps=8, checkpoint_every=4,
-                        eval_max_views=1,
-                        mcmc=MCMCConfig(refine_start=2, refine_every=2, refine_stop=8, cap_max=1600))
+    return PRESETS["test"].train_config(held_out=["S002"], max_gaussians=1500, steps=8, checkpoint_every=4,
+                                        eval_max_views=1,
+                                        mcmc=MCMCConfig(refine_start=2, refine_every=2, refine_stop=8, cap_max=1600))
 
 
 def _worker(mode: str, store: str, refs_file: str) -> None:

@@ -2,7 +2,8 @@
 
 A capture (scene-linear EXR frames), a calibration (cameras per frame) and dense points per frame
 become :class:`~volcap_core.splat.SegmentData` and :class:`~volcap_core.splat.PointsAtTime`; a
-trained segment becomes a :class:`SegmentModel` record. Loaders are passed in, so this module never
+trained segment becomes a :class:`SegmentModel` record. Training settings come from the named
+presets of :mod:`volcap_core.presets`. Loaders are passed in, so this module never
 touches a store or Prefect.
 """
 
@@ -12,7 +13,7 @@ from collections import OrderedDict
 from contextlib import contextmanager
 from collections.abc import Callable, Sequence
 from threading import Lock
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 import torch
@@ -23,69 +24,9 @@ from volcap_core.calibration.record import Calibration, TrackingFrames, camera_a
 from volcap_core.capture import Capture
 from volcap_core.pointcloud import PointCloudSequence
 from volcap_core.records import ArtifactRef, Record
-from volcap_core.splat import Camera, PointsAtTime, SegmentData, TrainConfig
-from volcap_core.splat.model import Poly4DGSConfig
+from volcap_core.splat import Camera, PointsAtTime, SegmentData
 
 SEGMENT_MODEL_MEDIA = "application/vnd.volcap.poly4dgs+safetensors"
-
-#: Named training presets: the step counts trade time for quality. ``demo`` keeps the built-in demo
-#: under a few minutes on 2 CPU cores; ``production`` is the paper's 30k steps.
-PRESETS: dict[str, dict[str, Any]] = {
-    "test": {"steps": 20, "grid_size": 4, "eval_every": 0, "eval_max_views": 2,
-             "checkpoint_every": 10, "mcmc": {"refine_start": 5, "refine_every": 5, "refine_stop": 15}},
-    # 550 steps: what fits the demo's 8 minutes on 2 CPU cores with a margin (650 took 8 min 3 s;
-    # docs/poly4dgs.md "The demo")
-    "demo": {"steps": 550, "grid_size": 8, "eval_every": 110, "eval_max_views": 4,
-             "checkpoint_every": 110, "mcmc": {"refine_start": 100, "refine_every": 100, "refine_stop": 500}},
-    "preview": {"steps": 3000, "eval_every": 500, "checkpoint_every": 500,
-                "mcmc": {"refine_start": 300, "refine_every": 100, "refine_stop": 2500}},
-    "production": {},  # TrainConfig's defaults: the paper's schedule
-}
-
-#: Model degrees by name (paper Table 1 baselines).
-DEGREES = {"poly4dgs": Poly4DGSConfig.paper, "rotor4d": Poly4DGSConfig.rotor4d, "static": Poly4DGSConfig.static}
-
-
-def train_config(preset: str = "demo", *, degrees: str = "poly4dgs", held_out: Sequence[str] = (),
-                 max_gaussians: int | None = None, **overrides: Any) -> TrainConfig:
-    """A :class:`TrainConfig` from a preset name, model degrees and overrides."""
-    if preset not in PRESETS:
-        raise ValueError(f"unknown preset {preset!r}: choose one of {', '.join(PRESETS)}")
-    if degrees not in DEGREES:
-        raise ValueError(f"unknown model degrees {degrees!r}: choose one of {', '.join(DEGREES)}")
-    values = dict(PRESETS[preset])
-    values["model"] = DEGREES[degrees]()
-    values["held_out_cameras"] = list(held_out)
-    mcmc = dict(values.pop("mcmc", {}))
-    if isinstance(overrides.get("mcmc"), dict):   # partial MCMC settings merge into the preset's
-        mcmc.update(overrides.pop("mcmc"))
-    if max_gaussians is not None:
-        mcmc["cap_max"] = max_gaussians
-        values["init_max_points"] = max_gaussians
-    if mcmc:
-        from volcap_core.splat.mcmc import MCMCConfig
-        values["mcmc"] = MCMCConfig(**{**MCMCConfig().model_dump(), **mcmc})
-    values.update(overrides)
-    return TrainConfig(**values)
-
-
-def steps_override(preset: str, steps: int) -> dict[str, Any]:
-    """Overrides that train ``preset`` for ``steps`` steps instead, its schedule stretched to match:
-    evaluation, checkpoints and MCMC refinement at the same fractions of the run."""
-    if steps < 1:
-        raise ValueError(f"steps must be >= 1, got {steps}")
-    from volcap_core.splat.mcmc import MCMCConfig
-
-    base = PRESETS[preset] if preset in PRESETS else {}
-    stretch = steps / base.get("steps", 30_000)
-    mcmc = {**MCMCConfig().model_dump(), **base.get("mcmc", {})}
-    out: dict[str, Any] = {"steps": steps}
-    for key in ("eval_every", "checkpoint_every"):
-        if base.get(key):
-            out[key] = max(1, round(base[key] * stretch))
-    out["mcmc"] = {k: max(1, round(mcmc[k] * stretch)) for k in ("refine_start", "refine_every", "refine_stop")}
-    return out
-
 
 @contextmanager
 def deterministic_torch(device: str = "cpu"):
@@ -146,6 +87,10 @@ class SegmentModel(Record):
     contact_sheet: ArtifactRef | None = None   # PNG: footage | render | error
     history: tuple[EvalSample, ...] = ()
     config: dict[str, Any]
+    #: the rasterizer that trained it and why (``TrainResult.backend``: ``config["backend"]`` is
+    #: what was asked for, this is what ran); None in records written before it was kept
+    backend: Literal["gsplat", "torch"] | None = None
+    backend_reason: str | None = None
 
     @property
     def time_range(self) -> tuple[float, float]:

@@ -73,6 +73,12 @@ def test_production_runs_plans_and_explains(prefect_api, static_capture, tmp_pat
     assert [seg.frames for seg in perf.segments] == [(0, 3), (2, 4)]
     assert s.get_ref("productions/flow-test/shots/orbit").digest == out["shots"]["orbit"]["frames"]
     assert not any("tracking" in t for t in out["steps"])
+    # dense points are kept whole (training thins them to the segment's budget after the
+    # static/moving split has seen every point), not cut to gaussians_per_frame first
+    from volcap_core.pointcloud import PointCloudSequence
+
+    pts = s.get_record(out["steps"]["dense-points:demo:000000-000003"]["points"], PointCloudSequence)
+    assert min(f.count for f in pts.frames) > open_production(spec).spec.quality_preset().gaussians_per_frame
 
     # rerun: nothing computed, same artifacts; the plan agrees
     again = run_flow(production_flow, spec=str(spec))

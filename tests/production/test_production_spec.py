@@ -7,9 +7,9 @@ from pathlib import Path
 import pytest
 import yaml
 
+from volcap_core.presets import PRESETS
 from volcap_core.production.segments import SegmentBudget, plan_segments
 from volcap_core.production.spec import (
-    PRESETS,
     CaptureInfo,
     SpecError,
     capture_info_from_folder,
@@ -105,7 +105,8 @@ def base_spec():
      ["actors[0].captures[0]: unknown capture 'take9'", "[line "]),
     (lambda d: d["shots"][1]["keyframes"][0].__setitem__("focal_mm", -5),
      ["shots[1].keyframes[0].focal_mm", "greater than 0", "(got -5)", "[line "]),
-    (lambda d: d.__setitem__("quality", "prod"), ["quality: unknown preset 'prod'", "[line 4]"]),
+    (lambda d: d.__setitem__("quality", "prod"),
+     ["quality: unknown preset 'prod' (known: test, demo, preview, production)", "[line 4]"]),
     (lambda d: d.__setitem__("quality", {"preset": "test", "train_stepz": 3}),
      ["quality.train_stepz", "Extra inputs are not permitted"]),
     (lambda d: d.__setitem__("quality", {"preset": "test", "train_steps": 0}),
@@ -212,6 +213,32 @@ def test_only_segments_the_shots_cover():
     assert ids(steps, "train-segment") == ["train-segment:take:000000-000036"]
 
 
+def test_quality_overrides_reach_the_plan_and_the_training():
+    """``quality: {preset: production, train_steps: 20000, ...}``: single fields of the one preset
+    table replaced; the steps carry them and the segment's TrainConfig is built from them."""
+    data = base_spec()
+    data["quality"] = {"preset": "production", "train_steps": 20_000, "checkpoint_every": 500,
+                       "max_segment_frames": 30}
+    spec = parse_spec(data)
+    q = spec.quality_preset()
+    assert q == PRESETS["production"].with_overrides(train_steps=20_000, checkpoint_every=500, max_segment_frames=30)
+    assert q.gpu_memory_gb == PRESETS["production"].gpu_memory_gb                  # the rest is the preset's
+    steps = needed_steps(spec, facts(), shots=["wide"])
+    # 100 frames in 4 segments of at most 30 (not 1 of 100), the wide shot in the first
+    assert len(segment_plan_for(spec, "take", facts()["take"]).segments) == 4
+    assert ids(steps, "train-segment") == ["train-segment:take:000000-000028"]
+    train = next(s for s in steps if s.kind == "train-segment")
+    assert train.parameters["train_steps"] == 20_000 and train.parameters["checkpoint_every"] == 500
+    assert next(s for s in steps if s.kind == "dense-points").parameters["dense_scale"] == q.dense_scale
+    cfg = q.train_config(held_out=["S004"], max_gaussians=train.parameters["gaussians"])
+    assert (cfg.steps, cfg.checkpoint_every, cfg.mcmc.cap_max) == (20_000, 500, train.parameters["gaussians"])
+    assert cfg.mcmc.refine_stop == PRESETS["production"].refine_stop          # an override is not a stretch
+    # what the spec changed, not only the steps, changes the train-segment step (its cache journal)
+    data["quality"]["grid_size"] = 16
+    again = next(s for s in needed_steps(parse_spec(data), facts(), shots=["wide"]) if s.kind == "train-segment")
+    assert again.parameters["grid_size"] == 16 != train.parameters["grid_size"]
+
+
 def test_plan_order_stability_and_reconstruct():
     spec = parse_spec(base_spec())
     a, b = needed_steps(spec, facts()), needed_steps(spec, facts())
@@ -251,3 +278,23 @@ def test_capture_info_from_a_capture_folder(tmp_path):
     desc["cameras"].append({"id": tracker, "path": tracker, "start_timecode": "01:00:00:00"})
     (tmp_path / "capture.json").write_text(json.dumps(desc))
     assert capture_info_from_folder(tmp_path).has_tracking_cameras
+
+
+def test_capture_info_agrees_on_the_folder_and_the_ingested_capture(tmp_path):
+    """A portrait camera counts at its landscape size before ingest (rig sensors) and after (the
+    record's images), so a folder capture and the same capture ingested plan the same segments."""
+    from types import SimpleNamespace
+
+    from hardware.rig import load_rig
+
+    rig = load_rig("demo_scene")
+    portrait = next(c for c in rig.cameras if c.sensor.width_px < c.sensor.height_px)
+    desc = {"format": "volcap-capture/1", "name": "d", "rig": "demo_scene", "fps": 24,
+            "take": {"start_timecode": "01:00:00:00", "frame_count": 30},
+            "cameras": [{"id": c, "path": c, "start_timecode": "01:00:00:00"} for c in ("S000", portrait.id)]}
+    (tmp_path / "capture.json").write_text(json.dumps(desc))
+    record = SimpleNamespace(rig=rig, fps=24, frame_count=30, cameras=[
+        SimpleNamespace(id="S000", width=320, height=180),
+        SimpleNamespace(id=portrait.id, width=portrait.sensor.width_px, height=portrait.sensor.height_px)])
+    before, after = capture_info_from_folder(tmp_path), CaptureInfo.from_capture(record)
+    assert before == after and (after.width, after.height) == (320, 180)

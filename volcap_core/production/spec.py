@@ -1,7 +1,8 @@
 """The production spec (YAML) and the planner that decides what it needs.
 
 A production spec names the captures, the rigs they come from, the actors, the shots to deliver
-and a quality preset (format and example in ``docs/production-spec.md``). :func:`load_spec`
+and a quality preset (:mod:`volcap_core.presets`; format and example in
+``docs/production-spec.md``). :func:`load_spec`
 validates it with pydantic and reports every problem with its field path, the offending value and
 the YAML line. :func:`needed_steps` turns a spec into the list of :class:`Step` s it needs — and no
 more:
@@ -36,28 +37,21 @@ from pydantic import (
 )
 
 from volcap_core.production._errors import clean_loc, format_validation_error
-from volcap_core.production.segments import (
-    DEFAULT_OVERLAP,
-    GIB,
-    SegmentBudget,
-    SegmentPlan,
-    plan_segments,
-)
+from volcap_core.presets import PRESETS, QualityPreset
+from volcap_core.production.segments import SegmentPlan
 from volcap_core.production.shot import Shot, ShotError, load_shot
-from volcap_core.splat.model import Poly4DGSConfig
 
 __all__ = [
-    "PRESETS",
     "SPEC_FORMAT",
     "ActorSpec",
     "CaptureInfo",
     "CaptureSpec",
     "ProductionSpec",
-    "QualityPreset",
     "SpecError",
     "Step",
     "StepKind",
     "capture_info_from_folder",
+    "largest_image",
     "load_spec",
     "needed_steps",
     "parse_spec",
@@ -72,63 +66,10 @@ class SpecError(ValueError):
     """An invalid production spec; one line per problem (field path, message, value, YAML line)."""
 
 
-# ------------------------------------------------------------------------------------------------
-# Quality presets
-
-
-class QualityPreset(BaseModel):
-    """Every knob a quality level sets. Presets are in :data:`PRESETS`; a spec may override
-    single fields (``quality: {preset: production, train_steps: 20000}``)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-    train_steps: int = Field(gt=0, description="Poly4DGS optimisation steps per segment")
-    gaussians_per_frame: int = Field(gt=0, description="Gaussians a segment needs per frame")
-    max_gaussians_per_segment: int | None = Field(None, gt=0)
-    gpu_memory_gb: float | None = Field(None, gt=0, description="GPU a segment must fit (GiB)")
-    max_segment_frames: int | None = Field(None, gt=0, description="cap on segment length")
-    overlap: int = Field(DEFAULT_OVERLAP, ge=0, description="frames shared by neighbours")
-    train_scale: float = Field(1.0, gt=0, le=1, description="training resolution / capture")
-    dense_scale: float = Field(1.0, gt=0, le=1, description="dense-point matching resolution / capture")
-    sh_degree: int = Field(3, ge=0, le=3)
-    face_subsequences: int = Field(60, gt=0, description="Face Rig sub-sequences per actor")
-    face_subsequence_frames: int = Field(8, gt=0)
-    face_camera_paths: int = Field(60, gt=0, description="camera paths per sub-sequence")
-    face_hq_gaussians_per_frame: int = Field(1_000_000, gt=0)
-    face_lq_gaussians: tuple[int, int] = (50_000, 200_000)
-    pair_resolution: int = Field(4096, gt=0, description="square LQ/HQ pair renders (px)")
-    enhancer_steps: int = Field(20_000, gt=0)
-
-    @model_validator(mode="after")
-    def _cap(self) -> "QualityPreset":
-        if self.max_gaussians_per_segment is None and self.gpu_memory_gb is None:
-            raise ValueError("set max_gaussians_per_segment or gpu_memory_gb (or both)")
-        lo, hi = self.face_lq_gaussians
-        if not 0 < lo <= hi:
-            raise ValueError(f"face_lq_gaussians must be 0 < low <= high, got {[lo, hi]}")
-        return self
-
-
-PRESETS: dict[str, QualityPreset] = {
-    # CI and laptops: a handful of steps on tiny segments
-    "test": QualityPreset(train_steps=50, gaussians_per_frame=500, max_gaussians_per_segment=8_000,
-                          max_segment_frames=8, overlap=2, train_scale=0.25, dense_scale=0.5, sh_degree=0,
-                          face_subsequences=2, face_subsequence_frames=4, face_camera_paths=2,
-                          face_hq_gaussians_per_frame=2_000, face_lq_gaussians=(200, 500),
-                          pair_resolution=128, enhancer_steps=20),
-    # dailies: half resolution, short training, one 24 GB GPU per segment
-    "preview": QualityPreset(train_steps=3_000, gaussians_per_frame=20_000, gpu_memory_gb=24,
-                             max_segment_frames=48, overlap=2, train_scale=0.5, sh_degree=1,
-                             face_subsequences=12, face_camera_paths=12,
-                             face_hq_gaussians_per_frame=250_000, face_lq_gaussians=(20_000, 50_000),
-                             pair_resolution=1024, enhancer_steps=2_000),
-    # final: the paper's settings, an 80 GB GPU per segment, at most 5 s (24 fps) per segment
-    "production": QualityPreset(train_steps=30_000, gaussians_per_frame=100_000, gpu_memory_gb=80,
-                                max_segment_frames=120, overlap=3, train_scale=1.0, sh_degree=3),
-}
-
-
 class QualitySelection(BaseModel):
-    """``quality: {preset: NAME, <field>: <override>...}``."""
+    """``quality: {preset: NAME, <field>: <override>...}``: a preset of
+    :data:`volcap_core.presets.PRESETS`, single :class:`~volcap_core.presets.QualityPreset` fields
+    replaced."""
 
     model_config = ConfigDict(extra="allow", frozen=True)
     preset: str
@@ -299,9 +240,7 @@ class ProductionSpec(BaseModel):
         """The preset with the spec's overrides applied."""
         if isinstance(self.quality, str):
             return PRESETS[self.quality]
-        base = PRESETS[self.quality.preset]
-        overrides = dict(self.quality.model_extra or {})
-        return QualityPreset.model_validate({**base.model_dump(), **overrides})
+        return PRESETS[self.quality.preset].with_overrides(**(self.quality.model_extra or {}))
 
 
 def _yaml_line(text: str, loc: Sequence[int | str]) -> int | None:
@@ -400,7 +339,9 @@ class Step(BaseModel):
 class CaptureInfo(BaseModel):
     """What the planner must know about a capture before anything runs.
 
-    ``width``/``height``: the largest camera image (for the segment memory estimate).
+    ``width``/``height``: the largest camera image, long side by short side (for the segment
+    memory estimate; a portrait camera counts as its landscape size, so a folder's rig sensors and
+    the ingested capture's images give the same figures: :func:`largest_image`).
     ``segment_plan``: the plan to use; None plans from the spec's quality preset."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -416,10 +357,15 @@ class CaptureInfo(BaseModel):
         """From an ingested :class:`~volcap_core.capture.Capture` record (tracking cameras: those
         of its rig that the capture actually recorded)."""
         tracking = any(capture.rig.camera(c.id).role.tracks for c in capture.cameras)
-        return cls(has_tracking_cameras=tracking, fps=capture.fps,
-                   frame_count=capture.frame_count,
-                   width=max(c.width for c in capture.cameras),
-                   height=max(c.height for c in capture.cameras), segment_plan=segment_plan)
+        width, height = largest_image((c.width, c.height) for c in capture.cameras)
+        return cls(has_tracking_cameras=tracking, fps=capture.fps, frame_count=capture.frame_count,
+                   width=width, height=height, segment_plan=segment_plan)
+
+
+def largest_image(sizes: Iterable[tuple[int, int]]) -> tuple[int, int]:
+    """``(long side, short side)`` of the largest of ``(width, height)`` camera images (pixels)."""
+    sizes = list(sizes)
+    return max(max(w, h) for w, h in sizes), max(min(w, h) for w, h in sizes)
 
 
 def capture_info_from_folder(folder: str | Path) -> CaptureInfo:
@@ -436,14 +382,14 @@ def capture_info_from_folder(folder: str | Path) -> CaptureInfo:
     rig = load_rig(rig_file if rig_file.suffix == ".json" and rig_file.exists() else desc.rig)
     listed = {c.id for c in desc.cameras}
     cams = [c for c in rig.cameras if c.id in listed] or list(rig.cameras)
+    width, height = largest_image((c.sensor.width_px, c.sensor.height_px) for c in cams)
     return CaptureInfo(has_tracking_cameras=any(c.role.tracks for c in cams), fps=desc.fps,
-                       frame_count=desc.take.frame_count,
-                       width=max(max(c.sensor.width_px, c.sensor.height_px) for c in cams),
-                       height=max(min(c.sensor.width_px, c.sensor.height_px) for c in cams))
+                       frame_count=desc.take.frame_count, width=width, height=height)
 
 
 def segment_plan_for(spec: ProductionSpec, capture: str, info: CaptureInfo) -> SegmentPlan:
-    """The capture's segment plan: ``info.segment_plan``, or one from the quality preset."""
+    """The capture's segment plan: ``info.segment_plan``, or one from the quality preset
+    (:meth:`~volcap_core.presets.QualityPreset.plan_segments`, as ``volcap reconstruct`` plans)."""
     if info.segment_plan is not None:
         return info.segment_plan
     q = spec.quality_preset()
@@ -452,13 +398,7 @@ def segment_plan_for(spec: ProductionSpec, capture: str, info: CaptureInfo) -> S
     if frames[1] > info.frame_count:
         raise ValueError(f"captures.{capture}.frames: [{frames[0]}, {frames[1]}) reaches past the "
                          f"take's {info.frame_count} frames")
-    budget = SegmentBudget(
-        gaussians_per_frame=q.gaussians_per_frame, max_gaussians=q.max_gaussians_per_segment,
-        gpu_memory_bytes=int(q.gpu_memory_gb * GIB) if q.gpu_memory_gb else None,
-        width=max(1, round(info.width * q.train_scale)),
-        height=max(1, round(info.height * q.train_scale)),
-        config=Poly4DGSConfig.paper(sh_degree=q.sh_degree))
-    return plan_segments(frames, budget, overlap=q.overlap, max_length=q.max_segment_frames)
+    return q.plan_segments(frames, info.width, info.height)
 
 
 def _shot_take_frames(shot: Shot, fps: float) -> list[float]:
@@ -560,15 +500,15 @@ def needed_steps(spec: ProductionSpec, capture_info: Mapping[str, CaptureInfo], 
         for seg in sorted(needed_segments[cap].values(), key=lambda s: s.index):
             points = f"dense-points:{cap}:{seg.id}"
             steps.append(Step(kind="dense-points", id=points, inputs=(*ingest, calib),
-                              parameters={"capture": cap, "frames": list(seg.frames)}))
+                              parameters={"capture": cap, "frames": list(seg.frames),
+                                          "dense_scale": q.dense_scale}))
             steps.append(Step(
                 kind="train-segment", id=f"train-segment:{cap}:{seg.id}",
                 inputs=(*ingest, calib, points),
                 parameters={"capture": cap, "segment": seg.index, "frames": list(seg.frames),
                             "core": list(seg.core), "overlap": plan.overlap,
                             "gaussians": seg.gaussians, "memory_bytes": seg.memory_bytes,
-                            "train_steps": q.train_steps, "train_scale": q.train_scale,
-                            "sh_degree": q.sh_degree}))
+                            **q.training()}))
     for shot in requested:
         steps.append(Step(kind="render-shot", id=f"render-shot:{shot.name}",
                           inputs=tuple(shot_segments[shot.name]),

@@ -1,0 +1,198 @@
+"""Named quality presets: the one table that ``volcap reconstruct --preset`` and a production
+spec's ``quality:`` both read.
+
+A :class:`QualityPreset` holds every knob a quality level sets:
+
+- the training schedule (steps, exposure grid, evaluation, checkpoints, MCMC refinement), the
+  training resolution and SH degree: :meth:`QualityPreset.train_config` turns them into the
+  :class:`~volcap_core.splat.TrainConfig` of a segment;
+- the segment budget (Gaussians per frame, the per-segment cap, the longest segment, the overlap):
+  :meth:`QualityPreset.plan_segments` is the one segmenter
+  (:func:`volcap_core.production.segments.plan_segments` with the preset's budget), so
+  ``volcap reconstruct`` and a production split the same frames of the same capture alike;
+- what only a production uses: the dense-point matching resolution and the Face Rig / enhancer
+  sizes.
+
+A spec overrides single fields (``quality: {preset: production, train_steps: 20000}``:
+:meth:`QualityPreset.with_overrides`); ``volcap reconstruct --steps N`` stretches the preset's
+schedule to ``N`` steps instead (:meth:`QualityPreset.with_steps`). Table and rationale:
+``docs/production-spec.md`` ("Quality presets").
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from volcap_core.production.segments import DEFAULT_OVERLAP, GIB, SegmentBudget, SegmentPlan, plan_segments
+from volcap_core.splat.mcmc import MCMCConfig
+from volcap_core.splat.model import Poly4DGSConfig
+from volcap_core.splat.train import TrainConfig
+
+__all__ = ["DEGREES", "PRESETS", "TRAINING_FIELDS", "QualityPreset", "named_preset"]
+
+#: Model degrees by name (paper Table 1 baselines).
+DEGREES = {"poly4dgs": Poly4DGSConfig.paper, "rotor4d": Poly4DGSConfig.rotor4d, "static": Poly4DGSConfig.static}
+
+#: The preset fields that shape a segment's TrainConfig (a train-segment step carries them).
+TRAINING_FIELDS = ("train_steps", "grid_size", "eval_every", "eval_max_views", "checkpoint_every",
+                   "refine_start", "refine_every", "refine_stop", "train_scale", "sh_degree")
+
+_TRAIN = TrainConfig.model_fields
+_MCMC = MCMCConfig.model_fields
+
+
+class QualityPreset(BaseModel):
+    """Every knob a quality level sets (module doc). Schedule fields left out take
+    :class:`~volcap_core.splat.TrainConfig`'s and :class:`~volcap_core.splat.mcmc.MCMCConfig`'s
+    defaults (the paper's schedule for 30k steps)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    # -- training
+    train_steps: int = Field(gt=0, description="Poly4DGS optimisation steps per segment")
+    grid_size: int = Field(_TRAIN["grid_size"].default, ge=1, description="exposure/black grid cells per axis")
+    eval_every: int = Field(_TRAIN["eval_every"].default, ge=0, description="held-out evaluation every N steps "
+                            "(0: only at the end)")
+    eval_max_views: int = Field(_TRAIN["eval_max_views"].default, gt=0)
+    checkpoint_every: int = Field(_TRAIN["checkpoint_every"].default, ge=0)
+    refine_start: int = Field(_MCMC["refine_start"].default, ge=0, description="first MCMC refinement step")
+    refine_every: int = Field(_MCMC["refine_every"].default, gt=0)
+    refine_stop: int = Field(_MCMC["refine_stop"].default, ge=0, description="no refinement from this step on")
+    train_scale: float = Field(1.0, gt=0, le=1, description="training resolution / capture")
+    sh_degree: int = Field(3, ge=0, le=3)
+    # -- segments
+    gaussians_per_frame: int = Field(gt=0, description="Gaussians a segment needs per frame")
+    max_gaussians_per_segment: int | None = Field(None, gt=0)
+    gpu_memory_gb: float | None = Field(None, gt=0, description="GPU a segment must fit (GiB)")
+    max_segment_frames: int | None = Field(None, gt=0, description="cap on segment length")
+    overlap: int = Field(DEFAULT_OVERLAP, ge=0, description="frames shared by neighbours")
+    # -- productions only
+    dense_scale: float = Field(1.0, gt=0, le=1, description="dense-point matching resolution / capture")
+    face_subsequences: int = Field(60, gt=0, description="Face Rig sub-sequences per actor")
+    face_subsequence_frames: int = Field(8, gt=0)
+    face_camera_paths: int = Field(60, gt=0, description="camera paths per sub-sequence")
+    face_hq_gaussians_per_frame: int = Field(1_000_000, gt=0)
+    face_lq_gaussians: tuple[int, int] = (50_000, 200_000)
+    pair_resolution: int = Field(4096, gt=0, description="square LQ/HQ pair renders (px)")
+    enhancer_steps: int = Field(20_000, gt=0)
+
+    @model_validator(mode="after")
+    def _cap(self) -> "QualityPreset":
+        if self.max_gaussians_per_segment is None and self.gpu_memory_gb is None:
+            raise ValueError("set max_gaussians_per_segment or gpu_memory_gb (or both)")
+        lo, hi = self.face_lq_gaussians
+        if not 0 < lo <= hi:
+            raise ValueError(f"face_lq_gaussians must be 0 < low <= high, got {[lo, hi]}")
+        return self
+
+    def with_overrides(self, **fields: Any) -> "QualityPreset":
+        """This preset with single fields replaced, validated (a spec's ``quality:`` overrides)."""
+        return QualityPreset.model_validate({**self.model_dump(), **fields})
+
+    def with_steps(self, steps: int) -> "QualityPreset":
+        """This preset trained for ``steps`` steps instead, its schedule stretched to match:
+        evaluation, checkpoints and MCMC refinement at the same fractions of the run (an
+        evaluation interval of 0, "only at the end", stays 0)."""
+        if steps < 1:
+            raise ValueError(f"steps must be >= 1, got {steps}")
+        stretch = steps / self.train_steps
+
+        def scaled(value: int) -> int:
+            return max(1, round(value * stretch))
+
+        return self.with_overrides(
+            train_steps=steps,
+            eval_every=scaled(self.eval_every) if self.eval_every else 0,
+            checkpoint_every=scaled(self.checkpoint_every) if self.checkpoint_every else 0,
+            refine_start=scaled(self.refine_start), refine_every=scaled(self.refine_every),
+            refine_stop=scaled(self.refine_stop))
+
+    def training(self) -> dict[str, Any]:
+        """The fields of :data:`TRAINING_FIELDS` by name."""
+        return {name: getattr(self, name) for name in TRAINING_FIELDS}
+
+    def train_config(self, *, degrees: str = "poly4dgs", held_out: Sequence[str] = (),
+                     max_gaussians: int | None = None, **overrides: Any) -> TrainConfig:
+        """The :class:`~volcap_core.splat.TrainConfig` of a segment trained at this quality.
+
+        ``degrees``: a key of :data:`DEGREES` (at the preset's SH degree). ``held_out``: cameras
+        never trained on. ``max_gaussians``: the Gaussian budget (MCMC's cap, and the initial
+        points are thinned to it); None keeps TrainConfig's. ``overrides``: TrainConfig fields set
+        as given (a partial ``mcmc`` dict merges into the preset's refinement schedule).
+        """
+        if degrees not in DEGREES:
+            raise ValueError(f"unknown model degrees {degrees!r}: choose one of {', '.join(DEGREES)}")
+        mcmc: dict[str, Any] = {"refine_start": self.refine_start, "refine_every": self.refine_every,
+                                "refine_stop": self.refine_stop}
+        if isinstance(overrides.get("mcmc"), dict):
+            mcmc.update(overrides.pop("mcmc"))
+        values: dict[str, Any] = {
+            "steps": self.train_steps, "grid_size": self.grid_size, "eval_every": self.eval_every,
+            "eval_max_views": self.eval_max_views, "checkpoint_every": self.checkpoint_every,
+            "image_scale": self.train_scale, "model": DEGREES[degrees](sh_degree=self.sh_degree),
+            "held_out_cameras": list(held_out)}
+        if max_gaussians is not None:
+            mcmc["cap_max"] = max_gaussians
+            values["init_max_points"] = max_gaussians
+        values["mcmc"] = MCMCConfig(**{**MCMCConfig().model_dump(), **mcmc})
+        values.update(overrides)
+        return TrainConfig(**values)
+
+    def segment_budget(self, width: int, height: int) -> SegmentBudget:
+        """The segment budget for a capture whose largest image is ``width × height`` pixels (the
+        memory estimate is at the training resolution, ``train_scale`` of that, for the paper's
+        model at the preset's SH degree)."""
+        return SegmentBudget(
+            gaussians_per_frame=self.gaussians_per_frame, max_gaussians=self.max_gaussians_per_segment,
+            gpu_memory_bytes=int(self.gpu_memory_gb * GIB) if self.gpu_memory_gb else None,
+            width=max(1, round(width * self.train_scale)), height=max(1, round(height * self.train_scale)),
+            config=Poly4DGSConfig.paper(sh_degree=self.sh_degree))
+
+    def plan_segments(self, frames: tuple[int, int], width: int, height: int) -> SegmentPlan:
+        """Take indices ``[frames[0], frames[1])`` in segments of this preset's budget, at most
+        ``max_segment_frames`` long, neighbours sharing ``overlap`` frames
+        (:func:`~volcap_core.production.segments.plan_segments`)."""
+        return plan_segments(frames, self.segment_budget(width, height), overlap=self.overlap,
+                             max_length=self.max_segment_frames)
+
+
+#: Face Rig and enhancer sizes of the presets that run on a CPU (the enhancer half is not built
+#: yet: these only keep a plan of an enhanced shot small)
+_CPU_FACE = dict(face_subsequences=2, face_subsequence_frames=4, face_camera_paths=2,
+                 face_hq_gaussians_per_frame=2_000, face_lq_gaussians=(200, 500), pair_resolution=128,
+                 enhancer_steps=20)
+
+PRESETS: dict[str, QualityPreset] = {
+    # CI and laptops: 20 steps at full resolution, tiny segments. The reconstruct tests' measured
+    # floors were taken with this schedule; production tests override train_scale/sh_degree for speed
+    "test": QualityPreset(train_steps=20, grid_size=4, eval_every=0, eval_max_views=2, checkpoint_every=10,
+                          refine_start=5, refine_every=5, refine_stop=15,
+                          gaussians_per_frame=500, max_gaussians_per_segment=8_000, max_segment_frames=8,
+                          overlap=2, dense_scale=0.5, **_CPU_FACE),
+    # the built-in demo on 2 CPU cores: 550 steps is what fits its 8 minutes with a margin (650 took
+    # 8 min 3 s; docs/poly4dgs.md "The demo"); 80,000 Gaussians for its 8-frame segment is the budget
+    # measured there (flows/demo.py DEMO_GAUSSIANS), 10,000 a frame
+    "demo": QualityPreset(train_steps=550, grid_size=8, eval_every=110, eval_max_views=4, checkpoint_every=110,
+                          refine_start=100, refine_every=100, refine_stop=500,
+                          gaussians_per_frame=10_000, max_gaussians_per_segment=80_000, overlap=2, **_CPU_FACE),
+    # dailies: half resolution, short training, one 24 GB GPU per segment
+    "preview": QualityPreset(train_steps=3_000, eval_every=500, checkpoint_every=500,
+                             refine_start=300, refine_every=100, refine_stop=2_500,
+                             train_scale=0.5, sh_degree=1,
+                             gaussians_per_frame=20_000, gpu_memory_gb=24, max_segment_frames=48, overlap=2,
+                             face_subsequences=12, face_camera_paths=12,
+                             face_hq_gaussians_per_frame=250_000, face_lq_gaussians=(20_000, 50_000),
+                             pair_resolution=1024, enhancer_steps=2_000),
+    # final: the paper's settings and schedule, an 80 GB GPU per segment, at most 5 s (24 fps) per segment
+    "production": QualityPreset(train_steps=30_000, gaussians_per_frame=100_000, gpu_memory_gb=80,
+                                max_segment_frames=120, overlap=3),
+}
+
+
+def named_preset(name: str) -> QualityPreset:
+    """The preset called ``name``; ``ValueError`` naming the known ones otherwise."""
+    if name not in PRESETS:
+        raise ValueError(f"unknown preset {name!r}: choose one of {', '.join(PRESETS)}")
+    return PRESETS[name]
