@@ -151,9 +151,9 @@ def demo(store: StoreOpt = DEFAULT_STORE,
 @app.command()
 def reconstruct(capture: Annotated[str, typer.Argument(help="capture ref name (captures/NAME) or digest")],
                 frames: Annotated[Optional[str], typer.Option(help="take frames A:B (B exclusive); all when omitted")] = None,
-                preset: Annotated[str, typer.Option(help="training preset: test, demo, preview, production")] = "demo",
+                preset: Annotated[str, typer.Option(help="quality preset (training and segments; the table productions use): test, demo, preview, production")] = "demo",
                 degrees: Annotated[str, typer.Option(help="model: poly4dgs, rotor4d, static")] = "poly4dgs",
-                segment_frames: Annotated[Optional[int], typer.Option(help="frames per segment (one segment when omitted)")] = None,
+                segment_frames: Annotated[Optional[int], typer.Option(help="at most this many frames per segment, neighbours sharing the preset's overlap (default: the preset's segments)")] = None,
                 steps: Annotated[Optional[int], typer.Option(help="train this many steps instead of the preset's (its schedule stretched to match)")] = None,
                 max_gaussians: Annotated[Optional[int], typer.Option(help="Gaussian budget (MCMC's cap; training starts at 70 % of it)")] = None,
                 calibration: Annotated[Optional[str], typer.Option(help="Calibration ref; estimated here (cached) when omitted")] = None,
@@ -262,8 +262,8 @@ def export_colmap_cmd(calibration: Annotated[str, typer.Argument(help="Calibrati
                       store: StoreOpt = DEFAULT_STORE, json_out: JsonOpt = False) -> None:
     """Write one frame's cameras (and dense points) as a COLMAP model that gsplat, nerfstudio and
     COLMAP's GUI open."""
-    from tasks.reconstruct import load_tracking
     from volcap_core.calibration.colmap_export import cameras_at, export_colmap
+    from volcap_core.segment import tracking_frames
     from volcap_core.calibration.record import Calibration
     from volcap_core.pointcloud import PointCloudSequence, decode_points
 
@@ -272,7 +272,7 @@ def export_colmap_cmd(calibration: Annotated[str, typer.Argument(help="Calibrati
     calib = s.get_record(calib_ref, Calibration)
     if not 0 <= frame < calib.frame_count:
         raise CommandError(f"frame {frame} outside [0, {calib.frame_count}) of the calibration of {calib.capture}")
-    cams = cameras_at(calib, frame, load_tracking(s, calib))
+    cams = cameras_at(calib, frame, tracking_frames(s.get_bytes, calib))
     xyz = rgb = None
     if points:
         seq = s.get_record(s.resolve(points), PointCloudSequence)
@@ -338,13 +338,13 @@ def _camera_args(s, seg, camera: str | None, camera_json: Path | None, time_s: f
             raise CommandError(f"{camera_json}: camera JSON needs K, world_to_camera, width, height (missing {exc})") from None
     if camera is None:
         raise CommandError("give --camera ID (a calibrated camera of the capture) or --camera-json FILE")
-    from tasks.reconstruct import load_tracking
     from volcap_core.calibration.record import Calibration, camera_at
+    from volcap_core.segment import tracking_frames
 
     calib = s.get_record(seg.calibration, Calibration)
     frame = min(max(int(round(time_s * seg.fps)), 0), calib.frame_count - 1)
     try:
-        return camera_at(calib, camera, frame, load_tracking(s, calib))
+        return camera_at(calib, camera, frame, tracking_frames(s.get_bytes, calib))
     except KeyError:
         raise CommandError(f"camera {camera!r} is not in the calibration "
                            f"({', '.join(c.id for c in calib.cameras)})") from None
@@ -359,13 +359,13 @@ def render(model: Annotated[str, typer.Argument(help="segment model ref (digest 
            grids: Annotated[bool, typer.Option(help="apply that camera's fitted exposure/black-level grids")] = False,
            store: StoreOpt = DEFAULT_STORE, json_out: JsonOpt = False) -> None:
     """Render a segment model from a capture camera or any camera at time T to an EXR."""
-    from tasks.reconstruct import render_segment_exr
     from volcap_core.reconstruction import SegmentModel
+    from volcap_core.segment import render_segment_exr
 
     s = _open(store)
     seg = s.get_record(s.resolve(model), SegmentModel)
     K, w2c, w, h = _camera_args(s, seg, camera, camera_json, time_s)
-    data = render_segment_exr(s, seg, K, w2c, w, h, time_s, camera if grids else None)
+    data = render_segment_exr(s.get_bytes, seg, K, w2c, w, h, time_s, camera if grids else None)
     _write_atomic(out, data)
     _emit({"out": str(out), "width": w, "height": h, "time_s": time_s}, json_out, str(out))
 
@@ -387,18 +387,12 @@ def export_ply_cmd(model: Annotated[str, typer.Argument(help="segment model ref 
 
 
 def _write_atomic(path: Path, data: bytes) -> None:
-    import os
-    import tempfile
+    """An output file the user named: its folder is made if missing (``--out renders/a.exr``
+    in a fresh checkout), then the file is replaced atomically."""
+    from volcap_core.files import write_atomic
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".part")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_atomic(path, data)
 
 
 # ---------------------------------------------------------------------------------------------

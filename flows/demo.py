@@ -17,7 +17,8 @@ from prefect import flow, get_run_logger
 from flows.ingest import ingest_flow
 from flows.reconstruct import reconstruct_flow
 from tasks.calibrate import calibration_errors
-from tasks.reconstruct import ViewSpec, load_tracking, render_views
+from tasks.reconstruct import render_views
+from volcap_core.segment import ViewSpec, tracking_frames
 from volcap_core.calibration.record import Calibration, camera_at
 from volcap_core.reconstruction import SegmentModel
 from volcap_core.splat import export_ply, load_model
@@ -49,7 +50,7 @@ def demo_flow(store: str, capture_dir: str, out_dir: str, preset: str = "demo") 
     calib = s.get_record(seg.calibration, Calibration)
     camera = seg.held_out_cameras[0] if seg.held_out_cameras else calib.cameras[0].id
     mid = (seg.frames[0] + seg.frames[1]) // 2
-    K, w2c, w, h = camera_at(calib, camera, mid, load_tracking(s, calib))
+    K, w2c, w, h = camera_at(calib, camera, mid, tracking_frames(s.get_bytes, calib))
     [view] = render_views(store, seg_ref, [ViewSpec(K=K.tolist(), world_to_camera=w2c.tolist(), width=w, height=h,
                                                     time_s=mid / seg.fps)])
     out = Path(out_dir)

@@ -39,7 +39,7 @@ from prefect.cache_policies import NO_CACHE  # noqa: E402
 from flows.calibrate import calibrate_capture, point_cloud_for_frames  # noqa: E402
 from flows.ingest import ingest_flow  # noqa: E402
 from tasks import calibrate as calibrate_tasks  # noqa: E402
-from tasks.contract import cached_output  # noqa: E402
+from tasks.contract import cached_output, task_identity  # noqa: E402
 from tasks.ingest import fingerprint_camera, ingest_camera, record_capture  # noqa: E402
 from tasks.production import assemble_performance, render_shot  # noqa: E402
 from tasks.reconstruct import train_segment_task  # noqa: E402
@@ -48,10 +48,9 @@ from volcap_core.capture import Capture  # noqa: E402
 from volcap_core.digest import digest_bytes  # noqa: E402
 from volcap_core.production.journal import (compare_fingerprints, folder_listing_digest,  # noqa: E402
                                             read_entry, write_entry)
-from volcap_core.production.spec import (CaptureInfo, ProductionSpec, QualityPreset, Step,  # noqa: E402
+from volcap_core.production.spec import (CaptureInfo, ProductionSpec, Step,  # noqa: E402
                                          capture_info_from_folder, load_spec, needed_steps)
 from volcap_core.records import ArtifactRef, canonical_json  # noqa: E402
-from volcap_core.splat.model import Poly4DGSConfig  # noqa: E402
 from volcap_core.splat.train import TrainConfig  # noqa: E402
 from volcap_core.store import ArtifactStore  # noqa: E402
 
@@ -167,8 +166,8 @@ def open_production(spec_path: str | Path, store: str | None = None,
 # ---------------------------------------------------------------------------------------------
 
 
-def _versions(*tasks: Any) -> dict[str, str]:
-    return {t.cache_policy.task_name: t.cache_policy.version for t in tasks}
+def _versions(*tasks: Any) -> dict[str, Any]:
+    return {t.cache_policy.task_name: task_identity(t) for t in tasks}
 
 
 def has_tracking_step(steps: list[Step], capture: str) -> bool:
@@ -194,16 +193,6 @@ def step_versions(step: Step, steps: list[Step]) -> dict[str, str]:
     return {}
 
 
-def step_parameters(prod: Production, step: Step) -> dict[str, Any]:
-    """The planner's parameters plus what the flow derives from the quality preset for the step."""
-    q = prod.spec.quality_preset()
-    if step.kind == "dense-points":
-        return {**step.parameters, "max_points_per_frame": q.gaussians_per_frame, "dense_scale": q.dense_scale}
-    if step.kind == "train-segment":
-        return {**step.parameters, "preset": _preset_name(prod.spec)}
-    return step.parameters
-
-
 def _outputs_digest(outputs: dict[str, ArtifactRef]) -> str:
     return digest_bytes(canonical_json({k: v.digest for k, v in sorted(outputs.items())}))
 
@@ -217,7 +206,7 @@ def step_fingerprint(prod: Production, step: Step, done: dict[str, dict[str, Art
             return f"after {i}, which is to run"
         inputs[i] = _outputs_digest(done[i])
     fp: dict[str, Any] = {"kind": step.kind, "versions": step_versions(step, prod.steps), "inputs": inputs,
-                          "parameters": step_parameters(prod, step)}
+                          "parameters": step.parameters}
     if step.kind == "ingest":
         fp["source"] = folder_listing_digest(prod.folder(step.parameters["capture"]))
     elif step.parameters.get("capture_ref"):
@@ -269,14 +258,6 @@ def plan_production(prod: Production) -> list[PlannedStep]:
 # ---------------------------------------------------------------------------------------------
 # Segment training: one GPU worker per segment, or in-process
 # ---------------------------------------------------------------------------------------------
-
-
-def segment_train_config(q: QualityPreset, preset: str, gaussians: int, held_out: list[str]) -> TrainConfig:
-    """The training config of a segment from the spec's quality preset and the planned budget."""
-    base = preset if preset in reconstruction.PRESETS else "production"
-    return reconstruction.train_config(base, held_out=held_out, max_gaussians=gaussians, steps=q.train_steps,
-                                       model=Poly4DGSConfig.paper(sh_degree=q.sh_degree),
-                                       image_scale=q.train_scale)
 
 
 @dataclass(frozen=True)
@@ -361,7 +342,9 @@ def run_segment_deployment(store: str, job: SegmentJob, max_attempts: int = 3,
     _, ref = cached_output(train_segment_task, store, **job.task_inputs())
     if ref is None:
         raise RuntimeError(f"segment [{a}, {b}): run {run.name} completed but its result is not in store "
-                           f"{store}: do the workers use this store URL?")
+                           f"{store} under key {key}: do the workers use this store URL, and the same volcap "
+                           f"release and libraries as this coordinator ({task_identity(train_segment_task)})? "
+                           "(docs/tasks.md, 'What is not in a key')")
     return ref
 
 
@@ -461,9 +444,10 @@ def production_flow(spec: str, store: str | None = None, shots: list[str] | None
         elif step.kind == "dense-points":
             cap = p["capture"]
             a, b = p["frames"]
+            # every point of every frame: training thins them to the segment's budget itself
+            # (splat/init.py), after the static/moving split has seen them all
             points[step.id] = point_cloud_for_frames(prod.store, captures[cap], calibrations[cap], list(range(a, b)),
-                                                     max_points_per_frame=q.gaussians_per_frame,
-                                                     scale=q.dense_scale,
+                                                     scale=p["dense_scale"],
                                                      exclude_cameras=reconstruction.default_held_out(records[cap]))
             finish(step, {"points": points[step.id]})
 
@@ -473,7 +457,7 @@ def production_flow(spec: str, store: str | None = None, shots: list[str] | None
         p = step.parameters
         cap = p["capture"]
         held = reconstruction.default_held_out(records[cap])
-        config = segment_train_config(q, _preset_name(prod.spec), p["gaussians"], held)
+        config = q.train_config(held_out=held, max_gaussians=p["gaussians"])
         dense = next(i for i in step.inputs if i.startswith("dense-points:"))
         jobs.append(SegmentJob(capture=captures[cap], calibration=calibrations[cap], points=points[dense],
                                frames=(p["frames"][0], p["frames"][1]), config=config))
@@ -514,10 +498,6 @@ def _check_rig(prod: Production, capture: str, record: Capture, log) -> None:
     if rig.name != record.rig.name:
         log.warning("captures.%s.rig is %s (%s) but the capture was recorded with rig %s: calibrating with %s",
                     capture, name, rig.name, record.rig.name, record.rig.name)
-
-
-def _preset_name(spec: ProductionSpec) -> str:
-    return spec.quality if isinstance(spec.quality, str) else spec.quality.preset
 
 
 __all__ = ["Production", "PlannedStep", "SegmentJob", "open_production", "plan_production", "production_flow",

@@ -7,12 +7,15 @@ A volcap task is a Prefect task that
 - reads its inputs from the store, calls one ``volcap_core`` function, puts its outputs in the
   store and returns references (JSON, never pickle);
 - is cached by a key built from its name, an explicit ``version`` the author bumps when its meaning
-  changes, the digests of its input refs (never their location, never re-hashing data) and its
-  canonical parameters.
+  changes, the digests of its input refs (never their location, never re-hashing data), its
+  canonical parameters (defaults included: a task's settings are parameters with defaults, so a
+  changed default is a changed key) and the versions of the libraries whose numerics its output
+  depends on (``libraries``). ``docs/tasks.md`` states the rule; ``tests/test_cache_keys.py``
+  checks it for every task.
 
 Declare one like this::
 
-    @volcap_task(name="ingest-camera", version="1")
+    @volcap_task(name="ingest-camera", version="1", libraries=("OpenEXR", "PyOpenColorIO"))
     def ingest_camera(store: str, raw: ArtifactRef, encoding: str) -> CameraIngest: ...
 
 Where the cache lives: Prefect keeps cache records through a *result storage*; volcap points it
@@ -31,13 +34,17 @@ the default policy includes the flow-run id (replaced); ``task_key`` depends on 
 
 from __future__ import annotations
 
+import dataclasses
+import enum
 import functools
+import importlib
+import importlib.metadata
 import inspect
 import json
 import logging
 import threading
 from collections.abc import Callable, Iterable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import PurePosixPath
 from typing import Any, ParamSpec, TypeVar
 
@@ -147,6 +154,12 @@ def canonical_inputs(value: Any, where: str = "input") -> Any:
         return {"$ref": value.digest}
     if isinstance(value, BaseModel):
         return canonical_inputs(value.model_dump(mode="json"), where)
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        # option objects of the library (frozen dataclasses): every field is part of the meaning
+        return {"$options": type(value).__qualname__,
+                **canonical_inputs({f.name: getattr(value, f.name) for f in dataclasses.fields(value)}, where)}
+    if isinstance(value, enum.Enum):
+        return canonical_inputs(value.value, where)
     if isinstance(value, dict):
         if not all(isinstance(k, str) for k in value):
             raise TypeError(f"{where}: dict keys must be strings")
@@ -159,12 +172,32 @@ def canonical_inputs(value: Any, where: str = "input") -> Any:
                     "pass artifacts as ArtifactRef and settings as JSON values")
 
 
+@functools.lru_cache(maxsize=None)
+def library_version(module: str) -> str:
+    """The public release of the distribution that provides ``module`` (``torch`` -> ``2.13.0``).
+
+    The local label (``+cpu``, ``+cu128``) is dropped: a CPU coordinator and a CUDA worker of the
+    same release must compute the same key for a segment (``flows/production.py`` collects a
+    worker's result by its key), and the label names a build, not a change of the code.
+    """
+    dists = importlib.metadata.packages_distributions().get(module, [])
+    if dists:
+        version = importlib.metadata.version(dists[0])
+    else:  # extension modules installed without top-level metadata (OpenEXR)
+        version = str(getattr(importlib.import_module(module), "__version__"))
+    return version.split("+", 1)[0]
+
+
 def cache_key(name: str, version: str, inputs: dict[str, Any],
-              locations: Iterable[str] = LOCATION_PARAMETERS) -> str:
-    """``<name>-<blake3 hex>`` of (name, version, canonical inputs minus location parameters)."""
+              locations: Iterable[str] = LOCATION_PARAMETERS, libraries: Iterable[str] = ()) -> str:
+    """``<name>-<blake3 hex>`` of (name, version, canonical inputs minus location parameters, and
+    the release of each library in ``libraries``)."""
     skip = set(locations)
-    body = {"task": name, "version": version,
-            "inputs": {k: canonical_inputs(v, k) for k, v in inputs.items() if k not in skip}}
+    body: dict[str, Any] = {"task": name, "version": version,
+                            "inputs": {k: canonical_inputs(v, k) for k, v in inputs.items() if k not in skip}}
+    libs = sorted(set(libraries))
+    if libs:
+        body["libraries"] = {m: library_version(m) for m in libs}
     return f"{name}-{digest_bytes(canonical_json(body)).split(':', 1)[1]}"
 
 
@@ -175,11 +208,15 @@ class StoreCachePolicy(CachePolicy):
     task_name: str = ""
     version: str = ""
     locations: tuple[str, ...] = LOCATION_PARAMETERS
-    key_parts: dict[str, Any] = field(default_factory=dict)
+    libraries: tuple[str, ...] = ()
+
+    def key(self, inputs: dict[str, Any]) -> str:
+        """The key of a run on ``inputs`` (every parameter, defaults applied)."""
+        return cache_key(self.task_name, self.version, inputs, self.locations, self.libraries)
 
     def compute_key(self, task_ctx: TaskRunContext, inputs: dict[str, Any],
                     flow_parameters: dict[str, Any], **kwargs: Any) -> str | None:
-        key = cache_key(self.task_name, self.version, inputs, self.locations)
+        key = self.key(inputs)
         store = ArtifactStore(inputs["store"])
         # Prefect only accepts result storage saved as a server-side block at decoration time, but
         # the store is a run-time input. The engine takes this run's result store from the task
@@ -204,12 +241,7 @@ def cached_output(task: Any, store: str, **inputs: Any) -> tuple[str, Any | None
     collects the result of a run that happened on another machine (the record lives in the
     store). A record whose referenced objects are gone counts as absent, as in the task itself.
     """
-    policy = getattr(task, "cache_policy", None)
-    if not isinstance(policy, StoreCachePolicy):
-        raise TypeError(f"{getattr(task, 'name', task)!r} is not a volcap task")
-    bound = inspect.signature(task.fn).bind(store, **inputs)
-    bound.apply_defaults()
-    key = cache_key(policy.task_name, policy.version, dict(bound.arguments), policy.locations)
+    key = task_cache_key(task, store, **inputs)
     s = ArtifactStore(store)
     record = cached_result_record(s, key)
     if record is None:
@@ -222,6 +254,29 @@ def cached_output(task: Any, store: str, **inputs: Any) -> tuple[str, Any | None
     return key, ResultRecord.deserialize(record).result
 
 
+def task_cache_key(task: Any, store: str, **inputs: Any) -> str:
+    """The cache key a call ``task(store, **inputs)`` would have (defaults applied, as Prefect does)."""
+    policy = getattr(task, "cache_policy", None)
+    if not isinstance(policy, StoreCachePolicy):
+        raise TypeError(f"{getattr(task, 'name', task)!r} is not a volcap task")
+    bound = inspect.signature(task.fn).bind(store, **inputs)
+    bound.apply_defaults()
+    return policy.key(dict(bound.arguments))
+
+
+def task_identity(task: Any) -> dict[str, Any]:
+    """What of a task enters its keys besides the caller's inputs: its version, its library
+    releases and its settings' defaults (the production journal compares these to tell a
+    coordinator why a step reruns: ``task calibrate-static: default options changed``)."""
+    policy = task.cache_policy
+    defaults = {k: p.default for k, p in inspect.signature(task.fn).parameters.items()
+                if p.default is not inspect.Parameter.empty and k not in policy.locations}
+    out: dict[str, Any] = {"version": policy.version, "defaults": canonical_inputs(defaults, policy.task_name)}
+    if policy.libraries:
+        out["libraries"] = {m: library_version(m) for m in sorted(policy.libraries)}
+    return out
+
+
 def current_run_key() -> str:
     """The cache key of the running volcap task: a stable name for its checkpoints.
 
@@ -232,7 +287,7 @@ def current_run_key() -> str:
     policy = getattr(getattr(ctx, "task", None), "cache_policy", None)
     if not isinstance(policy, StoreCachePolicy):
         raise RuntimeError("current_run_key() called outside a volcap task")
-    return cache_key(policy.task_name, policy.version, ctx.parameters, policy.locations)
+    return policy.key(ctx.parameters)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -279,7 +334,7 @@ logging.getLogger("prefect.task_runs").addFilter(_QuietTallyHook())
 # ---------------------------------------------------------------------------------------------
 
 
-def volcap_task(*, name: str, version: str, locations: tuple[str, ...] = (),
+def volcap_task(*, name: str, version: str, locations: tuple[str, ...] = (), libraries: Iterable[str] = (),
                 retries: int = 0, retry_delay_seconds: float = 0, tags: Iterable[str] = (),
                 timeout_seconds: float | None = None) -> Callable[[Callable[P, T]], Any]:
     """Declare a cached, store-backed Prefect task (see the module docstring).
@@ -288,6 +343,10 @@ def volcap_task(*, name: str, version: str, locations: tuple[str, ...] = (),
     ``version``: bump it whenever the task's output for the same inputs would change.
     ``locations``: extra parameters that only say where inputs live (e.g. a capture folder whose
     content is already pinned by a digest input); they are left out of the key.
+    ``libraries``: modules whose release changes the output's numbers or bytes (``"torch"``,
+    ``"pycolmap"``, ``"OpenEXR"``); their public versions enter the key.
+    Settings belong in parameters with defaults (an options dataclass is a valid parameter), never
+    in module globals the body reads: ``tests/test_cache_keys.py`` refuses a task that reads one.
     The function's first parameter must be ``store: str``.
     """
 
@@ -296,7 +355,7 @@ def volcap_task(*, name: str, version: str, locations: tuple[str, ...] = (),
         if not params or params[0] != "store":
             raise TypeError(f"task {name}: the first parameter must be 'store'")
         policy = StoreCachePolicy(task_name=name, version=version,
-                                  locations=LOCATION_PARAMETERS + tuple(locations))
+                                  locations=LOCATION_PARAMETERS + tuple(locations), libraries=tuple(libraries))
 
         @functools.wraps(fn)
         def run(*args: P.args, **kwargs: P.kwargs) -> T:

@@ -13,6 +13,9 @@ from volcap_core.records import MEDIA_EXR, ArtifactRef
 from volcap_core.store import ArtifactStore
 
 RAW_MANIFEST_MEDIA = "application/vnd.volcap.raw-manifest+json"
+#: a converted frame's bytes depend on the decoder (OpenImageIO), the colour conversion
+#: (OpenColorIO, numpy) and the encoder's compression (OpenEXR)
+INGEST_LIBRARIES = ("OpenImageIO", "PyOpenColorIO", "OpenEXR", "numpy")
 
 
 @volcap_task(name="fingerprint-camera", version="1")
@@ -29,7 +32,7 @@ def fingerprint_camera(store: str, camera_id: str, files: list[str], file_stats:
     return ArtifactStore(store).put_json(ingest.raw_manifest_json(camera_id, entries), RAW_MANIFEST_MEDIA)
 
 
-@volcap_task(name="ingest-camera", version="1", locations=("capture_dir",))
+@volcap_task(name="ingest-camera", version="1", locations=("capture_dir",), libraries=INGEST_LIBRARIES)
 def ingest_camera(store: str, capture_dir: str, camera: CameraSource, rig_camera: RigCamera,
                   raw_manifest: ArtifactRef, take_offset: int, frame_count: int,
                   ocio_config: ArtifactRef | None, nan_policy: str,
@@ -40,24 +43,13 @@ def ingest_camera(store: str, capture_dir: str, camera: CameraSource, rig_camera
     (``capture_dir``): the same bytes ingested from another mount are a cache hit.
     """
     s = ArtifactStore(store)
-    entries = ingest.parse_raw_manifest(s.get_bytes(raw_manifest))
-    if len(entries) != frame_count:
-        raise ingest.IngestError(f"camera {camera.id}: manifest has {len(entries)} frames, take has {frame_count}")
     ocio_path = None
     if ocio_config is not None:
         # Pin the config by content: copy the stored bytes out rather than trusting the folder.
         ocio_path = s.get_file(ocio_config, Path(tempfile.gettempdir()) / "volcap-ocio" / f"{ocio_config.hex}.ocio")
-    raws = [ingest.RawFrame(e["take_index"], e["take_index"] - take_offset, Path(e["file"])) for e in entries]
-    want_alpha = "A" in ingest.imageio.probe_image(raws[0].path).channels
-    frames: list[ArtifactRef] = []
-    for raw, entry in zip(raws, entries):
-        data, _ = ingest.convert_frame(raw, entry["digest"], camera, ocio_config=ocio_path,
-                                       nan_policy=nan_policy, want_alpha=want_alpha)
-        frames.append(s.put_bytes(data, MEDIA_EXR))
-    return CaptureCamera(id=camera.id, width=rig_camera.sensor.width_px, height=rig_camera.sensor.height_px,
-                         channels=("R", "G", "B", "A") if want_alpha else ("R", "G", "B"),
-                         source_encoding=camera.encoding, frames=tuple(frames),
-                         lens_encoder=tuple(lens) if lens is not None else None)
+    return ingest.convert_camera(camera, rig_camera, ingest.parse_raw_manifest(s.get_bytes(raw_manifest)),
+                                 take_offset, frame_count, ocio_config=ocio_path, nan_policy=nan_policy, lens=lens,
+                                 put_frame=lambda data: s.put_bytes(data, MEDIA_EXR))
 
 
 @volcap_task(name="record-capture", version="2")

@@ -31,7 +31,7 @@ def assemble_performance(store: str, name: str, capture: ArtifactRef, segments: 
     return s.put_record(Performance(name=name, capture=capture, fps=records[0].fps, segments=entries))
 
 
-@volcap_task(name="render-shot", version="2")
+@volcap_task(name="render-shot", version="2", libraries=("torch", "OpenEXR"))
 def render_shot(store: str, performance: ArtifactRef, shot: dict) -> ArtifactRef:
     """Every frame of ``shot`` (a shot's JSON, ``docs/shots.md``) over ``performance``: a tree of
     ``<frame:06d>.exr`` files, linear premultiplied RGBA half float cropped to the actors, the

@@ -7,11 +7,14 @@ import torch
 from prefect import flow
 
 import tasks.reconstruct as reconstruct_tasks
+import volcap_core.segment as segment_lib
 from flows.ingest import ingest_flow
-from flows.reconstruct import reconstruct_flow, split_frames
+from flows.reconstruct import plan_reconstruction, reconstruct_flow
 from flows.runtime import run_flow
 from volcap_core import imageio
-from volcap_core.reconstruction import SegmentModel, train_config
+from volcap_core.presets import PRESETS, named_preset
+from volcap_core.production.spec import CaptureInfo, needed_steps, parse_spec
+from volcap_core.reconstruction import SegmentModel
 from volcap_core.splat import load_model
 from volcap_core.splat.ply import read_ply
 from volcap_core.store import ArtifactStore
@@ -43,11 +46,37 @@ def _reconstruct(store: str, capture: str, **kw):
     return run_flow(reconstruct_flow, **params)
 
 
-def test_split_frames():
-    assert split_frames(0, 10, None) == [(0, 10)]
-    assert split_frames(0, 10, 4) == [(0, 4), (4, 8), (8, 10)]
-    with pytest.raises(ValueError):
-        split_frames(0, 10, 0)
+def _production_segments(info: CaptureInfo, quality, frames=None) -> list[tuple[int, int]]:
+    """The train-segment frames a production plans for one capture with ``reconstruct: true``."""
+    capture = {"folder": "/data/take", "reconstruct": True, **({"frames": list(frames)} if frames else {})}
+    spec = parse_spec({"format": "volcap-production/1", "name": "p", "quality": quality,
+                       "captures": {"take": capture}})
+    return [tuple(s.parameters["frames"]) for s in needed_steps(spec, {"take": info}) if s.kind == "train-segment"]
+
+
+def test_reconstruct_plans_the_segments_a_production_plans():
+    """One segmenter: the same capture, frames and preset give the same segments to `volcap
+    reconstruct` and to a production; --segment-frames is the spec's max_segment_frames."""
+    info = CaptureInfo(has_tracking_cameras=False, fps=24, frame_count=40, width=320, height=180)
+    plan = plan_reconstruction(info, (0, 40), "test")
+    # the test preset: at most 8 frames, neighbours sharing 2
+    assert [s.frames for s in plan.segments] == [(0, 8), (6, 14), (12, 20), (18, 25), (23, 30), (28, 35), (33, 40)]
+    assert [s.frames for s in plan.segments] == _production_segments(info, "test")
+    assert plan.segments[1].core == (8, 12)
+    # a sub-range of the take, and the demo preset's budget (80,000 Gaussians, 10,000 a frame)
+    demo = plan_reconstruction(info, (4, 30), "demo")
+    assert [s.frames for s in demo.segments] == [(4, 12), (10, 18), (16, 24), (22, 30)]
+    assert [s.frames for s in demo.segments] == _production_segments(info, "demo", frames=(4, 30))
+    short = plan_reconstruction(info, (0, 12), "demo", segment_frames=5)
+    assert [s.frames for s in short.segments] == [(0, 5), (3, 8), (6, 10), (8, 12)]
+    assert [s.frames for s in short.segments] == _production_segments(
+        info, {"preset": "demo", "max_segment_frames": 5}, frames=(0, 12))
+    # the built-in demo's 8 frames are one segment
+    assert [s.frames for s in plan_reconstruction(info, (0, 8), "demo").segments] == [(0, 8)]
+    with pytest.raises(ValueError, match=r"2 × overlap \+ 1"):   # 4 frames cannot hold two blends of 2
+        plan_reconstruction(info, (0, 12), "demo", segment_frames=4)
+    with pytest.raises(ValueError, match="unknown preset 'nope'"):
+        plan_reconstruction(info, (0, 12), "nope")
 
 
 @pytest.mark.slow
@@ -55,7 +84,7 @@ def test_reconstruct_trains_reports_and_caches(ingested):
     store, capture = ingested
     first = _reconstruct(store, capture)
     seg = first.result["segments"][0]
-    assert seg["frames"] == [0, 2] and seg["gaussians"] > 0
+    assert seg["frames"] == [0, 2] and seg["core"] == [0, 2] and seg["gaussians"] > 0
     # Measured (2026-11-23, test preset, 20 steps, true cameras): held-out 20.96 dB, untrained
     # 19.94, empty model 16.15 (all under the same protocol, same views); performers 20.84.
     # A foggy initialisation renders near the empty floor; a broken rasterizer or optimiser does
@@ -107,7 +136,7 @@ def test_killed_training_resumes_from_its_checkpoint(ingested, tiny_capture, mon
     store2 = ArtifactStore(str(tmp_path / "store2")).url
     capture2 = run_flow(ingest_flow, store=store2, capture_dir=tiny_capture).result.digest
     assert capture2 == capture
-    real = reconstruct_tasks.train_segment
+    real = segment_lib.train_segment
     attempts = []
 
     def dying(*args, checkpoint=None, resume_from=None, **kw):
@@ -119,7 +148,7 @@ def test_killed_training_resumes_from_its_checkpoint(ingested, tiny_capture, mon
             return real(*args, checkpoint=ckpt, resume_from=resume_from, **kw)
         return real(*args, checkpoint=checkpoint, resume_from=resume_from, **kw)
 
-    monkeypatch.setattr(reconstruct_tasks, "train_segment", dying)
+    monkeypatch.setattr(segment_lib, "train_segment", dying)
     resumed = _reconstruct(store2, capture2, seed=7)
     assert attempts == [False, True]  # the retry found the checkpoint
     rec2 = ArtifactStore(store2).get_record(resumed.result["segments"][0]["model"]["digest"], SegmentModel)
@@ -159,10 +188,33 @@ def test_render_view_and_ply_export(ingested):
 
 
 def test_train_config_presets():
-    cfg = train_config("demo", degrees="rotor4d", held_out=["S001"])
+    cfg = PRESETS["demo"].train_config(degrees="rotor4d", held_out=["S001"])
     assert cfg.model.mean_degree == 1 and cfg.held_out_cameras == ["S001"]
     with pytest.raises(ValueError, match="unknown preset"):
-        train_config("nope")
+        named_preset("nope")
+    with pytest.raises(ValueError, match="unknown model degrees"):
+        PRESETS["demo"].train_config(degrees="poly5dgs")
+
+
+def test_demo_and_test_presets_train_as_they_were_measured():
+    """The demo's figures (docs/poly4dgs.md "The demo") and the reconstruct tests' floors were
+    measured with exactly these TrainConfigs: `volcap reconstruct --preset demo|test [--steps N]`."""
+    from volcap_core.splat.mcmc import MCMCConfig
+    from volcap_core.splat.train import TrainConfig
+
+    demo = PRESETS["demo"].train_config(held_out=["S004"], max_gaussians=80_000)
+    assert demo == TrainConfig(steps=550, grid_size=8, eval_every=110, eval_max_views=4, checkpoint_every=110,
+                               mcmc=MCMCConfig(refine_start=100, refine_every=100, refine_stop=500, cap_max=80_000),
+                               init_max_points=80_000, held_out_cameras=["S004"])
+    # `--steps 1300 --max-gaussians 80000` (the 1300-step row): the schedule stretched by 1300 / 550
+    longer = PRESETS["demo"].with_steps(1300).train_config(held_out=["S004"], max_gaussians=80_000)
+    assert longer == demo.model_copy(update={
+        "steps": 1300, "eval_every": 260, "checkpoint_every": 260,
+        "mcmc": MCMCConfig(refine_start=236, refine_every=236, refine_stop=1182, cap_max=80_000)})
+    test = PRESETS["test"].train_config(held_out=["S002"])
+    assert test == TrainConfig(steps=20, grid_size=4, eval_every=0, eval_max_views=2, checkpoint_every=10,
+                               mcmc=MCMCConfig(refine_start=5, refine_every=5, refine_stop=15),
+                               held_out_cameras=["S002"])
 
 
 @flow
@@ -198,12 +250,12 @@ def test_segment_data_at_a_fraction_of_the_resolution(ingested):
         segment_data(cap, calib, None, (0, 2), FrameCache(s.get_bytes), scale=1.5)
 
 
-def test_steps_override_stretches_the_preset_schedule_and_keeps_the_budget():
-    from volcap_core.reconstruction import steps_override
-
-    cfg = train_config("demo", max_gaussians=5000, **steps_override("demo", 1100))
+def test_steps_stretch_the_preset_schedule_and_keep_the_budget():
+    cfg = PRESETS["demo"].with_steps(1100).train_config(max_gaussians=5000)
     assert cfg.steps == 1100 and cfg.mcmc.cap_max == 5000 and cfg.init_max_points == 5000
-    base = train_config("demo")
+    base = PRESETS["demo"].train_config()
     assert cfg.eval_every == 2 * base.eval_every and cfg.mcmc.refine_stop == 2 * base.mcmc.refine_stop
+    # "evaluate only at the end" stays so at any length
+    assert PRESETS["test"].with_steps(200).train_config().eval_every == 0
     with pytest.raises(ValueError):
-        steps_override("demo", 0)
+        PRESETS["demo"].with_steps(0)

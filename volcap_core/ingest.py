@@ -36,6 +36,7 @@ from volcap_core.capture import (
     frames_to_timecode,
     timecode_to_frames,
     CameraSource,
+    CaptureCamera,
     CaptureDescription,
     Encoding,
     LensSample,
@@ -298,3 +299,24 @@ def raw_manifest_json(camera_id: str, entries: list[dict]) -> dict:
 
 def parse_raw_manifest(data: bytes) -> list[dict]:
     return json.loads(data)["frames"]
+
+
+def convert_camera(camera: CameraSource, rig_camera: RigCamera, entries: list[dict], take_offset: int,
+                   frame_count: int, *, ocio_config: Path | None, nan_policy: NanPolicy,
+                   lens: list[LensSample] | None, put_frame) -> CaptureCamera:
+    """One camera's fingerprinted frames (``entries`` of :func:`parse_raw_manifest`) converted to
+    scene-linear half EXR, each handed to ``put_frame(bytes) -> ArtifactRef`` as it is made (one
+    frame in memory at a time); the camera's record in the capture."""
+    if len(entries) != frame_count:
+        raise IngestError(f"camera {camera.id}: manifest has {len(entries)} frames, take has {frame_count}")
+    raws = [RawFrame(e["take_index"], e["take_index"] - take_offset, Path(e["file"])) for e in entries]
+    want_alpha = "A" in imageio.probe_image(raws[0].path).channels
+    frames = []
+    for raw, entry in zip(raws, entries):
+        data, _ = convert_frame(raw, entry["digest"], camera, ocio_config=ocio_config, nan_policy=nan_policy,
+                                want_alpha=want_alpha)
+        frames.append(put_frame(data))
+    return CaptureCamera(id=camera.id, width=rig_camera.sensor.width_px, height=rig_camera.sensor.height_px,
+                         channels=("R", "G", "B", "A") if want_alpha else ("R", "G", "B"),
+                         source_encoding=camera.encoding, frames=tuple(frames),
+                         lens_encoder=tuple(lens) if lens is not None else None)

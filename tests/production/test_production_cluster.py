@@ -64,9 +64,10 @@ def _spec(tmp: Path, capture: Path, store: str) -> Path:
                           {"frame": 6, "position": [5.0, 2.0, 1.8], "look_at": [0.0, 0.0, 1.0], "focal_mm": 28}]}
     spec = {"format": "volcap-production/1", "name": "cluster-test", "store": store,
             # three segments over 7 frames; enough steps that a segment is still training when the
-            # worker is killed after its first checkpoint (every 10 steps in the test preset): at the
-            # preset's quarter resolution a step takes ~0.1 s on a quiet core
-            "quality": {"preset": "test", "max_segment_frames": 3, "overlap": 1, "train_steps": 300},
+            # worker is killed after its first checkpoint (every 10 steps in the test preset): at a
+            # quarter of the resolution, SH degree 0, a step takes ~0.1 s on a quiet core
+            "quality": {"preset": "test", "max_segment_frames": 3, "overlap": 1, "train_steps": 300,
+                        "train_scale": 0.25, "sh_degree": 0},
             "captures": {"demo": {"folder": str(capture)}}, "shots": [shot]}
     path = tmp / "spec.yaml"
     path.write_text(yaml.safe_dump(spec, sort_keys=False))
@@ -145,7 +146,7 @@ def _assert_bit_identical_to_uninterrupted(s, segment_digest: str) -> None:
     """Train the segment again here, uninterrupted and without checkpoints, from the same inputs."""
     import torch
 
-    from tasks.reconstruct import load_tracking
+    from volcap_core.segment import tracking_frames
     from volcap_core import reconstruction
     from volcap_core.calibration.record import Calibration
     from volcap_core.capture import Capture
@@ -156,7 +157,7 @@ def _assert_bit_identical_to_uninterrupted(s, segment_digest: str) -> None:
     rec = s.get_record(segment_digest, reconstruction.SegmentModel)
     cap = s.get_record(rec.capture, Capture)
     calib = s.get_record(rec.calibration, Calibration)
-    tracking = load_tracking(s, calib)
+    tracking = tracking_frames(s.get_bytes, calib)
     config = TrainConfig.model_validate({**rec.config, "checkpoint_every": 0})
     data = reconstruction.segment_data(cap, calib, tracking, rec.frames, reconstruction.FrameCache(s.get_bytes),
                                        scale=config.image_scale)

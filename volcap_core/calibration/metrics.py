@@ -28,7 +28,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Mapping
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -61,8 +61,12 @@ class GroundTruth:
 def load_ground_truth(folder: str | Path) -> GroundTruth:
     """Read ``ground_truth/cameras.json`` and ``scene.json`` of a synthetic capture."""
     folder = Path(folder)
-    cams = json.loads((folder / "cameras.json").read_text())
-    scene = json.loads((folder / "scene.json").read_text())
+    return ground_truth_from_json(json.loads((folder / "cameras.json").read_text()),
+                                  json.loads((folder / "scene.json").read_text()))
+
+
+def ground_truth_from_json(cams: dict, scene: dict) -> GroundTruth:
+    """The ground truth from the parsed ``cameras.json`` and ``scene.json`` of a synthetic capture."""
     out, roles, tracked, sizes = {}, {}, {}, {}
     for cid, c in cams["cameras"].items():
         frames = []
@@ -308,3 +312,76 @@ def _epipolar_distance(F, ua, ub) -> np.ndarray:
     lb = hb @ F                        # lines in a
     num = np.abs(np.einsum("ij,ij->i", hb, la))
     return np.maximum(num / np.hypot(la[:, 0], la[:, 1]), num / np.hypot(lb[:, 0], lb[:, 1]))
+
+
+# --------------------------------------------------------------------------- the calibration report
+
+
+def calibration_report(calib, gt: GroundTruth, tracking: Mapping | None = None, scan=None,
+                       points: Sequence[tuple[int, np.ndarray]] | None = None) -> dict:
+    """The error table of a stored calibration against a synthetic capture's ground truth (JSON-ready:
+    NaN/Inf become None).
+
+    ``calib``: a :class:`~volcap_core.calibration.record.Calibration`; ``tracking``: its decoded
+    tracking frames (``record.decode_tracking_frames``), needed when it has tracking cameras;
+    ``scan``: the ground truth's lidar (:class:`~volcap_core.calibration.lidar.LidarScan`, the true
+    static surface) and ``points``: (frame, xyz [N, 3]) of dense points, to score their distance to
+    the true surfaces per frame.
+    """
+    from volcap_core.calibration.record import camera_at
+
+    f0 = calib.reference_frame
+    K, W = {}, {}
+    for c in calib.static_ids:
+        K[c], W[c], _, _ = camera_at(calib, c, f0)
+    st_err = static_errors(K, W, gt, f0)
+    tr_err = {}
+    for c in calib.tracking_ids:
+        Ks = np.zeros((calib.frame_count, 3, 3))
+        fx, fy, cx, cy = tracking[c].intrinsics.T
+        Ks[:, 0, 0], Ks[:, 1, 1], Ks[:, 0, 2], Ks[:, 1, 2], Ks[:, 2, 2] = fx, fy, cx, cy, 1.0
+        tr_err[c] = tracking_errors(Ks, tracking[c].world_to_camera, gt, c)
+    extra: dict = {"static_median_reprojection_px": calib.stats.get("static_median_reprojection_px"),
+                   "frames": calib.frame_count, "reference_frame": f0,
+                   "static_cameras": len(calib.static_ids), "tracking_cameras": len(calib.tracking_ids)}
+    if points is not None:
+        extra["points"] = (point_errors(points, gt, scan) if scan is not None
+                           else {"per_frame": {}, "note": "ground truth has no lidar.ply"})
+    return _finite_json(calibration_table(st_err, {"priors": tr_err} if tr_err else None, extra))
+
+
+def point_errors(points: Sequence[tuple[int, np.ndarray]], gt: GroundTruth, scan) -> dict:
+    """Per frame: points, median / 90th-percentile distance (m) to the true surface (the scan or an
+    actor), points within 3 cm of an actor."""
+    per = {}
+    for frame, xyz in points:
+        if not len(xyz):
+            per[str(frame)] = {"points": 0}
+            continue
+        parts = [p for a in gt.parts for p in a[frame]] if gt.parts else []
+        actor = distance_to_parts(xyz, parts) if parts else np.full(len(xyz), np.inf)
+        d = np.minimum(scan.surface_distance(xyz, 0.3), actor)
+        d = d[np.isfinite(d)]
+        per[str(frame)] = {"points": int(len(xyz)),
+                           "median_distance_m": float(np.median(d)) if len(d) else None,
+                           "p90_distance_m": float(np.percentile(d, 90)) if len(d) else None,
+                           "actor_points_3cm": int((actor < 0.03).sum())}
+    vals = [v for v in per.values() if v.get("median_distance_m") is not None]
+    return {"per_frame": per,
+            "points_mean": float(np.mean([v["points"] for v in per.values()])) if per else 0.0,
+            "median_distance_m": float(np.median([v["median_distance_m"] for v in vals])) if vals else None}
+
+
+def _finite_json(x):
+    """NaN/Inf (no JSON form) become None; numpy scalars plain numbers."""
+    if isinstance(x, dict):
+        return {str(k): _finite_json(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_finite_json(v) for v in x]
+    if isinstance(x, (bool, np.bool_)):
+        return bool(x)
+    if isinstance(x, (int, np.integer)):
+        return int(x)
+    if isinstance(x, (float, np.floating)):
+        return float(x) if np.isfinite(float(x)) else None
+    return x

@@ -17,24 +17,22 @@ import numpy as np
 
 from hardware.rig import Rig
 from volcap_core.calibration.lidar import LidarScan
-from volcap_core.calibration.photometric import background_plate
-from volcap_core.calibration.record import (Calibration, CameraCalibration, TrackingFrames,
-                                            encode_tracking_frames, matrix4, tracking_frames_ref)
-from volcap_core.calibration.static import StaticCalibration, StaticCalibrationOptions, calibrate_static_cameras
+from volcap_core.calibration.record import Calibration, CameraCalibration, matrix4, tracking_frames_ref
+from volcap_core.calibration.static import StaticCalibration, StaticCalibrationOptions
+from volcap_core.calibration.steps import calibrate_static_step, tracking_blob
 from volcap_core.calibration.tracking import (StaticReference, TrackingOptions, TrackingSolution,
-                                              build_static_reference, calibrate_tracking_cameras)
+                                              calibrate_tracking_cameras)
 
 FrameSource = Callable[[str, int], np.ndarray]
 
 
 @dataclass(frozen=True)
 class CalibrationOptions:
+    """Options of a whole calibration: the static step's (frames, SfM, adjustments) and the
+    tracking step's."""
+
     static: StaticCalibrationOptions = StaticCalibrationOptions()
     tracking: TrackingOptions = TrackingOptions()
-    #: frames (evenly spread over the take) whose median is each static camera's background plate
-    plate_frames: int = 8
-    #: None: the middle frame (the paper)
-    reference_frame: int | None = None
 
 
 @dataclass
@@ -58,30 +56,20 @@ def calibrate_capture(load: FrameSource, rig: Rig, camera_ids: list[str], frame_
     when the capture has none.
     """
     t0 = time.perf_counter()
-    ref_frame = frame_count // 2 if options.reference_frame is None else options.reference_frame
     statics = [c for c in camera_ids if not rig.camera(c).role.tracks]
     trackers = [c for c in camera_ids if rig.camera(c).role.tracks]
-    images = {c: load(c, ref_frame) for c in statics}
-    plate_idx = np.unique(np.linspace(0, frame_count - 1, max(1, min(options.plate_frames, frame_count))).round()
-                          .astype(int))
-    plates = {c: background_plate([load(c, int(k)) for k in plate_idx]) for c in statics}
-    t1 = time.perf_counter()
-    static = calibrate_static_cameras(images, rig, scan, plates=plates, options=options.static)
+    step = calibrate_static_step(capture_name, rig, statics, trackers, frame_count, load, scan, options.static)
+    static, reference, ref_frame = step.calibration, step.reference, step.reference_frame
     t2 = time.perf_counter()
-    stats: dict = {"time_load_s": t1 - t0, "time_static_s": t2 - t1}
+    stats: dict = {"time_static_s": t2 - t0}  # frames are loaded inside the static step
     tracking: dict[str, TrackingSolution] = {}
-    reference = None
     blob = None
     if trackers:
-        reference = build_static_reference({c: plates[c] for c in static.camera_ids}, static.K,
-                                           static.world_to_camera, scan)
         frames = {c: [load(c, t) for t in range(frame_count)] for c in trackers}
         ppm = {c: rig.camera(c).sensor.width_px / rig.camera(c).sensor.width_mm for c in trackers}
         mounts = {c: np.asarray(rig.camera(c).mount.position_m, np.float64) for c in trackers}
         tracking = calibrate_tracking_cameras(frames, encoder, ppm, mounts, reference, options.tracking)
-        tf = {c: TrackingFrames(np.stack([s.K[:, 0, 0], s.K[:, 1, 1], s.K[:, 0, 2], s.K[:, 1, 2]], 1),
-                                s.world_to_camera) for c, s in tracking.items()}
-        blob = encode_tracking_frames(tf)
+        blob = tracking_blob(tracking)
     else:
         stats["tracking"] = "skipped: the capture has no tracking cameras"
     stats["time_tracking_s"] = time.perf_counter() - t2
@@ -92,7 +80,7 @@ def calibrate_capture(load: FrameSource, rig: Rig, camera_ids: list[str], frame_
 
 def build_record(capture_name: str, rig: Rig, static: StaticCalibration, tracking: Mapping[str, TrackingSolution],
                  frame_count: int, fps: float, reference_frame: int, blob: bytes | None) -> Calibration:
-    """The JSON-small record; ``blob`` (from :func:`encode_tracking_frames`) gives the tracking ref."""
+    """The JSON-small record; ``blob`` (from :func:`volcap_core.calibration.steps.tracking_blob`) gives the tracking ref."""
     cams = []
     for cid in static.camera_ids:
         K = static.K[cid]

@@ -57,6 +57,13 @@ class StaticCalibrationOptions:
     #: the stage) at ten times the cost; ``PhotometricOptions(max_points=20000, centre_sigma_m=0.03)``
     #: turns it on
     photometric: PhotometricOptions | None = None
+    #: frames (evenly spread over the take) whose median is each static camera's background plate
+    plate_frames: int = 8
+    #: the take index calibrated on; None: the middle frame (the paper)
+    reference_frame: int | None = None
+    #: the SfM must register at least this fraction of the static cameras (and two): fewer means
+    #: the views do not overlap enough (or the frame is wrong), and calibration stops there
+    min_registered_fraction: float = 0.5
 
 
 @dataclass

@@ -74,16 +74,36 @@ def folder_listing_digest(folder: str | Path) -> str:
     return digest_bytes(canonical_json(rows))
 
 
+def _identity_change(was: Any, now: Any) -> str:
+    """A task identity's change in words (journals of older versions hold the version string)."""
+    if not isinstance(was, dict) or not isinstance(now, dict):
+        return f"version {was.get('version') if isinstance(was, dict) else was} -> " \
+               f"{now.get('version') if isinstance(now, dict) else now}"
+    if was.get("version") != now.get("version"):
+        return f"version {was.get('version')} -> {now.get('version')}"
+    libs_was, libs_now = was.get("libraries", {}), now.get("libraries", {})
+    for lib in sorted(set(libs_was) | set(libs_now)):
+        if libs_was.get(lib) != libs_now.get(lib):
+            return f"library {lib} {libs_was.get(lib)} -> {libs_now.get(lib)}"
+    for name in sorted(set(was.get("defaults", {})) | set(now.get("defaults", {}))):
+        if canonical_json(was.get("defaults", {}).get(name)) != canonical_json(now.get("defaults", {}).get(name)):
+            return f"default {name} changed"
+    return "identity changed"
+
+
 def compare_fingerprints(old: dict[str, Any], new: dict[str, Any]) -> str | None:
     """The first difference between a stored and a current fingerprint, in words; None if equal.
 
-    Fingerprints have the keys ``versions`` (task -> version), ``inputs`` (step id -> output
-    digest), ``parameters`` and optionally ``source`` (e.g. a folder listing digest).
+    Fingerprints have the keys ``versions`` (task -> its identity: ``{"version", "defaults",
+    "libraries"}``, ``tasks.contract.task_identity``), ``inputs`` (step id -> output digest),
+    ``parameters`` and optionally ``source`` (e.g. a folder listing digest).
     """
-    for task, version in sorted(new.get("versions", {}).items()):
+    for task, ident in sorted(new.get("versions", {}).items()):
         was = old.get("versions", {}).get(task)
-        if was != version:
-            return f"task {task} version {was} -> {version}" if was else f"task {task} is new in this step"
+        if was is None:
+            return f"task {task} is new in this step"
+        if was != ident:
+            return f"task {task}: {_identity_change(was, ident)}"
     for step, digest in sorted(new.get("inputs", {}).items()):
         if old.get("inputs", {}).get(step) != digest:
             return f"input {step} changed"

@@ -94,3 +94,59 @@ def performer_mask(exr_bytes: bytes) -> np.ndarray:
     if pixels.ndim != 3 or pixels.shape[-1] != 1:
         raise ValueError(f"performer mask: expected one channel, got {channels}")
     return np.clip(pixels[..., 0].astype(np.float32), 0.0, 1.0)
+
+
+class GroundTruthFiles:
+    """A synthetic capture's ground-truth tree (``docs/synthetic-capture.md``), read by path.
+
+    ``digests``: path -> digest of each file (the stored tree); ``get_bytes(digest)`` reads one.
+    """
+
+    def __init__(self, capture_name: str, digests: dict[str, str], get_bytes):
+        self.capture_name, self._digests, self._get = capture_name, digests, get_bytes
+
+    def __contains__(self, path: str) -> bool:
+        return path in self._digests
+
+    def has_folder(self, folder: str) -> bool:
+        return any(p.startswith(folder.rstrip("/") + "/") for p in self._digests)
+
+    def read(self, path: str) -> bytes:
+        if path not in self._digests:
+            raise ValueError(f"capture {self.capture_name}: ground truth has no {path}"
+                             + (" (synthesize with write_depth=True for depth maps and masks)"
+                                if path.startswith(("depth/", "masks/")) else ""))
+        return self._get(self._digests[path])
+
+
+def depth_points(files: GroundTruthFiles, camera_ids: Sequence[str], frame: int, load_image, camera_at_frame,
+                 budget: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """One frame's dense points from the true depth maps of ``camera_ids``, coloured by their
+    images, at most ``budget`` (uniformly, seeded by ``seed + frame``).
+
+    ``load_image(camera, frame)`` -> linear RGB [H, W, 3]; ``camera_at_frame(camera, frame)`` ->
+    (K [3, 3], world_to_camera [4, 4]). Returns xyz [N, 3], rgb [N, 3] float32.
+    """
+    from volcap_core import imageio
+
+    xyz_all, rgb_all = [], []
+    for cam in camera_ids:
+        depth, _ = imageio.decode_exr_native(files.read(f"depth/{cam}/{frame:06d}.exr"))
+        K, w2c = camera_at_frame(cam, frame)
+        xyz, rgb = backproject_depth(depth[..., 0].astype(np.float32), load_image(cam, frame), K, w2c)
+        xyz_all.append(xyz)
+        rgb_all.append(rgb)
+    return subsample(np.concatenate(xyz_all), np.concatenate(rgb_all), budget, seed + frame)
+
+
+def mask_loader(files: GroundTruthFiles):
+    """``load(camera, take index) -> [H, W] performer coverage or None`` from the ground truth's
+    ``masks/``; None when the capture was synthesized without them."""
+    if not files.has_folder("masks"):
+        return None
+
+    def load(cam: str, frame: int) -> np.ndarray | None:
+        path = f"masks/{cam}/{frame:06d}.exr"
+        return performer_mask(files.read(path)) if path in files else None
+
+    return load

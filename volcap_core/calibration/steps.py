@@ -1,0 +1,445 @@
+"""The calibration of a stored capture, step by step: what each fanned-out calibration task computes.
+
+:func:`volcap_core.calibration.pipeline.calibrate_capture` calibrates a capture in one call; the
+calibrate flow runs the same work as separate, cached tasks (static cameras once, each tracking
+camera on its own, dense points per frame). This module holds those steps and the records that
+carry their results between tasks, so a task only loads its inputs, calls one function here and
+stores what it returns. Nothing here touches a store: bytes come through a ``get_bytes(ref)``
+callable.
+
+Policy lives here too, once: which frame the static cameras are calibrated on and which frames make
+their background plates (:func:`reference_frame`, :func:`plate_frames`), how many static cameras
+must register, what a capture with tracking cameras must provide.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, replace
+from typing import Any, ClassVar
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+from safetensors.numpy import load as st_load
+from safetensors.numpy import save as st_save
+
+from volcap_core import imageio
+from volcap_core.calibration.dense import DenseOptions, dense_points
+from volcap_core.calibration.lidar import LidarScan
+from volcap_core.calibration.photometric import background_plate
+from volcap_core.calibration.record import Calibration, TrackingFrames, camera_at, encode_tracking_frames
+from volcap_core.calibration.static import StaticCalibration, StaticCalibrationOptions, calibrate_static_cameras
+from volcap_core.calibration.tracking import (StaticReference, TrackingOptions, TrackingSolution,
+                                              build_static_reference, calibrate_tracking_cameras)
+from volcap_core.capture import Capture
+from volcap_core.records import ArtifactRef, Record
+
+log = logging.getLogger("volcap.calibrate")
+
+Matrix3 = tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]
+Matrix4 = tuple[tuple[float, float, float, float], ...]
+GetBytes = Callable[[ArtifactRef], bytes]
+#: ``load(camera_id, take_index) -> float32 [H, W, 3]`` scene-linear RGB
+FrameSource = Callable[[str, int], np.ndarray]
+
+
+class CalibrationInputError(ValueError):
+    """Bad calibration input; the message names the capture, camera and frame concerned."""
+
+
+# ---------------------------------------------------------------------------------------------
+# Records of the intermediate results
+# ---------------------------------------------------------------------------------------------
+
+
+class StaticCamera(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    id: str
+    K: Matrix3
+    world_to_camera: Matrix4
+    width: int
+    height: int
+
+
+class StaticCalibrationRecord(Record):
+    """The static cameras calibrated on ``reference_frame`` (as the library returned them: not yet
+    re-orthonormalised into the Calibration record) and, for a capture with tracking cameras, the
+    static reference (``reference``: safetensors ``points`` [N, 3] float64, ``descriptors`` [N, 128]
+    uint8) the tracking cameras register against."""
+
+    kind: ClassVar[str] = "static-calibration"
+    capture: str
+    reference_frame: int
+    plate_frames: tuple[int, ...]
+    cameras: tuple[StaticCamera, ...]
+    unregistered: tuple[str, ...] = ()
+    reference: ArtifactRef | None = None
+    stats: dict[str, float] = Field(default_factory=dict)
+
+
+class TrackingCameraRecord(Record):
+    """One tracking camera over the take: ``frames`` is safetensors ``K`` [T, 3, 3] and
+    ``world_to_camera`` [T, 4, 4] float64; ``gain`` / ``offset`` the fitted encoder correction."""
+
+    kind: ClassVar[str] = "tracking-camera-calibration"
+    capture: str
+    camera: str
+    frames: ArtifactRef
+    gain: float
+    offset: float
+    centre: tuple[float, float, float]
+    stats: dict[str, float] = Field(default_factory=dict)
+
+
+class DensePointsFrame(Record):
+    """One frame's dense points (``points``: safetensors ``xyz``, ``rgb`` as in
+    :mod:`volcap_core.pointcloud`), fused from the calibration's static cameras."""
+
+    kind: ClassVar[str] = "dense-points-frame"
+    calibration: ArtifactRef
+    frame: int
+    time: float
+    count: int
+    points: ArtifactRef
+    cameras: tuple[str, ...]
+    seconds: float
+
+
+# ---------------------------------------------------------------------------------------------
+# Loading
+# ---------------------------------------------------------------------------------------------
+
+
+def frame_loader(get_bytes: GetBytes, cap: Capture) -> FrameSource:
+    """``load(camera_id, take_index) -> float32 [H, W, 3]`` decoding the capture's ingested EXRs."""
+
+    def load(camera_id: str, take_index: int) -> np.ndarray:
+        cam = cap.camera(camera_id)
+        if not 0 <= take_index < len(cam.frames):
+            raise CalibrationInputError(f"capture {cap.name}, camera {camera_id}: no frame {take_index} "
+                                        f"(take has {len(cam.frames)})")
+        ref = cam.frames[take_index]
+        pixels, _ = imageio.decode_exr(get_bytes(ref), name=f"{cap.name}/{camera_id}/{take_index} ({ref.digest})")
+        return np.ascontiguousarray(pixels[..., :3], dtype=np.float32)
+
+    return load
+
+
+class LazyFrames(Sequence):
+    """A camera's frames over the take, decoded when read (the library iterates them once)."""
+
+    def __init__(self, load: FrameSource, camera_id: str, count: int):
+        self._load, self._id, self._n = load, camera_id, count
+
+    def __len__(self) -> int:
+        return self._n
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            return [self[k] for k in range(*i.indices(self._n))]
+        if not -self._n <= i < self._n:
+            raise IndexError(i)
+        return self._load(self._id, i % self._n)
+
+
+def load_lidar(get_bytes: GetBytes, cap: Capture) -> LidarScan | None:
+    """The capture's lidar scan (an input, like the frames), None when it has none."""
+    if cap.lidar is None:
+        return None
+    try:
+        return LidarScan.from_ply_bytes(get_bytes(cap.lidar))
+    except (ValueError, KeyError, IndexError) as exc:
+        raise CalibrationInputError(f"capture {cap.name}: lidar scan {cap.lidar.digest} is not a readable PLY: "
+                                    f"{exc}") from exc
+
+
+def split_cameras(cap: Capture) -> tuple[list[str], list[str]]:
+    """(static, tracking) camera ids of a capture, by the rig's roles."""
+    statics, trackers = [], []
+    for cam in cap.cameras:
+        try:
+            role = cap.rig.camera(cam.id).role
+        except (KeyError, ValueError) as exc:
+            raise CalibrationInputError(f"capture {cap.name}: camera {cam.id} is not in rig {cap.rig.name}") from exc
+        (trackers if role.tracks else statics).append(cam.id)
+    return statics, trackers
+
+
+def tracking_camera_ids(cap: Capture) -> list[str]:
+    return split_cameras(cap)[1]
+
+
+# ---------------------------------------------------------------------------------------------
+# Static cameras
+# ---------------------------------------------------------------------------------------------
+
+
+def reference_frame(frame_count: int, options: StaticCalibrationOptions) -> int:
+    """The take index the static cameras are calibrated on: the middle frame (the paper) unless set."""
+    return frame_count // 2 if options.reference_frame is None else options.reference_frame
+
+
+def plate_frames(frame_count: int, options: StaticCalibrationOptions) -> list[int]:
+    """Take indices, evenly spread, whose median is each static camera's background plate."""
+    n = max(1, min(options.plate_frames, frame_count))
+    return [int(k) for k in np.unique(np.linspace(0, frame_count - 1, n).round().astype(int))]
+
+
+@dataclass
+class StaticStep:
+    """The static cameras of a capture and what the tracking cameras need of them."""
+
+    calibration: StaticCalibration
+    reference_frame: int
+    plate_frames: list[int]
+    plates: dict[str, np.ndarray]
+    #: the static set lifted onto the scan (None for a capture without tracking cameras)
+    reference: StaticReference | None
+
+
+def calibrate_static_step(cap_name: str, rig, static_ids: Sequence[str], tracking_ids: Sequence[str],
+                          frame_count: int, load: FrameSource, scan: LidarScan | None,
+                          options: StaticCalibrationOptions = StaticCalibrationOptions()) -> StaticStep:
+    """Calibrate the static cameras on :func:`reference_frame` with background plates, register them
+    to the scan and, when the capture has tracking cameras, build the reference they register against.
+
+    Refuses (:class:`CalibrationInputError`, naming the capture, frame and cameras) fewer than two
+    static cameras, tracking cameras without a scan, and an SfM that registers fewer than
+    ``options.min_registered_fraction`` of the static cameras.
+    """
+    if len(static_ids) < 2:
+        raise CalibrationInputError(f"capture {cap_name}: static calibration needs at least two static cameras, "
+                                    f"it has {len(static_ids)} ({', '.join(static_ids) or 'none'})")
+    if scan is None and tracking_ids:
+        # Measured: against the SfM points alone (no scan) the tracking cameras' absolute orientation
+        # came out 70-145° wrong on the test capture. Refuse rather than hand out such a calibration.
+        raise CalibrationInputError(
+            f"capture {cap_name} has tracking cameras ({', '.join(tracking_ids)}) but no lidar scan: they register "
+            "against the static set lifted onto the scan; name the scan in capture.json's 'lidar'")
+    if scan is None:
+        log.warning("capture %s has no lidar scan: the static cameras are placed by the SfM and their mounts only",
+                    cap_name)
+    ref_frame = reference_frame(frame_count, options)
+    plate_idx = plate_frames(frame_count, options)
+    images = {c: load(c, ref_frame) for c in static_ids}
+    plates = {c: background_plate([load(c, k) for k in plate_idx]) for c in static_ids}
+    try:
+        static = calibrate_static_cameras(images, rig, scan, plates=plates, options=options)
+    except RuntimeError as exc:  # the SfM registered no / too few cameras
+        raise CalibrationInputError(f"capture {cap_name}, frame {ref_frame}: static calibration of "
+                                    f"{', '.join(static_ids)} failed: {exc}") from exc
+    need = max(2, math.ceil(options.min_registered_fraction * len(static_ids)))
+    if len(static.camera_ids) < need:
+        raise CalibrationInputError(
+            f"capture {cap_name}, frame {ref_frame}: the static SfM registered {len(static.camera_ids)} of "
+            f"{len(static_ids)} static cameras (needs {need}); not registered: {', '.join(static.unregistered)}")
+    if static.unregistered:
+        log.warning("capture %s: static cameras %s did not register on frame %d and are left out of the calibration",
+                    cap_name, ", ".join(static.unregistered), ref_frame)
+    reference = None
+    if tracking_ids:
+        reference = build_static_reference({c: plates[c] for c in static.camera_ids}, static.K,
+                                           static.world_to_camera, scan)
+    return StaticStep(static, ref_frame, plate_idx, plates, reference)
+
+
+def encode_reference(ref: StaticReference) -> bytes:
+    return st_save({"points": np.ascontiguousarray(ref.points, np.float64),
+                    "descriptors": np.ascontiguousarray(ref.descriptors, np.uint8)},
+                   metadata={"format": "volcap-static-reference/1"})
+
+
+def decode_reference(data: bytes) -> StaticReference:
+    t = st_load(data)
+    return StaticReference(t["points"], t["descriptors"])
+
+
+def _floats(stats: Mapping, prefix: str = "") -> dict[str, float]:
+    """Finite numbers of a nested stats dict, flattened to ``a.b`` keys."""
+    out: dict[str, float] = {}
+    for k, v in stats.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(_floats(v, key + "."))
+        elif isinstance(v, (int, float, np.integer, np.floating)) and math.isfinite(float(v)):
+            out[key] = float(v)
+    return out
+
+
+def _matrix(m: np.ndarray) -> tuple:
+    return tuple(tuple(float(v) for v in row) for row in np.asarray(m, np.float64))
+
+
+def static_record(cap_name: str, step: StaticStep, reference: ArtifactRef | None) -> StaticCalibrationRecord:
+    """The record of a static step; ``reference``: the stored :func:`encode_reference` of its reference."""
+    static = step.calibration
+    cams = tuple(StaticCamera(id=c, K=_matrix(static.K[c]), world_to_camera=_matrix(static.world_to_camera[c]),
+                              width=static.size[c][0], height=static.size[c][1]) for c in static.camera_ids)
+    stats = _floats(static.stats)
+    stats["sparse_points"] = float(len(static.model.points))
+    return StaticCalibrationRecord(capture=cap_name, reference_frame=step.reference_frame,
+                                   plate_frames=tuple(step.plate_frames), cameras=cams,
+                                   unregistered=tuple(static.unregistered), reference=reference, stats=stats)
+
+
+def static_calibration(rec: StaticCalibrationRecord) -> StaticCalibration:
+    """The library's StaticCalibration from the stored record (without the sparse model)."""
+    ids = [c.id for c in rec.cameras]
+    stats: dict[str, Any] = {}
+    if "bundle.median_reprojection_px" in rec.stats:
+        stats["bundle"] = {"median_reprojection_px": rec.stats["bundle.median_reprojection_px"]}
+    return StaticCalibration(camera_ids=ids, K={c.id: np.asarray(c.K, np.float64) for c in rec.cameras},
+                             world_to_camera={c.id: np.asarray(c.world_to_camera, np.float64) for c in rec.cameras},
+                             size={c.id: (c.width, c.height) for c in rec.cameras}, model=None,
+                             unregistered=list(rec.unregistered), stats=stats)
+
+
+# ---------------------------------------------------------------------------------------------
+# Tracking cameras
+# ---------------------------------------------------------------------------------------------
+
+
+def calibrate_tracking_step(cap: Capture, camera: str, reference: StaticReference | None, load: FrameSource,
+                            options: TrackingOptions = TrackingOptions()) -> TrackingSolution:
+    """One tracking camera at every frame of the take, against the fixed static reference.
+
+    The library refines each camera's sequence on its own (its normal equations are per camera), so
+    one camera per call gives what the batched call gives (docs/calibration.md, "Tasks")."""
+    ids = [c.id for c in cap.cameras]
+    if camera not in ids:
+        raise CalibrationInputError(f"capture {cap.name} has no camera {camera!r} (it has {', '.join(ids)})")
+    try:
+        rig_cam = cap.rig.camera(camera)
+    except (KeyError, ValueError) as exc:
+        raise CalibrationInputError(f"capture {cap.name}: camera {camera} is not in rig {cap.rig.name}") from exc
+    if not rig_cam.role.tracks:
+        raise CalibrationInputError(f"capture {cap.name}: camera {camera} is a {rig_cam.role.value} camera, "
+                                    "not a tracking camera")
+    lens = cap.camera(camera).lens_encoder
+    if not lens:
+        raise CalibrationInputError(f"capture {cap.name}: tracking camera {camera} has no lens-encoder readings")
+    if reference is None:
+        raise CalibrationInputError(f"capture {cap.name}: the static calibration holds no static reference (it "
+                                    "was made for a capture without tracking cameras)")
+    encoder = (np.array([r.frame for r in lens], np.int64), np.array([r.focal_mm for r in lens], np.float64))
+    frames = LazyFrames(load, camera, cap.frame_count)
+    ppm = rig_cam.sensor.width_px / rig_cam.sensor.width_mm
+    try:
+        sols = calibrate_tracking_cameras({camera: frames}, {camera: encoder}, {camera: ppm},
+                                          {camera: np.asarray(rig_cam.mount.position_m, np.float64)}, reference,
+                                          options)
+    except RuntimeError as exc:  # e.g. too few 2D-3D matches over the take
+        raise CalibrationInputError(f"capture {cap.name}, tracking camera {camera}: {exc}") from exc
+    return sols[camera]
+
+
+def encode_tracking_solution(sol: TrackingSolution) -> bytes:
+    """Safetensors ``K`` [T, 3, 3] and ``world_to_camera`` [T, 4, 4] float64 of one camera."""
+    return st_save({"K": np.ascontiguousarray(sol.K, np.float64),
+                    "world_to_camera": np.ascontiguousarray(sol.world_to_camera, np.float64)})
+
+
+def tracking_record(cap_name: str, camera: str, sol: TrackingSolution, frames: ArtifactRef) -> TrackingCameraRecord:
+    """The record of one tracking camera; ``frames``: the stored :func:`encode_tracking_solution`."""
+    return TrackingCameraRecord(capture=cap_name, camera=camera, frames=frames, gain=float(sol.gain),
+                                offset=float(sol.offset), centre=tuple(float(v) for v in sol.centre),
+                                stats=_floats(sol.stats))
+
+
+def tracking_solution(rec: TrackingCameraRecord, frames: bytes) -> TrackingSolution:
+    """The library's TrackingSolution from a stored record and its frames blob."""
+    arr = st_load(frames)
+    return TrackingSolution(arr["K"], arr["world_to_camera"], rec.gain, rec.offset,
+                            np.asarray(rec.centre, np.float64), dict(rec.stats))
+
+
+def assemble_calibration_record(cap: Capture, static: StaticCalibrationRecord,
+                                tracking: Sequence[TrackingCameraRecord], get_bytes: GetBytes
+                                ) -> tuple[Calibration, bytes | None]:
+    """The Calibration record and its tracking-frames blob (None without tracking cameras), exactly
+    as ``pipeline.calibrate_capture`` makes them in one call (``pipeline.build_record``)."""
+    from volcap_core.calibration.pipeline import build_record  # pipeline imports this module
+
+    sols: dict[str, TrackingSolution] = {}
+    for tr in tracking:
+        if tr.capture != cap.name or tr.camera in sols:
+            raise CalibrationInputError(f"capture {cap.name}: tracking result for {tr.capture}/{tr.camera} "
+                                        "is a duplicate or of another capture")
+        sols[tr.camera] = tracking_solution(tr, get_bytes(tr.frames))
+    missing = sorted(set(tracking_camera_ids(cap)) - set(sols))
+    if missing:
+        raise CalibrationInputError(f"capture {cap.name}: no tracking result for camera(s) {', '.join(missing)}")
+    blob = tracking_blob(sols) if sols else None
+    record = build_record(cap.name, cap.rig, static_calibration(static), sols, cap.frame_count, cap.fps,
+                          static.reference_frame, blob)
+    return record, blob
+
+
+def tracking_blob(sols: Mapping[str, TrackingSolution]) -> bytes:
+    """The Calibration record's tracking-frames blob: per camera fx, fy, cx, cy and world_to_camera."""
+    return encode_tracking_frames({c: TrackingFrames(np.stack([v.K[:, 0, 0], v.K[:, 1, 1], v.K[:, 0, 2],
+                                                               v.K[:, 1, 2]], 1), v.world_to_camera)
+                                   for c, v in sols.items()})
+
+
+# ---------------------------------------------------------------------------------------------
+# Dense points
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class DenseFrame:
+    positions: np.ndarray   # [N, 3] float32, metres, stage frame
+    colours: np.ndarray     # [N, 3] float32, linear
+    cameras: list[str]
+    seconds: float
+
+
+def dense_points_step(cap: Capture, calib: Calibration, frame: int, load: FrameSource,
+                      options: DenseOptions = DenseOptions(), scale: float = 1.0,
+                      exclude_cameras: Sequence[str] = ()) -> DenseFrame:
+    """One frame's dense points: a plane sweep per calibrated static camera, fused by cross-view
+    consistency (``volcap_core.calibration.dense``), colours linear. ``exclude_cameras`` (a
+    reconstruction's held-out cameras) take no part: points seen or coloured by a camera would
+    leak its footage into the model it is meant to test. ``scale`` < 1 matches downscaled images
+    (a quarter of the work at 0.5): previews and tests."""
+    if not 0 <= frame < cap.frame_count:
+        raise CalibrationInputError(f"capture {cap.name}: frame {frame} outside the take [0, {cap.frame_count})")
+    if calib.capture != cap.name:
+        raise CalibrationInputError(f"calibration of capture {calib.capture} given for capture {cap.name}")
+    if not 0 < scale <= 1:
+        raise CalibrationInputError(f"dense points: scale must be in (0, 1], got {scale}")
+    # Static cameras only: the zoomed tracking views see the scene 5-7x larger, which the
+    # fixed-size NCC windows of the sweep do not match across.
+    present, excluded = {c.id for c in cap.cameras}, set(exclude_cameras)
+    ids = [c for c in calib.static_ids if c in present and c not in excluded]
+    if len(ids) < 2:
+        raise CalibrationInputError(f"capture {cap.name}, frame {frame}: dense points need two calibrated static "
+                                    f"cameras, the calibration has {len(ids)}")
+    images = {c: load(c, frame) for c in ids}
+    cams = {c: camera_at(calib, c, frame)[:2] for c in ids}
+    # DenseOptions.scale is the library's downscale *factor* (2 = half size), hence the division.
+    out = dense_points(images, cams, options=replace(options, scale=options.scale / scale))
+    if len(out["positions"]) == 0:
+        log.warning("capture %s, frame %d: no dense point passed the consistency check", cap.name, frame)
+    return DenseFrame(out["positions"], out["colours"], ids, float(out["seconds"]))
+
+
+def thin_points(xyz: np.ndarray, rgb: np.ndarray, budget: int, seed: int, frame: int
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """At most ``budget`` of a frame's points, uniformly (seeded by ``seed`` and the frame), in order."""
+    if len(xyz) <= budget:
+        return xyz, rgb
+    keep = np.sort(np.random.default_rng([seed, frame]).choice(len(xyz), budget, replace=False))
+    return xyz[keep], rgb[keep]
+
+
+__all__ = ["CalibrationInputError", "StaticCamera", "StaticCalibrationRecord", "TrackingCameraRecord",
+           "DensePointsFrame", "frame_loader", "LazyFrames", "load_lidar", "split_cameras", "tracking_camera_ids",
+           "reference_frame", "plate_frames", "StaticStep", "calibrate_static_step", "encode_reference",
+           "decode_reference", "static_record", "static_calibration", "calibrate_tracking_step",
+           "encode_tracking_solution", "tracking_record", "tracking_solution", "assemble_calibration_record",
+           "tracking_blob", "DenseFrame", "dense_points_step", "thin_points"]
