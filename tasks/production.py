@@ -2,17 +2,12 @@
 
 from __future__ import annotations
 
-import functools
-
-import torch
-
 from tasks.contract import volcap_task
 from volcap_core import reconstruction
 from volcap_core.capture import Capture
 from volcap_core.production.performance import Performance, PerformanceSegment, stage_volume
-from volcap_core.production.shot import load_shot, render_shot_frame
+from volcap_core.production.shot import load_shot, render_shot_frames
 from volcap_core.records import MEDIA_EXR, ArtifactRef
-from volcap_core.splat import load_model
 from volcap_core.store import ArtifactStore
 
 
@@ -39,19 +34,9 @@ def render_shot(store: str, performance: ArtifactRef, shot: dict) -> ArtifactRef
     capture's stage volume (the performers, not the set)."""
     s = ArtifactStore(store)
     perf = s.get_record(performance, Performance)
-    spec = load_shot(shot)
     stage = stage_volume(s.get_record(perf.capture, Capture).rig.stage_size_m)
-    device = "cuda" if torch.cuda.is_available() else "cpu"
-
-    @functools.lru_cache(maxsize=4)  # a boundary needs two models; frames walk forward
-    def model_of(ref: ArtifactRef):
-        return load_model(s.get_bytes(ref), device)
-
-    frames = {}
-    for f in spec.frame_numbers():
-        exr = render_shot_frame(spec, perf, model_of, f, device=device, stage=stage)
-        frames[f"{f:06d}.exr"] = s.put_bytes(exr, MEDIA_EXR)
-    return s.put_tree(frames)
+    return s.put_tree({name: s.put_bytes(exr, MEDIA_EXR)
+                       for name, exr in render_shot_frames(load_shot(shot), perf, s.get_bytes, stage=stage)})
 
 
 __all__ = ["assemble_performance", "render_shot"]

@@ -69,6 +69,7 @@ __all__ = [
     "load_shot",
     "opengl_world_to_camera_row_major",
     "render_shot_frame",
+    "render_shot_frames",
 ]
 
 SHOT_FORMAT = "volcap-shot/1"
@@ -511,3 +512,22 @@ def render_shot_frame(shot: Shot, performance: Performance,
                              volume=stage if shot.content == "stage" else None)
     rgba = torch.cat([out["rgb"], out["alpha"]], dim=-1).float().cpu().numpy()
     return encode_shot_exr(rgba, camera, shot, frame, extra={"content": shot.content})
+
+
+def render_shot_frames(shot: Shot, performance: Performance, model_bytes: Callable[[ArtifactRef], bytes], *,
+                       device: torch.device | str | None = None, stage: Box | None = None):
+    """Every frame of ``shot`` in order: yields (``<frame:06d>.exr``, EXR bytes of
+    :func:`render_shot_frame`). ``model_bytes(ref)`` reads a segment model's stored bytes; the last
+    few models stay loaded on ``device`` (a boundary needs two; frames walk forward)."""
+    import functools
+
+    from volcap_core.splat import load_model
+
+    device = device or ("cuda" if torch.cuda.is_available() else "cpu")
+
+    @functools.lru_cache(maxsize=4)
+    def model_of(ref: ArtifactRef) -> Poly4DGS:
+        return load_model(model_bytes(ref), device)
+
+    for f in shot.frame_numbers():
+        yield f"{f:06d}.exr", render_shot_frame(shot, performance, model_of, f, device=device, stage=stage)
