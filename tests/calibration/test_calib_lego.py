@@ -51,7 +51,8 @@ def test_lego_views_register_with_small_error(lego):
     rot_err = np.array([rotation_angle_deg(T.apply_pose(model.world_to_camera[c])[:3, :3], truth[c][:3, :3])
                         for c in ids])
     radius = np.linalg.norm(true, axis=1).mean()
-    # measured: rotation mean 0.27°, max 0.73°; centres within 1 % of the 4 m orbit
+    # measured (2026-11-23, deterministic over two runs): rotation mean 0.27°, max 0.84° (1.8x
+    # margins); centres within 1.1 % of the 4 m orbit (2.2x); reprojection 0.58 px (1.7x)
     assert rot_err.mean() < 0.5 and rot_err.max() < 1.5, rot_err
     assert centre_err.max() < 0.025 * radius, centre_err
     assert model.stats["mean_reprojection_error_px"] < 1.0

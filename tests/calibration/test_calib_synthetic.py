@@ -4,6 +4,10 @@ the record and camera_at, COLMAP export of a frame, dense points, colour calibra
 The capture is short and has a subset of the demo rig's cameras so the module runs in about a
 minute on 2 cores; the bounds are regression guards, the demo-capture figures are in
 docs/calibration.md (bench/bench_calibration.py).
+
+The capture and the calibration are deterministic (two runs gave the same figures to 4 digits), so
+there is no spread over seeds to quote: each bound is the figure measured on 2026-11-23 (commit
+a48be80 plus that day's working tree) times a stated margin of 2-3x.
 """
 
 from __future__ import annotations
@@ -62,7 +66,8 @@ def test_static_cameras_are_close_to_truth(result, gt):
     # 0.43° and 0.8 % without; the demo capture: see docs/calibration.md)
     assert table["static"]["rotation_deg_max"] < 0.35, table["static"]
     assert table["static"]["centre_frac_max"] < 0.015, table["static"]
-    assert table["static"]["focal_pct_max_abs"] < 1.5
+    # measured 0.29 %; 2.4x margin
+    assert table["static"]["focal_pct_max_abs"] < 0.7, table["static"]
 
 
 def test_guided_tracks_are_accurate_and_reach_the_near_floor(capture, gt):
@@ -76,15 +81,17 @@ def test_guided_tracks_are_accurate_and_reach_the_near_floor(capture, gt):
     W = {c: gt.cameras[c][mid][1] for c in statics}
     tracks = guided_tracks(plates, K, W, capture.lidar())
     assert tracks.camera_ids == sorted(statics)
-    assert tracks.stats["tracks"] > 1500 and np.bincount(tracks.obs_point).min() >= 2
+    # measured 5685 tracks; half of it
+    assert tracks.stats["tracks"] > 2800 and np.bincount(tracks.obs_point).min() >= 2
     P = np.stack([K[c] @ W[c][:3] for c in tracks.camera_ids])
     X = triangulate_points(P, tracks.obs_point, tracks.obs_camera, tracks.obs_xy, len(tracks.points))
     x = np.einsum("mij,mj->mi", P[tracks.obs_camera], np.c_[X[tracks.obs_point], np.ones(len(tracks.obs_point))])
     err = np.linalg.norm(x[:, :2] / x[:, 2:] - tracks.obs_xy, axis=1)
-    assert np.median(err) < 0.1 and np.mean(err < 0.5) > 0.95, (np.median(err), np.mean(err < 0.5))
+    # measured median 0.035 px (2.8x margin) and 1.3 % of observations over 0.5 px (2.2x margin)
+    assert np.median(err) < 0.1 and np.mean(err < 0.5) > 0.97, (np.median(err), np.mean(err < 0.5))
     depth = np.einsum("mj,mj->m", np.stack([W[tracks.camera_ids[c]][2, :3] for c in tracks.obs_camera]),
                       X[tracks.obs_point]) + np.array([W[tracks.camera_ids[c]][2, 3] for c in tracks.obs_camera])
-    assert (depth < 5.0).sum() > 100, (depth < 5.0).sum()
+    assert (depth < 5.0).sum() > 100, (depth < 5.0).sum()             # measured 179
 
 
 def test_tracking_cameras_every_frame(result, gt):
@@ -92,9 +99,12 @@ def test_tracking_cameras_every_frame(result, gt):
     for cid, sol in result.tracking.items():
         assert sol.K.shape == (FRAMES, 3, 3) and sol.world_to_camera.shape == (FRAMES, 4, 4)
         e = tracking_errors(sol.K, sol.world_to_camera, gt, cid)
-        assert e["focal_pct_max_abs"] < 2.0, (cid, e)
-        assert e["rotation_deg_max"] < 1.5, (cid, e)
-        assert e["pose_jitter_px_mean"] < 2.0, (cid, e)
+        # measured (S008, S010): focal 0.036 %, 0.048 %; rotation 0.20 deg, 0.16 deg; jitter
+        # 0.24 px, 0.13 px. Margins on the worse camera: 2.9x, 2.5x, 2.5x (the old 2 %, 1.5 deg and
+        # 2 px were 42x, 7.5x and 8x)
+        assert e["focal_pct_max_abs"] < 0.14, (cid, e)
+        assert e["rotation_deg_max"] < 0.5, (cid, e)
+        assert e["pose_jitter_px_mean"] < 0.6, (cid, e)
 
 
 def test_record_and_camera_at(result, capture):
@@ -135,7 +145,7 @@ def test_dense_points_lie_on_the_true_surfaces(result, capture, gt):
     scan = capture.lidar()
     parts = [p for a in gt.parts for p in a[mid]]
     d = np.minimum(scan.surface_distance(P, 0.3), distance_to_parts(P, parts))
-    assert np.median(d) < 0.06, np.median(d)
+    assert np.median(d) < 0.03, np.median(d)              # measured 0.013 m (4969 points); 2.3x margin
 
 
 def test_colour_calibration_from_the_chart(result, capture):
@@ -154,7 +164,8 @@ def test_colour_calibration_from_the_chart(result, capture):
     both = oka & okb
     res = calibrate_colour(ca[both], cb[both])
     assert res["after"]["delta_e2000_mean"] < res["before"]["delta_e2000_mean"]
-    assert res["after"]["delta_e2000_mean"] < 3.0
+    # measured 0.69 (8.0 before), S001 against S002; 2.2x margin
+    assert res["after"]["delta_e2000_mean"] < 1.5
 
 
 def test_photometric_refinement_keeps_true_cameras(result, capture, gt):
@@ -170,8 +181,8 @@ def test_photometric_refinement_keeps_true_cameras(result, capture, gt):
                              options=PhotometricOptions(max_points=4000, iterations=4, centre_sigma_m=0.002,
                                                         blur_px=(1.5, 0.75)))
     err = static_errors(out["K"], out["world_to_camera"], gt, mid)
-    assert max(e["rotation_deg"] for e in err.values()) < 0.15, err
-    assert out["rms_per_level"][-1] < 0.5
+    assert max(e["rotation_deg"] for e in err.values()) < 0.15, err     # measured 0.071 deg; 2.1x margin
+    assert out["rms_per_level"][-1] < 0.5                                 # measured 0.34; 1.5x margin
 
 
 def test_a_capture_without_tracking_cameras_skips_that_stage(capture):
