@@ -1,4 +1,4 @@
-"""``write_atomic``: the library's one way to replace a local file (old or new content, never torn)."""
+"""``write_atomic`` and ``open_atomic``: the library's one way to replace a local file (old or new content, never torn)."""
 
 from __future__ import annotations
 
@@ -63,3 +63,20 @@ def test_missing_folder_is_an_error_not_created(tmp_path):
     with pytest.raises(FileNotFoundError):
         write_atomic(tmp_path / "no" / "such" / "file.bin", b"x")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_chunked_write_that_raises_midway_leaves_the_old_file(tmp_path):
+    """``open_atomic``: an exception after some chunks (a digest mismatch, a lost connection) keeps
+    the previous content; a block that ends normally replaces it."""
+    path = tmp_path / "frame.exr"
+    write_atomic(path, b"old frame")
+    with pytest.raises(RuntimeError, match="connection lost"):
+        with files.open_atomic(path) as out:
+            out.write(b"new frame, first chunk")
+            raise RuntimeError("connection lost")
+    assert path.read_bytes() == b"old frame"
+    assert [p.name for p in tmp_path.iterdir()] == ["frame.exr"]
+    with files.open_atomic(path) as out:
+        for chunk in (b"new ", b"frame"):
+            out.write(chunk)
+    assert path.read_bytes() == b"new frame"

@@ -1,6 +1,6 @@
 """Writing local files so that readers and crashes only ever see the old content or the new.
 
-:func:`write_atomic` is the library's one way to do it (EXR frames, contact sheets, synthetic
+:func:`open_atomic` (and :func:`write_atomic` for bytes in hand) is the library's one way to do it (EXR frames, contact sheets, synthetic
 capture files, CLI outputs, the artifact store on a local disk).
 """
 
@@ -8,21 +8,34 @@ from __future__ import annotations
 
 import os
 import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
+from typing import BinaryIO
 
-__all__ = ["write_atomic"]
+__all__ = ["open_atomic", "write_atomic"]
 
 
 def write_atomic(path: str | os.PathLike[str], data: bytes, *,
                  tmp_dir: str | os.PathLike[str] | None = None) -> None:
-    """Replace the local file ``path`` by ``data`` atomically and durably.
+    """Replace the local file ``path`` by ``data`` atomically and durably (:func:`open_atomic`)."""
+    with open_atomic(path, tmp_dir=tmp_dir) as f:
+        f.write(data)
+
+
+@contextmanager
+def open_atomic(path: str | os.PathLike[str], *, tmp_dir: str | os.PathLike[str] | None = None
+                ) -> Iterator[BinaryIO]:
+    """A binary file to write that replaces the local file ``path`` atomically and durably when
+    the ``with`` block ends without an exception (large outputs written in chunks).
 
     The bytes go to a new temporary file in ``tmp_dir`` (default: ``path``'s own folder), are
     flushed and fsynced, the file is renamed over ``path`` with :func:`os.replace`, and ``path``'s
     folder is fsynced where the platform allows it, so the rename itself survives a power cut.
-    A failure at any step (a full disk on write, an I/O error reported by fsync, a refused rename,
-    an interrupt) leaves ``path`` absent or with its previous content and removes the temporary
-    file; only ``kill -9`` or a crash can leave one behind, named ``.<name>.<random>.tmp``.
+    A failure at any step (an exception in the block, a full disk, an I/O error reported by fsync,
+    a refused rename, an interrupt) leaves ``path`` absent or with its previous content and removes
+    the temporary file; only ``kill -9`` or a crash can leave one behind, named
+    ``.<name>.<random>.tmp``.
 
     The file gets the permissions of any newly created file (0666 less the umask), also when it
     replaces an existing one. ``tmp_dir`` must be on the same filesystem as ``path`` (a rename
@@ -36,7 +49,7 @@ def write_atomic(path: str | os.PathLike[str], data: bytes, *,
     fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0), 0o666)
     try:
         with os.fdopen(fd, "wb") as f:
-            f.write(data)
+            yield f
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)

@@ -42,7 +42,7 @@ import fsspec
 from fsspec.implementations.local import LocalFileSystem
 
 from volcap_core.digest import CHUNK_BYTES, StreamingDigest, digest_bytes
-from volcap_core.files import write_atomic
+from volcap_core.files import open_atomic, write_atomic
 from volcap_core.records import (
     DIGEST_RE,
     MEDIA_BYTES,
@@ -366,18 +366,13 @@ class ArtifactStore:
         digest = _as_digest(ref_or_digest)
         dest = Path(dest)
         dest.parent.mkdir(parents=True, exist_ok=True)
-        tmp = dest.with_name(f".{dest.name}.{uuid.uuid4().hex}.part")
         hasher = StreamingDigest()
-        try:
-            with self.open(digest) as src, open(tmp, "wb") as out:
-                while chunk := src.read(CHUNK_BYTES):
-                    hasher.update(chunk)
-                    out.write(chunk)
-            if verify and hasher.digest != digest:
+        with self.open(digest) as src, open_atomic(dest) as out:
+            while chunk := src.read(CHUNK_BYTES):
+                hasher.update(chunk)
+                out.write(chunk)
+            if verify and hasher.digest != digest:   # raised inside: dest keeps what it held
                 raise CorruptObjectError(digest, hasher.digest, self.url)
-            os.replace(tmp, dest)
-        finally:
-            tmp.unlink(missing_ok=True)
         return dest
 
     def size(self, ref_or_digest: ArtifactRef | str) -> int:
