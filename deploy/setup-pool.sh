@@ -65,4 +65,4 @@ else
   prefect automation create --from-file "$HERE/automations/crash-zombie-flows.yaml"
 fi
 
-echo "done. Next: prefect deploy --all --prefect-file deploy/prefect.yaml (from the repository root)"
+echo "done. Next, from the repository root: env -u VOLCAP_HOME prefect deploy --all --prefect-file deploy/prefect.yaml"
