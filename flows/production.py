@@ -298,7 +298,7 @@ def segment_runs_mode(requested: SegmentRuns) -> Literal["local", "deployment"]:
     except ObjectNotFound:
         if requested == "deployment":
             raise ValueError(f"segment_runs='deployment' but the Prefect server at {PREFECT_API_URL.value()} "
-                             f"has no deployment {SEGMENT_DEPLOYMENT!r}: run `prefect deploy --all "
+                             f"has no deployment {SEGMENT_DEPLOYMENT!r}: run `env -u VOLCAP_HOME prefect deploy --all "
                              "--prefect-file deploy/prefect.yaml` (docs/operations.md)") from None
         return "local"
     return "deployment"
