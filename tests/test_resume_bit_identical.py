@@ -39,6 +39,7 @@ def _worker(mode: str, store: str, refs_file: str) -> None:
     import logging
 
     import tasks.reconstruct as rt
+    import volcap_core.segment as segment_lib
     from volcap_core import reconstruction
     from volcap_core.records import ArtifactRef
     from volcap_core.store import ArtifactStore
@@ -46,7 +47,7 @@ def _worker(mode: str, store: str, refs_file: str) -> None:
     refs = json.loads(Path(refs_file).read_text())
     rt.current_run_key = lambda: "resume-test-segment"
     rt.get_run_logger = lambda: logging.getLogger("resume-test")
-    real = rt.train_segment
+    real = segment_lib.train_segment
     seen = {}
 
     def wrapped(*args, checkpoint=None, resume_from=None, **kw):
@@ -58,7 +59,7 @@ def _worker(mode: str, store: str, refs_file: str) -> None:
             return real(*args, checkpoint=checkpoint_then_die, resume_from=resume_from, **kw)
         return real(*args, checkpoint=checkpoint, resume_from=resume_from, **kw)
 
-    rt.train_segment = wrapped
+    segment_lib.train_segment = wrapped
     ref = rt.train_segment_task.fn(store, *(ArtifactRef(**refs[k]) for k in ("capture", "calibration", "points")),
                                    [0, 2], _config(), 7)
     s = ArtifactStore(store)
