@@ -26,12 +26,17 @@ from volcap_core import imageio
 from volcap_core.imageio import (
     ImageInfo,
     ImageReadError,
+    PartHeader,
+    SourceChoiceError,
     decode_exr,
     encode_exr,
+    probe_footage,
     probe_image,
     read_exr_header,
     read_exr_native,
+    read_footage,
     read_image,
+    window_overlap,
     write_exr,
 )
 
@@ -370,6 +375,8 @@ def test_png_and_tiff_are_normalised_code_values(tmp_path, name, dtype, channels
         path=str(path), width=7, height=5, channels=names, pixel_types=(np.dtype(dtype).name,) * channels,
         format=name.split(".")[1].replace("tif", "tiff"), parts=1, data_window=(0, 0, 6, 4),
         display_window=(0, 0, 6, 4), bits_per_sample=8 * np.dtype(dtype).itemsize,
+        part_headers=(PartHeader(index=0, name=None, view=None, views=(), channels=names,
+                                 data_window=(0, 0, 6, 4), display_window=(0, 0, 6, 4)),),
     )
 
 
@@ -504,3 +511,140 @@ def test_openexr_core_switch_is_restored():
     before = oiio.get_int_attribute("openexr:core", 1)
     decode_exr(encode_exr(np.zeros((2, 2, 3), np.float32), ("R", "G", "B")))
     assert oiio.get_int_attribute("openexr:core", 1) == before
+
+
+# ---------------------------------------------------------------------------------------------------
+# Parts and views: chosen by name (OpenEXR multi-part `name`/`view`, multi-view `multiView`), never guessed.
+
+
+def _view_pixels(view: str) -> np.ndarray:
+    seed = sum(map(ord, view))
+    return np.random.default_rng(seed).uniform(0, 8, (4, 5, 3)).astype(np.float16)
+
+
+def _write_two_view_file(path: Path, views=("left", "right")) -> None:
+    """One part, OpenEXR's multi-view convention: ``multiView`` lists the views, default first; the
+    default view's channels are unprefixed, the other's prefixed ``<view>.``; a depth channel too."""
+    import OpenEXR
+
+    planes = {}
+    for i, view in enumerate(views):
+        prefix = "" if i == 0 else f"{view}."
+        planes.update({f"{prefix}{c}": np.ascontiguousarray(_view_pixels(view)[..., k]) for k, c in enumerate("RGB")})
+    planes["Z"] = np.ones((4, 5), np.float32)
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage, "multiView": list(views)}
+    OpenEXR.File(header, planes).write(str(path))
+
+
+def _write_stereo_parts(path: Path) -> None:
+    """Three parts: ``cam_left`` (view left) and ``cam_right`` (view right) with R,G,B; ``depth`` with Z."""
+    import OpenEXR
+
+    def part(name: str, planes: dict, view: str | None = None) -> "OpenEXR.Part":
+        header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+        if view is not None:
+            header["view"] = view
+        return OpenEXR.Part(header, planes, name=name)
+
+    rgb = {v: {c: np.ascontiguousarray(_view_pixels(v)[..., k]) for k, c in enumerate("RGB")} for v in ("left", "right")}
+    OpenEXR.File([part("cam_left", rgb["left"], "left"), part("cam_right", rgb["right"], "right"),
+                  part("depth", {"Z": np.ones((4, 5), np.float32)})]).write(str(path))
+
+
+def test_multi_view_file_is_read_by_view_name(tmp_path):
+    path = tmp_path / "stereo.exr"
+    _write_two_view_file(path)
+    for view in ("left", "right"):
+        footage = read_footage(path, view=view)
+        assert footage.channels == ("R", "G", "B") and footage.source.view == view
+        np.testing.assert_array_equal(footage.pixels, _view_pixels(view).astype(np.float32))
+    assert read_footage(path, view="right").source.channels == ("right.R", "right.G", "right.B")
+    assert read_footage(path, view="left").source.channels == ("R", "G", "B")  # the default view: unprefixed
+
+
+def test_multi_view_file_without_a_choice_is_refused_listing_its_views(tmp_path):
+    path = tmp_path / "stereo.exr"
+    _write_two_view_file(path)
+    for read in (read_footage, probe_footage):
+        with pytest.raises(SourceChoiceError) as err:
+            read(path)
+        msg = str(err.value)
+        assert msg.startswith(f"{path}: holds 2 views (left, right) and no part or view was chosen")
+        assert "views 'left', 'right'; 'left' is the default" in msg and "right.R" in msg and "Z" in msg
+    with pytest.raises(SourceChoiceError, match=r"holds no view 'centre' with R,G,B \(or Y\) channels; it holds"):
+        read_footage(path, view="centre")
+
+
+def test_multi_part_file_is_read_by_part_or_view_name(tmp_path):
+    path = tmp_path / "parts.exr"
+    _write_stereo_parts(path)
+    right = read_footage(path, part="cam_right")
+    assert (right.source.part, right.source.view) == (1, "right")
+    np.testing.assert_array_equal(right.pixels, _view_pixels("right").astype(np.float32))
+    left = read_footage(path, view="left")
+    assert (left.source.part_name, left.source.part) == ("cam_left", 0)
+    np.testing.assert_array_equal(left.pixels, _view_pixels("left").astype(np.float32))
+    with pytest.raises(SourceChoiceError) as err:
+        read_footage(path)
+    assert "holds 3 parts and no part or view was chosen" in str(err.value)
+    assert "part 'cam_left' (view 'left'): B, G, R; part 'cam_right' (view 'right'): B, G, R; part 'depth': Z" in str(err.value)
+    with pytest.raises(SourceChoiceError, match="holds no part 'depth' with R,G,B"):
+        read_footage(path, part="depth")
+    with pytest.raises(SourceChoiceError, match="holds no part 'cam_left' and view 'right'"):
+        read_footage(path, part="cam_left", view="right")
+
+
+def test_single_picture_needs_no_choice_and_refuses_one_it_does_not_hold(tmp_path):
+    path = tmp_path / "plain.exr"
+    write_exr(path, np.ones((3, 4, 3), np.float32), ("R", "G", "B"))
+    footage = read_footage(path)
+    assert (footage.source.part_name, footage.source.view, footage.source.kind) == (None, None, "rgb")
+    with pytest.raises(SourceChoiceError, match=r"holds no part 'beauty'.*it holds part 0: B, G, R"):
+        read_footage(path, part="beauty")
+    with pytest.raises(SourceChoiceError, match="holds no view 'left'"):
+        read_footage(path, view="left")
+
+
+@needs_data
+def test_beachball_parts_and_views_by_name():
+    multipart = EXR / "Beachball" / "multipart.0001.exr"
+    left = read_footage(multipart, part="rgba_left")
+    np.testing.assert_array_equal(left.pixels, read_image(multipart, part=4)[0])
+    assert left.header.data_window == (688, 245, 1564, 1120) and left.header.display_window == (0, 0, 2047, 1555)
+    assert read_footage(multipart, view="right").source.part_name == "rgba_right"  # the only colour part of it
+    single = EXR / "Beachball" / "singlepart.0001.exr"
+    native, names = read_exr_native(single)
+    footage = read_footage(single, view="left")
+    expected = native[..., [names.index(c) for c in ("left.R", "left.G", "left.B", "left.A")]]
+    np.testing.assert_array_equal(footage.pixels, expected.astype(np.float32))
+    assert read_footage(single, view="right").source.channels == ("R", "G", "B", "A")
+
+
+def test_window_overlap():
+    # t13: the display window shares only the data window's lower-right pixel
+    assert window_overlap((0, 0, 399, 299), (399, 299, 499, 399)) == (
+        (slice(299, 300), slice(399, 400)), (slice(0, 1), slice(0, 1)))
+    # t08: data window inside the display window at (30, 40)
+    assert window_overlap((30, 40, 429, 339), (0, 0, 500, 400)) == (
+        (slice(0, 300), slice(0, 400)), (slice(40, 340), slice(30, 430)))
+    assert window_overlap((0, 0, 399, 299), (400, 0, 599, 299)) is None  # t09: side by side
+
+
+def test_encode_exr_declares_the_working_chromaticities(tmp_path):
+    from volcap_core.chromaticities import REC709_D65, Chromaticities
+
+    write_exr(tmp_path / "a.exr", np.zeros((2, 2, 3), np.float32), ("R", "G", "B"))
+    np.testing.assert_allclose(read_exr_header(tmp_path / "a.exr")["chromaticities"], REC709_D65, atol=1e-7)
+    p3 = Chromaticities(0.680, 0.320, 0.265, 0.690, 0.150, 0.060, 0.3127, 0.3290)
+    write_exr(tmp_path / "b.exr", np.zeros((2, 2, 3), np.float32), ("R", "G", "B"), chromaticities=p3)
+    np.testing.assert_allclose(probe_image(tmp_path / "b.exr").part_headers[0].chromaticities, p3, atol=1e-7)
+    with pytest.raises(ValueError, match="reserved"):
+        encode_exr(np.zeros((2, 2, 3)), ("R", "G", "B"), attributes={"chromaticities": "x"})
+
+
+def test_synthetic_capture_frames_declare_the_working_chromaticities(tmp_path):
+    from volcap_core.chromaticities import REC709_D65
+    from volcap_core.synth.io import write_exr as synth_write_exr
+
+    synth_write_exr(tmp_path / "f.exr", np.zeros((2, 3, 3), np.float32))
+    np.testing.assert_allclose(read_exr_header(tmp_path / "f.exr")["chromaticities"], REC709_D65, atol=1e-7)

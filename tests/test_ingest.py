@@ -191,11 +191,27 @@ def _break(capture_dir: Path, how: str) -> str:
     if how == "bad-json":
         desc_path.write_text("{not json")
         return "capture.json: invalid capture description"
+    if how == "two-views-no-choice":  # C0's files become stereo files; capture.json chooses no view
+        for f in range(FRAMES):
+            _write_two_view_exr(capture_dir / "C0" / f"{f:06d}.exr", _pixels(0, f), _pixels(1, f))
+        return ("camera C0, frame 0: " + str(capture_dir / "C0" / "000000.exr")
+                + ": holds 2 views (left, right) and no part or view was chosen")
     raise AssertionError(how)
 
 
+def _write_two_view_exr(path: Path, left: np.ndarray, right: np.ndarray) -> None:
+    """OpenEXR's multi-view convention: ``multiView`` = [left, right], the default (left) view's
+    channels unprefixed, the right view's prefixed ``right.``."""
+    import OpenEXR
+
+    planes = {c: np.ascontiguousarray(left[..., i]) for i, c in enumerate("RGB")}
+    planes.update({f"right.{c}": np.ascontiguousarray(right[..., i]) for i, c in enumerate("RGB")})
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage, "multiView": ["left", "right"]}
+    OpenEXR.File(header, planes).write(str(path))
+
+
 @pytest.mark.parametrize("how", ["missing-frame", "duplicate-frame", "out-of-take", "unknown-camera", "resolution",
-                                 "channels", "damaged", "nan", "no-lens", "bad-json"])
+                                 "channels", "damaged", "nan", "no-lens", "bad-json", "two-views-no-choice"])
 def test_bad_folders_are_refused_by_name_and_nothing_is_recorded(prefect_api, capture_dir, store_url, how):
     fragment = _break(capture_dir, how)
     with pytest.raises(IngestError) as err:
@@ -203,6 +219,31 @@ def test_bad_folders_are_refused_by_name_and_nothing_is_recorded(prefect_api, ca
     assert fragment in str(err.value)
     with pytest.raises(MissingRefError):
         ArtifactStore(store_url).get_ref("captures/tiny")
+
+
+def test_a_stereo_pair_shares_a_folder_of_two_view_files(prefect_api, capture_dir, store_url):
+    """C0 and C1 are the left and right eyes of one camera body writing two-view EXRs: both entries
+    name the same folder and pick their view; each stored frame says which view it is."""
+    stereo = capture_dir / "stereo"
+    stereo.mkdir()
+    for f in range(FRAMES):
+        _write_two_view_exr(stereo / f"{f:06d}.exr", _pixels(0, f), _pixels(1, f))
+    desc = json.loads((capture_dir / "capture.json").read_text())
+    desc["cameras"][0].update(path="stereo", exr_view="left")
+    desc["cameras"][1].update(path="stereo", encoding="linear", exr_view="right")
+    (capture_dir / "capture.json").write_text(json.dumps(desc))
+
+    summary = run_flow(ingest_flow, store=store_url, capture_dir=str(capture_dir))
+    s = ArtifactStore(store_url)
+    capture = s.get_record(summary.result, Capture)
+    for cam, view in (("C0", "left"), ("C1", "right")):
+        record = capture.camera(cam)
+        assert (record.source_view, record.source_part) == (view, None)
+        data = s.get_bytes(record.frames[2])
+        px, _ = imageio.decode_exr(data)
+        np.testing.assert_allclose(px, _pixels(0 if view == "left" else 1, 2), rtol=1e-3)
+        (capture_dir / "stored.exr").write_bytes(data)
+        assert imageio.read_exr_header(capture_dir / "stored.exr")["volcap.source_view"] == view
 
 
 def test_frames_recorded_outside_the_take_are_left_out(prefect_api, capture_dir, store_url):

@@ -1,8 +1,12 @@
 """Ingest's per-frame path on the real openexr-images collection (../shared/data).
 
-Every readable RGB(A)/luminance EXR converts to a linear half EXR holding the same values (clamped to
-the half range); every damaged or broken file is refused with an IngestError naming the camera and
-frame. Runs in one child process so a decoder crash fails a test rather than the whole run.
+Every readable single-picture RGB(A)/luminance EXR converts to a linear half EXR holding the same
+values (clamped to the half range), placed in its display window and converted to the working
+primaries when its ``chromaticities`` say otherwise; multi-part and multi-view files without a
+chosen part/view, and every damaged or broken file, are refused with an IngestError naming the
+camera and frame. Runs in one child process so a decoder crash fails a test rather than the whole
+run. The expected pixels are built here from ``read_image`` (data window, as stored), the OpenEXR
+bindings' header and index arithmetic, not from ingest's own window/colour helpers.
 """
 
 from __future__ import annotations
@@ -23,11 +27,38 @@ CHILD = textwrap.dedent(r"""
     import json, re, sys
     from pathlib import Path
     import numpy as np
+    import OpenEXR
     sys.path.insert(0, sys.argv[2])
     from volcap_core import imageio
     from volcap_core.capture import CameraSource
+    from volcap_core.chromaticities import Chromaticities, REC709_D65, to_working_matrix
     from volcap_core.digest import digest_file
     from volcap_core.ingest import IngestError, RawFrame, convert_frame
+
+    def expected_frame(p):
+        src, _ = imageio.read_image(p)  # data window, values as stored, default view of part 0
+        src = np.nan_to_num(src, nan=0.0, posinf=65504.0, neginf=-65504.0)
+        header = OpenEXR.File(str(p), header_only=True).header(0)
+        (dx0, dy0), (dx1, dy1) = (tuple(int(v) for v in a) for a in header["dataWindow"])
+        (px0, py0), (px1, py1) = (tuple(int(v) for v in a) for a in header["displayWindow"])
+        chroma = header.get("chromaticities")
+        neutral = header.get("adoptedNeutral")
+        names = {c.name for c in header["channels"]}
+        luminance_only = "Y" in names and "RY" not in names and "R" not in names
+        converted = False
+        if not luminance_only and (neutral is not None or (chroma is not None and not np.allclose(chroma, REC709_D65, atol=2e-4))):
+            m = to_working_matrix(Chromaticities(*(chroma or REC709_D65)),
+                                  None if neutral is None else tuple(float(v) for v in neutral))
+            rgb = (np.clip(src[..., :3], -65504, 65504).astype(np.float64) @ m.T).astype(np.float32)
+            src = np.concatenate([rgb, src[..., 3:]], axis=-1)
+            converted = True
+        # display-window canvas: display pixel (x, y) is data pixel (x - dx0, y - dy0) where it
+        # exists, 0 elsewhere (alpha too)
+        ys, xs = np.arange(py0, py1 + 1), np.arange(px0, px1 + 1)
+        iy, ix = np.flatnonzero((ys >= dy0) & (ys <= dy1)), np.flatnonzero((xs >= dx0) & (xs <= dx1))
+        out = np.zeros((len(ys), len(xs), src.shape[-1]), np.float32)
+        out[np.ix_(iy, ix)] = src[np.ix_(ys[iy] - dy0, xs[ix] - dx0)]
+        return np.clip(out, -65504, 65504).astype(np.float16).astype(np.float32), converted
 
     exr = Path(sys.argv[1])
     broken = re.compile(r"comp_(bad_.*|early_eof_.*|short_decode_.*|invalid_unknown)\.exr$")
@@ -45,11 +76,12 @@ CHILD = textwrap.dedent(r"""
             data, repaired = convert_frame(frame, digest_file(p)[0], cam, ocio_config=None,
                                            nan_policy="repair", want_alpha=False)
             px, ch = imageio.decode_exr(data)
-            src, _ = imageio.read_image(p)
-            src = np.nan_to_num(src[..., :3], nan=0.0, posinf=65504.0, neginf=-65504.0)
-            expected = np.clip(src, -65504, 65504).astype(np.float16).astype(np.float32)
-            same = bool(np.array_equal(px[..., :3], expected))
-            out["damaged" if damaged else "good"][key] = {"ok": True, "same": same}
+            expected, converted = expected_frame(p)
+            same = px.shape == expected.shape and bool(np.array_equal(px, expected))
+            # converted files: OpenColorIO's float32 matrix against numpy's float64, then half rounding
+            close = px.shape == expected.shape and bool(np.allclose(px, expected, rtol=2e-3, atol=1e-4))
+            out["damaged" if damaged else "good"][key] = {"ok": True, "same": same, "close": close,
+                                                          "converted": converted}
         except IngestError as exc:
             out["damaged" if damaged else "good"][key] = {"ok": False, "error": str(exc)}
         except Exception as exc:
@@ -78,10 +110,21 @@ def test_every_readable_rgb_exr_converts_to_the_same_values_in_half(results):
     good = results["good"]
     converted = {n: r for n, r in good.items() if r["ok"]}
     refused = {n: r["error"] for n, r in good.items() if not r["ok"]}
-    # Files without colour (depth-only parts, deep data) are refused by name, never crash.
+    # Files without colour (depth-only parts, deep data) are refused by name, never crash; files
+    # holding several parts or views are refused until capture.json chooses one.
     for name, err in refused.items():
         assert "UNEXPECTED" not in err, f"{name}: {err}"
-        assert "no R,G,B" in err or "deep" in err.lower() or "channels" in err, f"{name}: {err}"
+        assert err.startswith(f"camera CAM7, frame 3: {EXR / name}: "), f"{name}: {err}"
+        assert ("no R,G,B" in err or "deep" in err.lower() or "no part or view was chosen" in err), f"{name}: {err}"
+    ambiguous = {n for n, e in refused.items() if "no part or view was chosen" in e}
+    assert ambiguous == {"Beachball/multipart.0001.exr", "Beachball/multipart.0002.exr",
+                         "Beachball/singlepart.0001.exr"}
     assert len(converted) >= 45
     for name, r in converted.items():
-        assert r["same"], f"{name}: stored half pixels differ from the decoded source"
+        if r["converted"]:
+            assert r["close"], f"{name}: stored pixels differ from the source converted to the working primaries"
+        else:
+            assert r["same"], f"{name}: stored half pixels differ from the decoded source in its display window"
+    # the files whose chromaticities are not Rec.709 (XYZ, ACES AP0 with an adoptedNeutral, odd primaries)
+    assert {n for n, r in converted.items() if r["converted"]} == {
+        "Chromaticities/XYZ.exr", "Chromaticities/XYZ_YC.exr", "ScanLines/Carrots.exr", "ScanLines/Tree.exr"}

@@ -79,6 +79,14 @@ class CameraSource(BaseModel):
     encoding: Encoding = Encoding.linear
     ocio_colorspace: str | None = None
     lens_encoder: list[LensSample] | None = None
+    # Which picture of a multi-part / multi-view EXR is this camera's footage (by name: files are
+    # refused rather than read as their first part or default view). Here, not on the rig camera:
+    # how footage is packed is a property of the delivered files, like ``encoding``, and two
+    # cameras of a stereo pair may share one folder of two-view files.
+    exr_part: str | None = Field(default=None, min_length=1,
+                                 description="EXR part name (the part's 'name' attribute) holding this camera")
+    exr_view: str | None = Field(default=None, min_length=1,
+                                 description="EXR view name ('multiView' / a part's 'view') holding this camera")
 
     @model_validator(mode="after")
     def _ocio_needs_colorspace(self) -> "CameraSource":
@@ -133,7 +141,12 @@ class CaptureDescription(BaseModel):
 
 class CaptureCamera(BaseModel):
     """One camera of an ingested capture. ``frames[i]`` is take index ``i``: a half-float,
-    scene-linear EXR with channels ``channels`` (``R,G,B`` or ``R,G,B,A``)."""
+    scene-linear EXR in the working space (linear Rec.709/D65) with channels ``channels``
+    (``R,G,B`` or ``R,G,B,A``), ``width``×``height`` = the source's display window.
+
+    ``source_part``/``source_view``: the EXR part name and view the frames were taken from (None:
+    the file had no part name / no views). ``source_chromaticities``: the primaries and white the
+    files declared (None: none declared, i.e. Rec.709/D65), converted to the working space."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
     id: str
@@ -144,6 +157,10 @@ class CaptureCamera(BaseModel):
     frames: tuple[ArtifactRef, ...]
     lens_encoder: tuple[LensSample, ...] | None = Field(
         default=None, description="readings re-indexed to take indices")
+    # defaults: records written before these fields existed load as "no part, no view, Rec.709"
+    source_part: str | None = None
+    source_view: str | None = None
+    source_chromaticities: tuple[float, float, float, float, float, float, float, float] | None = None
 
 
 class Capture(Record):

@@ -14,6 +14,15 @@ Conventions
 * Pixel arrays are ``[H, W, C]`` (row 0 = top row of the data window), C-contiguous.
 * ``read_image`` returns float32 R,G,B(,A): EXR values as stored (scene-linear), integer formats
   normalised to [0, 1] code values (no transfer function: ingest owns colour).
+* Parts and views are chosen, never guessed: :func:`read_footage` / :func:`probe_footage` take a
+  part name and/or a view name (OpenEXR's multi-part ``name``/``view`` attributes and multi-view
+  convention: ``multiView`` lists the views, default first; channels of the others are prefixed
+  ``<view>.``) and refuse a multi-part or multi-view file without a choice, listing what it holds.
+  ``read_image`` (by part index, default view) is the low-level reader.
+* Header facts ingest must not drop (windows, ``chromaticities``, ``adoptedNeutral``,
+  ``pixelAspectRatio``, part names and views) come from the structure check's own header parse
+  (:class:`PartHeader`): no second read of the file.
+* Every EXR written here declares its ``chromaticities`` (volcap's working space by default).
 * Every failure to read an image raises :class:`ImageReadError` naming the file and the reason.
 
 Limits (module constants; a file beyond them is refused before decoding): :data:`MAX_PIXELS`
@@ -33,13 +42,24 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from volcap_core.chromaticities import WORKING_CHROMATICITIES, Chromaticities
 from volcap_core.files import write_atomic
 
 __all__ = [
     "ImageReadError",
     "ImageInfo",
+    "PartHeader",
+    "ColourSource",
+    "SourceChoiceError",
+    "Footage",
     "probe_image",
+    "probe_footage",
     "read_image",
+    "read_footage",
+    "colour_sources",
+    "choose_colour_source",
+    "describe_parts",
+    "window_overlap",
     "read_exr_native",
     "read_exr_header",
     "write_exr",
@@ -81,7 +101,8 @@ class ImageInfo:
     ``"half" "float" "uint" "uint8" "uint16"`` per channel. ``parts`` counts EXR parts (1 otherwise).
     ``data_window``/``display_window`` are inclusive ``(xmin, ymin, xmax, ymax)`` (EXR convention;
     for other formats both are ``(0, 0, width-1, height-1)``). ``bits_per_sample`` is the integer code
-    depth (e.g. 10 for a 10-bit DPX stored in uint16), 0 for float data.
+    depth (e.g. 10 for a 10-bit DPX stored in uint16), 0 for float data. ``part_headers`` describes
+    every part of the file (one for non-EXR formats): names, views, channels, windows, colour.
     """
 
     path: str
@@ -94,6 +115,69 @@ class ImageInfo:
     data_window: tuple[int, int, int, int] = (0, 0, -1, -1)
     display_window: tuple[int, int, int, int] = (0, 0, -1, -1)
     bits_per_sample: int = 0
+    part_headers: tuple["PartHeader", ...] = ()
+
+
+@dataclass(frozen=True)
+class PartHeader:
+    """What one part of an image file holds, from its header (EXR; a PNG/TIFF/DPX has one part
+    with no name, no views, no chromaticities and both windows ``(0, 0, W-1, H-1)``).
+
+    ``channels`` are the names stored in the file, in file order (a luminance/chroma EXR shows
+    Y, RY, BY here). ``view`` is the part's ``view`` attribute (every channel of the part belongs to
+    it: multi-part stereo); ``views`` its ``multiView`` attribute (single-part stereo: channels of
+    view ``v`` are prefixed ``v.``, the default view ``views[0]`` unprefixed). ``chromaticities`` are
+    the 8 numbers of the ``chromaticities`` attribute (None when absent: Rec.709/D65 by the EXR
+    specification); ``adopted_neutral`` the ``adoptedNeutral`` (x, y).
+    """
+
+    index: int
+    name: str | None
+    view: str | None
+    views: tuple[str, ...]
+    channels: tuple[str, ...]
+    data_window: tuple[int, int, int, int]
+    display_window: tuple[int, int, int, int]
+    chromaticities: Chromaticities | None = None
+    adopted_neutral: tuple[float, float] | None = None
+    pixel_aspect_ratio: float = 1.0
+    deep: bool = False
+
+    @property
+    def display_size(self) -> tuple[int, int]:
+        """(width, height) of the display window: the size of the picture, whatever the data window."""
+        x0, y0, x1, y1 = self.display_window
+        return (x1 - x0 + 1, y1 - y0 + 1)
+
+
+@dataclass(frozen=True)
+class ColourSource:
+    """One picture a file holds: a part, and within it a view (None for a file without views).
+
+    ``channels`` are the file's channel names it is made of, in the order R, G, B(, A) for
+    ``kind`` "rgb", Y(, A) for "luminance" (grey: R = G = B = Y) and Y, RY, BY(, A) for
+    "luminance-chroma" (decoded to RGB in the file's primaries).
+    """
+
+    part: int
+    part_name: str | None
+    view: str | None
+    channels: tuple[str, ...]
+    kind: str  # "rgb" | "luminance" | "luminance-chroma"
+
+    @property
+    def has_alpha(self) -> bool:
+        return self.channels[-1].rsplit(".", 1)[-1] == "A"
+
+    def label(self) -> str:
+        """How messages name it: ``part 'rgba' view 'left'``."""
+        label = f"part {self.part_name!r}" if self.part_name is not None else f"part {self.part}"
+        return label if self.view is None else f"{label} view {self.view!r}"
+
+
+class SourceChoiceError(ImageReadError):
+    """The file holds several parts or views and the choice made picks none or several of them.
+    The reason lists what the file holds."""
 
 
 # --------------------------------------------------------------------------------------------------
@@ -166,6 +250,13 @@ class _ExrPart:
     display_window: tuple[int, int, int, int]
     tiles: tuple[int, int, int, int] | None  # (x size, y size, level mode, rounding mode)
     chunk_count: int
+    # what ingest must not drop: which footage the part is, its colour space, its pixel shape
+    name: str | None = None  # "name" (required in multi-part files)
+    view: str | None = None  # "view": the one view all of a part's channels belong to
+    multi_view: tuple[str, ...] = ()  # "multiView": the views of a single-part stereo file, default first
+    chromaticities: tuple[float, ...] | None = None  # 8 floats: red, green, blue, white (x, y)
+    adopted_neutral: tuple[float, float] | None = None
+    pixel_aspect_ratio: float = 1.0
 
     @property
     def deep(self) -> bool:
@@ -273,6 +364,38 @@ def _typed(attrs: Mapping[str, tuple[str, bytes]], name: str, type_name: str) ->
     return value
 
 
+def _text(attrs: Mapping[str, tuple[str, bytes]], name: str) -> str | None:
+    value = _typed(attrs, name, "string")
+    return None if value is None else value.decode("utf-8", errors="replace")
+
+
+def _string_vector(attrs: Mapping[str, tuple[str, bytes]], name: str) -> tuple[str, ...]:
+    """A ``stringvector`` attribute: (int32 length, bytes) repeated."""
+    value = _typed(attrs, name, "stringvector")
+    if value is None:
+        return ()
+    out, pos = [], 0
+    while pos < len(value):
+        if pos + 4 > len(value):
+            raise _Damaged(f"attribute {name!r} truncated")
+        (n,) = struct.unpack_from("<i", value, pos)
+        pos += 4
+        if n < 0 or pos + n > len(value):
+            raise _Damaged(f"attribute {name!r} holds a string of {n} bytes beyond its end")
+        out.append(value[pos : pos + n].decode("utf-8", errors="replace"))
+        pos += n
+    return tuple(out)
+
+
+def _floats(attrs: Mapping[str, tuple[str, bytes]], name: str, type_name: str, count: int) -> tuple[float, ...] | None:
+    value = _typed(attrs, name, type_name)
+    if value is None:
+        return None
+    if len(value) != 4 * count:
+        raise _Damaged(f"attribute {name!r} has size {len(value)}, a {type_name} needs {4 * count}")
+    return tuple(float(v) for v in struct.unpack(f"<{count}f", value))
+
+
 def _levels(n: int, level_mode: int, rounding: int) -> int:
     """Number of levels along an axis of size n (OpenEXR ImfTiledMisc)."""
     if level_mode == 0:
@@ -374,7 +497,14 @@ def _part_from_header(
             raise _Damaged(f"chunkCount {n} disagrees with the {chunk_count} chunks the header implies")
     elif multipart:
         raise _Damaged("multi-part file without 'chunkCount'")
-    return _ExrPart(storage, channels, compression, dw, dsp, tiles, chunk_count)
+    neutral = _floats(attrs, "adoptedNeutral", "v2f", 2)
+    aspect = _floats(attrs, "pixelAspectRatio", "float", 1)
+    return _ExrPart(storage, channels, compression, dw, dsp, tiles, chunk_count,
+                    name=_text(attrs, "name"), view=_text(attrs, "view"),
+                    multi_view=_string_vector(attrs, "multiView"),
+                    chromaticities=_floats(attrs, "chromaticities", "chromaticities", 8),
+                    adopted_neutral=None if neutral is None else (neutral[0], neutral[1]),
+                    pixel_aspect_ratio=1.0 if aspect is None else aspect[0])
 
 
 def _check_chunks(
@@ -691,6 +821,157 @@ def _normalise_integer(pixels: np.ndarray, bits: int) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------------------
+# Parts, views and the pictures a file holds (OpenEXR multi-part and multi-view conventions).
+
+
+def _part_header(index: int, part: _ExrPart) -> PartHeader:
+    chroma = part.chromaticities
+    return PartHeader(
+        index=index, name=part.name, view=part.view, views=part.multi_view,
+        channels=tuple(c.name for c in part.channels),
+        data_window=part.data_window, display_window=part.display_window,
+        chromaticities=None if chroma is None else Chromaticities(*chroma),
+        adopted_neutral=part.adopted_neutral, pixel_aspect_ratio=part.pixel_aspect_ratio, deep=part.deep,
+    )
+
+
+def _single_part_header(spec: Any) -> PartHeader:
+    """The one part of a PNG/TIFF/DPX, from OpenImageIO's spec."""
+    window = (0, 0, spec.width - 1, spec.height - 1)
+    return PartHeader(index=0, name=None, view=None, views=(), channels=tuple(spec.channelnames),
+                      data_window=window, display_window=window)
+
+
+def _view_prefixes(part: PartHeader, view: str | None) -> tuple[str, ...]:
+    """Channel-name prefixes of ``view`` in ``part`` (OpenEXR ImfMultiView: in a ``multiView`` part
+    the default view, listed first, is unprefixed or prefixed, every other view ``<view>.``)."""
+    if not part.views:
+        return ("",)
+    return ("", f"{view}.") if view == part.views[0] else (f"{view}.",)
+
+
+def _colour_channels(names: set[str], prefixes: Sequence[str]) -> tuple[tuple[str, ...], str] | None:
+    """R,G,B(,A), else Y,RY,BY(,A), else Y(,A) under the first prefix that has them."""
+    for prefix in prefixes:
+        if all(f"{prefix}{c}" in names for c in "RGB"):
+            alpha = (f"{prefix}A",) if f"{prefix}A" in names else ()
+            return tuple(f"{prefix}{c}" for c in "RGB") + alpha, "rgb"
+    for prefix in prefixes:
+        if f"{prefix}Y" in names:
+            alpha = (f"{prefix}A",) if f"{prefix}A" in names else ()
+            chroma = (f"{prefix}RY", f"{prefix}BY")
+            if all(c in names for c in chroma):
+                return (f"{prefix}Y",) + chroma + alpha, "luminance-chroma"
+            return (f"{prefix}Y",) + alpha, "luminance"
+    return None
+
+
+def colour_sources(parts: Sequence[PartHeader]) -> tuple[ColourSource, ...]:
+    """Every picture (part, view) the parts hold with colour channels, in file order, a part's
+    default view first. Deep parts hold none (they are not supported)."""
+    out = []
+    for part in parts:
+        if part.deep:
+            continue
+        names = set(part.channels)
+        views: Sequence[str | None] = part.views or (part.view,)
+        for view in views:
+            found = _colour_channels(names, _view_prefixes(part, view))
+            if found is not None:
+                out.append(ColourSource(part.index, part.name, view, found[0], found[1]))
+    return tuple(out)
+
+
+def describe_parts(parts: Sequence[PartHeader]) -> str:
+    """What a file holds, for messages: each part by name with its view(s) and channels."""
+    items = []
+    for part in parts:
+        label = f"part {part.name!r}" if part.name is not None else f"part {part.index}"
+        if part.view is not None:
+            label += f" (view {part.view!r})"
+        if part.views:
+            label += f" (views {', '.join(repr(v) for v in part.views)}; {part.views[0]!r} is the default)"
+        if part.deep:
+            label += " (deep)"
+        items.append(f"{label}: {', '.join(part.channels)}")
+    return "; ".join(items)
+
+
+def _declared_views(parts: Sequence[PartHeader]) -> list[str]:
+    seen: list[str] = []
+    for part in parts:
+        for v in part.views or ((part.view,) if part.view is not None else ()):
+            if v not in seen:
+                seen.append(v)
+    return seen
+
+
+def choose_colour_source(parts: Sequence[PartHeader], part: str | None = None, view: str | None = None,
+                         *, path: str = "") -> ColourSource:
+    """The one picture of a file that ``part`` (a part name) and ``view`` (a view name) choose.
+
+    With neither given, the file must hold a single part and at most one view: a multi-part or
+    multi-view file is refused rather than read as its first part or default view. A choice that
+    matches no picture, or several, is refused. Errors (:class:`SourceChoiceError`, or
+    :class:`ImageReadError` for a file with no colour at all) list what the file holds.
+    """
+    sources = colour_sources(parts)
+    holds = describe_parts(parts)
+    views = _declared_views(parts)
+    if part is None and view is None:
+        if len(parts) > 1 or len(views) > 1:
+            what = f"{len(parts)} parts" if len(parts) > 1 else f"{len(views)} views ({', '.join(views)})"
+            raise SourceChoiceError(path, f"holds {what} and no part or view was chosen; it holds {holds}")
+        if not sources:
+            if parts and all(p.deep for p in parts):
+                raise ImageReadError(path, "deep data not supported")
+            raise ImageReadError(path, f"no R,G,B (or Y) channels (it has {', '.join(parts[0].channels) or 'none'})")
+        return sources[0]
+    matches = [s for s in sources if (part is None or s.part_name == part) and (view is None or s.view == view)]
+    if len(matches) == 1:
+        return matches[0]
+    chosen = " and ".join(f"{k} {v!r}" for k, v in (("part", part), ("view", view)) if v is not None)
+    if not matches:
+        raise SourceChoiceError(path, f"holds no {chosen} with R,G,B (or Y) channels; it holds {holds}")
+    raise SourceChoiceError(path, f"{chosen} matches {len(matches)} pictures "
+                                  f"({', '.join(m.label() for m in matches)}); it holds {holds}")
+
+
+def window_overlap(data_window: tuple[int, int, int, int], display_window: tuple[int, int, int, int]
+                   ) -> tuple[tuple[slice, slice], tuple[slice, slice]] | None:
+    """Where a data window's pixels land in the display window.
+
+    Windows are inclusive ``(xmin, ymin, xmax, ymax)``. Returns ``(src, dst)``: ``(rows, cols)``
+    slices into the data-window array ``[Hd, Wd, C]`` and into the display-window array
+    ``[Hp, Wp, C]`` covering the pixels both windows share; None when they share none.
+    """
+    dx0, dy0, dx1, dy1 = data_window
+    px0, py0, px1, py1 = display_window
+    x0, y0, x1, y1 = max(dx0, px0), max(dy0, py0), min(dx1, px1), min(dy1, py1)
+    if x0 > x1 or y0 > y1:
+        return None
+    src = (slice(y0 - dy0, y1 - dy0 + 1), slice(x0 - dx0, x1 - dx0 + 1))
+    dst = (slice(y0 - py0, y1 - py0 + 1), slice(x0 - px0, x1 - px0 + 1))
+    return src, dst
+
+
+@dataclass(frozen=True)
+class Footage:
+    """One picture of a file, decoded (:func:`read_footage`).
+
+    ``pixels`` float32 ``[H, W, C]`` over the part's *data window* (``header.data_window``), C = 3 or
+    4, channels ``("R","G","B")`` or ``("R","G","B","A")``: EXR values as stored, in the primaries
+    of ``header.chromaticities`` (luminance-only: R = G = B = Y); integer formats as code values in
+    [0, 1]. ``source`` is the picture read, ``header`` its part's header.
+    """
+
+    pixels: np.ndarray
+    channels: tuple[str, ...]
+    source: ColourSource
+    header: PartHeader
+
+
+# --------------------------------------------------------------------------------------------------
 # Public API: reading.
 
 
@@ -702,18 +983,24 @@ def probe_image(path: str | os.PathLike[str], part: int = 0) -> ImageInfo:
     """
     path = os.fspath(path)
     fmt = _sniff_file(path)
-    n_parts = 1
-    dw = dsp = None
+    headers: tuple[PartHeader, ...] = ()
     if fmt == "exr":
         parts = _validate_exr_file(path)
-        p = _exr_part(parts, part, path)
-        n_parts, dw, dsp = len(parts), p.data_window, p.display_window
+        _exr_part(parts, part, path)
+        headers = tuple(_part_header(i, p) for i, p in enumerate(parts))
     elif part != 0:
         raise ImageReadError(path, f"part {part} requested, a {fmt} file has 1 part")
+    return _image_info(path, fmt, part, headers)
+
+
+def _image_info(path: str, fmt: str, part: int, headers: tuple[PartHeader, ...]) -> ImageInfo:
+    """ImageInfo of ``part`` once the structure is checked (``headers`` empty for non-EXR)."""
     inp, spec = _open_oiio(path, fmt, part)
     inp.close()
-    if dw is None:
-        dw = dsp = (0, 0, spec.width - 1, spec.height - 1)
+    if not headers:
+        headers = (_single_part_header(spec),)
+    n_parts = len(headers)
+    dw, dsp = headers[part].data_window, headers[part].display_window
     return ImageInfo(
         path=path,
         width=spec.width,
@@ -725,7 +1012,82 @@ def probe_image(path: str | os.PathLike[str], part: int = 0) -> ImageInfo:
         data_window=dw,
         display_window=dsp,
         bits_per_sample=_bits_per_sample(spec),
+        part_headers=headers,
     )
+
+
+def _file_parts(path: str, fmt: str) -> tuple[PartHeader, ...] | None:
+    """Every EXR part's header (the structure check included); None for other formats, whose one
+    part is described from the decoder's spec."""
+    if fmt != "exr":
+        return None
+    return tuple(_part_header(i, p) for i, p in enumerate(_validate_exr_file(path)))
+
+
+def probe_footage(path: str | os.PathLike[str], part: str | None = None,
+                  view: str | None = None) -> tuple[ImageInfo, ColourSource]:
+    """:func:`probe_image` of the picture that ``part``/``view`` choose (see
+    :func:`choose_colour_source`), and that picture. No pixels are decoded."""
+    path = os.fspath(path)
+    fmt = _sniff_file(path)
+    headers = _file_parts(path, fmt)
+    if headers is None:
+        info = _image_info(path, fmt, 0, ())
+        return info, choose_colour_source(info.part_headers, part, view, path=path)
+    source = choose_colour_source(headers, part, view, path=path)
+    return _image_info(path, fmt, source.part, headers), source
+
+
+def read_footage(path: str | os.PathLike[str], part: str | None = None, view: str | None = None) -> Footage:
+    """Decode the picture of an image file that ``part`` (an EXR part name) and ``view`` (a view
+    name) choose: see :func:`choose_colour_source` for the rules, :class:`Footage` for what comes
+    back. One structure check and one decode, as :func:`read_image`.
+
+    Raises :class:`SourceChoiceError` for a multi-part or multi-view file without a choice (or a
+    choice it does not hold), :class:`ImageReadError` for everything :func:`read_image` refuses.
+    """
+    path = os.fspath(path)
+    fmt = _sniff_file(path)
+    headers = _file_parts(path, fmt)
+    if headers is not None:
+        source = choose_colour_source(headers, part, view, path=path)
+        header = headers[source.part]
+    inp, spec = _open_oiio(path, fmt, 0 if headers is None else source.part)
+    names, bits, base = tuple(spec.channelnames), _bits_per_sample(spec), str(spec.format)
+    inp.close()
+    if headers is None:
+        header = _single_part_header(spec)
+        source = choose_colour_source((header,), part, view, path=path)
+    indices = _decoder_indices(path, names, source)
+    lo, hi = min(indices), max(indices) + 1  # decode only the channel range we need
+    integer = fmt != "exr" and base not in ("half", "float", "double")
+    pixels, _ = _read_oiio(path, fmt, source.part, native=integer, chbegin=lo, chend=hi)
+    pixels = pixels[:, :, [i - lo for i in indices]]
+    if integer and np.issubdtype(pixels.dtype, np.unsignedinteger):
+        pixels = _normalise_integer(pixels, bits)
+    channels = ("R", "G", "B", "A")[: len(indices)]
+    return Footage(np.ascontiguousarray(pixels, dtype=np.float32), channels, source, header)
+
+
+def _decoder_indices(path: str, names: Sequence[str], source: ColourSource) -> list[int]:
+    """Indices into the decoder's channels giving R, G, B(, A) of ``source``.
+
+    OpenImageIO names channels as the file does, except that it decodes a luminance/chroma
+    picture to R, G, B; a luminance-only picture is grey (R = G = B = Y).
+    """
+    alpha = [source.channels[-1]] if source.has_alpha else []
+    if source.kind == "luminance-chroma":
+        prefix = source.channels[0][:-1]  # "" or "<view>."
+        wanted = [f"{prefix}{c}" for c in "RGB"] + alpha
+    elif source.kind == "luminance":
+        wanted = [source.channels[0]] * 3 + alpha
+    else:
+        wanted = list(source.channels)
+    missing = [w for w in wanted if w not in names]
+    if missing:
+        raise ImageReadError(path, f"the decoder does not present channel(s) {', '.join(missing)} of "
+                                   f"{source.label()} (it presents {', '.join(names)})")
+    return [list(names).index(w) for w in wanted]
 
 
 def read_image(path: str | os.PathLike[str], part: int = 0) -> tuple[np.ndarray, tuple[str, ...]]:
@@ -846,7 +1208,7 @@ def read_exr_header(path: str | os.PathLike[str], part: int = 0) -> dict[str, An
 _RESERVED_ATTRIBUTES = frozenset({
     "channels", "compression", "dataWindow", "displayWindow", "lineOrder", "pixelAspectRatio",
     "screenWindowCenter", "screenWindowWidth", "tiles", "type", "name", "version", "chunkCount",
-    "maxSamplesPerPixel",
+    "maxSamplesPerPixel", "chromaticities",
 })
 
 
@@ -875,6 +1237,7 @@ def encode_exr(
     pixel_type: str = "half",
     compression: str = "zip",
     attributes: Mapping[str, str | float | int] | None = None,
+    chromaticities: Chromaticities = WORKING_CHROMATICITIES,
 ) -> bytes:
     """A single-part scanline EXR of ``pixels`` (float ``[H, W, C]``, C = len(channels)) as bytes.
 
@@ -882,6 +1245,9 @@ def encode_exr(
     ``compression`` one of none, rle, zips, zip, piz, pxr24, b44, b44a, dwaa, dwab, zstd (...).
     ``attributes`` extra header attributes: ``str`` -> string, ``float`` -> float, ``int`` -> int;
     standard attribute names (channels, dataWindow, ...) are refused.
+    ``chromaticities`` the primaries and white the pixels are in, written as the standard
+    ``chromaticities`` attribute: volcap's working space unless told otherwise
+    (:mod:`volcap_core.chromaticities`), so no reader has to assume.
     Data window = display window = ``(0, 0, W-1, H-1)``.
     """
     import OpenEXR
@@ -905,7 +1271,8 @@ def encode_exr(
     else:
         raise ValueError(f"pixel_type must be 'half' or 'float', got {pixel_type!r}")
 
-    header: dict[str, Any] = {"compression": _compression_enum(compression), "type": OpenEXR.scanlineimage}
+    header: dict[str, Any] = {"compression": _compression_enum(compression), "type": OpenEXR.scanlineimage,
+                              "chromaticities": tuple(float(v) for v in Chromaticities(*chromaticities))}
     for key, value in (attributes or {}).items():
         if not isinstance(key, str) or not key or key in _RESERVED_ATTRIBUTES:
             raise ValueError(f"attribute name {key!r} is reserved or invalid")
@@ -929,10 +1296,12 @@ def write_exr(
     pixel_type: str = "half",
     compression: str = "zip",
     attributes: Mapping[str, str | float | int] | None = None,
+    chromaticities: Chromaticities = WORKING_CHROMATICITIES,
 ) -> None:
     """:func:`encode_exr` to ``path``, atomically: the bytes go to a temporary file in the same
     folder, are flushed to disk, then renamed over ``path``; a failure at any point leaves
     ``path`` untouched (absent or its previous content) and no temporary file behind
     (:func:`volcap_core.files.write_atomic`)."""
-    data = encode_exr(pixels, channels, pixel_type=pixel_type, compression=compression, attributes=attributes)
+    data = encode_exr(pixels, channels, pixel_type=pixel_type, compression=compression, attributes=attributes,
+                      chromaticities=chromaticities)
     write_atomic(path, data)

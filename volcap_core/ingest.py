@@ -12,12 +12,22 @@ folder fails in seconds, and nothing is recorded unless every camera converts):
 3. Each camera folder holds one file per frame number (``000012.exr`` and ``000012.png``, or
    ``12.exr`` and ``0012.exr``, are duplicates); the take lies inside every camera's recording (the
    common timecode range) with no hole. Frames recorded outside the take are left out.
-4. Each file's header is readable, its resolution is the rig sensor's, its channels hold RGB.
+4. Each file's header is readable; the picture the camera's ``exr_part``/``exr_view`` choose is
+   there (a multi-part or multi-view file without a choice is refused, listing what it holds);
+   its *display window* is the rig sensor's resolution, its pixels are square, it holds RGB (or
+   Y); its ``chromaticities`` define a conversion to the working space; alpha and chromaticities
+   are the same in every frame of the camera.
 5. Tracking cameras carry lens-encoder readings for every take frame.
    The lidar scan named by ``capture.json`` (if any) is a readable PLY of finite points.
 6. While converting: damaged pixel data, and NaN/Inf pixels under the ``nan_policy``:
    ``"error"`` (default) refuses the frame, naming how many pixels; ``"repair"`` replaces NaN by 0
    and ±Inf by ±65504 (the largest half) and logs it.
+
+A converted frame (:func:`convert_frame`) is the source's display window: the data window's pixels
+placed at their offset, everything outside the data window 0 (alpha 0 too), data outside the display
+window (overscan) left out; its colour is scene-linear in the working space
+(:mod:`volcap_core.chromaticities`: linear Rec.709/D65), converted from the file's
+``chromaticities`` when they differ. Its header says where it came from (``volcap.source_*``).
 """
 
 from __future__ import annotations
@@ -40,6 +50,12 @@ from volcap_core.capture import (
     CaptureDescription,
     Encoding,
     LensSample,
+)
+from volcap_core.chromaticities import (
+    EXR_DEFAULT_CHROMATICITIES,
+    convert_to_working,
+    needs_conversion,
+    to_working_matrix,
 )
 from volcap_core.colour import srgb_decode
 from volcap_core.digest import digest_file
@@ -147,29 +163,75 @@ def select_take(desc: CaptureDescription, cam: CameraSource, files: dict[int, Ra
     return [files[i] for i in range(n)], outside
 
 
+#: the camera model's pixels are square (``Sensor.focal_px``); a pixel aspect ratio further than this
+#: from 1 would put every projection off by that factor along x
+PIXEL_ASPECT_TOLERANCE = 1e-3
+
+
+def probe_source(cam: CameraSource, frame: RawFrame) -> tuple[imageio.ImageInfo, imageio.ColourSource]:
+    """The header of the picture ``cam`` chooses in ``frame``'s file; errors name camera and frame."""
+    try:
+        return imageio.probe_footage(frame.path, cam.exr_part, cam.exr_view)
+    except imageio.ImageReadError as exc:
+        raise _read_error(cam, frame, exc) from exc
+
+
+def _read_error(cam: CameraSource, frame: RawFrame, exc: imageio.ImageReadError) -> IngestError:
+    """An imageio error as an IngestError naming camera and frame (its message names the file);
+    an ambiguous file also says where the choice goes."""
+    msg = f"camera {cam.id}, frame {frame.camera_frame}: {exc}"
+    if isinstance(exc, imageio.SourceChoiceError):
+        msg += (f". Say which picture is camera {cam.id}'s footage with \"exr_part\" (a part name) and/or "
+                f"\"exr_view\" (a view name) in its capture.json entry")
+    return IngestError(msg)
+
+
+def _applies_primaries(cam: CameraSource, source: imageio.ColourSource) -> bool:
+    """Whether the file's chromaticities are this camera's primaries: not for ``ocio`` footage (its
+    colourspace names the primaries; applying both would convert twice), not for luminance-only
+    pictures (Y is CIE luminance: R = G = B = Y is the same grey in any space)."""
+    return cam.encoding is not Encoding.ocio and source.kind != "luminance"
+
+
 def check_headers(cam: CameraSource, rig_cam: RigCamera, frames: list[RawFrame]) -> imageio.ImageInfo:
-    """Every file readable, at the rig sensor's resolution, with RGB channels; returns the first."""
-    first: imageio.ImageInfo | None = None
+    """Every file readable, its chosen picture at the rig sensor's resolution (display window),
+    with square pixels, RGB channels and convertible primaries, all frames alike; returns the
+    first frame's header."""
+    first: tuple[imageio.ImageInfo, imageio.ColourSource, imageio.PartHeader] | None = None
     want = (rig_cam.sensor.width_px, rig_cam.sensor.height_px)
     for f in frames:
-        try:
-            info = imageio.probe_image(f.path)
-        except imageio.ImageReadError as exc:
-            raise IngestError(f"camera {cam.id}, frame {f.camera_frame}: {exc}") from exc
-        if (info.width, info.height) != want:
-            raise IngestError(f"camera {cam.id}, frame {f.camera_frame}: {f.path} is {info.width}x{info.height}, "
+        info, source = probe_source(cam, f)
+        header = info.part_headers[source.part]
+        where = f"camera {cam.id}, frame {f.camera_frame}: {f.path}"
+        size = header.display_size
+        if size != want:
+            raise IngestError(f"{where} is {size[0]}x{size[1]} (display window {header.display_window}), "
                               f"the rig says {want[0]}x{want[1]}")
-        has_rgb = {"R", "G", "B"} <= set(info.channels) or "Y" in info.channels
-        if not has_rgb:
-            raise IngestError(f"camera {cam.id}, frame {f.camera_frame}: {f.path} has channels "
-                              f"{', '.join(info.channels)}, no R,G,B")
+        if abs(header.pixel_aspect_ratio - 1.0) > PIXEL_ASPECT_TOLERANCE:
+            raise IngestError(f"{where} has pixelAspectRatio {header.pixel_aspect_ratio:g}; the rig's cameras "
+                              "have square pixels: resample the footage to square pixels first")
+        if _applies_primaries(cam, source) and needs_conversion(header.chromaticities, header.adopted_neutral):
+            try:
+                to_working_matrix(header.chromaticities or EXR_DEFAULT_CHROMATICITIES, header.adopted_neutral)
+            except ValueError as exc:
+                raise IngestError(f"{where}: its colour cannot be converted to the working space: {exc}") from exc
         if first is None:
-            first = info
-        elif ("A" in info.channels) != ("A" in first.channels):
-            raise IngestError(f"camera {cam.id}, frame {f.camera_frame}: channels {', '.join(info.channels)} "
-                              f"differ from the camera's first frame ({', '.join(first.channels)})")
+            first = (info, source, header)
+            continue
+        first_source, first_header = first[1], first[2]
+        if source.has_alpha != first_source.has_alpha:
+            raise IngestError(f"camera {cam.id}, frame {f.camera_frame}: channels {', '.join(source.channels)} "
+                              f"differ from the camera's first frame ({', '.join(first_source.channels)})")
+        if (header.chromaticities, header.adopted_neutral) != (first_header.chromaticities, first_header.adopted_neutral):
+            raise IngestError(f"{where} declares chromaticities {_chroma_text(header)}, the camera's first "
+                              f"frame {first[0].path} {_chroma_text(first_header)}")
     assert first is not None
-    return first
+    return first[0]
+
+
+def _chroma_text(header: imageio.PartHeader) -> str:
+    text = f"({header.chromaticities})" if header.chromaticities is not None else "(none: Rec.709/D65)"
+    return text + (f" with adoptedNeutral {header.adopted_neutral}" if header.adopted_neutral else "")
 
 
 def lens_for_take(desc: CaptureDescription, cam: CameraSource, rig_cam: RigCamera) -> tuple[LensSample, ...] | None:
@@ -268,28 +330,105 @@ def apply_nan_policy(pixels: np.ndarray, policy: NanPolicy, where: str) -> tuple
     return np.nan_to_num(pixels, nan=0.0, posinf=HALF_MAX, neginf=-HALF_MAX), n
 
 
+def to_working_primaries(rgb: np.ndarray, header: imageio.PartHeader, where: str) -> np.ndarray:
+    """Scene-linear ``[h, w, 3|4]`` float32 in the primaries ``header`` declares → the working space
+    (alpha passes through); the array itself when they are the working space already.
+
+    Values are clamped to ±65504 first: they would be when stored, and a float EXR's ±3e38 would
+    overflow the matrix to ±Inf after the NaN policy has run.
+    """
+    if not needs_conversion(header.chromaticities, header.adopted_neutral):
+        return rgb
+    chroma = header.chromaticities or EXR_DEFAULT_CHROMATICITIES
+    try:
+        lin = convert_to_working(np.clip(rgb[..., :3], -HALF_MAX, HALF_MAX), chroma, header.adopted_neutral)
+    except ValueError as exc:
+        raise IngestError(f"{where}: its colour cannot be converted to the working space: {exc}") from exc
+    return np.concatenate([lin, rgb[..., 3:4]], axis=-1) if rgb.shape[-1] > 3 else lin
+
+
+def in_display_window(pixels: np.ndarray, data_window: tuple[int, int, int, int],
+                      display_window: tuple[int, int, int, int]) -> np.ndarray:
+    """The data window's visible pixels ``[h, w, C]`` (``pixels`` cropped by
+    :func:`visible_pixels`) placed in a display-window-sized ``[H, W, C]`` array, 0 elsewhere
+    (alpha included: outside the data window there is nothing)."""
+    x0, y0, x1, y1 = display_window
+    shape = (y1 - y0 + 1, x1 - x0 + 1, pixels.shape[-1])
+    overlap = imageio.window_overlap(data_window, display_window)
+    if overlap is not None and pixels.shape == shape:
+        return pixels  # the data window covers the display window exactly: nothing to place
+    out = np.zeros(shape, dtype=np.float32)
+    if overlap is not None:
+        out[overlap[1]] = pixels
+    return out
+
+
+def visible_pixels(pixels: np.ndarray, data_window: tuple[int, int, int, int],
+                   display_window: tuple[int, int, int, int]) -> np.ndarray:
+    """The part of the data window's pixels ``[Hd, Wd, C]`` inside the display window (a view; zero
+    rows when they do not overlap): only these are converted and stored."""
+    overlap = imageio.window_overlap(data_window, display_window)
+    return pixels[overlap[0]] if overlap is not None else pixels[:0, :0]
+
+
+def _window_text(window: tuple[int, int, int, int]) -> str:
+    return " ".join(str(v) for v in window)
+
+
+def source_attributes(cam: CameraSource, take_index: int, footage: imageio.Footage) -> dict[str, str]:
+    """The stored frame's ``volcap.*`` header: camera, take index, and what the source was (encoding,
+    part, view, chromaticities as declared, windows as inclusive ``xmin ymin xmax ymax``)."""
+    header, source = footage.header, footage.source
+    attrs = {"volcap.camera": cam.id, "volcap.take_index": str(take_index),
+             "volcap.source_encoding": cam.encoding.value,
+             "volcap.source_data_window": _window_text(header.data_window),
+             "volcap.source_display_window": _window_text(header.display_window)}
+    if source.part_name is not None:
+        attrs["volcap.source_part"] = source.part_name
+    if source.view is not None:
+        attrs["volcap.source_view"] = source.view
+    if header.chromaticities is not None:
+        attrs["volcap.source_chromaticities"] = " ".join(f"{v:.6g}" for v in header.chromaticities)
+    if header.adopted_neutral is not None:
+        attrs["volcap.source_adopted_neutral"] = " ".join(f"{v:.6g}" for v in header.adopted_neutral)
+    return attrs
+
+
 def convert_frame(frame: RawFrame, expected_digest: str, cam: CameraSource, *, ocio_config: Path | None,
                   nan_policy: NanPolicy, want_alpha: bool) -> tuple[bytes, int]:
     """One raw frame → (half-float scene-linear EXR bytes, repaired pixel count).
 
-    Refuses a file whose content changed since it was fingerprinted: the cache key would lie.
+    The picture ``cam.exr_part``/``cam.exr_view`` choose, its display window (module docstring),
+    its transfer function undone (``cam.encoding``), NaN/Inf under ``nan_policy``, its primaries
+    converted to the working space. Refuses a file whose content changed since it was
+    fingerprinted: the cache key would lie.
     """
     where = f"camera {cam.id}, frame {frame.camera_frame} ({frame.path})"
     digest, _ = digest_file(frame.path)
     if digest != expected_digest:
         raise IngestError(f"{where}: file changed during ingest (was {expected_digest}, now {digest}); rerun")
     try:
-        pixels, channels = imageio.read_image(frame.path)
+        footage = imageio.read_footage(frame.path, cam.exr_part, cam.exr_view)
     except imageio.ImageReadError as exc:  # its message already names the file
-        raise IngestError(f"camera {cam.id}, frame {frame.camera_frame}: {exc}") from exc
-    lin = to_scene_linear(pixels, cam.encoding, ocio_config=ocio_config,
-                          ocio_colorspace=cam.ocio_colorspace, where=where)
-    lin, repaired = apply_nan_policy(lin, nan_policy, where)
+        raise _read_error(cam, frame, exc) from exc
+    header = footage.header
+    # overscan (data outside the display window) is not stored, so it is neither converted nor
+    # counted by the NaN policy
+    visible = visible_pixels(footage.pixels, header.data_window, header.display_window)
+    repaired = 0
+    if visible.size:
+        lin = to_scene_linear(visible, cam.encoding, ocio_config=ocio_config,
+                              ocio_colorspace=cam.ocio_colorspace, where=where)
+        lin, repaired = apply_nan_policy(lin, nan_policy, where)
+        if _applies_primaries(cam, footage.source):
+            lin = to_working_primaries(lin, header, where)
+    else:
+        lin = np.ascontiguousarray(visible, dtype=np.float32)
     if want_alpha and lin.shape[-1] == 3:
         lin = np.concatenate([lin, np.ones_like(lin[..., :1])], axis=-1)
+    lin = in_display_window(lin, header.data_window, header.display_window)
     channels_out = ("R", "G", "B", "A") if lin.shape[-1] == 4 else ("R", "G", "B")
-    attrs = {"volcap.camera": cam.id, "volcap.take_index": str(frame.take_index),
-             "volcap.source_encoding": cam.encoding.value}
+    attrs = source_attributes(cam, frame.take_index, footage)
     return imageio.encode_exr(lin, channels_out, pixel_type="half", compression="zip", attributes=attrs), repaired
 
 
@@ -310,13 +449,17 @@ def convert_camera(camera: CameraSource, rig_camera: RigCamera, entries: list[di
     if len(entries) != frame_count:
         raise IngestError(f"camera {camera.id}: manifest has {len(entries)} frames, take has {frame_count}")
     raws = [RawFrame(e["take_index"], e["take_index"] - take_offset, Path(e["file"])) for e in entries]
-    want_alpha = "A" in imageio.probe_image(raws[0].path).channels
+    info, source = probe_source(camera, raws[0])
+    want_alpha = source.has_alpha
     frames = []
     for raw, entry in zip(raws, entries):
         data, _ = convert_frame(raw, entry["digest"], camera, ocio_config=ocio_config, nan_policy=nan_policy,
                                 want_alpha=want_alpha)
         frames.append(put_frame(data))
+    chroma = info.part_headers[source.part].chromaticities
     return CaptureCamera(id=camera.id, width=rig_camera.sensor.width_px, height=rig_camera.sensor.height_px,
                          channels=("R", "G", "B", "A") if want_alpha else ("R", "G", "B"),
                          source_encoding=camera.encoding, frames=tuple(frames),
-                         lens_encoder=tuple(lens) if lens is not None else None)
+                         lens_encoder=tuple(lens) if lens is not None else None,
+                         source_part=source.part_name, source_view=source.view,
+                         source_chromaticities=tuple(chroma) if chroma is not None else None)

@@ -49,6 +49,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from volcap_core.calibration.geometry import look_at_rotation
+from volcap_core.chromaticities import WORKING_CHROMATICITIES
 from volcap_core.production._errors import format_validation_error
 from volcap_core.production.performance import Box, Performance, render_performance
 from volcap_core.records import ArtifactRef
@@ -465,6 +466,7 @@ def encode_shot_exr(rgba: np.ndarray, camera: Camera, shot: Shot, frame: int, *,
     header: dict[str, Any] = {
         "compression": OpenEXR.ZIP_COMPRESSION,
         "type": OpenEXR.scanlineimage,
+        "chromaticities": tuple(WORKING_CHROMATICITIES),  # renders are in the working space
         "dataWindow": (np.array([x0, y0], dtype=np.int32), np.array([x1, y1], dtype=np.int32)),
         "displayWindow": (np.array([0, 0], dtype=np.int32),
                           np.array([w - 1, h - 1], dtype=np.int32)),

@@ -11,18 +11,21 @@ from pathlib import Path
 import numpy as np
 import OpenEXR
 
+from volcap_core.chromaticities import WORKING_CHROMATICITIES
 from volcap_core.files import write_atomic
 
 
 def write_exr(path: Path, image: np.ndarray, half: bool = True) -> None:
-    """(H, W, 3) -> R, G, B channels; (H, W) -> one channel ``Z``. ZIP-compressed, scanline.
-    Written atomically (temporary file in the same folder, fsync, rename)."""
+    """(H, W, 3) -> R, G, B channels (linear Rec.709/D65, declared in ``chromaticities``); (H, W) -> one
+    channel ``Z``. ZIP-compressed, scanline. Written atomically (temporary file in the same folder, fsync, rename)."""
     arr = np.asarray(image, np.float16 if half else np.float32)
     if arr.ndim == 3:
         channels = {c: np.ascontiguousarray(arr[..., i]) for i, c in enumerate("RGB")}
     else:
         channels = {"Z": np.ascontiguousarray(arr)}
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    # the working space's primaries, as every EXR volcap writes declares them (ingest reads them)
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
+              "chromaticities": tuple(WORKING_CHROMATICITIES)}
     # The bindings encode to a stream exactly the bytes they would write to a file name.
     out = io.BytesIO()
     with OpenEXR.File(header, channels) as f:
