@@ -1,7 +1,7 @@
 """The ``volcap`` command.
 
-Exit codes: 0 success; 1 the work failed (one line on stderr says why: file, camera, frame or
-digest); 2 bad usage. Commands that produce artifacts take ``--json`` and then print their output
+Exit codes: 0 success; 1 the work failed (stderr is exactly one line saying why: file, camera,
+frame, ref or digest; no traceback unless ``--verbose``: flows/cli_output.py); 2 bad usage. Commands that produce artifacts take ``--json`` and then print their output
 references as one JSON object on the last line of stdout. Every flow run ends with a one-line
 summary (tasks run / cached / failed, wall time); the same counts are in the ``--json`` object.
 """
@@ -9,6 +9,7 @@ summary (tasks run / cached / failed, wall time); the same counts are in the ``-
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -17,9 +18,11 @@ from typing import Annotated, Any, Optional
 import typer
 
 from flows.runtime import RunSummary, quiet_prefect_defaults, reproducible_cpu_defaults
+from flows.runtime import skip_final_collection, start_api_early  # docs/benchmarks.md, cached reruns
 
 quiet_prefect_defaults(log_level="INFO")
 reproducible_cpu_defaults()  # before torch is imported
+skip_final_collection()  # registered first: the command's exit does not wait on a full collection
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
                   help="volcap: 4D volumetric capture, from camera files to Gaussian-splat performances.")
@@ -32,8 +35,15 @@ JsonOpt = Annotated[bool, typer.Option("--json", help="print output references a
 DEFAULT_STORE = "./.volcap/store"
 
 
-class CommandError(Exception):
-    """A failure to report as one line on stderr with exit code 1."""
+from flows.cli_output import OUTPUT, CommandError  # noqa: E402 - stdout/stderr contract, --verbose
+
+
+@app.callback()
+def _global_options(verbose: Annotated[bool, typer.Option(
+        "--verbose", envvar="VOLCAP_VERBOSE",
+        help="DEBUG logs, native libraries' stderr and a failure's traceback (also accepted after the command)")] = False) -> None:
+    """volcap: 4D volumetric capture, from camera files to Gaussian-splat performances."""
+    # main() reads --verbose (anywhere on the line) before the command runs; declared here for --help.
 
 
 def _store_url(url: str) -> str:
@@ -69,22 +79,16 @@ def _stderr_console():
 
 def _run(flow: Any, **params: Any) -> RunSummary:
     from flows.runtime import run_flow
+    OUTPUT.route_logging()  # Prefect's console logs to stdout; an expected failure's traceback to DEBUG
     try:
         summary = run_flow(flow, **params)
     except Exception as exc:
         summary = getattr(exc, "run_summary", None)
         if summary is not None:
-            typer.echo(summary.line(), err=True)
-        raise CommandError(_one_line(exc)) from exc
+            typer.echo(summary.line())  # stdout: what ran; main() prints the cause on stderr
+        raise
     typer.echo(summary.line())
     return summary
-
-
-def _one_line(exc: BaseException) -> str:
-    text = str(exc).strip() or type(exc).__name__
-    if "\n" in text and len(text) > 400:  # a long multi-line message (a traceback-like dump): its head
-        text = text.split("\n")[0]
-    return " ".join(text.split())
 
 
 # ---------------------------------------------------------------------------------------------
@@ -120,6 +124,7 @@ def ingest_cmd(capture_dir: Annotated[Path, typer.Argument(help="capture folder 
                nan_policy: Annotated[str, typer.Option(help="'error' refuses NaN/Inf pixels, 'repair' replaces them")] = "error",
                json_out: JsonOpt = False) -> None:
     """Check a capture folder and store every frame as scene-linear half EXR plus a Capture record."""
+    start_api_early()
     from flows.ingest import ingest_flow
 
     if nan_policy not in ("error", "repair"):
@@ -135,6 +140,7 @@ def demo(store: StoreOpt = DEFAULT_STORE,
          frames: Annotated[int, typer.Option(min=2)] = 24,
          json_out: JsonOpt = False) -> None:
     """Make the built-in demo capture and run every stage that exists on it."""
+    start_api_early()
     from flows.demo import demo_flow
 
     capture_dir = out / "capture"
@@ -166,6 +172,7 @@ def reconstruct(capture: Annotated[str, typer.Argument(help="capture ref name (c
     """Train the Poly4DGS segments of an ingested capture; reports held-out PSNR/SSIM (per-camera gain/offset
     fitted on other frames), raw and on the performers, beside the empty- and untrained-model floors, and
     writes a contact sheet (footage | render | error) per segment."""
+    start_api_early()
     from flows.reconstruct import reconstruct_flow
 
     span = _frame_span(frames)
@@ -217,6 +224,7 @@ def calibrate(capture: Annotated[str, typer.Argument(help="capture ref name (cap
     Prints the Calibration and point-cloud refs (also named calibrations/NAME and points/NAME) and,
     for a capture with ground truth (synthetic), the error table; --json adds it all as JSON.
     """
+    start_api_early()
     from flows.calibrate import calibrate_flow
 
     summary = _run(calibrate_flow, store=_store_url(store), capture=capture, frames=_frame_span(frames))
@@ -533,6 +541,7 @@ def run_cmd(spec: SpecArg, store: SpecStoreOpt = None, shots: ShotsOpt = None,
             max_attempts: Annotated[int, typer.Option(help="runs of a segment before giving up (crashes)")] = 3,
             json_out: JsonOpt = False) -> None:
     """Build everything a production spec needs (only what is not cached)."""
+    start_api_early()
     from flows.production import production_flow
 
     if segment_runs not in ("auto", "local", "deployment"):
@@ -570,15 +579,24 @@ def worker(pool: Annotated[str, typer.Option(help="work pool: gpu (segments) or 
     if limit is not None:
         args += ["--limit", str(limit)]
     sys.stdout.flush()
+    OUTPUT.native.stop()  # the worker gets the real stderr
     os.execv(sys.executable, args)  # the worker replaces this process: signals reach it directly
 
 
-def main() -> None:
-    """Entry point: one-line errors on stderr, exit 1 for failed work."""
-    from volcap_core.store import StoreError
+def _split_verbose(argv: list[str]) -> tuple[list[str], bool]:
+    """``--verbose`` anywhere before a ``--`` (global option or after the command) -> (rest, True)."""
+    end = argv.index("--") if "--" in argv else len(argv)
+    head = [a for a in argv[:end] if a != "--verbose"]
+    env = os.environ.get("VOLCAP_VERBOSE", "").strip().lower() in ("1", "true", "yes", "on")
+    return head + argv[end:], len(head) < end or env
 
+
+def main() -> None:
+    """Entry point: stderr is one line (the cause) for failed work, exit 1; flows/cli_output.py."""
+    args, verbose = _split_verbose(sys.argv[1:])
+    OUTPUT.start(verbose)
     try:
-        app(standalone_mode=False)
+        app(args=args, standalone_mode=False)
     except typer.Exit as exc:
         sys.exit(exc.exit_code)
     except typer.Abort:
@@ -588,11 +606,9 @@ def main() -> None:
         if hasattr(exc, "show") and isinstance(getattr(exc, "exit_code", None), int):
             exc.show()  # a click/typer usage or parameter error: exit 2, click's own message
             sys.exit(exc.exit_code)
-        if isinstance(exc, (CommandError, StoreError, ValueError, OSError, KeyError)):
-            typer.echo(f"volcap: error: {_one_line(exc)}", err=True)
-            sys.exit(1)
-        typer.echo(f"volcap: internal error: {type(exc).__name__}: {_one_line(exc)}", err=True)
-        sys.exit(1)
+        sys.exit(OUTPUT.report(exc))
+    finally:
+        OUTPUT.finish()  # Prefect's shutdown messages stay off the console (unless --verbose)
 
 
 if __name__ == "__main__":
