@@ -46,12 +46,16 @@ def ingest_flow(store: str, capture_dir: str, nan_policy: str = "error", set_ref
         ocio_file = folder / desc.ocio_config
         if not ocio_file.is_file():
             raise ingest.IngestError(f"{folder / 'capture.json'}: ocio_config {ocio_file} does not exist")
-        ocio_ref = s.put_file(ocio_file, "application/x-ocio")
+        ocio_ref = s.put_file(ocio_file, "application/x-ocio", check_first=True)
 
     # 2. Fingerprint and convert, one task per camera.
     files = [[str(f.path) for f in scans[c.id]] for c in desc.cameras]
     stats = [[_stat(p) for p in fs] for fs in files]
-    manifests = fingerprint_camera.map(unmapped(store), [c.id for c in desc.cameras], files, stats)
+    # Every fingerprint first (hashing: quick beside a conversion), then the conversions on their
+    # results: handed futures, each ingest-camera run asked the API for its upstream run's state
+    # (0.1-0.2 s a camera while the server records events), and a cached rerun waited for that.
+    manifests = [m.result() for m in
+                 fingerprint_camera.map(unmapped(store), [c.id for c in desc.cameras], files, stats)]
     cameras = ingest_camera.map(
         unmapped(store), unmapped(str(folder)), desc.cameras, [rig_cams[c.id] for c in desc.cameras],
         manifests, [desc.take_offset(c) for c in desc.cameras], unmapped(desc.take.frame_count),
@@ -63,7 +67,7 @@ def ingest_flow(store: str, capture_dir: str, nan_policy: str = "error", set_ref
         if not gt.is_dir():
             raise ingest.IngestError(f"{folder / 'capture.json'}: ground_truth folder {gt} does not exist")
         ground_truth = s.put_directory(gt)
-    lidar = s.put_file(lidar_file, ingest.MEDIA_PLY) if lidar_file is not None else None
+    lidar = s.put_file(lidar_file, ingest.MEDIA_PLY, check_first=True) if lidar_file is not None else None
 
     # 3. Only when every camera converted: the record, then its name.
     capture_ref = record_capture(store, desc.name, rig, desc.fps, desc.take.start_timecode,

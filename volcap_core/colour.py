@@ -26,10 +26,12 @@ by the maximum code value (255, 65535) first.
 
 from __future__ import annotations
 
-from typing import TypeVar
+from typing import TYPE_CHECKING, TypeVar
 
 import numpy as np
-import torch
+
+if TYPE_CHECKING:
+    import torch
 
 __all__ = [
     "SRGB_DECODE_BREAK",
@@ -48,10 +50,14 @@ _SLOPE = 12.92
 _A = 0.055
 _GAMMA = 2.4
 
-T = TypeVar("T", torch.Tensor, np.ndarray)
+# torch is imported where a curve is evaluated, not here: ingest and the command line import this
+# module on paths (a cached rerun, header checks) that never touch a pixel, and torch costs seconds.
+T = TypeVar("T", "torch.Tensor", np.ndarray)
 
 
 def _as_float_tensor(x: T) -> tuple[torch.Tensor, torch.dtype, bool]:
+    import torch
+
     is_numpy = isinstance(x, np.ndarray)
     t = torch.from_numpy(np.asarray(x)) if is_numpy else x
     if not isinstance(t, torch.Tensor):
@@ -73,11 +79,15 @@ def _back(t: torch.Tensor, dtype: torch.dtype, is_numpy: bool):
 def _encode(linear: torch.Tensor) -> torch.Tensor:
     # Clamping the power branch's input keeps pow away from 0, where d/dx x^(1/2.4) is infinite:
     # torch.where would otherwise route 0 * inf = NaN into the gradient of the unused branch.
+    import torch
+
     power = (1.0 + _A) * linear.clamp(min=SRGB_ENCODE_BREAK).pow(1.0 / _GAMMA) - _A
     return torch.where(linear <= SRGB_ENCODE_BREAK, _SLOPE * linear, power)
 
 
 def _decode(encoded: torch.Tensor) -> torch.Tensor:
+    import torch
+
     power = ((encoded.clamp(min=SRGB_DECODE_BREAK) + _A) / (1.0 + _A)).pow(_GAMMA)
     # Strict '<' as colour-science does: at exactly 0.04045 the two segments differ by 2e-9 and the
     # reference takes the power segment there.

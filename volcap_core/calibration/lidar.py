@@ -4,6 +4,9 @@ lifting image points onto it.
 A scan is points [N, 3] (metres, stage frame) with unit normals [N, 3]. Surfaces are treated as
 locally planar: a point's distance to the scan is its point-to-plane distance to the nearest scan
 point, ``n · (x - p)``.
+
+scipy is imported where it is used: ingest reads scans (:func:`decode_ply_points`) on every run,
+cached or not, and importing scipy costs it a second or two.
 """
 
 from __future__ import annotations
@@ -11,8 +14,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.ndimage import minimum_filter
-from scipy.spatial import cKDTree
 
 from volcap_core.calibration.geometry import Similarity, so3_exp
 
@@ -56,6 +57,8 @@ def decode_ply_points(data: bytes) -> tuple[np.ndarray, np.ndarray | None]:
 
 def estimate_normals(points: np.ndarray, k: int = 12) -> np.ndarray:
     """Unit normals [N, 3] from the k nearest neighbours' covariance (sign arbitrary)."""
+    from scipy.spatial import cKDTree
+
     tree = cKDTree(points)
     _, idx = tree.query(points, k=min(k, len(points)))
     nb = points[idx] - points[idx].mean(1, keepdims=True)
@@ -77,6 +80,8 @@ class LidarScan:
             self.normals = estimate_normals(self.points)
         self.normals = np.asarray(self.normals, np.float64).reshape(-1, 3)
         self.normals /= np.maximum(np.linalg.norm(self.normals, axis=1, keepdims=True), 1e-12)
+        from scipy.spatial import cKDTree
+
         self.tree = cKDTree(self.points)
 
     @staticmethod
@@ -169,6 +174,8 @@ def lift_to_lidar(K: np.ndarray, world_to_camera: np.ndarray, uv: np.ndarray, sc
     ok = np.zeros(len(uv), bool)
     if len(ids) == 0:
         return out, ok
+    from scipy.spatial import cKDTree
+
     tree = cKDTree(proj)
     Kinv = np.linalg.inv(K)
     rays = np.c_[uv, np.ones(len(uv))] @ Kinv.T @ R  # world directions (unnormalised, z_cam = 1)
@@ -211,4 +218,6 @@ def depth_buffer(K: np.ndarray, world_to_camera: np.ndarray, width: int, height:
     inside = (ix[:, 0] >= 0) & (ix[:, 0] < width) & (ix[:, 1] >= 0) & (ix[:, 1] < height)
     zbuf = np.full((height, width), np.inf)
     np.minimum.at(zbuf, (ix[inside, 1], ix[inside, 0]), z[ok][inside])
+    from scipy.ndimage import minimum_filter
+
     return minimum_filter(zbuf, size=2 * splat_px + 1, mode="nearest")
