@@ -217,13 +217,16 @@ def spread(xs: list[float]) -> dict:
 BREAKDOWN: tuple[tuple[str, tuple[tuple[str | None, str], ...]], ...] = (
     ("header probe (flow checks)", ((None, "check_headers"),)),
     ("hash pass 1 (fingerprint)", (("fingerprint", "digest_file"),)),
-    ("hash pass 2 (unchanged check)", (("convert_frame", "digest_file"),)),
-    ("decode", ((None, "read_footage"), (None, "read_image"))),
+    ("hash pass 2 (unchanged check)", (("convert_frame", "digest_bytes"), ("convert_frame", "digest_file"))),
+    ("read the file (once)", (("convert_frame", "read_bytes"),)),
+    ("structure check + restamp", ((None, "plain_frame_header"), (None, "restamp_exr"))),
+    ("decode", ((None, "decode_half_exr"), (None, "read_footage"), (None, "read_image"))),
+    ("NaN/Inf check (half bits)", ((None, "half_nonfinite_pixels"),)),
     ("linearise", ((None, "to_scene_linear"),)),
     ("NaN/Inf check", ((None, "apply_nan_policy"),)),
     ("working primaries", ((None, "to_working_primaries"),)),
     ("windows (visible, display)", ((None, "visible_pixels"), (None, "in_display_window"))),
-    ("encode (half, ZIP)", ((None, "encode_exr"),)),
+    ("encode (half, ZIP; converted frames only)", ((None, "encode_exr"),)),
     ("store put (hash, write, fsync)", ((None, "put_bytes"),)),
 )
 
@@ -231,9 +234,12 @@ BREAKDOWN: tuple[tuple[str, tuple[tuple[str | None, str], ...]], ...] = (
 def _cumulative(stats: dict, caller: str | None, name: str) -> float:
     total = 0.0
     for (file, _line, fn), (_cc, _nc, _tt, ct, callers) in stats.items():
-        if fn != name or not file.startswith(str(REPO)):
+        if fn != name:
             continue
-        total += ct if caller is None else sum(v[3] for c, v in callers.items() if c[2] == caller)
+        if caller is None:  # our own function, anywhere
+            total += ct if file.startswith(str(REPO)) else 0.0
+        else:  # any function (a library's too) as called by our ``caller``
+            total += sum(v[3] for c, v in callers.items() if c[2] == caller and c[0].startswith(str(REPO)))
     return total
 
 

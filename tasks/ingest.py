@@ -32,7 +32,7 @@ def fingerprint_camera(store: str, camera_id: str, files: list[str], file_stats:
     return ArtifactStore(store).put_json(ingest.raw_manifest_json(camera_id, entries), RAW_MANIFEST_MEDIA)
 
 
-@volcap_task(name="ingest-camera", version="2", locations=("capture_dir",), libraries=INGEST_LIBRARIES)
+@volcap_task(name="ingest-camera", version="3", locations=("capture_dir",), libraries=INGEST_LIBRARIES)
 def ingest_camera(store: str, capture_dir: str, camera: CameraSource, rig_camera: RigCamera,
                   raw_manifest: ArtifactRef, take_offset: int, frame_count: int,
                   ocio_config: ArtifactRef | None, nan_policy: str,

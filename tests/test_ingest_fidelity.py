@@ -269,3 +269,63 @@ def test_overscan_is_left_out_and_not_policed(tmp_path):
     _write_windowed(path, rgb, "RGB", (-2, -1, 5, 4), (0, 0, 3, 2))
     stored, _ = _ingest(path, nan_policy="error")
     np.testing.assert_array_equal(stored, np.ones((3, 4, 3), np.float32))
+
+
+# --------------------------------------------------------------------------------------------------
+# Plain frames (already what ingest stores) are restamped, not re-encoded
+
+
+def _plain_source(tmp_path: Path, pixels: np.ndarray, **kw) -> Path:
+    path = tmp_path / "000001.exr"
+    path.write_bytes(imageio.encode_exr(pixels, "RGBA", **kw))
+    return path
+
+
+def test_a_plain_linear_frame_is_stored_bit_exact_in_its_own_compression(tmp_path):
+    px = (np.random.default_rng(3).random((24, 32, 4)) * 3).astype(np.float32)
+    path = _plain_source(tmp_path, px, compression="piz", attributes={"owner": "vendor"})
+    data, repaired = convert_frame(_frame(path), digest_file(path)[0], _camera(), ocio_config=None,
+                                   nan_policy="error", want_alpha=True)
+    source = imageio.decode_half_exr(path.read_bytes())
+    assert repaired == 0
+    assert np.array_equal(imageio.decode_half_exr(data).view(np.uint16), source.view(np.uint16))
+    stored = tmp_path / "stored.exr"
+    stored.write_bytes(data)
+    header = imageio.read_exr_header(stored)
+    assert header["compression"] == imageio._compression_enum("piz")
+    assert header["volcap.camera"] == "CAM3" and header["volcap.take_index"] == "1"
+    assert header["volcap.source_display_window"] == "0 0 31 23" and "owner" not in header
+    assert "chromaticities" in header
+
+
+@pytest.mark.parametrize("policy", ["error", "repair"])
+def test_nan_in_a_plain_frame_still_meets_the_policy(tmp_path, policy):
+    px = np.ones((8, 8, 4), np.float32)
+    px[2, 3, 1] = np.nan
+    px[5, 5, 0] = np.inf
+    path = _plain_source(tmp_path, px)
+    if policy == "error":
+        with pytest.raises(IngestError, match=r"camera CAM3, frame 1 .*: 2 pixel\(s\) hold NaN or Inf"):
+            _ingest(path, want_alpha=True)
+        return
+    stored, _ = _ingest(path, nan_policy="repair", want_alpha=True)
+    assert np.isfinite(stored).all() and stored[2, 3, 1] == 0.0 and stored[5, 5, 0] == imageio.HALF_MAX
+
+
+def test_a_plain_frame_with_a_damaged_payload_is_refused_naming_camera_and_frame(tmp_path):
+    path = _plain_source(tmp_path, (np.random.default_rng(1).random((32, 32, 4))).astype(np.float32))
+    data = bytearray(path.read_bytes())
+    for i in range(len(data) - 40, len(data) - 20):
+        data[i] ^= 0xFF
+    path.write_bytes(bytes(data))
+    with pytest.raises(IngestError, match=r"camera CAM3, frame 1: .*000001\.exr: damaged EXR: pixel data does not decode"):
+        _ingest(path, want_alpha=True)
+
+
+def test_a_plain_frame_in_other_primaries_is_converted_not_restamped(tmp_path):
+    px = np.full((4, 4, 4), 0.5, np.float32)
+    px[..., 0] = 0.9
+    path = _plain_source(tmp_path, px, chromaticities=P3_D65)
+    stored, header = _ingest(path, want_alpha=True)
+    assert not np.allclose(stored[..., :3], _half(px[..., :3]), atol=1e-3)  # converted to Rec.709
+    assert header["volcap.source_chromaticities"].startswith("0.68 0.32")

@@ -28,6 +28,10 @@ placed at their offset, everything outside the data window 0 (alpha 0 too), data
 window (overscan) left out; its colour is scene-linear in the working space
 (:mod:`volcap_core.chromaticities`: linear Rec.709/D65), converted from the file's
 ``chromaticities`` when they differ. Its header says where it came from (``volcap.source_*``).
+A source that already is such a frame (:func:`imageio.plain_frame_header`, scene-linear, working
+primaries, no NaN/Inf) is restamped rather than converted: new header, the camera's compressed
+chunks copied, its pixels decoded once to prove they decode. Re-compressing costs ~3x a decode, so
+this is what keeps ingest near the cost of reading the footage (``bench/bench_ingest.py``).
 """
 
 from __future__ import annotations
@@ -58,7 +62,7 @@ from volcap_core.chromaticities import (
     to_working_matrix,
 )
 from volcap_core.colour import srgb_decode
-from volcap_core.digest import digest_file
+from volcap_core.digest import digest_bytes, digest_file
 
 NanPolicy = Literal["error", "repair"]
 HALF_MAX = 65504.0
@@ -375,23 +379,49 @@ def _window_text(window: tuple[int, int, int, int]) -> str:
     return " ".join(str(v) for v in window)
 
 
-def source_attributes(cam: CameraSource, take_index: int, footage: imageio.Footage) -> dict[str, str]:
+def source_attributes(cam: CameraSource, take_index: int, header: imageio.PartHeader,
+                      source: imageio.ColourSource | None) -> dict[str, str]:
     """The stored frame's ``volcap.*`` header: camera, take index, and what the source was (encoding,
-    part, view, chromaticities as declared, windows as inclusive ``xmin ymin xmax ymax``)."""
-    header, source = footage.header, footage.source
+    part, view, chromaticities as declared, windows as inclusive ``xmin ymin xmax ymax``).
+    ``source`` None: the file's only picture, without part name or view."""
     attrs = {"volcap.camera": cam.id, "volcap.take_index": str(take_index),
              "volcap.source_encoding": cam.encoding.value,
              "volcap.source_data_window": _window_text(header.data_window),
              "volcap.source_display_window": _window_text(header.display_window)}
-    if source.part_name is not None:
+    if source is not None and source.part_name is not None:
         attrs["volcap.source_part"] = source.part_name
-    if source.view is not None:
+    if source is not None and source.view is not None:
         attrs["volcap.source_view"] = source.view
     if header.chromaticities is not None:
         attrs["volcap.source_chromaticities"] = " ".join(f"{v:.6g}" for v in header.chromaticities)
     if header.adopted_neutral is not None:
         attrs["volcap.source_adopted_neutral"] = " ".join(f"{v:.6g}" for v in header.adopted_neutral)
     return attrs
+
+
+def _restamped(raw: bytes, frame: RawFrame, cam: CameraSource, *, want_alpha: bool) -> bytes | None:
+    """The stored frame without converting its pixels, when the source already is one: a plain
+    half EXR (:func:`imageio.restamp_exr`), scene-linear (``encoding`` linear), in the working
+    primaries, without NaN/Inf, with alpha exactly when the camera's frames have it. Its pixels are
+    decoded once, from the restamped bytes, to prove they decode (a damaged payload is refused as
+    the converting path would) and to check NaN/Inf. None: convert it (also for NaN/Inf, so the
+    policy reports or repairs them in one place)."""
+    if cam.encoding is not Encoding.linear or cam.exr_part is not None or cam.exr_view is not None:
+        return None
+    try:
+        header = imageio.plain_frame_header(raw, path=str(frame.path))
+        if header is None or ("A" in header.channels) != want_alpha:
+            return None
+        if needs_conversion(header.chromaticities, header.adopted_neutral):
+            return None
+        stored = imageio.restamp_exr(raw, attributes=source_attributes(cam, frame.take_index, header, None),
+                                     path=str(frame.path))
+        pixels = imageio.decode_half_exr(stored, path=str(frame.path))
+    except imageio.ImageReadError as exc:
+        raise _read_error(cam, frame, exc) from exc
+    if imageio.half_nonfinite_pixels(pixels):
+        return None
+    return stored
 
 
 def convert_frame(frame: RawFrame, expected_digest: str, cam: CameraSource, *, ocio_config: Path | None,
@@ -404,9 +434,14 @@ def convert_frame(frame: RawFrame, expected_digest: str, cam: CameraSource, *, o
     fingerprinted: the cache key would lie.
     """
     where = f"camera {cam.id}, frame {frame.camera_frame} ({frame.path})"
-    digest, _ = digest_file(frame.path)
+    raw = frame.path.read_bytes()  # read once: hashed, restamped, and decoded from memory
+    digest = digest_bytes(raw)
     if digest != expected_digest:
         raise IngestError(f"{where}: file changed during ingest (was {expected_digest}, now {digest}); rerun")
+    stored = _restamped(raw, frame, cam, want_alpha=want_alpha)
+    if stored is not None:
+        return stored, 0
+    del raw
     try:
         footage = imageio.read_footage(frame.path, cam.exr_part, cam.exr_view)
     except imageio.ImageReadError as exc:  # its message already names the file
@@ -428,7 +463,7 @@ def convert_frame(frame: RawFrame, expected_digest: str, cam: CameraSource, *, o
         lin = np.concatenate([lin, np.ones_like(lin[..., :1])], axis=-1)
     lin = in_display_window(lin, header.data_window, header.display_window)
     channels_out = ("R", "G", "B", "A") if lin.shape[-1] == 4 else ("R", "G", "B")
-    attrs = source_attributes(cam, frame.take_index, footage)
+    attrs = source_attributes(cam, frame.take_index, header, footage.source)
     return imageio.encode_exr(lin, channels_out, pixel_type="half", compression="zip", attributes=attrs), repaired
 
 

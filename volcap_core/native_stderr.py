@@ -13,6 +13,9 @@ fd 2 being one per process, and would swallow other threads' output written mean
 captured text is read back with :meth:`NativeStderr.read_new` (``pread``: the writers' shared file
 offset is never moved) and folded into an error message with :meth:`NativeStderr.detail_for`.
 
+Bindings that *print* through Python (to ``sys.stdout``) are caught per thread by
+:func:`binding_prints`.
+
 Child processes started meanwhile inherit fd 2 too (Prefect's temporary API server): their stderr
 lands in the same file; a file rather than a pipe, so no writer ever blocks or gets SIGPIPE, even
 after this process has stopped reading or exited. A crash's own message (a C++ ``terminate``)
@@ -22,12 +25,14 @@ stderr so a Python traceback of a crash still shows.
 
 from __future__ import annotations
 
+import contextlib
 import faulthandler
 import io
 import os
 import sys
 import tempfile
-from typing import TextIO
+import threading
+from typing import Iterator, TextIO
 
 #: At most this much captured text is read back at once (the newest part).
 MAX_READ_BYTES = 1 << 20
@@ -117,3 +122,56 @@ def detail_for(message: str, captured: str, limit: int = 200) -> str | None:
         if sep and rest and len(head) > 1 and head in message and rest not in message:
             return rest if len(rest) <= limit else rest[: limit - 1] + "…"
     return None
+
+
+class _ThreadRoutedStdout(io.TextIOBase):
+    """``sys.stdout`` while some thread captures: that thread's writes go to its buffer, every
+    other thread's to the stream that was ``sys.stdout`` before."""
+
+    def __init__(self, original: TextIO) -> None:
+        self.original = original
+        self.local = threading.local()
+
+    def write(self, text: str) -> int:
+        buffer = getattr(self.local, "buffer", None)
+        return (buffer or self.original).write(text)
+
+    def flush(self) -> None:
+        if getattr(self.local, "buffer", None) is None:
+            self.original.flush()
+
+
+_ROUTER_LOCK = threading.Lock()
+_router: _ThreadRoutedStdout | None = None
+_router_users = 0
+
+
+@contextlib.contextmanager
+def binding_prints() -> Iterator[io.StringIO]:
+    """What a native binding *prints* (to Python's ``sys.stdout``) in this thread, captured.
+
+    The OpenEXR bindings print a failed decode ("Warning: Exception raised reading pixel data ...")
+    instead of raising. ``contextlib.redirect_stdout`` is not safe with threads (Prefect decodes in
+    several): two overlapping captures restore each other's buffer and silence ``sys.stdout`` for
+    good. Here the first capture installs a router, which sends each capturing thread's writes to
+    its own buffer and everything else to the real stream, and the last one removes it.
+    """
+    global _router, _router_users
+    buffer = io.StringIO()
+    with _ROUTER_LOCK:
+        if _router_users == 0:
+            _router = _ThreadRoutedStdout(sys.stdout)
+            sys.stdout = _router
+        _router_users += 1
+        router = _router
+    router.local.buffer = buffer
+    try:
+        yield buffer
+    finally:
+        router.local.buffer = None
+        with _ROUTER_LOCK:
+            _router_users -= 1
+            if _router_users == 0:
+                if sys.stdout is router:  # someone else may have rebound it meanwhile: leave theirs
+                    sys.stdout = router.original
+                _router = None
