@@ -1,0 +1,221 @@
+"""Enhancer training: the flow-matching objective, LoRA, temporal-condition sampling, resumption."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+import torch.nn.functional as F
+
+from volcap_core.enhance.model import (
+    EnhancerConfig,
+    build_enhancer,
+    crop_mu,
+    encode_conditions,
+    encode_target,
+    image_ids,
+    pack,
+    predict_velocity,
+    shift_sigma,
+)
+from volcap_core.enhance.pairs import PairSet, make_degraded_pairs
+from volcap_core.enhance.training import (
+    EnhancerTrainConfig,
+    LoRALinear,
+    _sample,
+    add_lora,
+    flow_matching_loss,
+    merge_lora,
+    sample_sigmas,
+    train_enhancer,
+    trainable_parameters,
+)
+from volcap_core.splat.optim import AdamState, adam_step
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def _face_like(t: int = 3, h: int = 64, w: int = 64, seed: int = 0) -> torch.Tensor:
+    """Smooth RGBA frames ``[t, 4, h, w]`` drifting right by one pixel per frame (a disc of
+    coverage, premultiplied colour)."""
+    g = torch.Generator().manual_seed(seed)
+    tex = F.avg_pool2d(torch.rand(1, 3, h, w + t, generator=g), 7, 1, 3)
+    yy, xx = torch.meshgrid(torch.arange(h, dtype=torch.float32), torch.arange(w, dtype=torch.float32),
+                            indexing="ij")
+    frames = []
+    for i in range(t):
+        rgb = tex[0, :, :, t - i:t - i + w]
+        alpha = ((xx - w / 2 - i) ** 2 + (yy - h / 2) ** 2 < (0.4 * h) ** 2).float()[None]
+        frames.append(torch.cat([rgb * alpha, alpha]))
+    return torch.stack(frames)
+
+
+def _pairs(t: int = 3, seed: int = 0) -> PairSet:
+    return make_degraded_pairs(_face_like(t, seed=seed), scale=4, seed=seed)
+
+
+def test_one_pair_overfits_on_a_fixed_batch():
+    """30 Adam steps on one fixed (crop, sigma, noise) batch drive the flow-matching loss down."""
+    model = build_enhancer(EnhancerConfig.tiny(), seed=0)
+    cfg = EnhancerTrainConfig(finetune="full", lr=2e-3)
+    params = trainable_parameters(model, cfg)
+    pairs = _pairs()
+    g = torch.Generator().manual_seed(0)
+    lq, hq = pairs.lq[1:2], pairs.hq[1:2]
+    with torch.no_grad():
+        x0 = encode_target(model, hq)
+        cond = encode_conditions(model, lq, None, None)
+    noise = torch.randn(x0.shape, generator=g)
+    sigma = torch.tensor([0.6])
+    prompt = tuple(p[None] for p in model.prompt())
+    adam = AdamState.zeros_like({k: p.detach() for k, p in params.items()})
+    losses = []
+    for _ in range(30):
+        for p in params.values():
+            p.grad = None
+        loss = flow_matching_loss(model, x0, cond, sigma, noise, prompt)
+        loss.backward()
+        adam_step(params, {k: 2e-3 for k in params}, adam, eps=1e-8)
+        losses.append(float(loss.detach()))
+    assert losses[-1] < 0.5 * losses[0], losses
+
+
+def test_flow_matching_target_is_noise_minus_clean():
+    """At sigma = 1 the input is pure noise; a model predicting ``noise - x0`` has zero loss."""
+    model = build_enhancer(EnhancerConfig.tiny(), seed=0)
+    g = torch.Generator().manual_seed(1)
+    x0, noise = torch.randn(1, 32, 4, 4, generator=g), torch.randn(1, 32, 4, 4, generator=g)
+    cond = torch.zeros(1, 64, 4, 4)
+    prompt = tuple(p[None] for p in model.prompt())
+    with torch.no_grad():
+        pred = predict_velocity(model, pack(noise), pack(cond), torch.tensor([1.0]), image_ids(4, 4), prompt)
+        loss = flow_matching_loss(model, x0, cond, torch.tensor([1.0]), noise, prompt)
+    torch.testing.assert_close(loss, F.mse_loss(pred, pack(noise - x0)))
+
+
+def test_sigma_sampling_is_shifted_logit_normal():
+    cfg = EnhancerTrainConfig()
+    mu = crop_mu(1024, EnhancerConfig.flux_dev())
+    s = sample_sigmas(20000, cfg, mu, torch.Generator().manual_seed(0))
+    assert float(s.min()) > 0 and float(s.max()) < 1
+    # the median of sigmoid(N(0, 1)) is 0.5, shifted by Flux's shift at 1024 px (mu = 1.15)
+    assert abs(float(s.median()) - float(shift_sigma(torch.tensor(0.5), mu))) < 0.01
+    flat = sample_sigmas(20000, cfg.model_copy(update={"resolution_shift": False}), mu,
+                         torch.Generator().manual_seed(0))
+    assert abs(float(flat.median()) - 0.5) < 0.01
+
+
+def test_lora_starts_at_the_base_model_and_merges():
+    model = build_enhancer(EnhancerConfig.tiny(), seed=0)
+    g = torch.Generator().manual_seed(2)
+    noisy, cond = torch.randn(1, 16, 128, generator=g), torch.randn(1, 16, 256, generator=g)
+    args = (torch.tensor([0.5]), image_ids(8, 8), model.prompt())
+    with torch.no_grad():
+        ref = predict_velocity(model, noisy, cond, *args)
+    n = add_lora(model, rank=4, generator=torch.Generator().manual_seed(0))
+    # double block: q k v out + added q k v out + 2 ff + 2 ff_context; single: q k v, proj_mlp, proj_out
+    assert n == 12 + 5
+    assert add_lora(model, rank=4) == 0  # already wrapped
+    params = trainable_parameters(model, EnhancerTrainConfig(finetune="lora"))
+    assert sum(".lora_" in k for k in params) == 2 * n
+    assert {k for k in params if ".lora_" not in k} == {
+        "transformer.x_embedder.weight", "transformer.x_embedder.bias",
+        "transformer.proj_out.weight", "transformer.proj_out.bias"}
+    assert not any(p.requires_grad for k, p in model.named_parameters() if k not in params)
+    with torch.no_grad():
+        torch.testing.assert_close(predict_velocity(model, noisy, cond, *args), ref, atol=0, rtol=0)
+        for m in model.modules():
+            if isinstance(m, LoRALinear):
+                m.lora_B.normal_(0, 0.1, generator=g)
+        adapted = predict_velocity(model, noisy, cond, *args)
+        assert (adapted - ref).abs().max() > 1e-3
+        assert merge_lora(model) == n
+        assert not any(isinstance(m, LoRALinear) for m in model.modules())
+        torch.testing.assert_close(predict_velocity(model, noisy, cond, *args), adapted, atol=1e-5, rtol=1e-5)
+
+
+def test_previous_output_during_training_is_the_warped_previous_hq():
+    """With the temporal conditions kept, a sample's previous output is frame t-1 of the HQ warped by
+    the flow (here exact: the frames drift one pixel right, so the backward flow is dx = -1)."""
+    hq = _face_like(3)
+    flow = torch.zeros(2, 2, 64, 64)
+    flow[:, 0] = -1.0
+    pairs = [make_degraded_pairs(hq, seed=0, flow=flow)]
+    cfg = EnhancerTrainConfig(crop=64, drop_temporal=0.0)
+    g = torch.Generator().manual_seed(0)
+    seen = set()
+    for _ in range(20):
+        state = g.get_state()
+        i_t = torch.randint(1, (1,), generator=g), int(torch.randint(3, (1,), generator=g))
+        g.set_state(state)
+        lq, hq_crop, warped, mask, keep, group = _sample(pairs, _flows(pairs), cfg, 64, g)
+        t = i_t[1]
+        seen.add(t)
+        assert group == "default" and torch.equal(hq_crop, hq[t]) and torch.equal(lq, pairs[0].lq[t])
+        if t == 0:
+            assert not keep and not warped.any() and not mask.any()
+        else:
+            assert keep
+            # interior columns: warped previous HQ == current HQ (the content moved by exactly 1 px)
+            torch.testing.assert_close(warped[:, :, 1:], hq[t][:, :, 1:], atol=1e-5, rtol=1e-5)
+            assert float(mask[:, :, 1:].mean()) > 0.95 and not mask[:, :, 0].any()
+    assert seen == {0, 1, 2}
+
+
+def _flows(pairs):
+    from volcap_core.enhance.training import _Flows
+
+    return _Flows(pairs, "auto")
+
+
+def test_temporal_conditions_are_dropped_with_the_configured_probability():
+    pairs = [_pairs(4)]
+    cfg = EnhancerTrainConfig(crop=32, drop_temporal=0.5, flow="zero")
+    g = torch.Generator().manual_seed(0)
+    kept = [_sample(pairs, _flows(pairs), cfg, 32, g)[4] for _ in range(200)]
+    # frames 1-3 of 4 (3/4 of the draws) keep their conditions half the time: 3/8 overall
+    assert 0.29 < sum(kept) / len(kept) < 0.46
+
+
+def _final_state(result) -> dict[str, torch.Tensor]:
+    return {k: v.clone() for k, v in result.model.state_dict().items()}
+
+
+@pytest.mark.parametrize("finetune", ["lora", "full"])
+def test_resume_is_bit_identical(finetune):
+    pairs = [_pairs(3, seed=0), _pairs(2, seed=1)]
+    cfg = EnhancerTrainConfig(steps=4, batch=2, crop=48, lr=1e-3, finetune=finetune, lora_rank=4,
+                              checkpoint_every=2, prev_output_noise=0.01, train_prompts=True, seed=7)
+    blobs: dict[int, bytes] = {}
+    full = train_enhancer(build_enhancer(EnhancerConfig.tiny(), seed=0), pairs, cfg,
+                          checkpoint=lambda b, s: blobs.__setitem__(s, b))
+    assert sorted(blobs) == [2, 4] and len(full.losses) == 4
+    assert full.model.config.train_crop == 48  # inference's timestep shift follows the training crop
+    resumed = train_enhancer(build_enhancer(EnhancerConfig.tiny(), seed=0), pairs, cfg, resume_from=blobs[2])
+    assert resumed.losses == full.losses and resumed.steps == 4
+    a, b = _final_state(full), _final_state(resumed)
+    assert a.keys() == b.keys()
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+    # and training did move the model away from its initialisation
+    init = build_enhancer(EnhancerConfig.tiny(), seed=0).state_dict()
+    changed = sum(not torch.equal(a[k], init[k]) for k in init)
+    assert changed > 0
+    # same seed, no interruption: the same run again
+    again = train_enhancer(build_enhancer(EnhancerConfig.tiny(), seed=0), pairs, cfg)
+    assert again.losses == full.losses
+
+
+def test_resume_refuses_another_configuration():
+    pairs = [_pairs(2)]
+    cfg = EnhancerTrainConfig(steps=1, crop=32, finetune="lora", lora_rank=2, flow="zero")
+    blobs = []
+    train_enhancer(build_enhancer(EnhancerConfig.tiny()), pairs, cfg, checkpoint=lambda b, s: blobs.append(b))
+    with pytest.raises(ValueError, match="lora_rank"):
+        train_enhancer(build_enhancer(EnhancerConfig.tiny()), pairs, cfg.model_copy(update={"lora_rank": 3}),
+                       resume_from=blobs[0])

@@ -1,0 +1,478 @@
+"""Train the Detail Enhancer: rectified-flow (flow-matching) fine-tuning of the widened Flux model.
+
+    model = build_enhancer(EnhancerConfig.tiny(), seed=0)      # or Enhancer.from_pretrained(dir)
+    result = train_enhancer(model, pair_sets, EnhancerTrainConfig(steps=200, crop=64),
+                            checkpoint=lambda blob, step: put_bytes(blob, MEDIA_BYTES))
+    put_bytes(enhancer_to_bytes(result.model), ...)
+
+One step (Flux's training objective, as SD3/Flux are trained): draw ``batch`` samples, each a random
+pair sequence, frame ``t`` and ``crop x crop`` window; VAE-encode the HQ frame into the clean latents
+``x0 = [RGB latent, alpha latent]`` and the conditions (LQ RGB, LQ alpha, warped previous output,
+validity mask; :func:`~volcap_core.enhance.model.encode_conditions`); draw a noise level ``sigma``
+and noise ``eps ~ N(0, I)``; ``x_sigma = (1 - sigma) x0 + sigma eps``; the model predicts the velocity
+``eps - x0`` (MSE, uniform weighting). Adam (bias-corrected, eps 1e-8), constant learning rate after
+a linear warm-up, global gradient-norm clipping.
+
+Noise levels: SD3's logit-normal sampling (``sigma = sigmoid(n)``, ``n ~ N(logit_mean, logit_std)``,
+default N(0, 1)) followed by Flux's resolution-dependent exponential shift
+(:func:`~volcap_core.enhance.model.shift_sigma` with ``mu`` = :func:`~volcap_core.enhance.model.crop_mu`
+of the training crop, 1.15 at 1024 px), i.e. the same distribution of noise levels the sampler visits
+at this resolution. (BFL has not published FLUX.1's training schedule; this is the SD3 recipe with
+Flux's shift, which diffusers' Flux fine-tuning scripts also offer.)
+
+What stands for the previous output during training (the paper: "conditioning it on the previous
+output frame", "for the first frame, both conditions are replaced with zeros, and the network is
+trained with 50% dropout on these inputs"): **the previous HQ frame**, warped into frame ``t`` exactly
+as inference warps the previous output (:func:`~volcap_core.enhance.temporal.temporal_condition` with
+the flow between the LQ frames ``t-1`` and ``t``; the validity mask compares the warped previous LQ
+with the current LQ). The previous HQ is what a perfect enhancer would have produced for ``t-1``, so
+training sees the previous *output* the way the method defines it, not the previous LQ (which the
+current LQ already stands for). Optionally (``prev_output_noise`` > 0) Gaussian noise of that standard
+deviation (linear RGB) is added to the warped HQ, so the model does not learn to trust it blindly;
+default 0. Frame 0 of a sequence, and any other sample with probability ``drop_temporal`` (0.5), gets
+zero condition latents (the first-frame case).
+
+Flow during training (``flow``): ``"auto"`` uses a pair set's exact flow when it has one, else OpenCV
+DIS (:class:`~volcap_core.enhance.temporal.DisFlow`) on the LQ frames (computed once per frame pair
+and cached); ``"dis"`` always DIS; ``"zero"`` no motion compensation (an ablation).
+
+Fine-tuning (``finetune``): ``"full"`` trains every transformer weight; ``"lora"`` freezes them and
+trains low-rank adapters (:class:`LoRALinear`, our own, ``W x + (alpha/r) B A x`` with ``A`` Kaiming-
+uniform and ``B`` zero, so training starts from the widened model exactly) on the attention and
+feed-forward linears of every block (the target list of diffusers' Flux LoRA scripts,
+:data:`LORA_TARGETS`), plus, in full, the widened ``x_embedder`` and ``proj_out`` (their new columns /
+rows start at zero or as copies and must be learnt). The VAE is always frozen. After training the
+adapters are merged into the weights (:func:`merge_lora`), so the result saves as a plain enhancer.
+Why not peft: it pulls ``transformers`` and ``accelerate`` in, and its adapters would have to be
+serialised and re-created for bit-identical resumption anyway.
+
+Checkpoints are safetensors bytes (trainable tensors, Adam moments, the RNG state, the step, the loss
+history; configs in the metadata). ``resume_from`` continues exactly: on CPU a resumed run ends
+bit-identical to an uninterrupted one (tested). With LoRA, the checkpoint holds only what is trained:
+resume on the same base model.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+from pydantic import BaseModel, ConfigDict, Field
+from torch import nn
+
+from volcap_core.enhance.model import (
+    DEFAULT_GROUP,
+    Enhancer,
+    crop_mu,
+    encode_conditions,
+    encode_target,
+    image_ids,
+    pack,
+    predict_velocity,
+    shift_sigma,
+)
+from volcap_core.splat.optim import AdamState, adam_step
+
+__all__ = [
+    "LORA_TARGETS",
+    "EnhancerTrainConfig",
+    "EnhancerTrainResult",
+    "LoRALinear",
+    "add_lora",
+    "flow_matching_loss",
+    "merge_lora",
+    "sample_sigmas",
+    "train_enhancer",
+    "trainable_parameters",
+]
+
+CHECKPOINT_FORMAT = "volcap-enhancer-train/1"
+
+#: Linear layers (module-name suffixes inside ``transformer_blocks`` / ``single_transformer_blocks``)
+#: that get LoRA adapters: attention q/k/v/out of both streams, the feed-forward layers, and the
+#: single blocks' MLP in and joint out projections.
+LORA_TARGETS = ("attn.to_q", "attn.to_k", "attn.to_v", "attn.to_out.0", "attn.add_q_proj",
+                "attn.add_k_proj", "attn.add_v_proj", "attn.to_add_out", "ff.net.0.proj", "ff.net.2",
+                "ff_context.net.0.proj", "ff_context.net.2", "proj_mlp", "proj_out")
+
+
+class EnhancerTrainConfig(BaseModel):
+    """Everything that shapes an enhancer training run (JSON; a task's cache key).
+
+    Attributes:
+        steps: optimiser steps.
+        lr: Adam learning rate (constant after ``warmup_steps`` of linear warm-up).
+        batch: samples per step (one crop of one frame each).
+        crop: crop side in pixels (multiple of 16; lowered to the smallest frame, floored to 16).
+        finetune: ``"lora"`` (adapters + widened layers) or ``"full"`` (every transformer weight).
+        lora_rank, lora_alpha: adapter rank and scale numerator (scale = alpha / rank; default
+            alpha = rank).
+        drop_temporal: probability of zeroing both temporal conditions of a sample (paper: 0.5).
+        prev_output_noise: std of Gaussian noise added to the warped previous HQ (see module doc).
+        flow: ``"auto"`` | ``"dis"`` | ``"zero"`` (see module doc).
+        logit_mean, logit_std: logit-normal noise-level sampling; ``resolution_shift``: apply
+            Flux's shift for the crop size.
+        max_grad_norm: global gradient-norm clip (0: none).
+        train_prompts: also learn the groups' prompt embeddings.
+        checkpoint_every: steps between checkpoints (and one after the last step; 0: last only).
+        seed: seeds the one ``torch.Generator`` behind every random choice.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    steps: int = Field(1000, ge=0)
+    lr: float = Field(1e-4, gt=0)
+    warmup_steps: int = Field(0, ge=0)
+    batch: int = Field(1, ge=1)
+    crop: int = Field(512, ge=16)
+    finetune: Literal["lora", "full"] = "lora"
+    lora_rank: int = Field(16, ge=1)
+    lora_alpha: float | None = Field(None, gt=0)
+    drop_temporal: float = Field(0.5, ge=0, le=1)
+    prev_output_noise: float = Field(0.0, ge=0)
+    flow: Literal["auto", "dis", "zero"] = "auto"
+    logit_mean: float = 0.0
+    logit_std: float = Field(1.0, gt=0)
+    resolution_shift: bool = True
+    max_grad_norm: float = Field(1.0, ge=0)
+    train_prompts: bool = False
+    checkpoint_every: int = Field(100, ge=0)
+    seed: int = 0
+
+
+@dataclass
+class EnhancerTrainResult:
+    """The trained model (adapters merged), the loss after every step, steps and training seconds."""
+
+    model: Enhancer
+    losses: list[float] = field(default_factory=list)
+    steps: int = 0
+    wall_s: float = 0.0
+
+
+# -------------------------------------------------------------------------------------- LoRA
+
+class LoRALinear(nn.Module):
+    """``base(x) + scale * B(A(x))`` with ``A [r, in]``, ``B [out, r]``, ``scale = alpha / r``.
+    ``A`` starts Kaiming-uniform (bound ``1/sqrt(in)``, as ``nn.Linear`` and peft), ``B`` at zero."""
+
+    def __init__(self, base: nn.Linear, rank: int, alpha: float, generator: torch.Generator):
+        super().__init__()
+        self.base = base
+        self.base.requires_grad_(False)
+        self.rank, self.scale = rank, alpha / rank
+        bound = 1.0 / math.sqrt(base.in_features)
+        a = (torch.rand(rank, base.in_features, generator=generator) * 2.0 - 1.0) * bound
+        kw = {"device": base.weight.device, "dtype": base.weight.dtype}
+        self.lora_A = nn.Parameter(a.to(**kw))
+        self.lora_B = nn.Parameter(torch.zeros(base.out_features, rank, **kw))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.base(x) + F.linear(F.linear(x, self.lora_A), self.lora_B) * self.scale
+
+    def merged(self) -> nn.Linear:
+        """The base layer with the adapter folded in (``W + scale B A``)."""
+        with torch.no_grad():
+            self.base.weight.add_((self.lora_B @ self.lora_A) * self.scale)
+        return self.base
+
+
+def _lora_sites(transformer) -> list[tuple[nn.Module, str, nn.Linear]]:
+    sites = []
+    for blocks in (transformer.transformer_blocks, transformer.single_transformer_blocks):
+        for block in blocks:
+            for name, mod in block.named_modules():
+                if isinstance(mod, nn.Linear) and name in LORA_TARGETS:
+                    parent_name, _, attr = name.rpartition(".")
+                    sites.append((block.get_submodule(parent_name) if parent_name else block, attr, mod))
+    return sites
+
+
+def add_lora(model: Enhancer, rank: int, alpha: float | None = None, *,
+             generator: torch.Generator | None = None) -> int:
+    """Wrap every :data:`LORA_TARGETS` linear of the transformer's blocks in a :class:`LoRALinear`
+    (in place; already wrapped layers are left alone). Returns the number of adapters added."""
+    gen = generator or torch.Generator().manual_seed(0)
+    n = 0
+    for parent, attr, mod in _lora_sites(model.transformer):
+        setattr(parent, attr, LoRALinear(mod, rank, float(alpha or rank), gen))
+        n += 1
+    return n
+
+
+def merge_lora(model: Enhancer) -> int:
+    """Fold every adapter into its base weight and put the plain ``nn.Linear`` back (in place).
+    Returns the number merged."""
+    n = 0
+    for name, mod in list(model.transformer.named_modules()):
+        if isinstance(mod, LoRALinear):
+            parent_name, _, attr = name.rpartition(".")
+            setattr(model.transformer.get_submodule(parent_name), attr, mod.merged())
+            n += 1
+    return n
+
+
+def trainable_parameters(model: Enhancer, config: EnhancerTrainConfig) -> dict[str, nn.Parameter]:
+    """Name -> parameter of what ``config`` trains (sorted by name), with ``requires_grad`` set on
+    them and cleared everywhere else. LoRA: the adapters, ``x_embedder`` and ``proj_out``; full:
+    the whole transformer; plus the prompt embeddings when ``train_prompts``."""
+    model.requires_grad_(False)
+    out: dict[str, nn.Parameter] = {}
+    for name, p in model.named_parameters():
+        if name.startswith("transformer."):
+            sub = name[len("transformer."):]
+            take = (config.finetune == "full" or ".lora_A" in sub or ".lora_B" in sub
+                    or sub.startswith("x_embedder.") or sub.startswith("proj_out."))
+        else:
+            take = config.train_prompts and name.startswith("prompt_")
+        if take:
+            out[name] = p
+    for p in out.values():
+        p.requires_grad_(True)
+    return dict(sorted(out.items()))
+
+
+# ---------------------------------------------------------------------------------- objective
+
+def sample_sigmas(n: int, config: EnhancerTrainConfig, mu: float, generator: torch.Generator) -> torch.Tensor:
+    """``[n]`` training noise levels: ``sigmoid(N(logit_mean, logit_std))``, then Flux's shift by
+    ``mu`` when ``config.resolution_shift``. Float32, CPU."""
+    s = torch.sigmoid(torch.randn(n, generator=generator) * config.logit_std + config.logit_mean)
+    return shift_sigma(s, mu) if config.resolution_shift else s
+
+
+def flow_matching_loss(model: Enhancer, x0: torch.Tensor, cond: torch.Tensor, sigma: torch.Tensor,
+                       noise: torch.Tensor, prompt: tuple[torch.Tensor, torch.Tensor]) -> torch.Tensor:
+    """Rectified-flow loss: ``x_sigma = (1 - sigma) x0 + sigma eps``, MSE of the predicted velocity
+    against ``eps - x0``. ``x0``, ``noise``: ``[B, 2C, h, w]``; ``cond``: ``[B, 4C, h, w]``;
+    ``sigma``: ``[B]``; ``prompt``: pooled ``[B, P]``, sequence ``[B, S, D]``."""
+    s = sigma.view(-1, 1, 1, 1).to(x0)
+    xt = (1.0 - s) * x0 + s * noise
+    target = pack(noise - x0)
+    h, w = x0.shape[-2:]
+    pred = predict_velocity(model, pack(xt), pack(cond), sigma.to(x0), image_ids(h, w, x0.device), prompt)
+    return F.mse_loss(pred.float(), target.float())
+
+
+# ------------------------------------------------------------------------------------- data
+
+def _group(seq) -> str:
+    return getattr(seq, "group", None) or DEFAULT_GROUP
+
+
+def _crop_size(pairs: Sequence, crop: int) -> int:
+    h = min(int(p.lq.shape[-2]) for p in pairs)
+    w = min(int(p.lq.shape[-1]) for p in pairs)
+    c = min(crop, h, w) // 16 * 16
+    if c < 16:
+        raise ValueError(f"frames of {h}x{w} px are too small for a 16-px crop")
+    return c
+
+
+class _Flows:
+    """Backward flow of frame ``t`` (to ``t - 1``) per pair set, exact or DIS (cached), or None (zero)."""
+
+    def __init__(self, pairs: Sequence, mode: str):
+        self.pairs, self.mode, self.cache = pairs, mode, {}
+        self._dis = None
+
+    def __call__(self, i: int, t: int) -> torch.Tensor | None:
+        if self.mode == "zero":
+            return None
+        seq = self.pairs[i]
+        exact = getattr(seq, "flow", None)
+        if self.mode == "auto" and exact is not None:
+            return exact[t - 1]
+        if (i, t) not in self.cache:
+            from volcap_core.enhance.temporal import DisFlow
+
+            self._dis = self._dis or DisFlow()
+            self.cache[(i, t)] = self._dis(seq.lq[t - 1, :3], seq.lq[t, :3])
+        return self.cache[(i, t)]
+
+
+def _sample(pairs: Sequence, flows: _Flows, config: EnhancerTrainConfig, crop: int,
+            gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, bool, str]:
+    """One training sample: (lq, hq, warped previous HQ, mask) crops ``[4|1, crop, crop]``, whether
+    the temporal conditions are kept, the group. Draws from ``gen`` in a fixed order."""
+    from volcap_core.enhance.temporal import temporal_condition
+
+    i = int(torch.randint(len(pairs), (1,), generator=gen))
+    seq = pairs[i]
+    n_frames, _, h, w = seq.lq.shape
+    t = int(torch.randint(n_frames, (1,), generator=gen))
+    drop = float(torch.rand(1, generator=gen)) < config.drop_temporal
+    y0 = int(torch.randint(h - crop + 1, (1,), generator=gen))
+    x0 = int(torch.randint(w - crop + 1, (1,), generator=gen))
+    noise = (torch.randn(3, crop, crop, generator=gen) * config.prev_output_noise
+             if config.prev_output_noise > 0 else None)
+    win = (slice(None), slice(y0, y0 + crop), slice(x0, x0 + crop))
+    lq, hq = seq.lq[t].float(), seq.hq[t].float()
+    keep = t > 0 and not drop
+    if keep:
+        warped, mask = temporal_condition(seq.hq[t - 1].float(), seq.lq[t - 1].float(), lq, flows(i, t))
+        warped = warped[win].clone()
+        if noise is not None:
+            warped[:3] += noise
+    else:
+        warped, mask = lq.new_zeros((4, h, w)), lq.new_zeros((1, h, w))
+        warped = warped[win]
+    return lq[win], hq[win], warped, mask[win], keep, _group(seq)
+
+
+# ---------------------------------------------------------------------------------- checkpoints
+
+@dataclass
+class _State:
+    params: dict[str, nn.Parameter]
+    adam: AdamState
+    generator: torch.Generator
+    step: int
+    wall_s: float
+    losses: list[float]
+
+
+def _serialise(state: _State, model: Enhancer, config: EnhancerTrainConfig) -> bytes:
+    from volcap_core.splat.model import safetensors_bytes
+
+    tensors: dict[str, torch.Tensor] = {}
+    for k, p in state.params.items():
+        tensors[f"param/{k}"] = p.detach()
+        tensors[f"adam/m/{k}"] = state.adam.exp_avg[k]
+        tensors[f"adam/v/{k}"] = state.adam.exp_avg_sq[k]
+    tensors["rng"] = state.generator.get_state()
+    tensors["losses"] = torch.tensor(state.losses, dtype=torch.float64)
+    tensors = {k: v.detach().contiguous().cpu() for k, v in tensors.items()}
+    meta = {"format": CHECKPOINT_FORMAT, "train_config": config.model_dump_json(),
+            "enhancer_config": model.config.model_dump_json(),
+            "state": json.dumps({"step": state.step, "adam_step": state.adam.step, "wall_s": state.wall_s,
+                                 "groups": model.groups})}
+    return safetensors_bytes(tensors, meta)
+
+
+def _restore(data: bytes, model: Enhancer, config: EnhancerTrainConfig, params: dict[str, nn.Parameter],
+             state: _State) -> None:
+    from safetensors.torch import load as st_load
+
+    from volcap_core.splat.model import _safetensors_metadata
+
+    meta = _safetensors_metadata(data)
+    if meta.get("format") != CHECKPOINT_FORMAT:
+        raise ValueError(f"not an enhancer training checkpoint (format {meta.get('format')!r})")
+    if meta["enhancer_config"] != model.config.model_dump_json():
+        raise ValueError("checkpoint was trained on another enhancer architecture")
+    old = json.loads(meta["train_config"])
+    for key in ("finetune", "lora_rank", "lora_alpha", "train_prompts"):
+        if old[key] != getattr(config, key):
+            raise ValueError(f"checkpoint has {key}={old[key]!r}, config {getattr(config, key)!r}")
+    info = json.loads(meta["state"])
+    t = st_load(data)
+    stored = sorted(k[len("param/"):] for k in t if k.startswith("param/"))
+    if stored != list(params):
+        raise ValueError("checkpoint holds other trainable tensors than this configuration trains")
+    with torch.no_grad():
+        for k, p in params.items():
+            p.copy_(t[f"param/{k}"])
+            state.adam.exp_avg[k].copy_(t[f"adam/m/{k}"])
+            state.adam.exp_avg_sq[k].copy_(t[f"adam/v/{k}"])
+    state.adam.step = int(info["adam_step"])
+    state.generator.set_state(t["rng"].clone())
+    state.step, state.wall_s = int(info["step"]), float(info["wall_s"])
+    state.losses = [float(x) for x in t["losses"].tolist()]
+
+
+# ------------------------------------------------------------------------------------- training
+
+def train_enhancer(model: Enhancer, pairs: Sequence, config: EnhancerTrainConfig, *,
+                   checkpoint: Callable[[bytes, int], None] | None = None, resume_from: bytes | None = None,
+                   progress: Callable[[int, int, dict], None] | None = None,
+                   device: torch.device | str | None = None, merge: bool = True) -> EnhancerTrainResult:
+    """Fine-tune ``model`` (in place) on LQ/HQ pair sequences.
+
+    Args:
+        model: a widened enhancer (:func:`~volcap_core.enhance.model.build_enhancer`,
+            :meth:`~volcap_core.enhance.model.Enhancer.from_pretrained`). With LoRA and
+            ``resume_from``, the same base model the checkpoint was trained from.
+        pairs: sequences with ``lq``, ``hq`` ``[T, 4, H, W]`` linear RGBA, optional exact backward
+            ``flow [T-1, 2, H, W]`` (``flow[t-1]`` takes frame ``t`` to ``t-1``) and optional
+            ``group`` (prompt group; default ``"default"``) —
+            :class:`~volcap_core.enhance.pairs.PairSet` fits. Groups without an embedding get zeros.
+        config: :class:`EnhancerTrainConfig`.
+        checkpoint: ``checkpoint(bytes, step)`` every ``config.checkpoint_every`` steps and after
+            the last; the bytes resume the run exactly (wrap a ``put_bytes`` to store them).
+        resume_from: checkpoint bytes to continue from (``steps`` may be larger than theirs).
+        progress: ``progress(step, steps, {"loss", "sigma", "lr", "wall_s"})`` after every step.
+        device: default CUDA when available, else CPU (CPU runs with one intra-op thread, so the
+            run is reproducible and resumable bit for bit).
+        merge: fold LoRA adapters into the weights at the end (the model then saves as a plain
+            enhancer); False leaves them in place.
+    The crop actually used becomes ``model.config.train_crop`` at the end (inference takes its
+    timestep shift from it).
+    Returns:
+        :class:`EnhancerTrainResult`.
+    """
+    from volcap_core.reconstruction import deterministic_torch
+    if not pairs:
+        raise ValueError("no training pairs")
+    device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    model.to(device)
+    model.vae.eval()
+    model.transformer.train()
+    crop = _crop_size(pairs, config.crop)
+    mu = crop_mu(crop, model.config)
+    for seq in pairs:
+        model.ensure_prompt(_group(seq))
+    gen = torch.Generator().manual_seed(config.seed)
+    if config.finetune == "lora":
+        add_lora(model, config.lora_rank, config.lora_alpha, generator=gen)
+    params = trainable_parameters(model, config)
+    state = _State(params, AdamState.zeros_like({k: p.detach() for k, p in params.items()}), gen, 0, 0.0, [])
+    if resume_from is not None:
+        _restore(resume_from, model, config, params, state)
+    flows = _Flows(pairs, config.flow)
+
+    with deterministic_torch(device.type):
+        while state.step < config.steps:
+            t_start = time.perf_counter()
+            step = state.step + 1
+            samples = [_sample(pairs, flows, config, crop, state.generator) for _ in range(config.batch)]
+            lq, hq, warped, mask = (torch.stack([s[j] for s in samples]).to(device) for j in range(4))
+            keep = torch.tensor([s[4] for s in samples], device=device)
+            prompts = [model.prompt(s[5]) for s in samples]
+            prompt = (torch.stack([p[0] for p in prompts]), torch.stack([p[1] for p in prompts]))
+            sigma = sample_sigmas(config.batch, config, mu, state.generator).to(device)
+            with torch.no_grad():
+                x0 = encode_target(model, hq)
+                cond = encode_conditions(model, lq, warped, mask, keep)
+            noise = torch.randn(x0.shape, generator=state.generator).to(device, x0.dtype)
+            for p in params.values():
+                p.grad = None
+            loss = flow_matching_loss(model, x0, cond, sigma, noise, prompt)
+            if not torch.isfinite(loss.detach()):
+                raise FloatingPointError(f"step {step}: loss is {float(loss.detach())}")
+            loss.backward()
+            if config.max_grad_norm > 0:
+                torch.nn.utils.clip_grad_norm_(list(params.values()), config.max_grad_norm)
+            lr = config.lr * min(1.0, step / config.warmup_steps) if config.warmup_steps else config.lr
+            adam_step(params, {k: lr for k in params}, state.adam, eps=1e-8)
+            state.step = step
+            state.losses.append(float(loss.detach()))
+            state.wall_s += time.perf_counter() - t_start
+            if progress is not None:
+                progress(step, config.steps, {"loss": state.losses[-1], "sigma": float(sigma.mean()),
+                                              "lr": lr, "wall_s": state.wall_s})
+            if checkpoint is not None and ((config.checkpoint_every and step % config.checkpoint_every == 0)
+                                           or step == config.steps):
+                checkpoint(_serialise(state, model, config), step)
+    model.requires_grad_(False)
+    model.transformer.eval()
+    if merge:
+        merge_lora(model)
+    # inference fixes its timestep shift to the training crop's (model.crop_mu): record the crop used
+    model.config = model.config.model_copy(update={"train_crop": crop})
+    return EnhancerTrainResult(model, list(state.losses), state.step, state.wall_s)
