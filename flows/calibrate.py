@@ -2,7 +2,9 @@
 
 DAG: ``calibrate-static`` once -> ``calibrate-tracking-camera`` per tracking camera (mapped; none for
 a capture without tracking cameras) -> ``assemble-calibration`` -> ``dense-points-frame`` per frame
-(mapped) -> ``point-cloud-sequence``; for a synthetic capture also ``calibration-errors``.
+(mapped) -> ``point-cloud-sequence``; for a synthetic capture also ``calibration-errors``; with
+colour charts (``colour_charts``) also ``calibrate-colour``, the colour matrix between the Face Rig and
+the Scene Rig, which :func:`calibrate_colour_flow` runs on its own (``volcap calibrate-colour``).
 
 :func:`calibrate_capture` and :func:`point_cloud_for_frames` are plain functions, not flows: they
 submit their tasks into whatever flow run calls them (this one, reconstruct, production), so their
@@ -11,22 +13,32 @@ task runs count, cache and retry as that run's own.
 
 from __future__ import annotations
 
-from prefect import flow, get_run_logger, unmapped
+from pathlib import Path
 
-from tasks.calibrate import (assemble_calibration, calibrate_static, calibrate_tracking_camera, calibration_errors,
-                             dense_points_frame, point_cloud_sequence, tracking_camera_ids)
+from prefect import flow, get_run_logger, unmapped
+from pydantic import ValidationError
+
+from tasks.calibrate import (assemble_calibration, calibrate_colour, calibrate_static, calibrate_tracking_camera,
+                             calibration_errors, dense_points_frame, point_cloud_sequence, tracking_camera_ids)
+from volcap_core.calibration.steps import CalibrationInputError, ChartView, ColourMatrixRecord
+from volcap_core.calibration.record import Calibration
+from volcap_core.calibration.static import StaticCalibrationOptions
 from volcap_core.capture import Capture
 from volcap_core.records import ArtifactRef
 from volcap_core.store import ArtifactStore
 
 
-def calibrate_capture(store: str, capture: ArtifactRef) -> ArtifactRef:
+def calibrate_capture(store: str, capture: ArtifactRef,
+                      static_options: StaticCalibrationOptions | None = None) -> ArtifactRef:
     """The capture's Calibration ref: static cameras once, each tracking camera in its own task,
-    then the record. Call it inside a flow run (any). Every step is cached by its inputs' digests."""
+    then the record. Call it inside a flow run (any). Every step is cached by its inputs' digests.
+    ``static_options``: the static calibration's settings (None: the task's defaults, the same key
+    as the defaults spelled out)."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
     trackers = tracking_camera_ids(cap)
-    static = calibrate_static(store, capture)
+    static = calibrate_static(store, capture) if static_options is None else calibrate_static(store, capture,
+                                                                                              static_options)
     tracking: list[ArtifactRef] = []
     if trackers:
         futures = calibrate_tracking_camera.map(unmapped(store), unmapped(capture), unmapped(static), trackers)
@@ -50,14 +62,94 @@ def point_cloud_for_frames(store: str, capture: ArtifactRef, calibration: Artifa
     return point_cloud_sequence(store, calibration, dense, max_points_per_frame, seed)
 
 
+#: the rigs a colour-charts spec names, and which one is mapped onto which by default
+CHART_RIGS = ("face", "scene")
+
+
+def chart_view(s: ArtifactStore, rig: str, spec: dict, base_dir: str | None = None) -> ChartView:
+    """A :class:`ChartView` from its JSON spec (the fields of ChartView but ``rig``), with ``capture``
+    and ``calibration`` given as ref names (``captures/NAME``, ``calibrations/NAME``) or digests, and
+    ``image`` as a ref/digest or an EXR file (relative paths from ``base_dir``), which is stored."""
+    if not isinstance(spec, dict):
+        raise CalibrationInputError(f"colour charts: the {rig} rig's view must be a JSON object, got {type(spec).__name__}")
+    fields = dict(spec)
+    for key in ("capture", "calibration"):
+        if isinstance(fields.get(key), str):
+            fields[key] = s.resolve(fields[key])
+    image = fields.get("image")
+    if isinstance(image, str):
+        path = Path(base_dir or ".") / image
+        if image.startswith("blake3:") or not path.suffix:
+            fields["image"] = s.resolve(image)
+        elif path.is_file():
+            fields["image"] = s.put_file(path, "image/x-exr", check_first=True)
+        else:
+            raise CalibrationInputError(f"colour charts: the {rig} rig's image {path} does not exist")
+    try:
+        return ChartView(rig=rig, **fields)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        loc = ".".join(str(x) for x in err["loc"]) or "view"
+        raise CalibrationInputError(f"colour charts: the {rig} rig's view: {loc}: {err['msg']}") from None
+
+
+def chart_views(s: ArtifactStore, charts: dict, onto: str = "scene",
+                base_dir: str | None = None) -> tuple[ChartView, ChartView]:
+    """(source, reference) views of a colour-charts spec ``{"face": view, "scene": view}``: the rig
+    ``onto`` is the reference, the other one is mapped onto it."""
+    if not isinstance(charts, dict) or sorted(charts) != sorted(CHART_RIGS):
+        got = ", ".join(sorted(charts)) if isinstance(charts, dict) else type(charts).__name__
+        raise CalibrationInputError(f"colour charts: expected a view of each rig ({', '.join(CHART_RIGS)}), got {got}")
+    if onto not in CHART_RIGS:
+        raise CalibrationInputError(f"colour charts: --onto must be one of {', '.join(CHART_RIGS)}, got {onto!r}")
+    source = next(r for r in CHART_RIGS if r != onto)
+    return chart_view(s, source, charts[source], base_dir), chart_view(s, onto, charts[onto], base_dir)
+
+
+def colour_summary(s: ArtifactStore, ref: ArtifactRef) -> dict:
+    """JSON of a stored colour-matrix record: ref, rigs, matrix, offset, ΔE before and after."""
+    rec = s.get_record(ref, ColourMatrixRecord)
+    return {"colour": ref.model_dump(mode="json"), "source_rig": rec.source_rig, "reference_rig": rec.reference_rig,
+            "matrix": [list(r) for r in rec.matrix], "offset": list(rec.offset), "patches": len(rec.patches_used),
+            "before": rec.before, "after": rec.after}
+
+
+@flow(name="calibrate-colour", persist_result=False)
+def calibrate_colour_flow(store: str, charts: dict, onto: str = "scene", name: str | None = None,
+                          base_dir: str | None = None) -> dict:
+    """The colour matrix between the Face Rig and the Scene Rig from a chart seen by each
+    (``charts``: ``{"face": view, "scene": view}``, see :func:`chart_view`), the other rig mapped
+    onto ``onto``. Names the record ``colour/<name>`` (default ``colour/<source>-to-<reference>``)
+    and returns :func:`colour_summary`."""
+    s = ArtifactStore(store)
+    source, reference = chart_views(s, charts, onto, base_dir)
+    ref = calibrate_colour(store, source, reference)  # the task's default ColourCalibrationOptions
+    s.set_ref(f"colour/{name or f'{source.rig}-to-{reference.rig}'}", ref)
+    out = colour_summary(s, ref)
+    get_run_logger().info("colour %s -> %s: ΔE2000 mean %.2f (max %.2f) over %d patches; before %.2f (max %.2f)",
+                          source.rig, reference.rig, out["after"]["delta_e2000_mean"], out["after"]["delta_e2000_max"],
+                          out["patches"], out["before"]["delta_e2000_mean"], out["before"]["delta_e2000_max"])
+    return out
+
+
 @flow(name="calibrate", persist_result=False)
-def calibrate_flow(store: str, capture: str, frames: tuple[int, int] | None = None) -> dict:
+def calibrate_flow(store: str, capture: str, frames: tuple[int, int] | None = None,
+                   allow_unregistered: bool = False, colour_charts: dict | None = None,
+                   colour_base_dir: str | None = None) -> dict:
     """Calibrate ``capture`` (a ref name such as ``captures/demo`` or a digest) and compute dense
     points for ``frames`` [a, b) (all frames when None).
 
+    ``allow_unregistered``: a static camera the adjustment cannot support is left out (listed in
+    ``unregistered`` with the reason) instead of failing the run.
+
     Returns JSON: ``calibration`` and ``points`` (ref dumps), ``errors`` (the error table of
-    ``volcap_core.calibration.metrics`` when the capture carries ground truth, else None). Also names
-    the results ``calibrations/<capture name>`` and ``points/<capture name>`` in the store.
+    ``volcap_core.calibration.metrics`` when the capture carries ground truth, else None),
+    ``unregistered`` (camera id -> reason). Also names the results ``calibrations/<capture name>``
+    and ``points/<capture name>`` in the store.
+
+    ``colour_charts``: ``{"face": view, "scene": view}`` (:func:`chart_view`; relative image paths
+    from ``colour_base_dir``) also runs ``calibrate-colour`` (Face Rig onto Scene Rig) and adds
+    ``colour`` (:func:`colour_summary`) to the result, the record named ``colour/<capture name>``.
     """
     log = get_run_logger()
     s = ArtifactStore(store)
@@ -67,13 +159,23 @@ def calibrate_flow(store: str, capture: str, frames: tuple[int, int] | None = No
     trackers = tracking_camera_ids(cap)
     log.info("capture %s: %d static + %d tracking cameras, dense points for frames %d:%d", cap.name,
              len(cap.cameras) - len(trackers), len(trackers), a, b)
-    calib_ref = calibrate_capture(store, capture_ref)
+    calib_ref = calibrate_capture(store, capture_ref,
+                                  StaticCalibrationOptions(allow_unregistered=True) if allow_unregistered else None)
+    unregistered = s.get_record(calib_ref, Calibration).unregistered
+    for cam, why in unregistered.items():
+        log.warning("capture %s: camera %s left out of the calibration: %s", cap.name, cam, why)
     points_ref = point_cloud_for_frames(store, capture_ref, calib_ref, list(range(a, b)))
     errors = None
     if cap.ground_truth is not None:
         errors = s.get_json(calibration_errors(store, capture_ref, calib_ref, points_ref))
+    colour = None
+    if colour_charts is not None:
+        source, reference = chart_views(s, colour_charts, "scene", colour_base_dir)
+        colour_ref = calibrate_colour(store, source, reference)
+        s.set_ref(f"colour/{cap.name}", colour_ref)
+        colour = colour_summary(s, colour_ref)
     s.set_ref(f"calibrations/{cap.name}", calib_ref)
     s.set_ref(f"points/{cap.name}", points_ref)
     return {"capture": capture_ref.model_dump(mode="json"), "calibration": calib_ref.model_dump(mode="json"),
             "points": points_ref.model_dump(mode="json"), "frames": [a, b], "tracking_cameras": trackers,
-            "errors": errors}
+            "errors": errors, "unregistered": dict(unregistered), "colour": colour}

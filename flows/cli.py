@@ -218,6 +218,8 @@ def _frame_span(frames: str | None) -> tuple[int, int] | None:
 @app.command()
 def calibrate(capture: Annotated[str, typer.Argument(help="capture ref name (captures/NAME) or digest")],
               frames: Annotated[Optional[str], typer.Option(help="dense points for take frames A:B (B exclusive); all when omitted")] = None,
+              allow_unregistered: Annotated[bool, typer.Option("--allow-unregistered", help="leave out (and list) a static camera the adjustment cannot support instead of failing; training leaves it out")] = False,
+              colour_charts: Annotated[Optional[Path], typer.Option(help="also calibrate colour between the rigs: the JSON file of volcap calibrate-colour (Face Rig onto Scene Rig)")] = None,
               store: StoreOpt = DEFAULT_STORE, json_out: JsonOpt = False) -> None:
     """Calibrate every camera of an ingested capture and compute per-frame dense points.
 
@@ -227,12 +229,55 @@ def calibrate(capture: Annotated[str, typer.Argument(help="capture ref name (cap
     start_api_early()
     from flows.calibrate import calibrate_flow
 
-    summary = _run(calibrate_flow, store=_store_url(store), capture=capture, frames=_frame_span(frames))
+    charts = None
+    if colour_charts is not None:
+        try:
+            charts = json.loads(colour_charts.read_text())
+        except (OSError, ValueError) as exc:
+            raise CommandError(f"{colour_charts}: not a readable JSON file: {exc}") from None
+    summary = _run(calibrate_flow, store=_store_url(store), capture=capture, frames=_frame_span(frames),
+                   allow_unregistered=allow_unregistered, colour_charts=charts,
+                   colour_base_dir=str(colour_charts.resolve().parent) if colour_charts is not None else None)
     out = summary.result
     lines = [f"calibration: {out['calibration']['digest']}", f"points: {out['points']['digest']}"]
+    lines += [f"left out (unregistered): {cam}: {why}" for cam, why in out["unregistered"].items()]
     if out["errors"] is not None:
         lines += _error_lines(out["errors"])
+    if out.get("colour"):
+        lines += _colour_lines(out["colour"])
     _emit({**out, **summary.counts()}, json_out, "\n".join(lines))
+
+
+@app.command(name="calibrate-colour")
+def calibrate_colour_cmd(charts: Annotated[Path, typer.Argument(help="JSON file: {\"face\": VIEW, \"scene\": VIEW}, each VIEW a chart seen by that rig (docs/calibration.md)")],
+                         onto: Annotated[str, typer.Option(help="the rig the other one is mapped onto: scene or face")] = "scene",
+                         name: Annotated[Optional[str], typer.Option(help="store the record as colour/NAME (default colour/SOURCE-to-REFERENCE)")] = None,
+                         store: StoreOpt = DEFAULT_STORE, json_out: JsonOpt = False) -> None:
+    """Colour matrix between the Face Rig and the Scene Rig from a colour chart seen by each.
+
+    Prints the record's ref, the 3x3 matrix and offset, and the chart's colour error (ΔE2000)
+    before and after; --json adds it all as JSON.
+    """
+    try:
+        spec = json.loads(charts.read_text())
+    except (OSError, ValueError) as exc:
+        raise CommandError(f"{charts}: not a readable JSON file: {exc}") from None
+    start_api_early()
+    from flows.calibrate import calibrate_colour_flow
+
+    summary = _run(calibrate_colour_flow, store=_store_url(store), charts=spec, onto=onto, name=name,
+                   base_dir=str(charts.resolve().parent))
+    out = summary.result
+    _emit({**out, **summary.counts()}, json_out, "\n".join(_colour_lines(out)))
+
+
+def _colour_lines(c: dict) -> list[str]:
+    b, a = c["before"], c["after"]
+    return [f"colour {c['source_rig']} -> {c['reference_rig']}: {c['colour']['digest']}",
+            "  matrix " + "; ".join(" ".join(f"{v:.4f}" for v in row) for row in c["matrix"])
+            + "  offset " + " ".join(f"{v:.4f}" for v in c["offset"]),
+            f"  chart ({c['patches']} patches): ΔE2000 mean {a['delta_e2000_mean']:.2f}, max {a['delta_e2000_max']:.2f} "
+            f"(before: mean {b['delta_e2000_mean']:.2f}, max {b['delta_e2000_max']:.2f})"]
 
 
 def _error_lines(t: dict) -> list[str]:

@@ -12,6 +12,7 @@ from prefect import flow, get_run_logger, unmapped
 from flows.calibrate import calibrate_capture, point_cloud_for_frames
 from tasks.reconstruct import ground_truth_calibration, ground_truth_points, train_segment_task
 from volcap_core import reconstruction
+from volcap_core.calibration.record import Calibration
 from volcap_core.capture import Capture
 from volcap_core.presets import named_preset
 from volcap_core.production.segments import SegmentPlan
@@ -85,7 +86,8 @@ def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = 
         calib_ref = ground_truth_calibration(store, capture_ref)
     else:
         calib_ref = calibrate_capture(store, capture_ref)
-    held = held_out if held_out is not None else reconstruction.default_held_out(cap)
+    held = (held_out if held_out is not None
+            else reconstruction.default_held_out(cap, calibration=s.get_record(calib_ref, Calibration)))
     # held-out cameras take no part in the initial points: their footage must not reach the model
     if points:
         points_ref = s.resolve(points)

@@ -29,6 +29,9 @@ Choices not fixed by the paper (documented here and in ``docs/synthetic-capture.
   default incremental mapper registered all 8 static views of ``volcap synth`` frames for seeds 0-2
   at 25 degrees but only 7 of 8 at 30. The backs of actors are seen only when they turn.
   ``demo_face``: 7 wall cameras 30 degrees apart (-90..90) alternating 1.55 / 1.95 m, one ceiling.
+- **Distorted demo rig** (``demo_scene_distorted``): ``demo_scene`` whose static cameras carry
+  measured intrinsics (a lens calibration): OPENCV distortion, k1 -0.1 ... 0.1, principal points
+  2-6 px off centre, two cameras sharing a lens group (values in ``DISTORTED_STATIC``).
 """
 
 from __future__ import annotations
@@ -208,8 +211,46 @@ def demo_face() -> dict:
     }
 
 
+#: ``demo_scene_distorted``: per static camera (S000-S005) its lens calibration: focal offset from
+#: the nominal 14 mm (relative), fy/fx - 1, principal point offset from the image centre (px at
+#: 320x180), OPENCV (k1, k2, p1, p2). S006 and S007 share lens group ``zoom14-b`` (one body/lens
+#: model calibrated once).
+DISTORTED_STATIC = {
+    "S000": (0.006, 0.0008, (4.1, -3.2), (-0.10, 0.021, 0.0006, -0.0004)),
+    "S001": (-0.004, -0.0005, (-5.3, 2.4), (-0.06, 0.008, -0.0003, 0.0005)),
+    "S002": (0.009, 0.0012, (2.7, 4.6), (-0.02, -0.004, 0.0004, 0.0002)),
+    "S003": (-0.008, 0.0003, (-3.6, -4.1), (0.03, -0.006, -0.0005, -0.0003)),
+    "S004": (0.002, -0.0010, (6.2, 1.9), (0.07, -0.012, 0.0002, 0.0006)),
+    "S005": (-0.011, 0.0006, (-2.4, 3.8), (0.10, -0.018, -0.0006, 0.0001)),
+}
+DISTORTED_GROUPS = {"zoom14-b": (0.004, 0.0004, (3.3, -2.7), (-0.08, 0.015, 0.0003, -0.0002))}
+DISTORTED_GROUP_OF = {"S006": "zoom14-b", "S007": "zoom14-b"}
+
+
+def _measured(nominal_mm: float, px: tuple[int, int], spec) -> dict:
+    rel, aspect, (dx, dy), params = spec
+    f = nominal_mm * px[0] / SENSOR_W_MM * (1 + rel)
+    return {"fx": _r(f), "fy": _r(f * (1 + aspect)), "cx": _r((px[0] - 1) / 2 + dx),
+            "cy": _r((px[1] - 1) / 2 + dy), "model": "OPENCV", "params": [float(v) for v in params]}
+
+
+def demo_scene_distorted() -> dict:
+    """``demo_scene`` with measured intrinsics on its static cameras: OPENCV distortion with k1 from
+    -0.1 to 0.1, principal points 2-6 px off the centre, focals within 1.1 % of the nominal, fy/fx
+    within 0.12 %; the synthetic capture renders these lenses (``docs/synthetic-capture.md``)."""
+    rig = demo_scene()
+    rig["name"] = "demo_scene_distorted"
+    for cam in rig["cameras"]:
+        if cam["id"] in DISTORTED_STATIC:
+            cam["intrinsics"] = _measured(cam["nominal_focal_mm"], DEMO_PX, DISTORTED_STATIC[cam["id"]])
+        elif cam["id"] in DISTORTED_GROUP_OF:
+            cam["lens_group"] = DISTORTED_GROUP_OF[cam["id"]]
+    rig["lens_groups"] = {g: _measured(14.0, DEMO_PX, spec) for g, spec in DISTORTED_GROUPS.items()}
+    return rig
+
+
 BUILDERS = {"scene_rig": scene_rig, "face_rig": face_rig, "demo_scene": demo_scene,
-            "demo_face": demo_face}
+            "demo_face": demo_face, "demo_scene_distorted": demo_scene_distorted}
 
 
 def main(out_dir: Path = RIGS_DIR) -> list[Path]:

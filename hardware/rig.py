@@ -19,7 +19,7 @@ from importlib import resources
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, SerializerFunctionWrapHandler, model_serializer, model_validator
 
 
 class CameraRole(str, Enum):
@@ -77,6 +77,64 @@ class Mount(BaseModel):
     roll_deg: float = 0.0
 
 
+#: lens distortion models (COLMAP's names) -> their parameters in order; the same table as
+#: ``volcap_core.calibration.distortion.MODELS`` (a test keeps them equal)
+DISTORTION_MODELS: dict[str, tuple[str, ...]] = {
+    "PINHOLE": (),
+    "SIMPLE_RADIAL": ("k",),
+    "RADIAL": ("k1", "k2"),
+    "OPENCV": ("k1", "k2", "p1", "p2"),
+    "FULL_OPENCV": ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"),
+}
+
+
+class MeasuredIntrinsics(BaseModel):
+    """A lens calibration of one camera (or of a lens group): pixels at the camera's
+    ``sensor.width_px`` x ``height_px``, OpenCV convention (centre of the top-left pixel at (0, 0));
+    ``model`` one of :data:`DISTORTION_MODELS` with its ``params`` in that order (COLMAP's order,
+    also OpenCV's ``distCoeffs`` order)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    fx: float = Field(gt=0)
+    fy: float = Field(gt=0)
+    cx: float
+    cy: float
+    model: str = "PINHOLE"
+    params: tuple[float, ...] = ()
+
+    @model_validator(mode="after")
+    def _params_fit_model(self) -> "MeasuredIntrinsics":
+        names = DISTORTION_MODELS.get(self.model)
+        if names is None:
+            raise ValueError(f"unknown distortion model {self.model!r}: one of {', '.join(DISTORTION_MODELS)}")
+        if len(self.params) != len(names):
+            raise ValueError(f"distortion model {self.model} takes {len(names)} parameters "
+                             f"({', '.join(names) or 'none'}), got {len(self.params)}")
+        return self
+
+    def check_against(self, cam_id: str, sensor: Sensor, lens: Lens) -> None:
+        """Refuse intrinsics that cannot belong to this camera (principal point outside the image,
+        a focal that is not the lens's, e.g. given in mm or at another resolution)."""
+        if not (0 <= self.cx <= sensor.width_px - 1 and 0 <= self.cy <= sensor.height_px - 1):
+            raise ValueError(f"camera {cam_id}: measured principal point ({self.cx}, {self.cy}) px is outside "
+                             f"the {sensor.width_px}x{sensor.height_px} image")
+        for name, f, px, mm in (("fx", self.fx, sensor.width_px, sensor.width_mm),
+                                ("fy", self.fy, sensor.height_px, sensor.height_mm)):
+            f_mm = f * mm / px
+            if not (0.9 * lens.focal_min_mm <= f_mm <= 1.1 * lens.focal_max_mm):
+                raise ValueError(f"camera {cam_id}: measured {name} {f} px is {f_mm:.1f} mm on its sensor, outside "
+                                 f"its lens range {lens.focal_min_mm}-{lens.focal_max_mm} mm (pixels must be at "
+                                 f"the rig's resolution {sensor.width_px}x{sensor.height_px})")
+
+
+def _drop_empty(data, keys: tuple[str, ...]):
+    if isinstance(data, dict):
+        for k in keys:
+            if k in data and data[k] in (None, {}, ()):
+                del data[k]
+    return data
+
+
 class RigCamera(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
     id: str = Field(pattern=r"^[A-Za-z0-9_.-]+$")
@@ -85,6 +143,17 @@ class RigCamera(BaseModel):
     sensor: Sensor
     mount: Mount
     nominal_focal_mm: float = Field(gt=0, description="focal at the nominal set-up (static cameras keep it)")
+    intrinsics: MeasuredIntrinsics | None = Field(
+        default=None, description="measured intrinsics and distortion (a lens calibration); None: nominal")
+    lens_group: str | None = Field(
+        default=None, pattern=r"^[A-Za-z0-9_.-]+$",
+        description="cameras sharing a body and lens; the rig's lens_groups entry of that name, when there "
+                    "is one, is their measured intrinsics")
+
+    @model_serializer(mode="wrap")
+    def _omit_unset(self, handler: SerializerFunctionWrapHandler):
+        # rigs (and the Capture records holding them) without measured intrinsics serialise as before
+        return _drop_empty(handler(self), ("intrinsics", "lens_group"))
 
     @model_validator(mode="after")
     def _focal_in_range(self) -> "RigCamera":
@@ -94,6 +163,11 @@ class RigCamera(BaseModel):
                 f"{self.lens.focal_min_mm}-{self.lens.focal_max_mm} mm")
         if self.role is CameraRole.tracking_portrait and self.sensor.width_px > self.sensor.height_px:
             raise ValueError(f"camera {self.id}: a portrait tracking camera must be taller than wide")
+        if self.intrinsics is not None:
+            if self.role.tracks:
+                raise ValueError(f"camera {self.id}: measured intrinsics on a {self.role.value} camera: a zoom "
+                                 f"lens's intrinsics change with its focal, which rigs do not describe yet")
+            self.intrinsics.check_against(self.id, self.sensor, self.lens)
         return self
 
 
@@ -116,6 +190,12 @@ class Rig(BaseModel):
     stage_size_m: tuple[float, float, float] = Field(description="x, y extent and height of the volume")
     cameras: tuple[RigCamera, ...]
     lighting: Lighting
+    lens_groups: dict[str, MeasuredIntrinsics] = Field(
+        default_factory=dict, description="measured intrinsics shared by the cameras naming the group")
+
+    @model_serializer(mode="wrap")
+    def _omit_unset(self, handler: SerializerFunctionWrapHandler):
+        return _drop_empty(handler(self), ("lens_groups",))
 
     @model_validator(mode="after")
     def _unique_ids(self) -> "Rig":
@@ -126,7 +206,37 @@ class Rig(BaseModel):
             seen.add(cam.id)
         if not self.cameras:
             raise ValueError(f"rig {self.name}: no cameras")
+        groups: dict[str, RigCamera] = {}
+        for cam in self.cameras:
+            if cam.lens_group is None:
+                continue
+            first = groups.setdefault(cam.lens_group, cam)
+            if (first.sensor, first.lens) != (cam.sensor, cam.lens):
+                raise ValueError(f"rig {self.name}: camera {cam.id} is in lens group {cam.lens_group!r} with "
+                                 f"camera {first.id} but has another sensor or lens")
+            shared = self.lens_groups.get(cam.lens_group)
+            if shared is not None:
+                if cam.intrinsics is not None:
+                    raise ValueError(f"rig {self.name}: camera {cam.id} has its own intrinsics and lens group "
+                                     f"{cam.lens_group!r} has measured ones too: give one of them")
+                if cam.role.tracks:
+                    raise ValueError(f"rig {self.name}: camera {cam.id} is a {cam.role.value} camera in lens "
+                                     f"group {cam.lens_group!r} with measured intrinsics: a zoom lens's "
+                                     f"intrinsics change with its focal, which rigs do not describe yet")
+                shared.check_against(cam.id, cam.sensor, cam.lens)
+        unused = sorted(set(self.lens_groups) - set(groups))
+        if unused:
+            raise ValueError(f"rig {self.name}: lens group(s) {unused} are used by no camera")
         return self
+
+    def measured_intrinsics(self, camera_id: str) -> MeasuredIntrinsics | None:
+        """A camera's measured intrinsics: its own, else its lens group's, else None (nominal)."""
+        cam = self.camera(camera_id)
+        if cam.intrinsics is not None:
+            return cam.intrinsics
+        if cam.lens_group is not None:
+            return self.lens_groups.get(cam.lens_group)
+        return None
 
     def camera(self, camera_id: str) -> RigCamera:
         for cam in self.cameras:

@@ -7,7 +7,9 @@ dense points, and small assembling steps. Each loads its inputs from the store, 
 - :func:`assemble_calibration` -> the :class:`~volcap_core.calibration.record.Calibration` record;
 - :func:`dense_points_frame` -> a :class:`DensePointsFrame` (one frame's fused multi-view points);
 - :func:`point_cloud_sequence` -> the :class:`~volcap_core.pointcloud.PointCloudSequence` record;
-- :func:`calibration_errors` -> the error table against a synthetic capture's ground truth (JSON).
+- :func:`calibration_errors` -> the error table against a synthetic capture's ground truth (JSON);
+- :func:`calibrate_colour` -> a :class:`ColourMatrixRecord`: the colour matrix between two rigs from a
+  chart seen by each.
 
 Settings are parameters with the library's defaults (their every field is in the cache key);
 the calibration reads the capture's ``lidar`` scan (an input, like the frames), never its ground truth.
@@ -19,13 +21,15 @@ import json
 
 from tasks.contract import volcap_task
 from volcap_core.calibration import steps
+from volcap_core.calibration.colour import ColourCalibrationOptions
 from volcap_core.calibration.dense import DenseOptions
 from volcap_core.calibration.lidar import LidarScan
 from volcap_core.calibration.metrics import calibration_report, ground_truth_from_json
 from volcap_core.calibration.record import Calibration, decode_tracking_frames
 from volcap_core.calibration.static import StaticCalibrationOptions
-from volcap_core.calibration.steps import (CalibrationInputError, DensePointsFrame, StaticCalibrationRecord,
-                                           TrackingCameraRecord, split_cameras, tracking_camera_ids)
+from volcap_core.calibration.steps import (CalibrationInputError, ChartView, ColourMatrixRecord, DensePointsFrame,
+                                           StaticCalibrationRecord, TrackingCameraRecord, split_cameras,
+                                           tracking_camera_ids)
 from volcap_core.calibration.tracking import TrackingOptions
 from volcap_core.capture import Capture
 from volcap_core.pointcloud import POINTS_MEDIA, PointCloudFrame, PointCloudSequence, decode_points, encode_points
@@ -38,11 +42,14 @@ ERRORS_MEDIA = "application/vnd.volcap.calibration-errors+json"
 CALIBRATION_LIBRARIES = ("pycolmap", "cv2", "kornia", "torch", "numpy", "scipy")
 
 
-@volcap_task(name="calibrate-static", version="2", libraries=CALIBRATION_LIBRARIES)
+@volcap_task(name="calibrate-static", version="3", libraries=CALIBRATION_LIBRARIES)
 def calibrate_static(store: str, capture: ArtifactRef,
                      options: StaticCalibrationOptions = StaticCalibrationOptions()) -> ArtifactRef:
     """Static cameras on the middle frame (+ background plates), registered to the capture's lidar;
-    with tracking cameras, also the static reference they register against."""
+    with tracking cameras, also the static reference they register against. A camera the adjustment
+    cannot support is an error naming it, or (``options.allow_unregistered``) left out and listed.
+    Version 3: unsupported cameras (``options.min_observations``, pose bounds) are refused or left
+    out, never returned at their mount; per-camera support in the stats."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
     statics, trackers = split_cameras(cap)
@@ -67,11 +74,12 @@ def calibrate_tracking_camera(store: str, capture: ArtifactRef, static: Artifact
     return s.put_record(steps.tracking_record(cap.name, camera, sol, frames))
 
 
-@volcap_task(name="assemble-calibration", version="1")
+@volcap_task(name="assemble-calibration", version="2")
 def assemble_calibration(store: str, capture: ArtifactRef, static: ArtifactRef,
                          tracking: list[ArtifactRef]) -> ArtifactRef:
     """The Calibration record (and its tracking-frames blob) from the static and per-camera results,
-    exactly as ``volcap_core.calibration.pipeline.calibrate_capture`` makes it in one call."""
+    exactly as ``volcap_core.calibration.pipeline.calibrate_capture`` makes it in one call.
+    Version 2: the record lists the cameras left out (``unregistered``, with the reasons)."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
     record, blob = steps.assemble_calibration_record(
@@ -156,6 +164,18 @@ def calibration_errors(store: str, capture: ArtifactRef, calibration: ArtifactRe
     return s.put_json(calibration_report(calib, gt, tracking, scan, frames), ERRORS_MEDIA)
 
 
+@volcap_task(name="calibrate-colour", version="1", libraries=("numpy", "OpenImageIO"))
+def calibrate_colour(store: str, source: ChartView, reference: ChartView,
+                     options: ColourCalibrationOptions = ColourCalibrationOptions()) -> ArtifactRef:
+    """The colour matrix between two rigs from a chart seen by each (``source``: the rig mapped,
+    usually the Face Rig; ``reference``: the rig it is mapped onto, usually the Scene Rig): a
+    :class:`ColourMatrixRecord` with the fit's ΔE before and after. The views' refs (capture,
+    image, calibration) are inputs: their digests are in the key."""
+    s = ArtifactStore(store)
+    return s.put_record(steps.colour_step(source, reference, s.get_bytes, options))
+
+
 __all__ = ["calibrate_static", "calibrate_tracking_camera", "assemble_calibration", "dense_points_frame",
            "point_cloud_sequence", "calibration_errors", "StaticCalibrationRecord", "TrackingCameraRecord",
-           "DensePointsFrame", "CalibrationInputError", "tracking_camera_ids", "split_cameras"]
+           "DensePointsFrame", "CalibrationInputError", "tracking_camera_ids", "split_cameras", "calibrate_colour",
+           "ChartView", "ColourMatrixRecord"]

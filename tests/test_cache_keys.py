@@ -26,7 +26,9 @@ from flows.runtime import run_flow
 from hardware.rig import load_rig
 from tasks import contract
 from tasks.contract import StoreCachePolicy, canonical_inputs, task_cache_key, task_identity, volcap_task
+from volcap_core.calibration.colour import ColourCalibrationOptions
 from volcap_core.calibration.dense import DenseOptions
+from volcap_core.calibration.steps import ChartView
 from volcap_core.calibration.static import StaticCalibrationOptions
 from volcap_core.calibration.tracking import TrackingOptions
 from volcap_core.capture import CameraSource, Encoding
@@ -54,7 +56,7 @@ def all_tasks() -> list:
 def test_every_task_family_is_found():
     names = {t.cache_policy.task_name for t in all_tasks()}
     assert {"ingest-camera", "calibrate-static", "dense-points-frame", "train-segment", "render-shot"} <= names
-    assert len(names) == 15
+    assert len(names) == 16
 
 
 # ---------------------------------------------------------------------------------------------
@@ -178,7 +180,9 @@ def test_calibration_keys():
                 "registration threshold": {"options": replace(default, min_registered_fraction=0.75)},
                 "a nested SfM option": {"options": replace(default, sfm=replace(default.sfm,
                                                                                  **_bump_first_number(default.sfm)))},
-                "the guided matching off": {"options": replace(default, guided=None)}},
+                "the guided matching off": {"options": replace(default, guided=None)},
+                "the observation threshold": {"options": replace(default, min_observations=10)},
+                "unsupported cameras allowed": {"options": replace(default, allow_unregistered=True)}},
         hits={"the default, spelled out": {"options": StaticCalibrationOptions()}})
     tracking = TrackingOptions()
     assert_key_behaviour(
@@ -193,6 +197,18 @@ def test_calibration_keys():
                 "NCC threshold": {"options": replace(dense, min_ncc=0.5)},
                 "sweep depth range": {"options": replace(dense, depth_max=20.0)}},
         hits={"no exclusions, spelled out": {"exclude_cameras": None}, "defaults": {"options": DenseOptions()}})
+    face = ChartView(rig="face", capture=ref("a"), camera="F003", corners_px=((0, 0), (5, 0), (5, 3), (0, 3)))
+    scene = ChartView(rig="scene", image=ref("b"), patches_px=((1.0, 2.0),) * 24)
+    colour = ColourCalibrationOptions()
+    assert_key_behaviour(
+        calibrate_tasks.calibrate_colour, dict(source=face, reference=scene),
+        misses={"the chart capture": {"source": face.model_copy(update={"capture": ref("c")})},
+                "the chart image": {"reference": scene.model_copy(update={"image": ref("d")})},
+                "a patch location": {"source": face.model_copy(update={"corners_px": ((0, 0), (5, 0), (5, 3), (0, 4))})},
+                "the frame": {"source": face.model_copy(update={"frame": 1})},
+                "the direction": {"source": scene, "reference": face},
+                "robust rounds": {"options": replace(colour, robust_iterations=0)}},
+        hits={"the defaults, spelled out": {"options": ColourCalibrationOptions()}})
     assert_key_behaviour(
         calibrate_tasks.point_cloud_sequence, dict(calibration=ref("a"), frames=[ref("b"), ref("c")]),
         misses={"budget": {"max_points_per_frame": 1000}, "seed": {"seed": 1}, "frames": {"frames": [ref("b")]}},

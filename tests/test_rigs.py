@@ -129,3 +129,94 @@ def test_load_rig_names_the_problem(tmp_path):
         load_rig(path)
     with pytest.raises(ValueError, match="unknown rig 'nope'"):
         load_rig("nope")
+
+
+# --------------------------------------------------------------------------- measured intrinsics
+
+def _intrinsics(**kw) -> dict:
+    d = {"fx": 311.0, "fy": 311.2, "cx": 163.0, "cy": 87.0, "model": "OPENCV", "params": [-0.1, 0.02, 0.0, 0.0]}
+    d.update(kw)
+    return d
+
+
+def test_distorted_demo_rig_carries_measured_intrinsics():
+    from volcap_core.calibration.distortion import MODELS
+    from volcap_core.calibration.sfm import Intrinsics
+
+    from hardware.rig import DISTORTION_MODELS
+
+    assert DISTORTION_MODELS == MODELS
+    rig = load_rig("demo_scene_distorted")
+    plain = load_rig("demo_scene")
+    assert [c.id for c in rig.cameras] == [c.id for c in plain.cameras]
+    k1 = []
+    for cam in rig.cameras_with_role(CameraRole.static):
+        m = rig.measured_intrinsics(cam.id)
+        assert m is not None and m.model == "OPENCV"
+        k1.append(m.params[0])
+        intr = Intrinsics.from_rig(rig, cam.id)
+        assert (intr.fx, intr.fy, intr.cx, intr.cy) == (m.fx, m.fy, m.cx, m.cy)
+        assert intr.distortion.params == tuple(m.params)
+        off = math.hypot(m.cx - 159.5, m.cy - 89.5)
+        assert 2.0 < off < 8.0
+    assert min(k1) == -0.1 and max(k1) == 0.1
+    # S006 and S007 share their lens group's intrinsics
+    assert rig.measured_intrinsics("S006") == rig.measured_intrinsics("S007") == rig.lens_groups["zoom14-b"]
+    # trackers and the plain rig fall back to the nominal intrinsics
+    assert rig.measured_intrinsics("S008") is None
+    nominal = Intrinsics.from_rig(plain, "S000")
+    assert nominal.distortion.is_none and nominal.cx == 159.5 and nominal.fx == nominal.fy
+
+
+def test_rig_without_intrinsics_serialises_as_before():
+    # the Capture record holds the rig: rigs without measured intrinsics must dump as they did
+    dumped = load_rig("demo_scene").model_dump(mode="json")
+    assert "lens_groups" not in dumped
+    assert not {"intrinsics", "lens_group"} & set(dumped["cameras"][0])
+    rig = load_rig("demo_scene_distorted")
+    again = Rig.model_validate(rig.model_dump(mode="json"))
+    assert again == rig
+
+
+@pytest.mark.parametrize("change, message", [
+    (dict(model="FISHEYE"), "unknown distortion model 'FISHEYE'"),
+    (dict(params=[0.1]), "OPENCV takes 4 parameters"),
+    (dict(cx=400.0), "camera S000: measured principal point .* outside the 320x180 image"),
+    (dict(fx=14.0, fy=14.0), "camera S000: measured fx 14.0 px .* outside its lens range"),
+    (dict(fx=-3.0), "greater than 0"),
+])
+def test_measured_intrinsics_validation(change, message):
+    bad = _demo()
+    bad["cameras"][0]["intrinsics"] = _intrinsics(**change)
+    with pytest.raises(ValidationError, match=message):
+        Rig.model_validate(bad)
+
+
+def test_lens_group_validation():
+    bad = _demo()
+    tracker = next(c for c in bad["cameras"] if c["role"] != "static")
+    tracker["intrinsics"] = _intrinsics()
+    with pytest.raises(ValidationError, match=f"camera {tracker['id']}: measured intrinsics on a tracking"):
+        Rig.model_validate(bad)
+    ok = _demo()
+    ok["cameras"][0]["lens_group"] = ok["cameras"][1]["lens_group"] = "g1"
+    ok["lens_groups"] = {"g1": _intrinsics()}
+    rig = Rig.model_validate(ok)
+    assert rig.measured_intrinsics("S001").fx == 311.0
+    both = json.loads(json.dumps(ok))
+    both["cameras"][0]["intrinsics"] = _intrinsics()
+    with pytest.raises(ValidationError, match="camera S000 has its own intrinsics and lens group 'g1'"):
+        Rig.model_validate(both)
+    unused = json.loads(json.dumps(ok))
+    unused["lens_groups"]["g2"] = _intrinsics()
+    with pytest.raises(ValidationError, match=r"lens group\(s\) \['g2'\] are used by no camera"):
+        Rig.model_validate(unused)
+    mixed = json.loads(json.dumps(ok))
+    mixed["cameras"][1]["sensor"]["width_px"] = 640
+    with pytest.raises(ValidationError, match="camera S001 is in lens group 'g1' with camera S000 but has another"):
+        Rig.model_validate(mixed)
+    zoom = json.loads(json.dumps(ok))
+    tr = next(c for c in zoom["cameras"] if c["role"] != "static")
+    tr["lens_group"] = "g1"
+    with pytest.raises(ValidationError, match="another sensor or lens|tracking"):
+        Rig.model_validate(zoom)

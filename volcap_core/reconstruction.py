@@ -149,7 +149,9 @@ def segment_data(capture: Capture, calibration: Calibration, tracking: dict[str,
     if not 0 < scale <= 1:
         raise ValueError(f"scale must be in (0, 1], got {scale}")
     a, b = capture.take_range(frames)
-    ids = list(camera_ids) if camera_ids is not None else [c.id for c in capture.cameras]
+    # cameras the calibration left out (the user allowed it: too few observations) are not trained on
+    ids = (list(camera_ids) if camera_ids is not None
+           else [c.id for c in capture.cameras if c.id not in calibration.unregistered])
     missing = [c for c in ids if c not in {cc.id for cc in calibration.cameras}]
     if missing:
         raise ValueError(f"calibration lacks camera(s) {', '.join(missing)} of capture {capture.name}")
@@ -235,10 +237,12 @@ def background_views(data: SegmentData, capture: Capture, held_out: Sequence[str
     return [v for v in data.views if v.frame == mid and v.camera_id in static and v.camera_id not in held_out]
 
 
-def default_held_out(capture: Capture, n: int = 1) -> list[str]:
+def default_held_out(capture: Capture, n: int = 1, calibration: Calibration | None = None) -> list[str]:
     """Held-out cameras when none are named: static cameras spread over the rig (never tracking
-    ones, whose framing changes), at most ``n``; none when fewer than 4 static cameras exist."""
-    static = [c.id for c in capture.cameras if not capture.rig.camera(c.id).role.tracks]
+    ones, whose framing changes, nor ones the ``calibration`` left out), at most ``n``; none when
+    fewer than 4 static cameras exist."""
+    left_out = calibration.unregistered if calibration is not None else {}
+    static = [c.id for c in capture.cameras if not capture.rig.camera(c.id).role.tracks and c.id not in left_out]
     if len(static) < 4 or n <= 0:
         return []
     step = len(static) / n

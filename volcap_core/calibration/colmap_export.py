@@ -2,7 +2,10 @@
 ``pycolmap.Reconstruction(path)`` reads back: ``cameras``, ``images``, ``points3D`` (plus COLMAP 4's
 ``rigs`` and ``frames``, one trivial rig and frame per camera).
 
-Cameras are ``PINHOLE`` (fx, fy, cx, cy) with COLMAP's pixel convention (OpenCV + 0.5); image names
+Cameras are ``PINHOLE`` (fx, fy, cx, cy) with COLMAP's pixel convention (OpenCV + 0.5), or, for a
+camera with lens distortion (a 5th element of its tuple, a
+:class:`~volcap_core.calibration.distortion.Distortion`), ``OPENCV`` (fx, fy, cx, cy, k1, k2, p1,
+p2) / ``FULL_OPENCV`` when k3 is set: the model of the camera's own (distorted) frames; image names
 are ``<camera id>.png`` unless given. Points carry their colour (sRGB-encoded 8-bit from linear) and,
 when observations are given, their tracks.
 """
@@ -16,22 +19,36 @@ import cv2  # noqa: F401  (before pycolmap)
 import numpy as np
 import pycolmap
 
+from volcap_core.calibration.distortion import Distortion
 from volcap_core.calibration.geometry import COLMAP_PIXEL_OFFSET
 from volcap_core.calibration.record import Calibration, TrackingFrames, camera_at
 from volcap_core.colour import srgb_encode
 
-Camera = tuple[np.ndarray, np.ndarray, int, int]   # K [3, 3], world_to_camera [4, 4], width, height
+Camera = tuple   # (K [3, 3], world_to_camera [4, 4], width, height[, Distortion])
 
 
 def cameras_at(calibration: Calibration, frame: int,
                tracking: Mapping[str, TrackingFrames] | None = None) -> dict[str, Camera]:
-    """Every camera of a calibration at one take index (tracking cameras need the decoded blob)."""
+    """Every camera of a calibration at one take index (tracking cameras need the decoded blob);
+    a camera with distortion in the record gets it as a 5th element."""
     out = {}
     for cam in calibration.cameras:
         if not cam.static and tracking is None:
             continue
         out[cam.id] = camera_at(calibration, cam.id, frame, tracking)
+        if any(cam.distortion):
+            out[cam.id] = (*out[cam.id], Distortion.from_opencv(cam.distortion))
     return out
+
+
+def _colmap_model(K: np.ndarray, w: int, h: int, dist: Distortion | None, camera_id: int) -> pycolmap.Camera:
+    if dist is None or dist.is_none:
+        return pycolmap.Camera(model="PINHOLE", width=int(w), height=int(h),
+                               params=[K[0, 0], K[1, 1], K[0, 2] + COLMAP_PIXEL_OFFSET, K[1, 2] + COLMAP_PIXEL_OFFSET],
+                               camera_id=camera_id)
+    d = dist if dist.model == "FULL_OPENCV" else dist.as_model("FULL_OPENCV" if any(dist.opencv_full()[4:]) else "OPENCV")
+    params = [K[0, 0], K[1, 1], K[0, 2] + COLMAP_PIXEL_OFFSET, K[1, 2] + COLMAP_PIXEL_OFFSET, *d.params]
+    return pycolmap.Camera(model=d.model, width=int(w), height=int(h), params=params, camera_id=camera_id)
 
 
 def build_reconstruction(cameras: Mapping[str, Camera], points: np.ndarray | None = None,
@@ -58,10 +75,8 @@ def build_reconstruction(cameras: Mapping[str, Camera], points: np.ndarray | Non
             per_cam_xy[int(c)].append(xy + COLMAP_PIXEL_OFFSET)
             per_cam_pt[int(c)].append(int(p))
     for i, cid in enumerate(ids):
-        K, w2c, w, h = cameras[cid]
-        cam = pycolmap.Camera(model="PINHOLE", width=int(w), height=int(h),
-                              params=[K[0, 0], K[1, 1], K[0, 2] + COLMAP_PIXEL_OFFSET, K[1, 2] + COLMAP_PIXEL_OFFSET],
-                              camera_id=i + 1)
+        K, w2c, w, h, *rest = cameras[cid]
+        cam = _colmap_model(np.asarray(K, np.float64), w, h, rest[0] if rest else None, i + 1)
         rec.add_camera_with_trivial_rig(cam)
         kp = np.asarray(per_cam_xy[i], np.float64).reshape(-1, 2)
         name = (image_names or {}).get(cid, f"{cid}.png")

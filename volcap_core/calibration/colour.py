@@ -10,6 +10,8 @@ is about chromaticity and relative lightness, not absolute exposure.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 #: linear Rec.709 / sRGB (D65) -> CIE XYZ (IEC 61966-2-1)
@@ -17,6 +19,21 @@ RGB_TO_XYZ = np.array([[0.4124564, 0.3575761, 0.1804375],
                        [0.2126729, 0.7151522, 0.0721750],
                        [0.0193339, 0.1191920, 0.9503041]])
 D65_WHITE = RGB_TO_XYZ @ np.ones(3)
+
+
+@dataclass(frozen=True)
+class ColourCalibrationOptions:
+    """Settings of the chart colour calibration between two rigs (task ``calibrate-colour``)."""
+
+    #: fit an offset (black-level difference) besides the 3x3 matrix
+    offset: bool = True
+    #: Cauchy re-weighting rounds against a glared, shadowed or mislocated patch
+    robust_iterations: int = 2
+    #: each patch's colour is the mean over a square of this fraction of the patch (or, for patch
+    #: centres in pixels, of the distance to the nearest patch), centred on it
+    window_fraction: float = 0.5
+    #: patches seen in both views the fit needs (a ColorChecker has 24)
+    min_patches: int = 12
 
 
 def fit_colour_matrix(src: np.ndarray, ref: np.ndarray, *, offset: bool = True,
@@ -48,10 +65,38 @@ def fit_colour_matrix(src: np.ndarray, ref: np.ndarray, *, offset: bool = True,
     return M, b
 
 
-def apply_colour_matrix(rgb: np.ndarray, M: np.ndarray, b: np.ndarray | None = None) -> np.ndarray:
-    """``rgb @ M.T + b`` on [..., 3] (linear)."""
-    out = np.asarray(rgb, np.float64) @ np.asarray(M).T
-    return out + (0 if b is None else np.asarray(b))
+def apply_colour_matrix(image: np.ndarray, M, b: np.ndarray | None = None, *,
+                        premultiplied: bool = False) -> np.ndarray:
+    """``rgb @ M.T + b`` (linear) on an RGB [..., 3] or RGBA [..., 4] image or colour array.
+
+    ``M``: a [3, 3] matrix, or a colour-matrix record (anything with ``matrix`` and ``offset``, e.g.
+    :class:`volcap_core.calibration.steps.ColourMatrixRecord`; then ``b`` must be None). Alpha is
+    passed through unchanged; with ``premultiplied`` (colour already multiplied by alpha, as a
+    Gaussian renderer's RGBA is) the offset is scaled by alpha, so a transparent pixel stays 0.
+    float32 out for float32 / half images, else float64.
+
+    This is what makes a Face Rig render comparable with a Scene Rig one: a pair renderer applies the
+    ``calibrate-colour`` record to the rig it maps (its ``source_rig``) before pairing the images.
+    """
+    if hasattr(M, "matrix"):
+        if b is not None:
+            raise ValueError("give either a colour-matrix record or a matrix and offset, not both")
+        M, b = M.matrix, M.offset
+    M = np.asarray(M, np.float64)
+    if M.shape != (3, 3):
+        raise ValueError(f"colour matrix must be 3x3, got {M.shape}")
+    arr = np.asarray(image)
+    if arr.shape[-1] not in (3, 4):
+        raise ValueError(f"expected RGB or RGBA in the last axis, got shape {arr.shape}")
+    dtype = np.float32 if arr.dtype in (np.float32, np.float16) else np.float64
+    x = arr.astype(np.float64, copy=False)
+    out = x[..., :3] @ M.T
+    if b is not None:
+        off = np.asarray(b, np.float64)
+        out = out + (off * x[..., 3:4] if premultiplied and arr.shape[-1] == 4 else off)
+    if arr.shape[-1] == 4:
+        out = np.concatenate([out, x[..., 3:4]], axis=-1)
+    return out.astype(dtype, copy=False)
 
 
 def linear_rgb_to_lab(rgb: np.ndarray, white: float = 1.0) -> np.ndarray:
@@ -165,3 +210,38 @@ def chart_patches_in_view(image: np.ndarray, K: np.ndarray, world_to_camera: np.
         c, m = sample_patches(image, uv[i:i + 1], radius[i])
         cols[i], ok[i] = c[0], m[0] and radius[i] >= 1.0
     return cols, ok
+
+
+def chart_grid_px(corners_px: np.ndarray, rows: int = 4, cols: int = 6) -> np.ndarray:
+    """Patch centres [rows * cols, 2] (row-major, as a ColorChecker's patches are numbered) of a
+    flat chart from the centres of its four corner patches, in the order first patch (row 0, col 0),
+    end of the first row, last patch, start of the last row: the projective map of the chart plane
+    (exact for a pinhole view of a flat chart)."""
+    c = np.asarray(corners_px, np.float64).reshape(4, 2)
+    if rows < 2 or cols < 2:
+        raise ValueError(f"a chart grid needs at least 2 x 2 patches, got {rows} x {cols}")
+    src = np.array([[0, 0], [cols - 1, 0], [cols - 1, rows - 1], [0, rows - 1]], np.float64)
+    extent = max(float(np.ptp(c, axis=0).max()), 1e-12)
+    for i, j, k in ((0, 1, 2), (1, 2, 3), (2, 3, 0), (3, 0, 1)):
+        area = abs(np.cross(c[j] - c[i], c[k] - c[i])) / 2
+        if area < 1e-3 * extent ** 2:
+            raise ValueError("the four chart corners are degenerate (three of them collinear or repeated)")
+    A = []
+    for (x, y), (u, v) in zip(src, c):
+        A.append([x, y, 1, 0, 0, 0, -u * x, -u * y, -u])
+        A.append([0, 0, 0, x, y, 1, -v * x, -v * y, -v])
+    _, _, vt = np.linalg.svd(np.asarray(A))
+    H = vt[-1].reshape(3, 3)
+    gy, gx = np.mgrid[0:rows, 0:cols]
+    g = np.c_[gx.ravel(), gy.ravel(), np.ones(rows * cols)] @ H.T
+    return g[:, :2] / g[:, 2:3]
+
+
+def grid_spacing_px(centres_px: np.ndarray, rows: int, cols: int) -> np.ndarray:
+    """Per patch [rows * cols], the smaller distance to its row and column neighbours (px)."""
+    g = np.asarray(centres_px, np.float64).reshape(rows, cols, 2)
+    dx = np.linalg.norm(np.diff(g, axis=1), axis=-1)
+    dy = np.linalg.norm(np.diff(g, axis=0), axis=-1)
+    hx = np.minimum(np.pad(dx, ((0, 0), (1, 0)), constant_values=np.inf), np.pad(dx, ((0, 0), (0, 1)), constant_values=np.inf))
+    hy = np.minimum(np.pad(dy, ((1, 0), (0, 0)), constant_values=np.inf), np.pad(dy, ((0, 1), (0, 0)), constant_values=np.inf))
+    return np.minimum(hx, hy).ravel()

@@ -85,9 +85,14 @@ def build_record(capture_name: str, rig: Rig, static: StaticCalibration, trackin
     for cid in static.camera_ids:
         K = static.K[cid]
         w, h = static.size[cid]
+        extra = {}
+        raw = getattr(static, "raw_intrinsics", {}).get(cid)
+        if raw is not None:       # a distorted lens: its intrinsics on its own frames, and the distortion
+            K = raw.K
+            extra["distortion"] = tuple(float(v) for v in raw.distortion.opencv()[:5])
         cams.append(CameraCalibration(id=cid, role=rig.camera(cid).role.value, static=True, width=w, height=h,
                                       intrinsics=(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])),
-                                      world_to_camera=matrix4(static.world_to_camera[cid])))
+                                      world_to_camera=matrix4(static.world_to_camera[cid]), **extra))
     for cid in sorted(tracking):
         s = rig.camera(cid).sensor
         st = tracking[cid].stats
@@ -102,7 +107,8 @@ def build_record(capture_name: str, rig: Rig, static: StaticCalibration, trackin
         rec_stats["static_median_reprojection_px"] = float(bstats["median_reprojection_px"])
     return Calibration(capture=capture_name, frame_count=frame_count, fps=fps, reference_frame=reference_frame,
                        stage_size_m=tuple(rig.stage_size_m), cameras=tuple(cams),
-                       tracking_frames=tracking_frames_ref(blob) if blob is not None else None, stats=rec_stats)
+                       tracking_frames=tracking_frames_ref(blob) if blob is not None else None, stats=rec_stats,
+                       unregistered={c: static.reasons.get(c, "not registered") for c in static.unregistered})
 
 
 # --------------------------------------------------------------------------- capture folders

@@ -73,6 +73,9 @@ class Calibration(Record):
     tracking_frames: ArtifactRef | None = Field(
         default=None, description="safetensors blob of the tracking cameras' per-frame arrays")
     stats: dict[str, float] = Field(default_factory=dict)
+    unregistered: dict[str, str] = Field(
+        default_factory=dict, description="capture cameras left out of the calibration (the user allowed it), "
+        "with the reason; training leaves them out")
 
     def camera(self, camera_id: str) -> CameraCalibration:
         for c in self.cameras:

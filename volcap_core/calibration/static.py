@@ -18,12 +18,19 @@ Pipeline (each step a pure function of the previous one's output):
 6. optionally, direct photometric refinement against the lidar
    (:mod:`volcap_core.calibration.photometric`): every textured background pixel seen by two cameras
    votes (off by default: it did not improve the demo capture).
+
+Every camera's support is measured twice, on the SfM's observations and on the inliers of step 4's
+adjustment (:func:`camera_support`: observation count, and the pose's standard deviation with the
+points held fixed, a lower bound). A camera below ``options.min_observations`` or above the
+uncertainty bounds is unsupported: with ``options.allow_unregistered`` it is left out (listed in
+``unregistered`` with the reason), otherwise :class:`UnsupportedCameraError` names it. A seeded
+camera without observations is never returned as calibrated (it would sit at its mount).
 """
 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Mapping
 
 import numpy as np
@@ -35,7 +42,8 @@ from volcap_core.calibration.geometry import (Similarity, look_at_rotation, pose
 from volcap_core.calibration.guided import GuidedMatchOptions, guided_tracks
 from volcap_core.calibration.lidar import LidarScan, align_to_lidar
 from volcap_core.calibration.photometric import PhotometricOptions, refine_photometric
-from volcap_core.calibration.sfm import Intrinsics, SparseModel, StaticSfmOptions, reconstruct_static
+from volcap_core.calibration.sfm import (Intrinsics, SparseModel, StaticSfmOptions, raw_from_rectified,
+                                         reconstruct_static, rectify_static_inputs)
 
 
 @dataclass(frozen=True)
@@ -64,6 +72,26 @@ class StaticCalibrationOptions:
     #: the SfM must register at least this fraction of the static cameras (and two): fewer means
     #: the views do not overlap enough (or the frame is wrong), and calibration stops there
     min_registered_fraction: float = 0.5
+    #: a camera needs at least this many observations (SfM keypoints of triangulated points) in the
+    #: sparse reconstruction, before and after step 4's outlier rejection, to count as calibrated.
+    #: Measured after step 4 on the synthetic demo capture (8 static cameras at 320x180, 24 frames):
+    #: seed 0: 89-308 per camera (the weakest, S000, sees one wall at 12.5 m; S007 97); seed 1:
+    #: 70-302; with one camera's frames replaced by noise that camera had 0 and the others 85-238.
+    #: 25 leaves a 2.8x margin below the weakest registered camera and is 6x the 4 observations of
+    #: the under-observed camera of issue 13 (mounts 2° / a few cm off)
+    min_observations: int = 25
+    #: a camera whose pose standard deviation after step 4 (its inlier observations, points and
+    #: intrinsics held fixed: a lower bound that ignores the priors, see :func:`camera_support`)
+    #: exceeds this rotation (degrees) or centre (metres) is unsupported too. Measured on the same
+    #: captures: 0.007-0.133° and 1.1-29 mm (the largest: S000, the far-wall camera, which step 5
+    #: then places to 0.013-0.05°); the bounds are 7.5x and 10x that, about what a mount survey
+    #: gives (None: no bound)
+    max_rotation_sigma_deg: float | None = 1.0
+    max_centre_sigma_m: float | None = 0.3
+    #: an unsupported camera (above) is an error naming it and the reason (False), or is left out
+    #: of the calibration and listed in ``unregistered`` with the reason (True); training then
+    #: leaves it out
+    allow_unregistered: bool = False
 
 
 @dataclass
@@ -79,6 +107,24 @@ class StaticCalibration:
     model: SparseModel
     unregistered: list[str] = field(default_factory=list)
     stats: dict = field(default_factory=dict)
+    #: cameras with distortion (or non-square pixels): their intrinsics on their own images
+    #: (:func:`~volcap_core.calibration.sfm.raw_from_rectified`); their ``K`` is the square pinhole of
+    #: their rectified images (:func:`~volcap_core.calibration.sfm.undistort_views`)
+    raw_intrinsics: dict[str, Intrinsics] = field(default_factory=dict)
+    #: why each camera of ``unregistered`` is not calibrated
+    reasons: dict[str, str] = field(default_factory=dict)
+    #: per calibrated camera: :func:`camera_support` of the final sparse reconstruction, and
+    #: ``guided_observations`` (step 5's inliers) when step 5 ran
+    support: dict[str, dict] = field(default_factory=dict)
+
+
+class UnsupportedCameraError(RuntimeError):
+    """Static cameras the adjustment cannot support (``reasons``: camera id -> why), raised unless
+    ``StaticCalibrationOptions.allow_unregistered``."""
+
+    def __init__(self, reasons: Mapping[str, str]):
+        self.reasons = dict(reasons)
+        super().__init__("; ".join(f"{c}: {r}" for c, r in sorted(self.reasons.items())))
 
 
 def nominal_intrinsics(cam: RigCamera) -> Intrinsics:
@@ -107,12 +153,25 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
     t0 = time.perf_counter()
     ids = sorted(images)
     cams = {c: rig.camera(c) for c in ids}
-    intr = {c: nominal_intrinsics(cams[c]) for c in ids}
+    intr = {c: Intrinsics.from_rig(rig, c) for c in ids}     # measured when the rig has them, else nominal
     seeds = {c: nominal_pose(cams[c]) for c in ids}
     mounts = {c: np.asarray(cams[c].mount.position_m, np.float64) for c in ids}
     stats: dict = {}
     model = reconstruct_static(images, intr, options.sfm, initial_poses=seeds if options.seeded else None)
     stats["sfm"] = dict(model.stats)
+    # distorted (or non-square) cameras: from here on everything works on their rectified square
+    # pinholes (observations, images and plates resampled); ``raw_intr`` is what they came from
+    model, intr, images, plates, raw_intr = rectify_static_inputs(model, intr, images, plates)
+    reasons = {c: "the SfM did not register it (no view overlapping enough)" for c in model.unregistered}
+    # a seeded camera is "registered" by construction: its observations say whether anything holds it
+    counts = np.bincount(model.obs_camera, minlength=len(model.camera_ids))
+    for i, c in enumerate(model.camera_ids):
+        if counts[i] < options.min_observations:
+            reasons[c] = (f"{counts[i]} observations in the sparse SfM (needs at least {options.min_observations}): "
+                          "its view matches too few features of the other cameras")
+    model = _without_cameras(model, [c for c in model.camera_ids if c in reasons])
+    if len(model.camera_ids) < 2:
+        raise UnsupportedCameraError(reasons)
     t1 = time.perf_counter()
     if not options.seeded:
         src = model.centres()
@@ -135,8 +194,31 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
     w2c = {c: res["world_to_camera"][i] for i, c in enumerate(reg)}
     stats["bundle"] = dict(res["stats"])
     stats["bundle"]["median_reprojection_px"] = float(np.median(res["reprojection_px"][res["inlier"]]))
+    inl = res["inlier"]
+    support = camera_support(K, w2c, reg, res["points"], model.obs_camera[inl], model.obs_point[inl],
+                             model.obs_xy[inl])
+    for c in reg:
+        why = _unsupported(support[c], options)
+        if why:
+            reasons[c] = why
+    if reasons and not options.allow_unregistered:
+        raise UnsupportedCameraError(reasons)
+    if any(c in reasons for c in reg):
+        # left out of everything that follows (their step-4 observations too)
+        drop = [c for c in reg if c in reasons]
+        kept = np.array([c not in reasons for c in reg])
+        keep_obs = kept[model.obs_camera]
+        res = {**res, "inlier": inl[keep_obs], "world_to_camera": res["world_to_camera"][kept],
+               "focal": res["focal"][kept]}
+        model = _without_cameras(model, drop, min_views=0)  # observations stay aligned with keep_obs
+        reg = model.camera_ids
+        if len(reg) < 2:
+            raise UnsupportedCameraError(reasons)
+        K = {c: K[c] for c in reg}
+        w2c = {c: w2c[c] for c in reg}
     t2 = time.perf_counter()
     background = plates if plates is not None else images
+    guided_counts = None
     if scan is not None and options.guided is not None:
         # the tracks' cameras come in ``reg`` order, the order of the dict passed
         tracks = guided_tracks({c: background[c] for c in reg}, K, w2c, scan, options.guided)
@@ -152,6 +234,7 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
         w2c = {c: g["world_to_camera"][i] for i, c in enumerate(reg)}
         stats["guided"] = {**tracks.stats, "bundle": g["stats"], "inliers": int(g["inlier"].sum()),
                            "median_reprojection_px": float(np.median(g["reprojection_px"][g["inlier"]]))}
+        guided_counts = np.bincount(tracks.obs_camera[g["inlier"]], minlength=len(reg))
     t_guided = time.perf_counter()
     if scan is not None and options.photometric is not None:
         ph = refine_photometric({c: background[c] for c in reg}, K, w2c, scan, centre_prior=mounts,
@@ -169,11 +252,114 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
     model.world_to_camera = dict(w2c)
     model.intrinsics = {c: Intrinsics(K[c][0, 0], K[c][1, 1], K[c][0, 2], K[c][1, 2], intr[c].width,
                                       intr[c].height) for c in reg}
+    # the final support: the sparse reconstruction's observations under the final cameras
+    support = camera_support(K, w2c, reg, model.points, model.obs_camera[inl], model.obs_point[inl],
+                             model.obs_xy[inl])
+    if guided_counts is not None:
+        for i, c in enumerate(reg):
+            support[c]["guided_observations"] = int(guided_counts[i])
+    stats["support"] = support
     stats["time_s"] = {"sfm": t1 - t0, "bundle": t2 - t1, "guided": t_guided - t2, "photometric": t3 - t_guided,
                        "total": time.perf_counter() - t0}
     return StaticCalibration(camera_ids=reg, K=K, world_to_camera=w2c,
                              size={c: (intr[c].width, intr[c].height) for c in reg}, model=model,
-                             unregistered=list(model.unregistered), stats=stats)
+                             unregistered=sorted(reasons), stats=stats, reasons=dict(sorted(reasons.items())),
+                             support=support,
+                             raw_intrinsics={c: raw_from_rectified(K[c], raw_intr[c]) for c in reg if c in raw_intr})
+
+
+def camera_support(K: Mapping[str, np.ndarray], world_to_camera: Mapping[str, np.ndarray], camera_ids: list[str],
+                   points: np.ndarray, obs_camera: np.ndarray, obs_point: np.ndarray, obs_xy: np.ndarray,
+                   *, min_sigma_px: float = 0.05) -> dict[str, dict]:
+    """How well the observations hold each camera: per camera id, ``observations`` (count),
+    ``residual_px`` (robust σ of the reprojection residual, 1.4826 MAD per coordinate, at least
+    ``min_sigma_px``), and ``rotation_sigma_deg`` / ``centre_sigma_m``: the largest standard
+    deviation of the camera's rotation and centre from the Gauss-Newton covariance
+    ``σ² (JᵀJ)⁻¹`` of its 6 pose parameters with the points and intrinsics held fixed. Holding the
+    points fixed makes it a lower bound (optimistic), and it ignores the mount and lidar priors:
+    it measures what the camera's own observations pin down (inf when they cannot: fewer than 3, or
+    degenerate). Costs a 6x6 system per camera.
+
+    ``obs_camera`` indexes ``camera_ids``; observations in OpenCV pixels."""
+    out: dict[str, dict] = {}
+    P = np.asarray(points, np.float64)
+    for i, c in enumerate(camera_ids):
+        sel = np.asarray(obs_camera) == i
+        n = int(sel.sum())
+        entry = {"observations": n, "residual_px": float("inf"), "rotation_sigma_deg": float("inf"),
+                 "centre_sigma_m": float("inf")}
+        out[c] = entry
+        if n < 3:
+            continue
+        W = np.asarray(world_to_camera[c], np.float64)
+        Kc = np.asarray(K[c], np.float64)
+        R = W[:3, :3]
+        X = P[np.asarray(obs_point)[sel]] @ R.T + W[:3, 3]
+        z = X[:, 2]
+        front = z > 1e-9
+        if front.sum() < 3:
+            continue
+        X, z, xy = X[front], z[front], np.asarray(obs_xy, np.float64)[sel][front]
+        fx, fy = Kc[0, 0], Kc[1, 1]
+        uv = np.c_[fx * X[:, 0] / z + Kc[0, 2], fy * X[:, 1] / z + Kc[1, 2]]
+        r = (uv - xy).ravel()
+        sigma = max(1.4826 * float(np.median(np.abs(r - np.median(r)))), min_sigma_px)
+        # d(u, v)/d X_cam, and X_cam = exp([w]) R (X - C - dC): dX_cam = -[X_cam]x w - R dC
+        du = np.zeros((len(X), 2, 3))
+        du[:, 0, 0] = fx / z
+        du[:, 0, 2] = -fx * X[:, 0] / z ** 2
+        du[:, 1, 1] = fy / z
+        du[:, 1, 2] = -fy * X[:, 1] / z ** 2
+        skew = np.zeros((len(X), 3, 3))
+        skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -X[:, 2], X[:, 1], -X[:, 0]
+        skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = X[:, 2], -X[:, 1], X[:, 0]
+        J = np.concatenate([du @ -skew, du @ -R], axis=2).reshape(-1, 6)
+        H = J.T @ J
+        entry["residual_px"] = sigma
+        if np.linalg.cond(H) > 1e14:
+            continue
+        cov = sigma ** 2 * np.linalg.inv(H)
+        entry["rotation_sigma_deg"] = float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0))))
+        entry["centre_sigma_m"] = float(np.sqrt(max(np.linalg.eigvalsh(cov[3:, 3:]).max(), 0.0)))
+    return out
+
+
+def _unsupported(s: Mapping, options: StaticCalibrationOptions) -> str:
+    """Why a camera's support (:func:`camera_support`) is not enough under ``options`` ('' if it is)."""
+    if s["observations"] < options.min_observations:
+        return (f"{s['observations']} observations left after the bundle adjustment's outlier rejection "
+                f"(needs at least {options.min_observations})")
+    if options.max_rotation_sigma_deg is not None and not s["rotation_sigma_deg"] <= options.max_rotation_sigma_deg:
+        return (f"its rotation is determined to {s['rotation_sigma_deg']:.3g}° only (bound "
+                f"{options.max_rotation_sigma_deg}°, from {s['observations']} observations)")
+    if options.max_centre_sigma_m is not None and not s["centre_sigma_m"] <= options.max_centre_sigma_m:
+        return (f"its position is determined to {s['centre_sigma_m']:.3g} m only (bound "
+                f"{options.max_centre_sigma_m} m, from {s['observations']} observations)")
+    return ""
+
+
+def _without_cameras(model: SparseModel, drop: list[str], min_views: int = 2) -> SparseModel:
+    """``model`` without the cameras ``drop`` (moved to ``unregistered``) and their observations;
+    observations of points left with fewer than ``min_views`` views go too."""
+    if not drop:
+        return model
+    keep_ids = [c for c in model.camera_ids if c not in drop]
+    new_index = np.full(len(model.camera_ids), -1, np.int64)
+    for j, c in enumerate(keep_ids):
+        new_index[model.camera_ids.index(c)] = j
+    oc = new_index[model.obs_camera] if len(model.obs_camera) else model.obs_camera
+    keep = oc >= 0
+    views = np.bincount(model.obs_point[keep], minlength=len(model.points))
+    keep &= views[model.obs_point] >= min_views
+    pok = {c: np.where((v >= 0) & (views[np.maximum(v, 0)] >= min_views), v, -1)
+           for c, v in model.point_of_keypoint.items() if c not in drop}
+    return replace(model, camera_ids=keep_ids,
+                   intrinsics={c: model.intrinsics[c] for c in keep_ids},
+                   world_to_camera={c: model.world_to_camera[c] for c in keep_ids},
+                   obs_point=model.obs_point[keep], obs_camera=oc[keep], obs_xy=model.obs_xy[keep],
+                   keypoints={c: v for c, v in model.keypoints.items() if c not in drop},
+                   descriptors={c: v for c, v in model.descriptors.items() if c not in drop},
+                   point_of_keypoint=pok, unregistered=sorted(set(model.unregistered) | set(drop)))
 
 
 def similarity_to_mounts(model: SparseModel, rig: Rig) -> Similarity:

@@ -12,6 +12,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from volcap_core.calibration.distortion import Distortion
 from volcap_core.calibration.record import (
     Calibration,
     CameraCalibration,
@@ -41,9 +42,16 @@ def calibration(cameras_json: dict, capture_name: str, camera_ids: Sequence[str]
         w2c = np.array([f["world_to_camera"] for f in frames], np.float64)
         static = gt["role"] == "static"
         if static:
+            extra = {}
+            if frames[0].get("distortion"):
+                coeffs = Distortion.from_json(frames[0]["distortion"]).opencv()
+                if len(coeffs) != 5:
+                    raise ValueError(f"ground truth camera {cid}: a rational distortion (k4-k6) does not fit "
+                                     f"the Calibration record's (k1, k2, p1, p2, k3)")
+                extra["distortion"] = tuple(float(v) for v in coeffs)
             cams.append(CameraCalibration(id=cid, role=gt["role"], static=True, width=gt["width"],
                                           height=gt["height"], intrinsics=tuple(intr[0]),
-                                          world_to_camera=matrix4(w2c[0])))
+                                          world_to_camera=matrix4(w2c[0]), **extra))
         else:
             cams.append(CameraCalibration(id=cid, role=gt["role"], static=False, width=gt["width"],
                                           height=gt["height"]))

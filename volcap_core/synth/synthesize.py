@@ -12,6 +12,7 @@ from typing import Callable, Sequence
 import numpy as np
 
 from hardware.rig import CameraRole, Rig, RigCamera, load_rig
+from volcap_core.calibration.distortion import MODELS, Distortion
 from volcap_core.calibration.geometry import look_at_rotation
 from volcap_core.capture import (CameraSource, CaptureDescription, Encoding, LensSample, Take,
                                  frames_to_timecode, timecode_to_frames)
@@ -29,6 +30,12 @@ GT_DIR = "ground_truth"
 #: kept in ground_truth/lidar.ply for evaluation
 LIDAR_FILE = "lidar.ply"
 Progress = Callable[[int, int], None]
+
+#: a static camera with measured intrinsics in the rig (a lens calibration) is rendered with the
+#: rig's values plus the error of a good lens calibration (1 sigma): focal 0.2 % (fy/fx kept),
+#: principal point 0.3 px, k1 and k2 0.002, p1 and p2 0.0001, k3..k6 0 (drawn from their own random
+#: stream: the camera's pose, noise and everything else are those of the same rig without them)
+LENS_CALIBRATION_ERROR = {"focal_rel": 0.002, "centre_px": 0.3, "k": 0.002, "p": 0.0001}
 
 
 def _rng(seed: int, *keys) -> np.random.Generator:
@@ -126,8 +133,15 @@ def _plans(rig: Rig, seed: int, actor_centres: list[tuple[float, float]], camera
             f_mm = float(np.clip(cam.nominal_focal_mm * (1 + r.normal(0, 0.01)),
                                  cam.lens.focal_min_mm, cam.lens.focal_max_mm))
             f_px = s.focal_px(f_mm)
-            plan.static = PinholeCamera.looking_at(s.width_px, s.height_px, f_px, f_px, cx, cy, pos, look,
-                                                   cam.mount.roll_deg + r.normal(0, 0.3))
+            fy_px, dist = f_px, Distortion.none()
+            roll = cam.mount.roll_deg + r.normal(0, 0.3)
+            measured = rig.measured_intrinsics(cam.id)
+            if measured is not None:
+                f_px, fy_px, cx, cy, dist = _true_lens(measured, _rng(seed, "lens", cam.id))
+                plan.cx, plan.cy = cx, cy
+                f_mm = f_px * s.width_mm / s.width_px
+            plan.static = PinholeCamera.looking_at(s.width_px, s.height_px, f_px, fy_px, cx, cy, pos, look,
+                                                   roll, dist)
             plan.static_focal_mm = f_mm
         else:
             if n_actors == 0:
@@ -149,6 +163,25 @@ def _plans(rig: Rig, seed: int, actor_centres: list[tuple[float, float]], camera
                            float(r.uniform(0, 6.3)), float(r.uniform(0, 6.3)))
         plans.append(plan)
     return plans
+
+
+def _true_lens(m, r: np.random.Generator) -> tuple[float, float, float, float, Distortion]:
+    """The true lens of a camera whose rig carries measured intrinsics ``m``: the measured values
+    plus :data:`LENS_CALIBRATION_ERROR`."""
+    e = LENS_CALIBRATION_ERROR
+    scale = 1 + r.normal(0, e["focal_rel"])
+    cx = m.cx + r.normal(0, e["centre_px"])
+    cy = m.cy + r.normal(0, e["centre_px"])
+    d = Distortion(m.model, tuple(m.params))
+    full = np.asarray(d.opencv_full())
+    full[[0, 1]] += r.normal(0, e["k"], 2)
+    full[[2, 3]] += r.normal(0, e["p"], 2)
+    names = ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6")
+    coeff = dict(zip(names, full))
+    coeff["k"] = coeff["k1"]
+    # the model keeps its own parameters (a RADIAL lens stays RADIAL: its error is in k1, k2 only)
+    params = tuple(float(coeff[n]) for n in MODELS[d.model])
+    return float(m.fx * scale), float(m.fy * scale), float(cx), float(cy), Distortion(d.model, params)
 
 
 # --------------------------------------------------------------------------- actors
@@ -202,6 +235,8 @@ def _render_camera(plan: CameraPlan, world: World, fps: float, frames: int, seed
             gt_frames.append({"take_index": k, "frame": n, "fx": cam.fx, "fy": cam.fy, "cx": cam.cx,
                               "cy": cam.cy, "focal_mm": f_mm, "focus_m": round(focus, 6),
                               "world_to_camera": np.round(cam.world_to_camera, 9).tolist()})
+            if not cam.distortion.is_none:       # (absent for pinholes: their files stay as they were)
+                gt_frames[-1]["distortion"] = cam.distortion.to_json()
             if depth_dir is not None:
                 sio.write_exr(depth_dir / f"{k:06d}.exr", depth, half=False)
             if want_mask:
@@ -284,12 +319,18 @@ def _synthesize(out_dir: Path, rig_name: str | Path, seed: int, frames: int, kin
         take=Take(start_timecode=TAKE_START, frame_count=frames), cameras=sources, ground_truth=GT_DIR,
         lidar=LIDAR_FILE)
     # ground truth
+    convention = ("world: metres, z up, origin at the stage centre on the floor. world_to_camera: 4x4, "
+                  "OpenCV camera axes (x right, y down, z forward). Pixels: OpenCV, centre of the "
+                  "top-left pixel at (0, 0) (COLMAP: +0.5). Pinhole, no distortion. frames[i] is take "
+                  "index i; 'frame' is the camera's own frame number.")
+    if any(p.static is not None and not p.static.distortion.is_none for p in plans):
+        convention = convention.replace(
+            "Pinhole, no distortion.", "Pinhole unless a frame has 'distortion' {model, params} (COLMAP's model "
+            "names and parameter order, OpenCV's equations on normalized coordinates; the images are rendered "
+            "through it exactly, per ray).")
     sio.write_json(gt_dir / "cameras.json", {
         "format": "volcap-synth-cameras/1",
-        "convention": "world: metres, z up, origin at the stage centre on the floor. world_to_camera: 4x4, "
-                      "OpenCV camera axes (x right, y down, z forward). Pixels: OpenCV, centre of the "
-                      "top-left pixel at (0, 0) (COLMAP: +0.5). Pinhole, no distortion. frames[i] is take "
-                      "index i; 'frame' is the camera's own frame number.",
+        "convention": convention,
         "fps": fps, "take_start_timecode": TAKE_START, "frame_count": frames, "cameras": gt_cams})
     scene_gt = {
         "format": "volcap-synth-scene/1", "seed": seed, "rig": rig.name, "kind": kind,
