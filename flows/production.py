@@ -9,6 +9,9 @@ It reads like the process it runs::
     train     every needed segment at once: runs of the `train-segment` deployment on the GPU
               pool when a Prefect server has it, in-process task runs otherwise
     render    each shot over a performance of its segments: cropped RGBA half-float EXR frames
+    enhance   only if a shot asks for it (``enhance: true``): face pairs per actor of those shots,
+              their prompt embeddings, one detail enhancer trained on all their pairs, then each
+              enhanced shot's frames in order (shots in parallel): ``docs/enhancer.md``
 
 Every step is a cached volcap task (``docs/tasks.md``), so a rerun recomputes only what changed or
 never finished. After each step a journal entry (``volcap_core.production.journal``) records what
@@ -40,6 +43,7 @@ from flows.calibrate import calibrate_capture, point_cloud_for_frames  # noqa: E
 from flows.ingest import ingest_flow  # noqa: E402
 from tasks import calibrate as calibrate_tasks  # noqa: E402
 from tasks.contract import cached_output, task_identity  # noqa: E402
+from tasks.enhance import actor_prompt, enhance_shot, face_pairs, train_enhancer_task  # noqa: E402
 from tasks.ingest import fingerprint_camera, ingest_camera, record_capture  # noqa: E402
 from tasks.production import assemble_performance, render_shot  # noqa: E402
 from tasks.reconstruct import train_segment_task  # noqa: E402
@@ -59,7 +63,7 @@ SEGMENT_DEPLOYMENT = "train-segment-flow/train-segment"
 GPU_SLOTS = "gpu-slots"
 #: A slot is a lease the holder renews; a dead holder's slot frees itself after this many seconds.
 GPU_SLOT_LEASE_S = 120.0
-#: Steps of the enhancer half (Face Rig pairs, diffusion enhancer); not part of this version.
+#: Steps of the enhancer half (Face Rig pairs, the diffusion detail enhancer; docs/enhancer.md).
 ENHANCER_STEPS = ("face-pairs", "train-enhancer", "enhance-shot")
 SegmentRuns = Literal["auto", "local", "deployment"]
 
@@ -127,6 +131,38 @@ class Production:
         folder = Path(self.spec.captures[capture].folder)
         return folder if folder.is_absolute() else (self.spec_dir / folder).resolve()
 
+    def enhancer_weights(self) -> Path | None:
+        """The quality preset's ``enhancer_weights`` (a local FLUX.1 directory; relative to the
+        spec file), None when not set."""
+        w = self.spec.quality_preset().enhancer_weights
+        if w is None:
+            return None
+        path = Path(w).expanduser()
+        return path if path.is_absolute() else (self.spec_dir / path).resolve()
+
+    def check_enhancer(self, where: str | Path | None = None) -> None:
+        """Before anything runs: an enhanced shot with the FLUX.1 architecture needs its weights
+        directory (``ValueError`` naming the spec and the path otherwise)."""
+        if not any(s.kind in ENHANCER_STEPS for s in self.steps):
+            return
+        from volcap_core.enhance.production import check_flux_directory
+
+        where = where or self.spec.name
+        q = self.spec.quality_preset()
+        weights = self.enhancer_weights()
+        if q.enhancer_architecture == "flux-dev" and weights is None:
+            raise ValueError(f"{where}: enhanced shots with enhancer_architecture flux-dev need "
+                             "quality.enhancer_weights: a local FLUX.1-dev directory (docs/enhancer.md), or "
+                             "enhancer_architecture: tiny (random weights, for tests and the demo)")
+        if weights is not None:
+            if q.enhancer_architecture != "flux-dev":
+                raise ValueError(f"{where}: quality.enhancer_weights is set but enhancer_architecture "
+                                 f"is {q.enhancer_architecture}: weights are FLUX.1 weights (use flux-dev)")
+            try:
+                check_flux_directory(weights)
+            except FileNotFoundError as exc:
+                raise ValueError(f"{where}: quality.{exc}") from None
+
 
 def open_production(spec_path: str | Path, store: str | None = None,
                     shots: list[str] | None = None) -> Production:
@@ -158,6 +194,7 @@ def open_production(spec_path: str | Path, store: str | None = None,
             if f"capture {name!r}" in str(exc):
                 raise ValueError(f"{spec_path}: captures.{name}: {why}") from None
         raise ValueError(f"{spec_path}: {exc}") from None
+    prod.check_enhancer(spec_path)
     return prod
 
 
@@ -190,6 +227,12 @@ def step_versions(step: Step, steps: list[Step]) -> dict[str, str]:
         return _versions(train_segment_task)
     if step.kind == "render-shot":
         return _versions(assemble_performance, render_shot)
+    if step.kind == "face-pairs":
+        return _versions(face_pairs)
+    if step.kind == "train-enhancer":
+        return _versions(actor_prompt, train_enhancer_task)
+    if step.kind == "enhance-shot":
+        return _versions(enhance_shot)
     return {}
 
 
@@ -209,6 +252,10 @@ def step_fingerprint(prod: Production, step: Step, done: dict[str, dict[str, Art
                           "parameters": step.parameters}
     if step.kind == "ingest":
         fp["source"] = folder_listing_digest(prod.folder(step.parameters["capture"]))
+    elif step.kind == "train-enhancer" and prod.enhancer_weights() is not None:
+        from volcap_core.enhance.production import directory_fingerprint
+
+        fp["weights"] = directory_fingerprint(prod.enhancer_weights())
     elif step.parameters.get("capture_ref"):
         fp["source"] = ArtifactStore(prod.store).resolve(step.parameters["capture_ref"]).digest
     return fp
@@ -233,9 +280,6 @@ def plan_production(prod: Production) -> list[PlannedStep]:
     done: dict[str, dict[str, ArtifactRef]] = {}
     plan = []
     for step in prod.steps:
-        if step.kind in ENHANCER_STEPS:
-            plan.append(PlannedStep(step, "to-run", "not available in this version (the enhancer half)"))
-            continue
         fp = step_fingerprint(prod, step, done)
         if isinstance(fp, str):
             plan.append(PlannedStep(step, "to-run", fp))
@@ -398,12 +442,7 @@ def production_flow(spec: str, store: str | None = None, shots: list[str] | None
     """
     log = get_run_logger()
     store_credentials_from_block()
-    prod = open_production(spec, store, shots)
-    wanted = [s.id for s in prod.steps if s.kind in ENHANCER_STEPS]
-    if wanted:
-        raise ValueError(f"{spec}: {', '.join(wanted)}: shots with enhance: true need the Face Rig pairs and "
-                         "the detail enhancer, which this version of volcap does not have yet; set "
-                         "enhance: false or leave those shots out")
+    prod = open_production(spec, store, shots)  # refuses an enhancer it cannot build before anything runs
     s = ArtifactStore(prod.store)
     mode = segment_runs_mode(segment_runs)
     log.info("production %s: %d steps, store %s, segments %s", prod.spec.name, len(prod.steps), prod.store, mode)
@@ -480,9 +519,63 @@ def production_flow(spec: str, store: str | None = None, shots: list[str] | None
                                 "count": len(s.get_tree(frames))}
         log.info("shot %s: %d frames -> %s", p["shot"], shots_out[p["shot"]]["count"], frames.digest)
 
+    enhance_shots(prod, s, q, captures, done, shots_out, finish, log)
+
     return {"production": prod.spec.name, "store": prod.store, "segment_runs": mode,
             "steps": {sid: {k: v.digest for k, v in outs.items()} for sid, outs in done.items()},
             "shots": shots_out}
+
+
+def enhance_shots(prod: Production, s: ArtifactStore, q, captures: dict[str, ArtifactRef],
+                  done: dict[str, dict[str, ArtifactRef]], shots_out: dict[str, dict], finish, log) -> None:
+    """The enhancer half: face pairs per actor of an enhanced shot, each actor's prompt, one
+    enhancer trained on all their pairs, then every enhanced shot at once (frames in order within
+    a shot). Nothing when no requested shot has ``enhance: true``."""
+    from volcap_core.enhance.production import directory_fingerprint, has_text_encoders
+
+    pairs: dict[str, ArtifactRef] = {}
+    for step in (st for st in prod.steps if st.kind == "face-pairs"):
+        p = step.parameters
+        pairs[p["actor"]] = face_pairs(prod.store, captures[p["face_capture"]], p["actor"], p["subsequences"],
+                                       p["subsequence_frames"], p["camera_paths"], p["resolution"],
+                                       lq_gaussians=p["lq_gaussians"],
+                                       hq_gaussians_per_frame=p["hq_gaussians_per_frame"])
+        finish(step, {"pairs": pairs[p["actor"]]})
+    enhancer: ArtifactRef | None = None
+    for step in (st for st in prod.steps if st.kind == "train-enhancer"):
+        p = step.parameters
+        weights = prod.enhancer_weights()
+        arch = q.enhancer_config()
+        fingerprint = directory_fingerprint(weights) if weights is not None else None
+        encoders = str(weights) if weights is not None and has_text_encoders(weights) else None
+        if weights is not None and encoders is None:
+            log.warning("%s has no FLUX.1 text encoders (or transformers is missing): zero prompt embeddings",
+                        weights)
+        prompts = {a: actor_prompt(prod.store, a, arch, text=p["prompts"].get(a), encoders=encoders,
+                                   encoders_fingerprint=fingerprint if encoders else None) for a in p["actors"]}
+        if weights is None:
+            enhancer = train_enhancer_task(prod.store, [pairs[a] for a in p["actors"]], prompts,
+                                           q.enhancer_train_config(), architecture=arch)
+        else:
+            enhancer = train_enhancer_task(prod.store, [pairs[a] for a in p["actors"]], prompts,
+                                           q.enhancer_train_config(), base_weights=str(weights),
+                                           base_fingerprint=fingerprint)
+        s.set_ref(f"productions/{prod.spec.name}/enhancer", enhancer)
+        finish(step, {"enhancer": enhancer, **{f"prompt:{a}": r for a, r in prompts.items()}})
+    submitted = []
+    for step in (st for st in prod.steps if st.kind == "enhance-shot"):
+        p = step.parameters
+        frames = done[f"render-shot:{p['shot']}"]["frames"]
+        # the shot's prompt group: its first actor's (a shot of several actors uses that one prompt)
+        submitted.append((step, enhance_shot.submit(prod.store, frames, enhancer, p["actors"][0],
+                                                    q.enhance_settings())))
+    for step, future in submitted:
+        shot = step.parameters["shot"]
+        ref = future.result()
+        s.set_ref(f"productions/{prod.spec.name}/enhanced/{shot}", ref)
+        finish(step, {"frames": ref})
+        shots_out[shot]["enhanced"] = ref.digest
+        log.info("shot %s: enhanced -> %s", shot, ref.digest)
 
 
 def _check_rig(prod: Production, capture: str, record: Capture, log) -> None:

@@ -19,6 +19,7 @@ from prefect import flow
 from pydantic import BaseModel
 
 import tasks.calibrate as calibrate_tasks
+import tasks.enhance as enhance_tasks
 import tasks.ingest as ingest_tasks
 import tasks.production as production_tasks
 import tasks.reconstruct as reconstruct_tasks
@@ -36,7 +37,7 @@ from volcap_core.records import ArtifactRef
 from volcap_core.presets import named_preset
 from volcap_core.store import ArtifactStore
 
-TASK_MODULES = (ingest_tasks, calibrate_tasks, reconstruct_tasks, production_tasks)
+TASK_MODULES = (ingest_tasks, calibrate_tasks, reconstruct_tasks, production_tasks, enhance_tasks)
 STORE, ELSEWHERE = "file:///tmp/volcap-a", "s3://bucket/volcap-b"
 
 
@@ -56,7 +57,7 @@ def all_tasks() -> list:
 def test_every_task_family_is_found():
     names = {t.cache_policy.task_name for t in all_tasks()}
     assert {"ingest-camera", "calibrate-static", "dense-points-frame", "train-segment", "render-shot"} <= names
-    assert len(names) == 16
+    assert len(names) == 20
 
 
 # ---------------------------------------------------------------------------------------------
@@ -251,6 +252,49 @@ def test_reconstruction_keys():
     assert_key_behaviour(reconstruct_tasks.render_views, dict(segment=ref("a"), views=[view]),
                          misses={"time": {"views": [view.model_copy(update={"time_s": 0.6})]},
                                  "grids": {"grids_of": "S001"}}, hits={})
+
+
+def test_enhancer_keys():
+    from volcap_core.enhance.production import EnhanceSettings, PairDegradation
+
+    pairs = dict(capture=ref("a"), actor="anna", subsequences=2, subsequence_frames=4, camera_paths=2, resolution=128)
+    assert_key_behaviour(
+        enhance_tasks.face_pairs, pairs,
+        misses={"the capture": {"capture": ref("b")}, "the actor": {"actor": "ben"},
+                "sub-sequences": {"subsequences": 3}, "frames": {"subsequence_frames": 5},
+                "camera paths": {"camera_paths": 1}, "resolution": {"resolution": 64},
+                "the degradation": {"degradation": PairDegradation(scale=2)}},
+        hits={"the default degradation, spelled out": {"degradation": PairDegradation()}})
+    q = named_preset("test")
+    arch = q.enhancer_config()
+    assert_key_behaviour(
+        enhance_tasks.actor_prompt, dict(group="anna", config=arch),
+        misses={"the group": {"group": "ben"}, "the text": {"text": "a woman"},
+                "the architecture": {"config": arch.model_copy(update={"prompt_tokens": 9})},
+                "the encoders' content": {"encoders": "/w", "encoders_fingerprint": "blake3:1"}},
+        hits={"where the encoders are": {"encoders": "/elsewhere"}})
+    config = q.enhancer_train_config()
+    train = dict(pair_sets=[ref("a")], prompts={"anna": ref("b")}, config=config, architecture=arch)
+    assert_key_behaviour(
+        enhance_tasks.train_enhancer_task, train,
+        misses={"the pairs": {"pair_sets": [ref("a"), ref("c")]}, "a prompt": {"prompts": {"anna": ref("c")}},
+                "steps": {"config": config.model_copy(update={"steps": config.steps + 1})},
+                "VAE pre-training": {"config": config.model_copy(update={"vae_steps": config.vae_steps + 1})},
+                "the architecture": {"architecture": arch.model_copy(update={"train_crop": 32})},
+                "the seed": {"seed": 1},
+                "base weights": {"architecture": None, "base_weights": "/flux", "base_fingerprint": "blake3:1"}},
+        hits={"the same config rebuilt": {"config": named_preset("test").enhancer_train_config()},
+              "where the base weights are": {"base_weights": "/elsewhere"}})
+    settings = q.enhance_settings()
+    assert_key_behaviour(
+        enhance_tasks.enhance_shot, dict(frames=ref("a"), enhancer=ref("b"), group="anna", settings=settings),
+        misses={"the frames": {"frames": ref("c")}, "the enhancer": {"enhancer": ref("c")}, "the group": {"group": "ben"},
+                "sampling steps": {"settings": settings.model_copy(update={"steps": settings.steps + 1})},
+                "tiling": {"settings": settings.model_copy(update={"tile": 512})}},
+        hits={"the preset's settings rebuilt": {"settings": named_preset("test").enhance_settings()}})
+    assert enhance_tasks.enhance_shot.cache_policy.key(
+        {"store": STORE, "frames": ref("a"), "enhancer": ref("b"), "group": "anna", "settings": EnhanceSettings()}
+    ) == task_cache_key(enhance_tasks.enhance_shot, STORE, frames=ref("a"), enhancer=ref("b"), group="anna")
 
 
 def test_production_keys():

@@ -22,7 +22,7 @@ schedule to ``N`` steps instead (:meth:`QualityPreset.with_steps`). Table and ra
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -31,7 +31,8 @@ from volcap_core.splat.mcmc import MCMCConfig
 from volcap_core.splat.model import Poly4DGSConfig
 from volcap_core.splat.train import TrainConfig
 
-__all__ = ["DEGREES", "PRESETS", "TRAINING_FIELDS", "QualityPreset", "named_preset"]
+__all__ = ["DEGREES", "ENHANCER_TRAINING_FIELDS", "ENHANCING_FIELDS", "PRESETS", "TRAINING_FIELDS",
+           "QualityPreset", "named_preset"]
 
 #: Model degrees by name (paper Table 1 baselines).
 DEGREES = {"poly4dgs": Poly4DGSConfig.paper, "rotor4d": Poly4DGSConfig.rotor4d, "static": Poly4DGSConfig.static}
@@ -39,6 +40,13 @@ DEGREES = {"poly4dgs": Poly4DGSConfig.paper, "rotor4d": Poly4DGSConfig.rotor4d, 
 #: The preset fields that shape a segment's TrainConfig (a train-segment step carries them).
 TRAINING_FIELDS = ("train_steps", "grid_size", "eval_every", "eval_max_views", "checkpoint_every",
                    "refine_start", "refine_every", "refine_stop", "train_scale", "sh_degree")
+
+#: The preset fields that shape the enhancer's training (a train-enhancer step carries them).
+ENHANCER_TRAINING_FIELDS = ("enhancer_architecture", "enhancer_weights", "enhancer_steps", "enhancer_finetune",
+                            "enhancer_lora_rank", "enhancer_lr", "enhancer_batch", "enhancer_crop",
+                            "enhancer_vae_steps", "enhancer_checkpoint_every")
+#: The preset fields that shape a shot's enhancement (an enhance-shot step carries them).
+ENHANCING_FIELDS = ("enhancer_sampling_steps", "enhancer_tile", "enhancer_vae_tiling")
 
 _TRAIN = TrainConfig.model_fields
 _MCMC = MCMCConfig.model_fields
@@ -76,12 +84,31 @@ class QualityPreset(BaseModel):
     face_hq_gaussians_per_frame: int = Field(1_000_000, gt=0)
     face_lq_gaussians: tuple[int, int] = (50_000, 200_000)
     pair_resolution: int = Field(4096, gt=0, description="square LQ/HQ pair renders (px)")
-    enhancer_steps: int = Field(20_000, gt=0)
+    enhancer_steps: int = Field(20_000, gt=0, description="enhancer training steps")
+    # -- the detail enhancer (docs/enhancer.md)
+    enhancer_architecture: Literal["tiny", "flux-dev"] = Field(
+        "flux-dev", description="tiny: the CPU model, random weights; flux-dev: FLUX.1-dev from enhancer_weights")
+    enhancer_weights: str | None = Field(None, description="local FLUX.1 directory (transformer/, vae/, text "
+                                         "encoders optional); relative paths are relative to the spec file")
+    enhancer_finetune: Literal["lora", "full"] = "lora"
+    enhancer_lora_rank: int = Field(16, ge=1)
+    enhancer_lr: float = Field(1e-4, gt=0)
+    enhancer_batch: int = Field(1, ge=1)
+    enhancer_crop: int = Field(1024, ge=16, description="training crop side (px)")
+    enhancer_vae_steps: int = Field(0, ge=0, description="VAE pre-training steps (the tiny model's VAE is random)")
+    enhancer_checkpoint_every: int = Field(500, ge=0)
+    enhancer_sampling_steps: int = Field(28, ge=1, description="Euler steps per frame")
+    enhancer_tile: int | None = Field(1024, ge=16, description="latent tile (px, multiple of 16); null: whole frame")
+    enhancer_vae_tiling: bool = Field(True, description="the VAE's own tiling for large frames")
 
     @model_validator(mode="after")
     def _cap(self) -> "QualityPreset":
         if self.max_gaussians_per_segment is None and self.gpu_memory_gb is None:
             raise ValueError("set max_gaussians_per_segment or gpu_memory_gb (or both)")
+        if self.enhancer_tile is not None and self.enhancer_tile % 16:
+            raise ValueError(f"enhancer_tile must be a multiple of 16 px, got {self.enhancer_tile}")
+        if self.enhancer_crop % 16:
+            raise ValueError(f"enhancer_crop must be a multiple of 16 px, got {self.enhancer_crop}")
         lo, hi = self.face_lq_gaussians
         if not 0 < lo <= hi:
             raise ValueError(f"face_lq_gaussians must be 0 < low <= high, got {[lo, hi]}")
@@ -112,6 +139,39 @@ class QualityPreset(BaseModel):
     def training(self) -> dict[str, Any]:
         """The fields of :data:`TRAINING_FIELDS` by name."""
         return {name: getattr(self, name) for name in TRAINING_FIELDS}
+
+    def enhancer_training(self) -> dict[str, Any]:
+        """The fields of :data:`ENHANCER_TRAINING_FIELDS` by name."""
+        return {name: getattr(self, name) for name in ENHANCER_TRAINING_FIELDS}
+
+    def enhancing(self) -> dict[str, Any]:
+        """The fields of :data:`ENHANCING_FIELDS` by name."""
+        return {name: getattr(self, name) for name in ENHANCING_FIELDS}
+
+    def enhancer_config(self):
+        """The :class:`~volcap_core.enhance.model.EnhancerConfig` of the architecture (the tiny
+        model's training crop is the preset's)."""
+        from volcap_core.enhance.model import EnhancerConfig
+
+        if self.enhancer_architecture == "tiny":
+            return EnhancerConfig.tiny().model_copy(update={"train_crop": self.enhancer_crop})
+        return EnhancerConfig.flux_dev()
+
+    def enhancer_train_config(self):
+        """The :class:`~volcap_core.enhance.training.EnhancerTrainConfig` of the enhancer's training."""
+        from volcap_core.enhance.training import EnhancerTrainConfig
+
+        return EnhancerTrainConfig(steps=self.enhancer_steps, lr=self.enhancer_lr, batch=self.enhancer_batch,
+                                   crop=self.enhancer_crop, finetune=self.enhancer_finetune,
+                                   lora_rank=self.enhancer_lora_rank, vae_steps=self.enhancer_vae_steps,
+                                   checkpoint_every=self.enhancer_checkpoint_every)
+
+    def enhance_settings(self):
+        """The :class:`~volcap_core.enhance.production.EnhanceSettings` of a shot's enhancement."""
+        from volcap_core.enhance.production import EnhanceSettings
+
+        return EnhanceSettings(steps=self.enhancer_sampling_steps, tile=self.enhancer_tile,
+                               vae_tiling=self.enhancer_vae_tiling)
 
     def train_config(self, *, degrees: str = "poly4dgs", held_out: Sequence[str] = (),
                      max_gaussians: int | None = None, **overrides: Any) -> TrainConfig:
@@ -158,11 +218,14 @@ class QualityPreset(BaseModel):
                              max_length=self.max_segment_frames)
 
 
-#: Face Rig and enhancer sizes of the presets that run on a CPU (the enhancer half is not built
-#: yet: these only keep a plan of an enhanced shot small)
+#: Face Rig and enhancer sizes of the presets that run on a CPU: the tiny enhancer (random weights,
+#: its VAE pre-trained first), full fine-tuning on 64-px crops of 4 sequences of 128-px pairs, 4
+#: sampling steps over whole frames. What it costs: docs/enhancer.md ("Cost on a CPU")
 _CPU_FACE = dict(face_subsequences=2, face_subsequence_frames=4, face_camera_paths=2,
                  face_hq_gaussians_per_frame=2_000, face_lq_gaussians=(200, 500), pair_resolution=128,
-                 enhancer_steps=20)
+                 enhancer_architecture="tiny", enhancer_steps=20, enhancer_finetune="full", enhancer_lr=1e-3,
+                 enhancer_crop=64, enhancer_vae_steps=30, enhancer_checkpoint_every=10,
+                 enhancer_sampling_steps=4, enhancer_tile=None, enhancer_vae_tiling=False)
 
 PRESETS: dict[str, QualityPreset] = {
     # CI and laptops: 20 steps at full resolution, tiny segments. The reconstruct tests' measured
@@ -184,7 +247,8 @@ PRESETS: dict[str, QualityPreset] = {
                              gaussians_per_frame=20_000, gpu_memory_gb=24, max_segment_frames=48, overlap=2,
                              face_subsequences=12, face_camera_paths=12,
                              face_hq_gaussians_per_frame=250_000, face_lq_gaussians=(20_000, 50_000),
-                             pair_resolution=1024, enhancer_steps=2_000),
+                             pair_resolution=1024, enhancer_steps=2_000, enhancer_crop=512,
+                             enhancer_checkpoint_every=200),
     # final: the paper's settings and schedule, an 80 GB GPU per segment, at most 5 s (24 fps) per segment
     "production": QualityPreset(train_steps=30_000, gaussians_per_frame=100_000, gpu_memory_gb=80,
                                 max_segment_frames=120, overlap=3),

@@ -99,18 +99,18 @@ def test_production_runs_plans_and_explains(prefect_api, static_capture, tmp_pat
     assert gone["render-shot:orbit"].reason == "output missing from the store"
 
 
-def test_enhanced_shot_is_refused_before_anything_runs(prefect_api, static_capture, tmp_path):
+def test_an_enhanced_shot_is_planned_after_its_render_and_the_enhancer(prefect_api, static_capture, tmp_path):
+    """(It runs end to end in test_enhanced_shot.py.)"""
     store = ArtifactStore(str(tmp_path / "store")).url
     spec = yaml.safe_load(_write_spec(tmp_path / "spec.yaml", static_capture, store).read_text())
     spec["captures"]["face"] = {"folder": str(static_capture)}
     spec["actors"] = [{"name": "anna", "captures": ["demo"], "face_capture": "face"}]
     spec["shots"] = [_shot(name="cu", enhance=True)]
     (tmp_path / "spec.yaml").write_text(yaml.safe_dump(spec))
-    planned = plan_production(open_production(tmp_path / "spec.yaml"))
-    assert [p.reason for p in planned if p.step.kind == "enhance-shot"] == [
-        "not available in this version (the enhancer half)"]
-    with pytest.raises(ValueError, match="enhance-shot:cu.*enhancer"):
-        run_flow(production_flow, spec=str(tmp_path / "spec.yaml"))
+    planned = {p.step.id: p for p in plan_production(open_production(tmp_path / "spec.yaml"))}
+    assert planned["face-pairs:anna"].reason == "after ingest:face, which is to run"
+    assert planned["train-enhancer:anna"].reason == "after face-pairs:anna, which is to run"
+    assert planned["enhance-shot:cu"].reason == "after render-shot:cu, which is to run"
     assert not ArtifactStore(store).list_refs()
 
 

@@ -105,6 +105,8 @@ class ActorSpec(BaseModel):
     name: str = Field(pattern=NAME)
     captures: tuple[str, ...] = Field(min_length=1, description="scene captures the actor is in")
     face_capture: str | None = Field(None, description="Face Rig capture for the enhancer")
+    prompt: str | None = Field(None, description="the enhancer's text prompt for this actor's group "
+                               "(embedded once when the FLUX.1 text encoders are there; else zeros)")
 
 
 class ProductionSpec(BaseModel):
@@ -534,12 +536,15 @@ def needed_steps(spec: ProductionSpec, capture_info: Mapping[str, CaptureInfo], 
             pair_ids.append(pid)
         enhancer = "train-enhancer:" + "+".join(enhance_actors)
         steps.append(Step(kind="train-enhancer", id=enhancer, inputs=tuple(pair_ids),
-                          parameters={"actors": enhance_actors, "steps": q.enhancer_steps}))
+                          parameters={"actors": enhance_actors, "steps": q.enhancer_steps,
+                                      "prompts": {a: spec.actor(a).prompt for a in enhance_actors},
+                                      **q.enhancer_training()}))
         for shot in enhanced:
             steps.append(Step(kind="enhance-shot", id=f"enhance-shot:{shot.name}",
                               inputs=(f"render-shot:{shot.name}", enhancer),
                               parameters={"shot": shot.name,
-                                          "actors": [a.name for a in spec.shot_actors(shot)]}))
+                                          "actors": [a.name for a in spec.shot_actors(shot)],
+                                          **q.enhancing()}))
     _check_order(steps)
     return steps
 

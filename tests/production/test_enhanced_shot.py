@@ -1,0 +1,234 @@
+"""Enhanced shots in the production flow: face pairs, actor prompts, the enhancer, enhanced frames.
+
+The end-to-end test runs a tiny spec in one process: one capture of the demo rig's static cameras
+(four frames) that also stands for the actor's Face Rig capture (so its ingest and calibration are
+shared), two shots over it, one with ``enhance: true``; the tiny enhancer of the ``test`` preset.
+"""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+import OpenEXR
+import pytest
+import torch
+import yaml
+
+from flows.production import open_production, plan_production, production_flow
+from flows.runtime import run_flow
+from volcap_core.enhance.production import (EnhanceSettings, EnhancerModel, FacePairSet, decode_pair_sequence,
+                                            encode_enhanced_frame, encode_pair_sequence, enhance_shot_frames,
+                                            face_windows, read_shot_frame, square_window)
+from volcap_core.store import ArtifactStore
+from volcap_core.synth import synthesize_capture
+
+STATIC = [f"S00{i}" for i in range(8)]
+
+
+def _exr(data: bytes) -> tuple[dict, np.ndarray]:
+    f = OpenEXR.File(io.BytesIO(data))
+    return dict(f.header()), f.channels()["RGBA"].pixels
+
+
+def _shot(**kw):
+    shot = {"name": "orbit", "performance": "demo", "frames": [0, 4], "fps": 24, "resolution": [64, 36],
+            "sensor_mm": 36,
+            "keyframes": [{"frame": 0, "position": [5.0, -2.0, 1.8], "look_at": [0.0, 0.0, 1.0], "focal_mm": 24},
+                          {"frame": 3, "position": [5.0, 2.0, 1.8], "look_at": [0.0, 0.0, 1.0], "focal_mm": 28}]}
+    shot.update(kw)
+    return shot
+
+
+# ---------------------------------------------------------------------------------------------
+# Fast: the pair-set artifact, the windows, the EXR
+
+
+def test_a_pair_sequence_round_trips_as_half_float_with_its_group():
+    g = torch.Generator().manual_seed(0)
+    lq, hq = torch.rand(3, 4, 16, 24, generator=g), torch.rand(3, 4, 16, 24, generator=g) * 3
+    flow = torch.randn(2, 2, 16, 24, generator=g)
+    data = encode_pair_sequence(lq, hq, flow, {"camera": "F001"})
+    assert data == encode_pair_sequence(lq, hq, flow, {"camera": "F001"})     # same tensors, same bytes
+    ps = decode_pair_sequence(data, "anna/w000-F001", group="anna")
+    assert ps.lq.dtype == torch.float32 and ps.lq.shape == (3, 4, 16, 24) and ps.name == "anna/w000-F001"
+    assert torch.equal(ps.lq, lq.half().float()) and torch.equal(ps.hq, hq.half().float())
+    assert torch.equal(ps.flow, flow) and ps.group == "anna"
+    assert decode_pair_sequence(encode_pair_sequence(lq, hq)).flow is None
+    with pytest.raises(ValueError, match="not a pair sequence"):
+        from volcap_core.splat.model import safetensors_bytes
+
+        decode_pair_sequence(safetensors_bytes({"x": lq}, {"format": "other"}))
+
+
+def test_face_windows_spread_over_the_take_and_square_crops_follow_the_performer():
+    assert face_windows(20, 3, 4) == [[0, 1, 2, 3], [8, 9, 10, 11], [16, 17, 18, 19]]
+    assert face_windows(4, 2, 4) == [[0, 1, 2, 3]]           # one window fits: no duplicate
+    assert face_windows(3, 2, 8) == [[0, 1, 2]]              # a short take: all of it
+    alpha = np.zeros((40, 100), np.float32)
+    alpha[10:20, 80:90] = 1.0
+    assert square_window(alpha) == (0, 60, 40)               # centred on the performer, inside the frame
+    assert square_window(np.zeros((40, 100), np.float32)) == (0, 30, 40)
+
+
+def _shot_frame(rgba: np.ndarray, window=(2, 3, 9, 7)) -> bytes:
+    """A frame as render-shot writes it: a cropped data window, metadata of every type."""
+    x0, y0, x1, y1 = window
+    h, w = rgba.shape[:2]
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
+              "dataWindow": (np.array([x0, y0], np.int32), np.array([x1, y1], np.int32)),
+              "displayWindow": (np.array([0, 0], np.int32), np.array([w - 1, h - 1], np.int32)),
+              "volcap.shot": "cu", "volcap.frame": 3, "volcap.time": np.array([0.125]),
+              "volcap.K": np.eye(3), "volcap.empty": 0}
+    crop = rgba[y0:y1 + 1, x0:x1 + 1].astype(np.float16)
+    buf = io.BytesIO()
+    OpenEXR.File(header, {c: np.ascontiguousarray(crop[..., i]) for i, c in enumerate("RGBA")}).write(buf)
+    return buf.getvalue()
+
+
+def test_an_enhanced_frame_keeps_the_render_header_and_crop():
+    rgba = np.zeros((12, 16, 4), np.float32)
+    rgba[3:8, 2:10] = [0.5, 0.25, 0.125, 1.0]
+    header, full = read_shot_frame(_shot_frame(rgba))
+    assert full.shape == (12, 16, 4) and np.array_equal(full, rgba)       # placed in the display window
+    out = encode_enhanced_frame(full * 2, header, {"volcap.enhanced": 1, "volcap.enhancer": "blake3:x",
+                                                   "volcap.gain": 0.5})
+    h2, px = _exr(out)
+    assert px.dtype == np.float16 and px.shape == (5, 8, 4)
+    assert np.array_equal(px.astype(np.float32), (rgba * 2)[3:8, 2:10])
+    assert [tuple(v) for v in h2["dataWindow"]] == [(2, 3), (9, 7)]
+    assert h2["volcap.shot"] == "cu" and h2["volcap.frame"] == 3 and float(h2["volcap.time"][0]) == 0.125
+    assert np.array_equal(h2["volcap.K"], np.eye(3)) and h2["volcap.enhanced"] == 1
+    assert h2["volcap.enhancer"] == "blake3:x" and float(h2["volcap.gain"][0]) == 0.5
+    with pytest.raises(ValueError, match="display window"):
+        encode_enhanced_frame(full[:4], header, {})
+
+
+def test_shot_frames_are_enhanced_in_order_with_alpha_in_range():
+    from volcap_core.enhance.model import EnhancerConfig, build_enhancer
+
+    model = build_enhancer(EnhancerConfig.tiny(), seed=0)
+    frames = []
+    for t in range(3):
+        rgba = np.zeros((20, 24, 4), np.float32)
+        rgba[4 + t:14 + t, 5:15] = [0.4, 0.3, 0.2, 1.0]
+        frames.append((f"{t:06d}.exr", _shot_frame(rgba, (3, 2, 18, 17))))
+    settings = EnhanceSettings(steps=2, tile=None, vae_tiling=False)
+    out = list(enhance_shot_frames(model, frames, settings, group="anna", model_digest="blake3:m"))
+    assert [n for n, _ in out] == [n for n, _ in frames]
+    for t, (_, data) in enumerate(out):
+        header, px = _exr(data)
+        a = px[..., 3].astype(np.float32)
+        assert np.isfinite(px.astype(np.float32)).all() and a.min() >= 0 and a.max() <= 1
+        assert px[..., :3].min() >= 0
+        assert header["volcap.enhanceSeed"] == t and header["volcap.lqFrame"] == f"{t:06d}.exr"
+    again = list(enhance_shot_frames(model, frames, settings, group="anna", model_digest="blake3:m"))
+    assert again == out                                                # deterministic
+
+
+# ---------------------------------------------------------------------------------------------
+# End to end
+
+
+@pytest.fixture(scope="module")
+def static_capture(tmp_path_factory):
+    root = tmp_path_factory.mktemp("enh")
+    return synthesize_capture(root / "cap", rig="demo_scene", seed=0, frames=4, supersample=1,
+                              cameras=STATIC).parent
+
+
+def _spec(path, capture, store, **quality):
+    spec = {"format": "volcap-production/1", "name": "enh-test", "store": store,
+            "quality": {"preset": "test", "max_segment_frames": 4, "overlap": 1, "train_steps": 10,
+                        "train_scale": 0.5, "sh_degree": 0, **quality},
+            "captures": {"demo": {"folder": str(capture)}, "face": {"folder": str(capture)}},
+            "actors": [{"name": "anna", "captures": ["demo"], "face_capture": "face"}],
+            "shots": [_shot(name="wide"), _shot(name="cu", enhance=True)]}
+    path.write_text(yaml.safe_dump(spec, sort_keys=False))
+    return path
+
+
+def test_a_flux_enhancer_without_its_weights_is_refused_before_anything_runs(prefect_api, static_capture,
+                                                                              tmp_path):
+    store = ArtifactStore(str(tmp_path / "store")).url
+    spec = _spec(tmp_path / "spec.yaml", static_capture, store, enhancer_architecture="flux-dev",
+                 enhancer_weights=str(tmp_path / "no-flux"))
+    with pytest.raises(ValueError, match=r"enhancer_weights .*no-flux: no such directory"):
+        open_production(spec)
+    with pytest.raises(ValueError, match="enhancer_weights"):
+        run_flow(production_flow, spec=str(spec))
+    assert not ArtifactStore(store).list_refs()
+    # without an enhanced shot the weights do not matter
+    only_wide = open_production(spec, shots=["wide"])
+    assert not {"face-pairs", "train-enhancer", "enhance-shot"} & {st.kind for st in only_wide.steps}
+
+
+def test_volcap_plan_names_a_missing_flux_directory_in_one_line(static_capture, tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    spec = _spec(tmp_path / "spec.yaml", static_capture, str(tmp_path / "store"),
+                 enhancer_architecture="flux-dev", enhancer_weights="weights/FLUX.1-dev")
+    res = subprocess.run([sys.executable, "-m", "flows.cli", "plan", str(spec)], capture_output=True, text=True,
+                         cwd=Path(__file__).resolve().parents[2], timeout=600)
+    lines = [line for line in res.stderr.splitlines() if line.strip()]
+    assert res.returncode == 1 and len(lines) == 1, res.stderr[-3000:]
+    assert lines[0] == (f"volcap: error: {spec}: quality.enhancer_weights {tmp_path / 'weights/FLUX.1-dev'}: no "
+                        "such directory (a local FLUX.1 checkpoint directory with transformer/ and vae/; "
+                        "docs/enhancer.md)")
+
+
+@pytest.mark.slow
+def test_an_enhanced_shot_runs_end_to_end_and_reruns_cached(prefect_api, static_capture, tmp_path):
+    store = ArtifactStore(str(tmp_path / "store")).url
+    spec = _spec(tmp_path / "spec.yaml", static_capture, store)
+
+    before = {p.step.id: p for p in plan_production(open_production(spec))}
+    assert [k for k in before if k.split(":")[0] in ("face-pairs", "train-enhancer", "enhance-shot")] == [
+        "face-pairs:anna", "train-enhancer:anna", "enhance-shot:cu"]
+    assert before["enhance-shot:cu"].reason == "after render-shot:cu, which is to run"
+    assert "enhance-shot:wide" not in before
+
+    first = run_flow(production_flow, spec=str(spec))
+    out = first.result
+    assert first.tasks_failed == 0
+    s = ArtifactStore(store)
+    assert set(out["shots"]) == {"wide", "cu"} and "enhanced" not in out["shots"]["wide"]
+    assert s.get_ref("productions/enh-test/enhanced/cu").digest == out["shots"]["cu"]["enhanced"]
+    lq_tree = s.get_tree(out["shots"]["cu"]["frames"])
+    enh_tree = s.get_tree(out["shots"]["cu"]["enhanced"])
+    assert sorted(enh_tree) == sorted(lq_tree) == [f"{f:06d}.exr" for f in range(4)]
+    model = s.get_record(out["steps"]["train-enhancer:anna"]["enhancer"], EnhancerModel)
+    assert model.steps == 20 and model.groups == ("anna",) and len(model.losses) == 20
+    pairs = s.get_record(out["steps"]["face-pairs:anna"]["pairs"], FacePairSet)
+    q = open_production(spec).spec.quality_preset()
+    # the plan's face-pairs parameters: windows x cameras, frames per window, square resolution
+    assert len(pairs.sequences) == q.face_camera_paths * 1          # a 4-frame take holds one 4-frame window
+    assert {(sq.width, sq.height, len(sq.frames)) for sq in pairs.sequences} == {(128, 128, 4)}
+    assert "interim" in pairs.method
+    for name in sorted(lq_tree):
+        lq_header, lq_px = _exr(s.get_bytes(lq_tree[name].digest))
+        header, px = _exr(s.get_bytes(enh_tree[name].digest))
+        assert px.dtype == np.float16 and px.shape == lq_px.shape
+        a = px[..., 3].astype(np.float32)
+        assert np.isfinite(px.astype(np.float32)).all() and 0 <= a.min() and a.max() <= 1
+        for key, value in lq_header.items():                       # the shot's metadata, untouched
+            if key.startswith("volcap.") or key in ("dataWindow", "displayWindow", "worldToCamera"):
+                assert np.array_equal(np.asarray(header[key]), np.asarray(value)), key
+        assert header["volcap.enhanced"] == 1 and header["volcap.enhancer"] == model.model.digest
+    # the un-enhanced shot is the render alone: no enhancement ran on it
+    assert out["steps"]["render-shot:wide"]["frames"] == out["shots"]["wide"]["frames"]
+    assert "enhance-shot:wide" not in out["steps"]
+    assert [r for r in s.list_refs() if r.startswith("productions/enh-test/enhanced/")] == [
+        "productions/enh-test/enhanced/cu"]
+
+    again = run_flow(production_flow, spec=str(spec))
+    assert again.tasks_run == 0 and again.result["steps"] == out["steps"]
+    assert {p.status for p in plan_production(open_production(spec))} == {"cached"}
+
+    # a sampling change re-runs only the enhancement, and the plan says why
+    spec2 = _spec(tmp_path / "spec2.yaml", static_capture, store, enhancer_sampling_steps=3)
+    changed = {p.step.id: p for p in plan_production(open_production(spec2))}
+    assert changed["train-enhancer:anna"].status == "cached"
+    assert changed["enhance-shot:cu"].reason == "parameter enhancer_sampling_steps changed"

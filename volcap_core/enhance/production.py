@@ -1,0 +1,409 @@
+"""The Detail Enhancer in a production: stored pair sets, face pairs from an ingested capture,
+stored enhancers and enhanced shot frames.
+
+What the ``face-pairs``, ``actor-prompt``, ``train-enhancer`` and ``enhance-shot`` tasks
+(``tasks/enhance.py``) call. Bytes move through ``get_bytes(ref)`` / ``put_bytes(data, media)``
+callables, so nothing here touches a store or Prefect.
+
+**Interim pairs.** Until the Face Rig pair dataset lands (LQ/HQ Poly4DGS renders of each actor's
+Face Rig capture along camera paths), an actor's pairs are made from the actor's *ingested* Face
+Rig capture frames (:func:`face_pairs_from_capture`): HQ = the frames (RGB premultiplied by the
+ground-truth performer coverage where the capture has it), LQ =
+:func:`~volcap_core.enhance.pairs.make_degraded_pairs` of them. The plan's face-pairs parameters
+are honoured this way: ``subsequences`` windows of ``subsequence_frames`` consecutive take frames,
+spread evenly over the take; ``camera_paths`` cameras per window (real cameras stand for the
+rendered camera paths; consecutive windows take the next cameras, so every camera is used); each
+frame cropped to the largest square centred on the performer and resized to ``resolution`` px.
+The LQ/HQ Gaussian budgets of the plan (``lq_gaussians``, ``hq_gaussians_per_frame``) have no
+meaning for degraded frames and are only recorded.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import zlib
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from pydantic import BaseModel, ConfigDict, Field
+
+from volcap_core.records import ArtifactRef, Record
+
+__all__ = [
+    "ENHANCED_FRAME_ATTRIBUTES",
+    "EnhanceSettings",
+    "EnhancerModel",
+    "FacePairSet",
+    "PairDegradation",
+    "PairSequence",
+    "check_flux_directory",
+    "decode_pair_sequence",
+    "directory_fingerprint",
+    "encode_enhanced_frame",
+    "encode_pair_sequence",
+    "enhance_shot_frames",
+    "face_pairs_from_capture",
+    "face_windows",
+    "has_text_encoders",
+    "load_pair_sets",
+    "read_shot_frame",
+    "square_window",
+]
+
+PAIR_SEQUENCE_FORMAT = "volcap-pair-sequence/1"
+GetBytes = Callable[[ArtifactRef], bytes]
+PutBytes = Callable[[bytes, str], ArtifactRef]
+
+
+# ------------------------------------------------------------------------------------ records
+
+
+class PairDegradation(BaseModel):
+    """The interim LQ: :func:`~volcap_core.enhance.pairs.make_degraded_pairs`'s settings."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    scale: int = Field(4, ge=1)
+    blur_sigma: float = Field(0.6, ge=0)
+    noise_sigma: float = Field(0.03, ge=0)
+    splat_sigma: float = Field(1.0, ge=0)
+    seed: int = 0
+
+
+class PairSequence(BaseModel):
+    """One stored LQ/HQ sequence of a :class:`FacePairSet`: ``data`` holds ``lq`` and ``hq``
+    ``[T, 4, H, W]`` half float (and ``flow [T-1, 2, H, W]`` float32 when exact flow exists)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    name: str
+    camera: str
+    frames: tuple[int, ...]
+    width: int
+    height: int
+    data: ArtifactRef
+
+
+class FacePairSet(Record):
+    """An actor's LQ/HQ pair sequences (the ``face-pairs`` task's output)."""
+
+    kind: ClassVar[str] = "face-pair-set"
+    actor: str
+    #: the prompt group the pairs train (the actor's name)
+    group: str
+    capture: ArtifactRef
+    #: how the pairs were made ("degraded capture frames (interim)" until the pair dataset lands)
+    method: str
+    parameters: dict[str, Any]
+    sequences: tuple[PairSequence, ...]
+
+
+class EnhancerModel(Record):
+    """A trained enhancer (the ``train-enhancer`` task's output): the weights
+    (:func:`~volcap_core.enhance.model.enhancer_to_bytes`) and how they were trained."""
+
+    kind: ClassVar[str] = "enhancer-model"
+    model: ArtifactRef
+    config: dict[str, Any]
+    train_config: dict[str, Any]
+    groups: tuple[str, ...]
+    pair_sets: tuple[ArtifactRef, ...]
+    steps: int
+    wall_s: float
+    losses: tuple[float, ...]
+    base: str = Field(description="'random' or the base weights' fingerprint")
+
+
+class EnhanceSettings(BaseModel):
+    """How a shot is enhanced (the ``enhance-shot`` task's settings; part of its key).
+
+    ``steps``: Euler sampling steps; ``seed``: frame ``t`` is sampled from noise seeded ``seed + t``;
+    ``tile``/``overlap``: latent tiling in px (None: the whole frame in one pass);
+    ``vae_tiling``: the VAE's own tiling for frames larger than its tile (needed at 4K, a waste on
+    small frames with the tiny model, whose VAE tile is 64 px); ``flow``: ``dis`` (OpenCV DIS
+    between consecutive LQ frames; the shot renderer gives no exact flow yet) or ``zero``;
+    ``temporal``/``lowfreq_swap``: the ablation switches of :func:`~volcap_core.enhance.inference.enhance_frame`."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    steps: int = Field(28, ge=1)
+    seed: int = 0
+    tile: int | None = Field(1024, ge=16)
+    overlap: int | None = Field(None, ge=0)
+    vae_tiling: bool = True
+    flow: Literal["dis", "zero"] = "dis"
+    temporal: bool = True
+    lowfreq_swap: bool = True
+
+
+# ------------------------------------------------------------------------- pair-set artifacts
+
+
+def encode_pair_sequence(lq: torch.Tensor, hq: torch.Tensor, flow: torch.Tensor | None = None,
+                         meta: Mapping[str, Any] | None = None) -> bytes:
+    """Safetensors bytes of one pair sequence: ``lq``, ``hq`` ``[T, 4, H, W]`` as half float
+    (finite values clamped to +-65504, as the EXRs are), ``flow`` float32; ``meta`` (JSON) in
+    the metadata. Same tensors, same bytes."""
+    from volcap_core.splat.model import safetensors_bytes
+
+    def half(x: torch.Tensor) -> torch.Tensor:
+        return x.detach().float().clamp(-65504.0, 65504.0).half().contiguous().cpu()
+
+    if lq.ndim != 4 or lq.shape[1] != 4 or hq.shape != lq.shape:
+        raise ValueError(f"lq and hq must be [T, 4, H, W] of one shape, got {tuple(lq.shape)}, {tuple(hq.shape)}")
+    tensors = {"lq": half(lq), "hq": half(hq)}
+    if flow is not None:
+        tensors["flow"] = flow.detach().float().contiguous().cpu()
+    return safetensors_bytes(tensors, {"format": PAIR_SEQUENCE_FORMAT,
+                                       "meta": json.dumps(dict(meta or {}), sort_keys=True)})
+
+
+def decode_pair_sequence(data: bytes, name: str = "", group: str | None = None):
+    """Inverse of :func:`encode_pair_sequence`: a :class:`~volcap_core.enhance.pairs.PairSet`
+    (float32 tensors) with ``group`` set (the prompt group training reads)."""
+    from safetensors.torch import load as st_load
+
+    from volcap_core.enhance.pairs import PairSet
+    from volcap_core.splat.model import _safetensors_metadata
+
+    meta = _safetensors_metadata(data)
+    if meta.get("format") != PAIR_SEQUENCE_FORMAT:
+        raise ValueError(f"not a pair sequence (format {meta.get('format')!r})")
+    t = st_load(data)
+    ps = PairSet(lq=t["lq"].float(), hq=t["hq"].float(), flow=t["flow"].float() if "flow" in t else None,
+                 name=name)
+    if group is not None:
+        ps.group = group  # read by training (getattr(seq, "group")); PairSet is not slotted
+    return ps
+
+
+def load_pair_sets(sets: Iterable[FacePairSet], get_bytes: GetBytes) -> list:
+    """Every sequence of ``sets`` as :class:`~volcap_core.enhance.pairs.PairSet` s, each carrying
+    its set's prompt group, in order."""
+    return [decode_pair_sequence(get_bytes(seq.data), f"{s.actor}/{seq.name}", s.group)
+            for s in sets for seq in s.sequences]
+
+
+# -------------------------------------------------------------------------- interim face pairs
+
+
+def face_windows(frame_count: int, subsequences: int, frames: int) -> list[list[int]]:
+    """``subsequences`` windows of ``frames`` consecutive take indices spread evenly over a take of
+    ``frame_count`` frames (first window at 0, last flush with the end; duplicates dropped). A
+    take shorter than ``frames``: one window of the whole take."""
+    n = min(frames, frame_count)
+    last = frame_count - n
+    starts = sorted({round(i * last / (subsequences - 1)) if subsequences > 1 else 0 for i in range(subsequences)})
+    return [list(range(s, s + n)) for s in starts]
+
+
+def square_window(alpha: np.ndarray) -> tuple[int, int, int]:
+    """``(y0, x0, side)`` of the largest square of an ``[H, W]`` frame centred (as far as the frame
+    allows) on the centre of the bounding box of ``alpha > 0.5``; the frame's centre without one."""
+    h, w = alpha.shape
+    side = min(h, w)
+    mask = alpha > 0.5
+    if mask.any():
+        ys, xs = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+        cy, cx = (ys[0] + ys[-1]) / 2.0, (xs[0] + xs[-1]) / 2.0
+    else:
+        cy, cx = (h - 1) / 2.0, (w - 1) / 2.0
+    y0 = int(min(max(round(cy - (side - 1) / 2.0), 0), h - side))
+    x0 = int(min(max(round(cx - (side - 1) / 2.0), 0), w - side))
+    return y0, x0, side
+
+
+def face_pairs_from_capture(capture, get_bytes: GetBytes, *, subsequences: int, subsequence_frames: int,
+                            camera_paths: int, resolution: int, degradation: PairDegradation,
+                            load_mask: Callable[[str, int], np.ndarray | None] | None = None
+                            ) -> list[tuple[str, str, list[int], Any]]:
+    """Interim LQ/HQ pairs of an ingested Face Rig capture (module docstring): a list of
+    ``(name, camera, take indices, PairSet)``, ``name`` = ``w<window>-<camera>``.
+
+    ``capture``: a :class:`~volcap_core.capture.Capture` record; ``load_mask(camera, take index)``:
+    the performer coverage (synthetic captures' ground truth) or None: then the frame's own alpha
+    channel, else 1. The square crop of a window's frames is fixed by its first frame (so the
+    sequence does not jump). Degradation noise is seeded by ``degradation.seed``, the window and
+    the camera."""
+    from volcap_core import imageio
+    from volcap_core.enhance.pairs import make_degraded_pairs
+
+    cams = list(capture.cameras)
+    if not cams:
+        raise ValueError(f"capture {capture.name} has no cameras")
+    windows = face_windows(capture.frame_count, subsequences, subsequence_frames)
+    per_window = min(camera_paths, len(cams))
+    out = []
+    for wi, take in enumerate(windows):
+        for k in range(per_window):
+            cam = cams[(wi * per_window + k) % len(cams)]
+            frames = []
+            for f in take:
+                pixels, channels = imageio.decode_exr(get_bytes(cam.frames[f]), name=f"{cam.id}/{f}")
+                rgb = np.asarray(pixels[..., :3], np.float32)
+                alpha = load_mask(cam.id, f) if load_mask is not None else None
+                if alpha is None:
+                    alpha = (np.clip(pixels[..., 3], 0.0, 1.0) if len(channels) > 3
+                             else np.ones(rgb.shape[:2], np.float32))
+                if alpha.shape != rgb.shape[:2]:
+                    raise ValueError(f"camera {cam.id} frame {f}: mask {alpha.shape} vs frame {rgb.shape[:2]}")
+                frames.append(np.concatenate([rgb * alpha[..., None], alpha[..., None]], axis=2))
+            y0, x0, side = square_window(frames[0][..., 3])
+            x = torch.from_numpy(np.stack([fr[y0:y0 + side, x0:x0 + side] for fr in frames])).permute(0, 3, 1, 2)
+            x = x.float().contiguous()
+            if side != resolution:
+                x = F.interpolate(x, size=(resolution, resolution), mode="bilinear", antialias=side > resolution,
+                                  align_corners=False)
+                x = torch.cat([x[:, :3].clamp(min=0.0), x[:, 3:].clamp(0.0, 1.0)], dim=1)
+            name = f"w{wi:03d}-{cam.id}"
+            seed = zlib.crc32(f"{degradation.seed}/{name}".encode())
+            pairs = make_degraded_pairs(x, degradation.scale, degradation.blur_sigma, seed,
+                                        noise_sigma=degradation.noise_sigma, splat_sigma=degradation.splat_sigma,
+                                        name=name)
+            out.append((name, cam.id, take, pairs))
+    return out
+
+
+# ---------------------------------------------------------------------------- shot frames (EXR)
+
+#: what an enhanced frame's header adds to the render-shot frame's (docs/enhancer.md)
+ENHANCED_FRAME_ATTRIBUTES = ("volcap.enhanced", "volcap.enhancer", "volcap.enhanceSteps", "volcap.enhanceSeed",
+                             "volcap.lqFrame")
+
+
+def read_shot_frame(data: bytes) -> tuple[dict[str, Any], np.ndarray]:
+    """A render-shot frame (cropped half RGBA EXR) as ``(header, rgba [H, W, 4] float32)`` over
+    its whole display window (zeros outside the data window: the render is premultiplied over
+    nothing there)."""
+    import OpenEXR
+
+    f = OpenEXR.File(io.BytesIO(bytes(data)))
+    header = dict(f.header())
+    channels = f.channels()
+    plane = channels.get("RGBA")
+    if plane is None:
+        planes = [channels.get(c) for c in "RGBA"]
+        if any(p is None for p in planes):
+            raise ValueError(f"not an RGBA frame (channels {', '.join(channels)})")
+        pixels = np.stack([p.pixels for p in planes], axis=-1)
+    else:
+        pixels = plane.pixels
+    (dx0, dy0), (dx1, dy1) = (tuple(int(v) for v in p) for p in header["displayWindow"])
+    (x0, y0), (x1, y1) = (tuple(int(v) for v in p) for p in header["dataWindow"])
+    full = np.zeros((dy1 - dy0 + 1, dx1 - dx0 + 1, 4), np.float32)
+    full[y0 - dy0:y1 - dy0 + 1, x0 - dx0:x1 - dx0 + 1] = np.asarray(pixels, np.float32)
+    return header, full
+
+
+def encode_enhanced_frame(rgba: np.ndarray, header: Mapping[str, Any],
+                          attributes: Mapping[str, str | int | float]) -> bytes:
+    """Half-float RGBA EXR of an enhanced shot frame: ``rgba [H, W, 4]`` over the display window
+    of the render-shot frame whose ``header`` it keeps whole (every ``volcap.*`` attribute, the
+    camera, chromaticities, compression, the data window: the crop stays the render's), plus
+    ``attributes`` (``volcap.enhanced`` ...; a float is written as a double)."""
+    import OpenEXR
+
+    px = np.asarray(rgba, np.float32)
+    (dx0, dy0), (dx1, dy1) = (tuple(int(v) for v in p) for p in header["displayWindow"])
+    if px.shape != (dy1 - dy0 + 1, dx1 - dx0 + 1, 4):
+        raise ValueError(f"rgba {px.shape} does not match the display window {dx1 - dx0 + 1}x{dy1 - dy0 + 1}")
+    (x0, y0), (x1, y1) = (tuple(int(v) for v in p) for p in header["dataWindow"])
+    half = np.clip(np.nan_to_num(px, nan=0.0), -65504.0, 65504.0).astype(np.float16)
+    crop = half[y0 - dy0:y1 - dy0 + 1, x0 - dx0:x1 - dx0 + 1]
+    skip = {"channels", "chunkCount", "version", "name", "type"}
+    out_header: dict[str, Any] = {k: v for k, v in header.items() if k not in skip}
+    out_header["type"] = OpenEXR.scanlineimage
+    for key, value in attributes.items():
+        out_header[key] = np.array([value], dtype=np.float64) if isinstance(value, float) else value
+    planes = {c: np.ascontiguousarray(crop[..., i]) for i, c in enumerate("RGBA")}
+    buf = io.BytesIO()
+    OpenEXR.File(out_header, planes).write(buf)
+    return buf.getvalue()
+
+
+def enhance_shot_frames(model, frames: Sequence[tuple[str, bytes]] | Iterable[tuple[str, bytes]],
+                        settings: EnhanceSettings, *, group: str, model_digest: str,
+                        progress: Callable[[int, str], None] | None = None) -> Iterator[tuple[str, bytes]]:
+    """Enhance a shot's render-shot frames **in order** (each frame is conditioned on the previous
+    one's output): yields ``(name, EXR bytes)`` per input ``(name, EXR bytes)``.
+
+    Frame ``t`` is :func:`~volcap_core.enhance.inference.enhance_frame` of the LQ frame over its
+    display window, conditioned on output ``t-1`` warped by the flow between LQ ``t-1`` and ``t``
+    (OpenCV DIS; none for the first frame), noise seeded ``settings.seed + t``. Output RGB is
+    clamped to >= 0 (it is premultiplied, as the render is), alpha is in [0, 1]. An empty frame
+    (``volcap.empty``: nothing in view) stays empty and restarts the temporal chain.
+    Only one frame and its predecessor are held in memory."""
+    from volcap_core.enhance.inference import enhance_frame
+    from volcap_core.enhance.temporal import DisFlow
+
+    flow = DisFlow() if settings.flow == "dis" and settings.temporal else None
+    prev_out = prev_lq = None
+    for t, (name, data) in enumerate(frames):
+        header, lq_np = read_shot_frame(data)
+        lq = torch.from_numpy(lq_np).permute(2, 0, 1).contiguous()
+        if int(header.get("volcap.empty", 0)):
+            out = lq.clone()
+            prev_out = prev_lq = None
+        else:
+            out = enhance_frame(model, lq, prev_out, prev_lq if prev_out is not None else None,
+                                flow if prev_out is not None else None,
+                                steps=settings.steps, seed=settings.seed + t, tile=settings.tile,
+                                overlap=settings.overlap, group=group, temporal=settings.temporal,
+                                lowfreq_swap=settings.lowfreq_swap, vae_tiling=settings.vae_tiling)
+            out = torch.cat([out[:3].clamp(min=0.0), out[3:].clamp(0.0, 1.0)])
+            prev_out, prev_lq = out, lq
+        attrs = {"volcap.enhanced": 1, "volcap.enhancer": model_digest, "volcap.enhanceSteps": settings.steps,
+                 "volcap.enhanceSeed": settings.seed + t, "volcap.lqFrame": name}
+        yield name, encode_enhanced_frame(out.permute(1, 2, 0).numpy(), header, attrs)
+        if progress is not None:
+            progress(t + 1, name)
+
+
+# ------------------------------------------------------------------------------ local weights
+
+
+def directory_fingerprint(path) -> str:
+    """What pins a local weights directory's content in a cache key without reading its gigabytes:
+    the BLAKE3 of every file's relative path, size and mtime (ns), sorted (the stat fingerprint
+    ``fingerprint-camera`` uses for raw footage). Raises ``FileNotFoundError`` for a missing
+    directory."""
+    from pathlib import Path
+
+    from volcap_core.digest import digest_bytes
+
+    root = Path(path)
+    if not root.is_dir():
+        raise FileNotFoundError(f"{root}: no such directory")
+    rows = []
+    for p in sorted(root.rglob("*")):
+        if p.is_file():
+            st = p.stat()
+            rows.append([p.relative_to(root).as_posix(), st.st_size, st.st_mtime_ns])
+    return digest_bytes(json.dumps(rows, separators=(",", ":")).encode())
+
+
+def check_flux_directory(path) -> None:
+    """A FLUX.1 directory must hold ``transformer/`` and ``vae/`` (``FileNotFoundError`` naming
+    what is missing): checked before anything runs."""
+    from pathlib import Path
+
+    root = Path(path)
+    if not root.is_dir():
+        raise FileNotFoundError(f"enhancer_weights {root}: no such directory (a local FLUX.1 checkpoint "
+                                "directory with transformer/ and vae/; docs/enhancer.md)")
+    missing = [d for d in ("transformer", "vae") if not (root / d).is_dir()]
+    if missing:
+        raise FileNotFoundError(f"enhancer_weights {root}: no {' or '.join(d + '/' for d in missing)} "
+                                "subfolder (a local FLUX.1 checkpoint directory; docs/enhancer.md)")
+
+
+def has_text_encoders(path) -> bool:
+    """Whether a FLUX.1 directory holds the text encoders :func:`~volcap_core.enhance.model.encode_prompt`
+    needs and ``transformers`` is installed."""
+    import importlib.util
+    from pathlib import Path
+
+    root = Path(path)
+    return (importlib.util.find_spec("transformers") is not None
+            and all((root / d).is_dir() for d in ("tokenizer", "text_encoder", "tokenizer_2", "text_encoder_2")))
