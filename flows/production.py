@@ -153,7 +153,8 @@ class Production:
         if q.enhancer_architecture == "flux-dev" and weights is None:
             raise ValueError(f"{where}: enhanced shots with enhancer_architecture flux-dev need "
                              "quality.enhancer_weights: a local FLUX.1-dev directory (docs/enhancer.md), or "
-                             "enhancer_architecture: tiny (random weights, for tests and the demo)")
+                             "enhancer_architecture: tiny or small (CPU models with random weights, trained from "
+                             "scratch: tests, the demo, the benchmark)")
         if weights is not None:
             if q.enhancer_architecture != "flux-dev":
                 raise ValueError(f"{where}: quality.enhancer_weights is set but enhancer_architecture "

@@ -86,8 +86,10 @@ class QualityPreset(BaseModel):
     pair_resolution: int = Field(4096, gt=0, description="square LQ/HQ pair renders (px)")
     enhancer_steps: int = Field(20_000, gt=0, description="enhancer training steps")
     # -- the detail enhancer (docs/enhancer.md)
-    enhancer_architecture: Literal["tiny", "flux-dev"] = Field(
-        "flux-dev", description="tiny: the CPU model, random weights; flux-dev: FLUX.1-dev from enhancer_weights")
+    enhancer_architecture: Literal["tiny", "small", "flux-dev"] = Field(
+        "flux-dev", description="tiny: the CPU smoke-test model, random weights; small: a CPU model wide enough "
+                                "to learn (docs/benchmarks.md 'Detail enhancer'), random weights; flux-dev: "
+                                "FLUX.1-dev from enhancer_weights")
     enhancer_weights: str | None = Field(None, description="local FLUX.1 directory (transformer/, vae/, text "
                                          "encoders optional); relative paths are relative to the spec file")
     enhancer_finetune: Literal["lora", "full"] = "lora"
@@ -153,8 +155,9 @@ class QualityPreset(BaseModel):
         model's training crop is the preset's)."""
         from volcap_core.enhance.model import EnhancerConfig
 
-        if self.enhancer_architecture == "tiny":
-            return EnhancerConfig.tiny().model_copy(update={"train_crop": self.enhancer_crop})
+        if self.enhancer_architecture in ("tiny", "small"):
+            cpu = EnhancerConfig.tiny() if self.enhancer_architecture == "tiny" else EnhancerConfig.small()
+            return cpu.model_copy(update={"train_crop": self.enhancer_crop})
         return EnhancerConfig.flux_dev()
 
     def enhancer_train_config(self):

@@ -186,29 +186,55 @@ def _final_state(result) -> dict[str, torch.Tensor]:
     return {k: v.clone() for k, v in result.model.state_dict().items()}
 
 
-@pytest.mark.parametrize("finetune", ["lora", "full"])
-def test_resume_is_bit_identical(finetune):
+@pytest.mark.parametrize("finetune,vae_steps", [("lora", 0), ("full", 3)])
+def test_resume_is_bit_identical(finetune, vae_steps):
     pairs = [_pairs(3, seed=0), _pairs(2, seed=1)]
     cfg = EnhancerTrainConfig(steps=4, batch=2, crop=48, lr=1e-3, finetune=finetune, lora_rank=4,
-                              checkpoint_every=2, prev_output_noise=0.01, train_prompts=True, seed=7)
+                              checkpoint_every=2, prev_output_noise=0.01, train_prompts=True, seed=7,
+                              vae_steps=vae_steps, vae_batch=2, vae_crop=32)
     blobs: dict[int, bytes] = {}
     full = train_enhancer(build_enhancer(EnhancerConfig.tiny(), seed=0), pairs, cfg,
                           checkpoint=lambda b, s: blobs.__setitem__(s, b))
     assert sorted(blobs) == [2, 4] and len(full.losses) == 4
+    assert len(full.vae_losses) == vae_steps
     assert full.model.config.train_crop == 48  # inference's timestep shift follows the training crop
     resumed = train_enhancer(build_enhancer(EnhancerConfig.tiny(), seed=0), pairs, cfg, resume_from=blobs[2])
     assert resumed.losses == full.losses and resumed.steps == 4
+    assert resumed.vae_losses == full.vae_losses
     a, b = _final_state(full), _final_state(resumed)
     assert a.keys() == b.keys()
     for k in a:
         assert torch.equal(a[k], b[k]), k
-    # and training did move the model away from its initialisation
+    # and training did move the model away from its initialisation (the VAE only when pre-trained)
     init = build_enhancer(EnhancerConfig.tiny(), seed=0).state_dict()
     changed = sum(not torch.equal(a[k], init[k]) for k in init)
     assert changed > 0
+    vae_changed = sum(not torch.equal(a[k], init[k]) for k in init if k.startswith("vae."))
+    assert (vae_changed > 0) == (vae_steps > 0)
     # same seed, no interruption: the same run again
     again = train_enhancer(build_enhancer(EnhancerConfig.tiny(), seed=0), pairs, cfg)
     assert again.losses == full.losses
+
+
+def test_vae_pretraining_learns_to_reconstruct_and_is_deterministic():
+    """A few VAE steps on smooth frames lower the reconstruction loss (from a random VAE that
+    destroys the image) and the same seed gives the same weights."""
+    from volcap_core.enhance.training import train_vae, vae_loss
+
+    frames = torch.cat([_face_like(3, seed=0), _face_like(3, seed=1)])
+    cfg = EnhancerTrainConfig(vae_steps=60, vae_lr=3e-3, vae_batch=2, crop=32)
+    models = [build_enhancer(EnhancerConfig.tiny(), seed=0) for _ in range(2)]
+    with torch.no_grad():
+        before = float(vae_loss(models[0], frames, 0.0))  # whole 64x64 frames, not the 32-px crops
+    losses = train_vae(models[0], frames, cfg)
+    assert len(losses) == 60 and losses == train_vae(models[1], frames, cfg)
+    with torch.no_grad():
+        after = float(vae_loss(models[0], frames, 0.0))
+    # measured: 1.85 -> 0.74 (2 s on one thread)
+    assert after < 0.6 * before, (before, after)
+    for (k, p), (_, q) in zip(models[0].vae.state_dict().items(), models[1].vae.state_dict().items()):
+        assert torch.equal(p, q), k
+    assert not any(p.requires_grad for p in models[0].vae.parameters())
 
 
 def test_resume_refuses_another_configuration():

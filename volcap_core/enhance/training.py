@@ -41,8 +41,12 @@ trains low-rank adapters (:class:`LoRALinear`, our own, ``W x + (alpha/r) B A x`
 uniform and ``B`` zero, so training starts from the widened model exactly) on the attention and
 feed-forward linears of every block (the target list of diffusers' Flux LoRA scripts,
 :data:`LORA_TARGETS`), plus, in full, the widened ``x_embedder`` and ``proj_out`` (their new columns /
-rows start at zero or as copies and must be learnt). The VAE is always frozen. After training the
-adapters are merged into the weights (:func:`merge_lora`), so the result saves as a plain enhancer.
+rows start at zero or as copies and must be learnt). The VAE is frozen while the transformer trains;
+with ``vae_steps`` > 0 it is first pre-trained on its own (:func:`train_vae`: L1 + L2 reconstruction
+of the pair sets' HQ and LQ frames, RGB and alpha-as-gray, through the enhancer's own encode/decode
+mapping), which a tiny enhancer with random weights needs and FLUX.1's trained VAE does not. After
+training the adapters are merged into the weights (:func:`merge_lora`), so the result saves as a
+plain enhancer.
 Why not peft: it pulls ``transformers`` and ``accelerate`` in, and its adapters would have to be
 serialised and re-created for bit-identical resumption anyway.
 
@@ -70,11 +74,15 @@ from volcap_core.enhance.model import (
     DEFAULT_GROUP,
     Enhancer,
     crop_mu,
+    decode,
+    encode,
     encode_conditions,
     encode_target,
+    gray_to_vae,
     image_ids,
     pack,
     predict_velocity,
+    rgb_to_vae,
     shift_sigma,
 )
 from volcap_core.splat.optim import AdamState, adam_step
@@ -89,7 +97,9 @@ __all__ = [
     "merge_lora",
     "sample_sigmas",
     "train_enhancer",
+    "train_vae",
     "trainable_parameters",
+    "vae_loss",
 ]
 
 CHECKPOINT_FORMAT = "volcap-enhancer-train/1"
@@ -122,6 +132,13 @@ class EnhancerTrainConfig(BaseModel):
         train_prompts: also learn the groups' prompt embeddings.
         checkpoint_every: steps between checkpoints (and one after the last step; 0: last only).
         seed: seeds the one ``torch.Generator`` behind every random choice.
+        vae_steps: steps of VAE pre-training (:func:`train_vae`) before the transformer's, on the
+            pair sets' HQ and LQ frames; 0 (default): the VAE is used as given (FLUX.1's trained
+            VAE). A tiny enhancer built with random weights needs it: its random VAE destroys
+            every image it decodes.
+        vae_lr, vae_batch, vae_crop: the VAE pre-training's Adam rate, crops per step and crop
+            side (None: ``crop``; lowered to the frames, floored to a multiple of 8).
+        vae_latent_weight: weight of the latent-statistics term of :func:`vae_loss`.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
@@ -143,16 +160,23 @@ class EnhancerTrainConfig(BaseModel):
     train_prompts: bool = False
     checkpoint_every: int = Field(100, ge=0)
     seed: int = 0
+    vae_steps: int = Field(0, ge=0)
+    vae_lr: float = Field(1e-3, gt=0)
+    vae_batch: int = Field(4, ge=1)
+    vae_crop: int | None = Field(None, ge=8)
+    vae_latent_weight: float = Field(0.01, ge=0)
 
 
 @dataclass
 class EnhancerTrainResult:
-    """The trained model (adapters merged), the loss after every step, steps and training seconds."""
+    """The trained model (adapters merged), the loss after every step, steps and training seconds;
+    ``vae_losses``: the VAE pre-training's loss per step (empty when ``vae_steps`` is 0)."""
 
     model: Enhancer
     losses: list[float] = field(default_factory=list)
     steps: int = 0
     wall_s: float = 0.0
+    vae_losses: list[float] = field(default_factory=list)
 
 
 # -------------------------------------------------------------------------------------- LoRA
@@ -325,6 +349,96 @@ def _sample(pairs: Sequence, flows: _Flows, config: EnhancerTrainConfig, crop: i
     return lq[win], hq[win], warped, mask[win], keep, _group(seq)
 
 
+# ------------------------------------------------------------------------------ VAE pre-training
+
+def vae_loss(model: Enhancer, rgba: torch.Tensor, latent_weight: float = 0.01) -> torch.Tensor:
+    """Reconstruction loss of the VAE on RGBA crops ``[B, 4, H, W]`` (H, W multiples of 8), through
+    exactly the mapping the enhancer uses: RGB by :func:`~volcap_core.enhance.model.rgb_to_vae`, alpha
+    by :func:`~volcap_core.enhance.model.gray_to_vae` (alpha as a gray image), each through
+    :func:`~volcap_core.enhance.model.encode` (posterior mode, Flux scaling and shift) and
+    :func:`~volcap_core.enhance.model.decode`. Loss = L1 + L2 of the decoded minus the input (both in
+    the VAE's [-1, 1] space, RGB and alpha images weighted alike) + ``latent_weight`` ·
+    ``(mean(z)² + (var(z) - 1)²)`` of the scaled latents ``z``: keeps the latents near zero mean and
+    unit variance, the scale the diffusion noise ``N(0, I)`` assumes (the Flux scaling and shift
+    factors are kept, so the VAE learns latents they fit)."""
+    x = torch.cat([rgb_to_vae(rgba[:, :3]), gray_to_vae(rgba[:, 3:4])])
+    z = encode(model.vae, x)
+    err = decode(model.vae, z).float() - x.float()
+    loss = err.abs().mean() + (err * err).mean()
+    if latent_weight > 0:
+        zf = z.float()
+        loss = loss + latent_weight * (zf.mean() ** 2 + (zf.var() - 1.0) ** 2)
+    return loss
+
+
+def _vae_generator(seed: int) -> torch.Generator:
+    """The VAE pre-training's own generator (the transformer's stream is left untouched)."""
+    import zlib
+
+    return torch.Generator().manual_seed(zlib.crc32(f"vae/{int(seed)}".encode()))
+
+
+def train_vae(model: Enhancer, frames: torch.Tensor, config: EnhancerTrainConfig, *,
+              device: torch.device | str | None = None,
+              progress: Callable[[int, int, dict], None] | None = None) -> list[float]:
+    """Train ``model.vae`` (in place) to reconstruct RGBA ``frames [N, 4, H, W]`` (linear RGB,
+    alpha in [0, 1]) for ``config.vae_steps`` Adam steps (rate ``vae_lr``, bias-corrected, eps 1e-8,
+    gradient-norm clip ``max_grad_norm``) of :func:`vae_loss` on ``vae_batch`` random crops of side
+    ``vae_crop`` (default ``crop``, lowered to the frames, floored to a multiple of 8) each. The crops
+    come from a generator seeded by ``config.seed`` (its own stream, not the transformer's); on CPU
+    with one thread (as training runs) the same inputs give the same weights bit for bit. Every VAE
+    weight is trained; the VAE is left frozen (``requires_grad`` off) and in eval mode.
+    Returns the loss of every step."""
+    from volcap_core.reconstruction import deterministic_torch
+
+    if frames.ndim != 4 or frames.shape[1] != 4:
+        raise ValueError(f"frames must be [N, 4, H, W], got {tuple(frames.shape)}")
+    device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
+    vae = model.vae
+    vae.to(device)
+    n, _, h, w = frames.shape
+    crop = min(config.vae_crop or config.crop, h, w) // 8 * 8
+    if crop < 8:
+        raise ValueError(f"frames of {h}x{w} px are too small for an 8-px crop")
+    gen = _vae_generator(config.seed)
+    params = dict(sorted((k, p) for k, p in vae.named_parameters()))
+    for p in params.values():
+        p.requires_grad_(True)
+    adam = AdamState.zeros_like({k: p.detach() for k, p in params.items()})
+    losses: list[float] = []
+    vae.train()
+    t0 = time.perf_counter()
+    try:
+        with deterministic_torch(device.type):
+            for step in range(1, config.vae_steps + 1):
+                crops = []
+                for _ in range(config.vae_batch):
+                    i = int(torch.randint(n, (1,), generator=gen))
+                    y0 = int(torch.randint(h - crop + 1, (1,), generator=gen))
+                    x0 = int(torch.randint(w - crop + 1, (1,), generator=gen))
+                    crops.append(frames[i, :, y0:y0 + crop, x0:x0 + crop].float())
+                batch = torch.stack(crops).to(device)
+                for p in params.values():
+                    p.grad = None
+                loss = vae_loss(model, batch, config.vae_latent_weight)
+                if not torch.isfinite(loss.detach()):
+                    raise FloatingPointError(f"VAE step {step}: loss is {float(loss.detach())}")
+                loss.backward()
+                if config.max_grad_norm > 0:
+                    torch.nn.utils.clip_grad_norm_(list(params.values()), config.max_grad_norm)
+                adam_step(params, {k: config.vae_lr for k in params}, adam, eps=1e-8)
+                losses.append(float(loss.detach()))
+                if progress is not None:
+                    progress(step, config.vae_steps, {"loss": losses[-1], "lr": config.vae_lr,
+                                                      "wall_s": time.perf_counter() - t0})
+    finally:
+        for p in params.values():
+            p.grad = None
+            p.requires_grad_(False)
+        vae.eval()
+    return losses
+
+
 # ---------------------------------------------------------------------------------- checkpoints
 
 @dataclass
@@ -335,6 +449,7 @@ class _State:
     step: int
     wall_s: float
     losses: list[float]
+    vae_losses: list[float] = field(default_factory=list)
 
 
 def _serialise(state: _State, model: Enhancer, config: EnhancerTrainConfig) -> bytes:
@@ -347,6 +462,10 @@ def _serialise(state: _State, model: Enhancer, config: EnhancerTrainConfig) -> b
         tensors[f"adam/v/{k}"] = state.adam.exp_avg_sq[k]
     tensors["rng"] = state.generator.get_state()
     tensors["losses"] = torch.tensor(state.losses, dtype=torch.float64)
+    if config.vae_steps > 0:  # the pre-trained VAE (frozen from here on): resumption skips pre-training
+        for k, v in model.vae.state_dict().items():
+            tensors[f"vae/{k}"] = v
+        tensors["vae_losses"] = torch.tensor(state.vae_losses, dtype=torch.float64)
     tensors = {k: v.detach().contiguous().cpu() for k, v in tensors.items()}
     meta = {"format": CHECKPOINT_FORMAT, "train_config": config.model_dump_json(),
             "enhancer_config": model.config.model_dump_json(),
@@ -367,7 +486,9 @@ def _restore(data: bytes, model: Enhancer, config: EnhancerTrainConfig, params: 
     if meta["enhancer_config"] != model.config.model_dump_json():
         raise ValueError("checkpoint was trained on another enhancer architecture")
     old = json.loads(meta["train_config"])
-    for key in ("finetune", "lora_rank", "lora_alpha", "train_prompts"):
+    for key in ("finetune", "lora_rank", "lora_alpha", "train_prompts", "vae_steps"):
+        if key not in old:  # written before the field existed: its default
+            old[key] = EnhancerTrainConfig.model_fields[key].default
         if old[key] != getattr(config, key):
             raise ValueError(f"checkpoint has {key}={old[key]!r}, config {getattr(config, key)!r}")
     info = json.loads(meta["state"])
@@ -384,6 +505,10 @@ def _restore(data: bytes, model: Enhancer, config: EnhancerTrainConfig, params: 
     state.generator.set_state(t["rng"].clone())
     state.step, state.wall_s = int(info["step"]), float(info["wall_s"])
     state.losses = [float(x) for x in t["losses"].tolist()]
+    if config.vae_steps > 0:
+        vae_state = {k[len("vae/"):]: v for k, v in t.items() if k.startswith("vae/")}
+        model.vae.load_state_dict({k: v.to(model.vae.dtype) for k, v in vae_state.items()}, strict=True)
+        state.vae_losses = [float(x) for x in t["vae_losses"].tolist()]
 
 
 # ------------------------------------------------------------------------------------- training
@@ -411,6 +536,10 @@ def train_enhancer(model: Enhancer, pairs: Sequence, config: EnhancerTrainConfig
             run is reproducible and resumable bit for bit).
         merge: fold LoRA adapters into the weights at the end (the model then saves as a plain
             enhancer); False leaves them in place.
+    With ``config.vae_steps`` > 0 the VAE is first pre-trained (:func:`train_vae`) on every pair
+    set's HQ and LQ frames, then frozen; checkpoints then hold the VAE weights, and a resumed run
+    loads them instead of pre-training again (a run interrupted during VAE pre-training, which
+    writes no checkpoint, starts over).
     The crop actually used becomes ``model.config.train_crop`` at the end (inference takes its
     timestep shift from it).
     Returns:
@@ -427,11 +556,19 @@ def train_enhancer(model: Enhancer, pairs: Sequence, config: EnhancerTrainConfig
     mu = crop_mu(crop, model.config)
     for seq in pairs:
         model.ensure_prompt(_group(seq))
+    vae_losses: list[float] = []
+    if config.vae_steps > 0 and resume_from is None:
+        frames = torch.cat([p.hq.float() for p in pairs] + [p.lq.float() for p in pairs])
+        vae_losses = train_vae(model, frames, config, device=device)
+        del frames
+    model.vae.eval()
+    model.vae.requires_grad_(False)
     gen = torch.Generator().manual_seed(config.seed)
     if config.finetune == "lora":
         add_lora(model, config.lora_rank, config.lora_alpha, generator=gen)
     params = trainable_parameters(model, config)
-    state = _State(params, AdamState.zeros_like({k: p.detach() for k, p in params.items()}), gen, 0, 0.0, [])
+    state = _State(params, AdamState.zeros_like({k: p.detach() for k, p in params.items()}), gen, 0, 0.0, [],
+                   vae_losses)
     if resume_from is not None:
         _restore(resume_from, model, config, params, state)
     flows = _Flows(pairs, config.flow)
@@ -475,4 +612,4 @@ def train_enhancer(model: Enhancer, pairs: Sequence, config: EnhancerTrainConfig
         merge_lora(model)
     # inference fixes its timestep shift to the training crop's (model.crop_mu): record the crop used
     model.config = model.config.model_copy(update={"train_crop": crop})
-    return EnhancerTrainResult(model, list(state.losses), state.step, state.wall_s)
+    return EnhancerTrainResult(model, list(state.losses), state.step, state.wall_s, list(state.vae_losses))
