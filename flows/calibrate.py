@@ -135,17 +135,25 @@ def calibrate_colour_flow(store: str, charts: dict, onto: str = "scene", name: s
 @flow(name="calibrate", persist_result=False)
 def calibrate_flow(store: str, capture: str, frames: tuple[int, int] | None = None,
                    allow_unregistered: bool = False, colour_charts: dict | None = None,
-                   colour_base_dir: str | None = None) -> dict:
+                   colour_base_dir: str | None = None, instants: int = 1,
+                   known_distance: tuple[str, str, float] | None = None) -> dict:
     """Calibrate ``capture`` (a ref name such as ``captures/demo`` or a digest) and compute dense
     points for ``frames`` [a, b) (all frames when None).
 
     ``allow_unregistered``: a static camera the adjustment cannot support is left out (listed in
-    ``unregistered`` with the reason) instead of failing the run.
+    ``unregistered`` with the reason) instead of failing the run. ``instants``: take instants pooled
+    into the static SfM (``StaticCalibrationOptions.instants``: a sparse background). ``known_distance``:
+    (camera, camera, metres) between two static cameras' centres, the scale of a capture without a
+    lidar scan (``StaticCalibrationOptions.known_distance``; default: the rig's mounts).
 
     Returns JSON: ``calibration`` and ``points`` (ref dumps), ``errors`` (the error table of
     ``volcap_core.calibration.metrics`` when the capture carries ground truth, else None),
     ``unregistered`` (camera id -> reason). Also names the results ``calibrations/<capture name>``
     and ``points/<capture name>`` in the store.
+
+    ``stage_frame``: for a capture without a lidar scan, how its stage frame and scale were set
+    (``static.frame_without_lidar``: ``scale_source`` 0 mounts / 1 known distance, ``scale``,
+    ``mount_residual_rms_m`` / ``_max_m``...; with a scan and a known distance, its check), else None.
 
     ``colour_charts``: ``{"face": view, "scene": view}`` (:func:`chart_view`; relative image paths
     from ``colour_base_dir``) also runs ``calibrate-colour`` (Face Rig onto Scene Rig) and adds
@@ -159,9 +167,20 @@ def calibrate_flow(store: str, capture: str, frames: tuple[int, int] | None = No
     trackers = tracking_camera_ids(cap)
     log.info("capture %s: %d static + %d tracking cameras, dense points for frames %d:%d", cap.name,
              len(cap.cameras) - len(trackers), len(trackers), a, b)
-    calib_ref = calibrate_capture(store, capture_ref,
-                                  StaticCalibrationOptions(allow_unregistered=True) if allow_unregistered else None)
-    unregistered = s.get_record(calib_ref, Calibration).unregistered
+    # only the settings given differ from the task's defaults (none given: the defaults' cache key)
+    given = {k: v for k, v in (("allow_unregistered", allow_unregistered), ("instants", instants),
+                               ("known_distance", tuple(known_distance) if known_distance else None))
+             if v != getattr(StaticCalibrationOptions, k)}
+    calib_ref = calibrate_capture(store, capture_ref, StaticCalibrationOptions(**given) if given else None)
+    calib = s.get_record(calib_ref, Calibration)
+    unregistered = calib.unregistered
+    # without a lidar scan: the stage frame from the mounts (or a known distance) and their residual
+    stage_frame = {k[len("static_frame_"):]: v for k, v in calib.stats.items() if k.startswith("static_frame_")} or None
+    if stage_frame is not None and cap.lidar is None:
+        log.info("capture %s has no lidar scan: stage frame and scale from the %s; camera centres %.3f m rms "
+                 "(max %.3f m) from their mounts", cap.name,
+                 "known distance" if stage_frame.get("scale_source") == 1.0 else "rig's mounts",
+                 stage_frame.get("mount_residual_rms_m", float("nan")), stage_frame.get("mount_residual_max_m", float("nan")))
     for cam, why in unregistered.items():
         log.warning("capture %s: camera %s left out of the calibration: %s", cap.name, cam, why)
     points_ref = point_cloud_for_frames(store, capture_ref, calib_ref, list(range(a, b)))
@@ -178,4 +197,4 @@ def calibrate_flow(store: str, capture: str, frames: tuple[int, int] | None = No
     s.set_ref(f"points/{cap.name}", points_ref)
     return {"capture": capture_ref.model_dump(mode="json"), "calibration": calib_ref.model_dump(mode="json"),
             "points": points_ref.model_dump(mode="json"), "frames": [a, b], "tracking_cameras": trackers,
-            "errors": errors, "unregistered": dict(unregistered), "colour": colour}
+            "errors": errors, "unregistered": dict(unregistered), "colour": colour, "stage_frame": stage_frame}

@@ -102,17 +102,27 @@ def synth(out_dir: Annotated[Path, typer.Argument(help="folder to write the capt
           seed: Annotated[int, typer.Option(help="random seed (same seed, same bytes)")] = 0,
           frames: Annotated[int, typer.Option(min=1, help="frames in the take")] = 24,
           depth: Annotated[bool, typer.Option("--depth/--no-depth", help="also write ground-truth depth maps")] = False,
+          lidar: Annotated[bool, typer.Option("--lidar/--no-lidar", help="give the capture its lidar scan (--no-lidar: none, as a studio without a scanner; scene rigs)")] = True,
+          static_only: Annotated[bool, typer.Option("--static-only", help="render the rig's static cameras only (no tracking cameras)")] = False,
           json_out: JsonOpt = False) -> None:
     """Render a synthetic capture (scene or face rig) in the layout ingest reads."""
     from hardware.rig import load_rig
     from volcap_core import synth as synthetic
 
     t0 = time.perf_counter()
-    kind = load_rig(rig).kind
+    the_rig = load_rig(rig)
+    kind = the_rig.kind
+    extra: dict = {}
+    if static_only:
+        extra["cameras"] = [c.id for c in the_rig.cameras if not c.role.tracks]
+    if not lidar:
+        if kind == "face":
+            raise CommandError("--no-lidar is for scene rigs (the face synthesizer always writes its scan)")
+        extra["lidar"] = False
     progress, update = _progress(f"rendering {rig}")
     with progress:
         fn = synthetic.synthesize_face_capture if kind == "face" else synthetic.synthesize_capture
-        path = fn(out_dir, rig=rig, seed=seed, frames=frames, progress=update, write_depth=depth)
+        path = fn(out_dir, rig=rig, seed=seed, frames=frames, progress=update, write_depth=depth, **extra)
     wall = time.perf_counter() - t0
     _emit({"capture_dir": str(Path(path).parent), "capture_json": str(path), "wall_s": round(wall, 3)},
           json_out, f"wrote {path} in {wall:.1f} s")
@@ -220,6 +230,8 @@ def calibrate(capture: Annotated[str, typer.Argument(help="capture ref name (cap
               frames: Annotated[Optional[str], typer.Option(help="dense points for take frames A:B (B exclusive); all when omitted")] = None,
               allow_unregistered: Annotated[bool, typer.Option("--allow-unregistered", help="leave out (and list) a static camera the adjustment cannot support instead of failing; training leaves it out")] = False,
               colour_charts: Annotated[Optional[Path], typer.Option(help="also calibrate colour between the rigs: the JSON file of volcap calibrate-colour (Face Rig onto Scene Rig)")] = None,
+              instants: Annotated[int, typer.Option(min=1, help="take instants pooled into the static cameras' SfM, spread over the take (a sparse or dark background); 1: the middle frame alone")] = 1,
+              known_distance: Annotated[Optional[str], typer.Option(help="CAM_A,CAM_B,METRES: measured distance between two static cameras' optical centres, the scale of a capture without a lidar scan (default: the rig's mounts)")] = None,
               store: StoreOpt = DEFAULT_STORE, json_out: JsonOpt = False) -> None:
     """Calibrate every camera of an ingested capture and compute per-frame dense points.
 
@@ -235,12 +247,29 @@ def calibrate(capture: Annotated[str, typer.Argument(help="capture ref name (cap
             charts = json.loads(colour_charts.read_text())
         except (OSError, ValueError) as exc:
             raise CommandError(f"{colour_charts}: not a readable JSON file: {exc}") from None
+    distance = None
+    if known_distance is not None:
+        parts = known_distance.split(",")
+        try:
+            distance = (parts[0].strip(), parts[1].strip(), float(parts[2]))
+            if len(parts) != 3 or not distance[2] > 0:
+                raise ValueError
+        except (ValueError, IndexError):
+            raise typer.BadParameter("expected CAM_A,CAM_B,METRES with a positive distance, e.g. S000,S004,8.41",
+                                     param_hint="--known-distance") from None
     summary = _run(calibrate_flow, store=_store_url(store), capture=capture, frames=_frame_span(frames),
-                   allow_unregistered=allow_unregistered, colour_charts=charts,
+                   allow_unregistered=allow_unregistered, colour_charts=charts, instants=instants,
+                   known_distance=distance,
                    colour_base_dir=str(colour_charts.resolve().parent) if colour_charts is not None else None)
     out = summary.result
     lines = [f"calibration: {out['calibration']['digest']}", f"points: {out['points']['digest']}"]
     lines += [f"left out (unregistered): {cam}: {why}" for cam, why in out["unregistered"].items()]
+    sf = out.get("stage_frame") or {}
+    if "mount_residual_rms_m" in sf:
+        source = "a known distance" if sf.get("scale_source") == 1.0 else "the rig's mounts"
+        lines.append(f"no lidar scan: stage frame and scale from {source}; camera centres "
+                     f"{100 * sf['mount_residual_rms_m']:.1f} cm rms (max {100 * sf['mount_residual_max_m']:.1f} cm) "
+                     f"from their mounts")
     if out["errors"] is not None:
         lines += _error_lines(out["errors"])
     if out.get("colour"):

@@ -42,14 +42,20 @@ ERRORS_MEDIA = "application/vnd.volcap.calibration-errors+json"
 CALIBRATION_LIBRARIES = ("pycolmap", "cv2", "kornia", "torch", "numpy", "scipy")
 
 
-@volcap_task(name="calibrate-static", version="3", libraries=CALIBRATION_LIBRARIES)
+@volcap_task(name="calibrate-static", version="4", libraries=CALIBRATION_LIBRARIES)
 def calibrate_static(store: str, capture: ArtifactRef,
                      options: StaticCalibrationOptions = StaticCalibrationOptions()) -> ArtifactRef:
     """Static cameras on the middle frame (+ background plates), registered to the capture's lidar;
     with tracking cameras, also the static reference they register against. A camera the adjustment
     cannot support is an error naming it, or (``options.allow_unregistered``) left out and listed.
     Version 3: unsupported cameras (``options.min_observations``, pose bounds) are refused or left
-    out, never returned at their mount; per-camera support in the stats."""
+    out, never returned at their mount; per-camera support in the stats. Version 4: a distorted
+    camera carries its intrinsics on its own frames and its distortion (``raw_intrinsics``,
+    ``distortion``), and the static reference lifts features from plates rectified into the
+    calibrated pinholes (before: raw plates read with the pinhole K); also (same version) several
+    instants pooled into the SfM (``options.instants`` / ``instant_frames``), and a capture without
+    a lidar scan placed by a robust similarity onto the mounts or scaled by ``options.known_distance``,
+    its residual in the stats (``frame.*``)."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
     statics, trackers = split_cameras(cap)
@@ -74,12 +80,14 @@ def calibrate_tracking_camera(store: str, capture: ArtifactRef, static: Artifact
     return s.put_record(steps.tracking_record(cap.name, camera, sol, frames))
 
 
-@volcap_task(name="assemble-calibration", version="2")
+@volcap_task(name="assemble-calibration", version="3")
 def assemble_calibration(store: str, capture: ArtifactRef, static: ArtifactRef,
                          tracking: list[ArtifactRef]) -> ArtifactRef:
     """The Calibration record (and its tracking-frames blob) from the static and per-camera results,
     exactly as ``volcap_core.calibration.pipeline.calibrate_capture`` makes it in one call.
-    Version 2: the record lists the cameras left out (``unregistered``, with the reasons)."""
+    Version 2: the record lists the cameras left out (``unregistered``, with the reasons).
+    Version 3: a distorted camera is recorded with its intrinsics on its own frames and its
+    distortion, as ``calibrate_capture`` records it (before: the rectified pinhole, no distortion)."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
     record, blob = steps.assemble_calibration_record(
@@ -91,12 +99,14 @@ def assemble_calibration(store: str, capture: ArtifactRef, static: ArtifactRef,
     return s.put_record(record)
 
 
-@volcap_task(name="dense-points-frame", version="2", libraries=CALIBRATION_LIBRARIES)
+@volcap_task(name="dense-points-frame", version="3", libraries=CALIBRATION_LIBRARIES)
 def dense_points_frame(store: str, capture: ArtifactRef, calibration: ArtifactRef, frame: int,
                        scale: float = 1.0, exclude_cameras: list[str] | None = None,
                        options: DenseOptions = DenseOptions()) -> ArtifactRef:
     """One frame's dense points from the calibrated static cameras but ``exclude_cameras`` (a
-    reconstruction's held-out cameras); ``scale`` < 1 matches downscaled images (previews, tests)."""
+    reconstruction's held-out cameras); ``scale`` < 1 matches downscaled images (previews, tests).
+    Version 3: a distorted camera's frame is rectified into the pinhole of its record's K first
+    (``distortion.rectify_frame``), and pixels outside its source give no depth."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
     out = steps.dense_points_step(cap, s.get_record(calibration, Calibration), frame,
@@ -164,13 +174,14 @@ def calibration_errors(store: str, capture: ArtifactRef, calibration: ArtifactRe
     return s.put_json(calibration_report(calib, gt, tracking, scan, frames), ERRORS_MEDIA)
 
 
-@volcap_task(name="calibrate-colour", version="1", libraries=("numpy", "OpenImageIO"))
+@volcap_task(name="calibrate-colour", version="2", libraries=("numpy", "OpenImageIO", "cv2"))
 def calibrate_colour(store: str, source: ChartView, reference: ChartView,
                      options: ColourCalibrationOptions = ColourCalibrationOptions()) -> ArtifactRef:
     """The colour matrix between two rigs from a chart seen by each (``source``: the rig mapped,
     usually the Face Rig; ``reference``: the rig it is mapped onto, usually the Scene Rig): a
     :class:`ColourMatrixRecord` with the fit's ΔE before and after. The views' refs (capture,
-    image, calibration) are inputs: their digests are in the key."""
+    image, calibration) are inputs: their digests are in the key. Version 2: a view given by
+    ``patches_m`` through a distorted static camera samples its rectified frame."""
     s = ArtifactStore(store)
     return s.put_record(steps.colour_step(source, reference, s.get_bytes, options))
 

@@ -14,6 +14,7 @@ from prefect import get_run_logger
 from tasks.artifacts import ProgressArtifact, artifact_key, publish_image, publish_table
 from tasks.contract import current_run_key, volcap_task
 from volcap_core import imageio, reconstruction
+from volcap_core.calibration.distortion import record_distortion
 from volcap_core.calibration.record import Calibration, camera_at
 from volcap_core.capture import Capture
 from volcap_core.pointcloud import POINTS_MEDIA, PointCloudFrame, PointCloudSequence, encode_points
@@ -24,9 +25,10 @@ from volcap_core.store import ArtifactStore, MissingRefError
 from volcap_core.synth import ground_truth
 
 #: training and rendering numerics: torch (the optimiser and the rasterizer's torch back-end),
-#: numpy and scipy (initialisation, scoring). The device and the back-end chosen by "auto" are
-#: not in the key: see docs/tasks.md, "What is not in a key".
-RECONSTRUCTION_LIBRARIES = ("torch", "numpy", "scipy")
+#: numpy and scipy (initialisation, scoring), OpenCV (rectifying a distorted camera's frames).
+#: The device and the back-end chosen by "auto" are not in the key: see docs/tasks.md, "What is
+#: not in a key".
+RECONSTRUCTION_LIBRARIES = ("torch", "numpy", "scipy", "cv2")
 
 
 def _ground_truth(s: ArtifactStore, cap: Capture) -> ground_truth.GroundTruthFiles:
@@ -49,11 +51,12 @@ def ground_truth_calibration(store: str, capture: ArtifactRef) -> ArtifactRef:
     return s.put_record(record)
 
 
-@volcap_task(name="ground-truth-points", version="2", libraries=("numpy", "OpenImageIO"))
+@volcap_task(name="ground-truth-points", version="3", libraries=("numpy", "OpenImageIO"))
 def ground_truth_points(store: str, capture: ArtifactRef, calibration: ArtifactRef, points_per_frame: int,
                         seed: int, exclude_cameras: list[str] | None = None) -> ArtifactRef:
     """Dense points per frame from the true depth maps of every camera but ``exclude_cameras``
-    (held-out ones), coloured by its image."""
+    (held-out ones), coloured by its image. Version 3: a camera with lens distortion is
+    back-projected through it (before: as the pinhole of its K)."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
     calib = s.get_record(calibration, Calibration)
@@ -69,14 +72,15 @@ def ground_truth_points(store: str, capture: ArtifactRef, calibration: ArtifactR
 
     frames = []
     for f in range(cap.frame_count):
-        xyz, rgb = ground_truth.depth_points(files, ids, f, load_image, camera_at_frame, points_per_frame, seed)
+        xyz, rgb = ground_truth.depth_points(files, ids, f, load_image, camera_at_frame, points_per_frame, seed,
+                                             distortion_of=lambda c: record_distortion(calib.camera(c)))
         frames.append(PointCloudFrame(frame=f, time=cap.frame_time(f), count=len(xyz),
                                       points=s.put_bytes(encode_points(xyz, rgb), POINTS_MEDIA)))
     return s.put_record(PointCloudSequence(calibration=calibration, frames=tuple(frames),
                                            method=f"ground-truth depth, {points_per_frame} per frame"))
 
 
-@volcap_task(name="train-segment", version="5", retries=1, libraries=RECONSTRUCTION_LIBRARIES)
+@volcap_task(name="train-segment", version="6", retries=1, libraries=RECONSTRUCTION_LIBRARIES)
 def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRef, points: ArtifactRef,
                        frames: list[int], config: TrainConfig, seed: int) -> ArtifactRef:
     """Train one Poly4DGS segment, score it against its floors and draw its contact sheet
@@ -86,7 +90,9 @@ def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRe
     ``checkpoints/<this run's cache key>``; a killed or retried run of the same segment resumes from
     it, and ends with the same model as an uninterrupted run (on CPU, bit for bit). The Prefect UI
     shows the training progress, the score table and the contact sheet as artifacts of this run.
-    Version 5: the record names the rasterizer back-end that trained it.
+    Version 5: the record names the rasterizer back-end that trained it. Version 6: a camera
+    calibrated with lens distortion trains on its frames rectified into the pinhole of its K, the
+    pixels outside its source left out of the loss and the scores (before: raw frames as a pinhole).
     """
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)

@@ -20,6 +20,7 @@ import torch
 from pydantic import BaseModel, ConfigDict
 
 from volcap_core import imageio
+from volcap_core.calibration.distortion import needs_rectify, rectified_valid, rectify_frame
 from volcap_core.calibration.record import Calibration, TrackingFrames, camera_at
 from volcap_core.capture import Capture
 from volcap_core.pointcloud import PointCloudSequence
@@ -145,6 +146,12 @@ def segment_data(capture: Capture, calibration: Calibration, tracking: dict[str,
     (what a smaller sensor of the same optics would integrate) and intrinsics scaled to match.
     ``load_mask(camera, take index)``: performer coverage ``[H, W]`` at the capture's resolution
     (a synthetic capture's ground truth), area-averaged like the images; scoring only.
+
+    A camera the calibration records with lens distortion is trained as the pinhole of its
+    record's K: its frames (and masks) are rectified into it as they are loaded
+    (:func:`~volcap_core.calibration.distortion.rectify_frame`, before any downscale), and its views
+    carry ``valid`` (the pixels whose source lies inside the frame, after a downscale those wholly
+    made of such pixels): training's loss and the scores leave the others out.
     """
     if not 0 < scale <= 1:
         raise ValueError(f"scale must be in (0, 1], got {scale}")
@@ -160,8 +167,23 @@ def segment_data(capture: Capture, calibration: Calibration, tracking: dict[str,
         camera = splat_camera(*camera_at(calibration, cam, f, tracking))
         return camera if scale == 1 else camera.scaled(scale)
 
+    valid_cache: dict[str, torch.Tensor | None] = {}
+
+    def valid_for(cam: str, f: int) -> torch.Tensor | None:
+        if cam not in valid_cache:
+            v = rectified_valid(calibration.camera(cam))
+            if v is not None:
+                v = torch.from_numpy(np.asarray(v, np.float32))
+                if scale != 1:
+                    size = camera_for(cam, f)
+                    v = torch.nn.functional.interpolate(v[None, None], size=(size.height, size.width),
+                                                        mode="area")[0, 0]
+                v = v >= 0.999
+            valid_cache[cam] = v
+        return valid_cache[cam]
+
     def load_image(cam: str, f: int) -> torch.Tensor:
-        image = load_frame(capture.camera(cam).frames[f])
+        image = rectify_frame(load_frame(capture.camera(cam).frames[f]), calibration.camera(cam))
         if scale == 1:
             return image
         size = camera_for(cam, f)
@@ -172,14 +194,16 @@ def segment_data(capture: Capture, calibration: Calibration, tracking: dict[str,
         m = load_mask(cam, f) if load_mask is not None else None
         if m is None:
             return None
-        m = torch.from_numpy(np.asarray(m, np.float32))
+        m = torch.from_numpy(np.asarray(rectify_frame(np.asarray(m, np.float32), calibration.camera(cam))))
         if scale == 1:
             return m
         size = camera_for(cam, f)
         return torch.nn.functional.interpolate(m[None, None], size=(size.height, size.width), mode="area")[0, 0]
 
+    distorted = any(needs_rectify(calibration.camera(c)) for c in ids)
     return SegmentData.build(frames=frames, camera_ids=ids, fps=capture.fps, load_image=load_image,
-                             camera_for=camera_for, load_mask=mask_for if load_mask is not None else None)
+                             camera_for=camera_for, load_mask=mask_for if load_mask is not None else None,
+                             load_valid=valid_for if distorted else None)
 
 
 def segment_points(points: PointCloudSequence, frames: tuple[int, int],

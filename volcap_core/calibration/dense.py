@@ -270,12 +270,31 @@ def fuse_depth_maps(maps: Mapping[str, DepthMap], images: Mapping[str, np.ndarra
     return np.concatenate(pts), np.concatenate(cols), np.concatenate(cnts)
 
 
+def _valid_at(valid: np.ndarray, shape: tuple[int, int], window: int) -> np.ndarray:
+    """A full-resolution validity mask at a depth map's ``shape``: a pixel is kept when its whole
+    NCC window (``window`` px at that resolution) lies in valid pixels."""
+    import cv2
+
+    v = np.asarray(valid, np.float32)
+    if v.shape != shape:
+        v = cv2.resize(v, (shape[1], shape[0]), interpolation=cv2.INTER_AREA)
+    ok = (v >= 0.999).astype(np.uint8)
+    if window > 1:
+        ok = cv2.erode(ok, np.ones((window, window), np.uint8), borderType=cv2.BORDER_CONSTANT, borderValue=1)
+    return ok.astype(bool)
+
+
 def dense_points(images: Mapping[str, np.ndarray], cameras: Mapping[str, Camera], *,
-                 references: list[str] | None = None, options: DenseOptions = DenseOptions()) -> dict:
+                 references: list[str] | None = None, options: DenseOptions = DenseOptions(),
+                 valid: Mapping[str, np.ndarray | None] | None = None) -> dict:
     """One frame's dense point cloud from calibrated views.
 
     ``images``: id -> linear RGB [H, W, 3]; ``cameras``: id -> (K [3, 3], world_to_camera [4, 4]);
-    ``references``: cameras that get a depth map (default: all with enough neighbours).
+    ``references``: cameras that get a depth map (default: all with enough neighbours);
+    ``valid``: id -> [H, W] bool, the pixels that hold footage (a rectified distorted frame's
+    :func:`~volcap_core.calibration.distortion.rectified_valid`; None or absent: all): a reference
+    pixel whose NCC window reaches outside them gets no depth (the black border's edge is texture
+    that matches nothing real).
     Returns ``positions`` [N, 3] float32 (metres, stage frame), ``colours`` [N, 3] float32 (linear),
     ``views`` [N] consistent other views, ``depth_maps`` {id: DepthMap}, ``seconds``.
     """
@@ -288,6 +307,9 @@ def dense_points(images: Mapping[str, np.ndarray], cameras: Mapping[str, Camera]
                                 options.max_angle_deg)
         if not nbs:
             continue
-        maps[r] = depth_map(images, cameras, r, nbs, options)
+        dm = depth_map(images, cameras, r, nbs, options)
+        if valid is not None and valid.get(r) is not None:
+            dm.depth[~_valid_at(valid[r], dm.depth.shape, options.window)] = 0.0
+        maps[r] = dm
     pos, col, cnt = fuse_depth_maps(maps, images, options)
     return {"positions": pos, "colours": col, "views": cnt, "depth_maps": maps, "seconds": time.perf_counter() - t0}

@@ -38,12 +38,22 @@ Images: :func:`undistort_maps` / :func:`undistort_image` resample a distorted im
 image (``cv2.initUndistortRectifyMap`` + ``cv2.remap``, bilinear by default); pixels whose ray falls
 outside the source image are black (``cv2.BORDER_CONSTANT``), and :func:`undistort_valid_mask` says
 which.
+
+Footage after calibration: :func:`rectify_frame` resamples a frame of a calibrated camera (a
+``Calibration`` record's camera: its ``intrinsics`` and ``distortion``) into the pinhole with the
+*same* fx, fy, cx, cy and size and no distortion, so the record's ``K`` (``record.camera_at``) is
+the pinhole of the rectified frame. Every reader of footage after calibration (dense points,
+training and scoring, the ground truth's depth and masks) goes through it; a camera without
+distortion comes back untouched. :func:`rectified_valid` says which rectified pixels have their
+whole bilinear footprint inside the source frame; the others are 0 in the rectified frame and
+training's loss and the scores leave them out (``splat.train.View.valid``).
 """
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
-from typing import Protocol
+from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
@@ -336,3 +346,100 @@ def undistort_image(image: np.ndarray, intrinsics: PinholeLike, distortion: Dist
                                    borderMode=cv2.BORDER_CONSTANT, borderValue=0)
                          for c in range(img.shape[2])], axis=-1)
     return cv2.remap(img, mx, my, interp, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+
+
+# ---------------------------------------------------------------------------------------------
+# Frames of calibrated cameras
+# ---------------------------------------------------------------------------------------------
+
+
+class _Pinhole(NamedTuple):
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+
+
+def record_distortion(camera: Any) -> Distortion:
+    """The :class:`Distortion` of a ``Calibration`` record's camera (its OpenCV ``distortion``
+    ``(k1, k2, p1, p2, k3)``; none for a pinhole or a tracking camera)."""
+    return Distortion.from_opencv(tuple(getattr(camera, "distortion", None) or ()))
+
+
+def needs_rectify(camera: Any) -> bool:
+    """Whether a record camera's frames must be resampled before a pinhole reads them."""
+    return not record_distortion(camera).is_none
+
+
+@functools.lru_cache(maxsize=128)
+def _rectify_maps(intr: _Pinhole, coeffs: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    d = Distortion.from_opencv(coeffs)
+    mx, my = undistort_maps(intr, d, intr)
+    # the whole bilinear footprint inside the source: [0, W - 1] x [0, H - 1]
+    valid = (mx >= 0) & (my >= 0) & (mx <= intr.width - 1) & (my <= intr.height - 1)
+    for a in (mx, my, valid):
+        a.setflags(write=False)
+    return mx, my, valid
+
+
+def _maps_of(camera: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    if camera.intrinsics is None:
+        raise ValueError(f"camera {camera.id}: a distortion without intrinsics")
+    fx, fy, cx, cy = (float(v) for v in camera.intrinsics)
+    coeffs = tuple(float(v) for v in camera.distortion)
+    return _rectify_maps(_Pinhole(fx, fy, cx, cy, int(camera.width), int(camera.height)), coeffs)
+
+
+def rectified_valid(camera: Any) -> np.ndarray | None:
+    """[H, W] bool (read-only): the pixels of ``camera``'s rectified frames (:func:`rectify_frame`)
+    whose bilinear footprint lies wholly inside the source frame; None for a camera without
+    distortion (every pixel valid)."""
+    if not needs_rectify(camera):
+        return None
+    return _maps_of(camera)[2]
+
+
+def rectify_frame(pixels, camera: Any, *, interpolation: int | None = None):
+    """A frame of a calibrated camera (``camera``: a ``Calibration`` record's camera, with its
+    ``intrinsics``, ``distortion``, ``width`` and ``height``) [H, W(, C)] -> the same frame seen by
+    the pinhole with the record's fx, fy, cx, cy and no distortion. Bilinear (``interpolation``
+    otherwise); pixels outside :func:`rectified_valid` are 0. A camera without distortion gets
+    ``pixels`` back as they are (the same object). numpy arrays and torch tensors (CPU) both;
+    the maps are computed once per camera (cached)."""
+    if not needs_rectify(camera):
+        return pixels
+    import cv2
+
+    tensor = None
+    if not isinstance(pixels, np.ndarray):
+        import torch
+
+        if isinstance(pixels, torch.Tensor):
+            tensor = pixels
+            pixels = pixels.detach().cpu().numpy()
+    img = np.asarray(pixels)
+    if img.shape[:2] != (camera.height, camera.width):
+        raise ValueError(f"camera {camera.id}: frame is {img.shape[1]}x{img.shape[0]}, the calibration says "
+                         f"{camera.width}x{camera.height}")
+    mx, my, valid = _maps_of(camera)
+    interp = cv2.INTER_LINEAR if interpolation is None else interpolation
+    src = np.ascontiguousarray(img)
+    if src.dtype == np.float16:
+        src = src.astype(np.float32)
+    if src.ndim == 3 and src.shape[2] > 4:
+        out = np.stack([cv2.remap(np.ascontiguousarray(src[..., c]), mx, my, interp,
+                                  borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+                        for c in range(src.shape[2])], axis=-1)
+    else:
+        out = cv2.remap(src, mx, my, interp, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+    if out.ndim < img.ndim:              # cv2 drops a trailing channel axis of 1
+        out = out[..., None]
+    out[~valid] = 0
+    out = out.astype(img.dtype, copy=False)
+    if tensor is not None:
+        import torch
+
+        return torch.from_numpy(out).to(tensor.device)
+    return out

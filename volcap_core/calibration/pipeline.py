@@ -105,6 +105,11 @@ def build_record(capture_name: str, rig: Rig, static: StaticCalibration, trackin
     rec_stats = {"static_cameras": float(len(static.camera_ids)), "tracking_cameras": float(len(tracking))}
     if "median_reprojection_px" in bstats:
         rec_stats["static_median_reprojection_px"] = float(bstats["median_reprojection_px"])
+    # a capture without a lidar scan: how the stage frame and scale were set and the mounts' residual
+    # (static.frame_without_lidar); with a scan and a known distance, that distance's check
+    for k, v in static.stats.get("frame", {}).items():
+        if isinstance(v, (int, float)) and np.isfinite(v):
+            rec_stats[f"static_frame_{k}"] = float(v)
     return Calibration(capture=capture_name, frame_count=frame_count, fps=fps, reference_frame=reference_frame,
                        stage_size_m=tuple(rig.stage_size_m), cameras=tuple(cams),
                        tracking_frames=tracking_frames_ref(blob) if blob is not None else None, stats=rec_stats,

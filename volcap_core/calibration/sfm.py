@@ -22,7 +22,7 @@ import tempfile
 import time
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import cv2
 import numpy as np
@@ -292,8 +292,9 @@ def _quiet() -> None:
 def reconstruct_static(images: Mapping[str, np.ndarray], intrinsics: Mapping[str, Intrinsics],
                        options: StaticSfmOptions = StaticSfmOptions(),
                        initial_poses: Mapping[str, np.ndarray] | None = None,
-                       work_dir: str | Path | None = None) -> SparseModel:
-    """Sparse SfM of static cameras seen at one instant (the middle frame).
+                       work_dir: str | Path | None = None,
+                       more_instants: Sequence[Mapping[str, np.ndarray]] = ()) -> SparseModel:
+    """Sparse SfM of static cameras seen at one instant (the middle frame), or pooled over several.
 
     ``images``: camera id -> scene-linear RGB(A) float [H, W, C] (or uint8 gray [H, W]).
     ``intrinsics``: camera id -> fixed :class:`Intrinsics` (focal from the lens metadata).
@@ -302,6 +303,15 @@ def reconstruct_static(images: Mapping[str, np.ndarray], intrinsics: Mapping[str
     (COLMAP, focal lengths fixed); without, COLMAP's incremental mapper runs on its own (it failed
     on the demo rig's mostly planar 320x180 views, see ``docs/calibration.md``).
     ``work_dir``: where the COLMAP database and PNGs go (a temporary folder when None).
+    ``more_instants``: the same static cameras at other instants of the take (camera id -> image,
+    any subset of ``images``' cameras), pooled into the one reconstruction (seeded path only): each
+    (camera, instant) is a COLMAP image of that camera's pycolmap camera, features are matched only
+    between images of the same instant (a moving board or actor is only rigid within an instant),
+    every image of a camera is placed at that camera's one seeded pose, and the points triangulated
+    at every instant come back as observations of the camera: a camera has ONE pose in the returned
+    model, its keypoints are those of all its instants concatenated (instant order). A COLMAP
+    adjustment (``seeded_rounds`` > 1, ``refine_distortion``) would move each image on its own: the
+    poses of a camera's images are then averaged back into one (:func:`_tie_instant_poses`).
 
     Returns the largest reconstruction; cameras it could not register are in ``unregistered``.
     Raises ``RuntimeError`` when fewer than two cameras register.
@@ -314,12 +324,23 @@ def reconstruct_static(images: Mapping[str, np.ndarray], intrinsics: Mapping[str
         raise ValueError(f"no intrinsics for camera(s) {missing}")
     if len(ids) < 2:
         raise ValueError("static SfM needs at least two cameras")
+    # instant 0 is ``images`` (image names "<id>.png", as with one instant); instant k "<id>@k.png"
+    instants = [dict(images)] + [{c: v for c, v in inst.items()} for inst in more_instants]
+    for k, inst in enumerate(instants[1:], 1):
+        extra = sorted(set(inst) - set(ids))
+        if extra:
+            raise ValueError(f"instant {k}: camera(s) {extra} are not among the static cameras {ids}")
+    pooled = len(instants) > 1
+    if pooled and initial_poses is None:
+        raise ValueError("pooling several instants needs the seeded SfM (initial_poses): the incremental "
+                         "mapper would give every instant of a camera its own pose")
     with tempfile.TemporaryDirectory(prefix="volcap-sfm-") as tmp:
         work = Path(work_dir) if work_dir is not None else Path(tmp)
         t0 = time.perf_counter()
-        db_path, img_dir = _build_database(images, intrinsics, ids, options, work)
+        db_path, img_dir = _build_database(instants, intrinsics, ids, options, work)
         t1 = time.perf_counter()
-        _match(db_path, options)
+        _match(db_path, options, [[_image_stem(c, k) for c in sorted(inst)] for k, inst in enumerate(instants)]
+               if pooled else None, work)
         t2 = time.perf_counter()
         if initial_poses is not None:
             rec = _seeded(db_path, {c: initial_poses[c] for c in ids if c in initial_poses})
@@ -327,65 +348,123 @@ def reconstruct_static(images: Mapping[str, np.ndarray], intrinsics: Mapping[str
                 rec = _triangulate(rec, db_path, img_dir, work, options)
                 if i + 1 < options.seeded_rounds:
                     _final_bundle_adjustment(rec, options)
+                    if pooled:
+                        _tie_instant_poses(rec)
             if options.refine_distortion and any(not intrinsics[c].distortion.is_none for c in ids):
                 _final_bundle_adjustment(rec, options)
+                if pooled:
+                    _tie_instant_poses(rec)
             n_models = 1
         else:
             rec, n_models = _incremental(db_path, img_dir, work, options)
             _final_bundle_adjustment(rec, options)
         t3 = time.perf_counter()
         kps, descs = _read_features(db_path)
-    model = _model_from_reconstruction(rec, ids, images, kps, descs)
+    model = _model_from_reconstruction(rec, ids, instants, kps, descs)
     model.stats.update({"time_features_s": t1 - t0, "time_matching_s": t2 - t1,
                         "time_reconstruction_s": t3 - t2, "num_models": n_models,
-                        "method": "seeded" if initial_poses is not None else "incremental"})
+                        "method": "seeded" if initial_poses is not None else "incremental",
+                        "instants": len(instants)})
     return model
 
 
-def _build_database(images, intrinsics, ids, options: StaticSfmOptions, work: Path) -> tuple[Path, Path]:
+def _image_stem(camera_id: str, instant: int) -> str:
+    """The COLMAP image name (without ``.png``) of a camera at an instant: ``<id>`` for instant 0
+    (as with one instant), ``<id>@<k>`` after."""
+    return camera_id if instant == 0 else f"{camera_id}@{instant}"
+
+
+def _split_stem(stem: str) -> tuple[str, int]:
+    """``<id>`` or ``<id>@<k>`` -> (camera id, instant); camera ids never contain ``@``
+    (``hardware.rig.RigCamera.id``)."""
+    cid, _, k = stem.partition("@")
+    return cid, int(k) if k else 0
+
+
+def _tie_instant_poses(rec: pycolmap.Reconstruction) -> None:
+    """After a COLMAP adjustment of a pooled reconstruction: every image of one camera (one per
+    instant) set to the mean of their poses (rotations by the chordal mean, centres averaged),
+    since a static camera has one pose."""
+    groups: dict[str, list[int]] = {}
+    for iid in rec.reg_image_ids():
+        groups.setdefault(_split_stem(rec.images[iid].name[:-4])[0], []).append(iid)
+    for iids in groups.values():
+        if len(iids) < 2:
+            continue
+        mats = [rec.images[i].cam_from_world().matrix() for i in iids]
+        U, _, Vt = np.linalg.svd(np.mean([m[:, :3] for m in mats], axis=0))
+        R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+        C = np.mean([-m[:, :3].T @ m[:, 3] for m in mats], axis=0)
+        pose = pycolmap.Rigid3d(np.c_[R, -R @ C])
+        for i in iids:
+            rec.frames[rec.images[i].frame_id].rig_from_world = pose
+
+
+def _build_database(instants: Sequence[Mapping[str, np.ndarray]], intrinsics, ids, options: StaticSfmOptions,
+                    work: Path) -> tuple[Path, Path]:
     img_dir = work / "images"
     img_dir.mkdir(parents=True, exist_ok=True)
     db_path = work / "database.db"
     if db_path.exists():
         db_path.unlink()
-    for cid in ids:
-        img = images[cid]
-        gray = img if img.dtype == np.uint8 and img.ndim == 2 else to_uint8_gray(img)
-        cv2.imwrite(str(img_dir / f"{cid}.png"), gray)
+    for k, inst in enumerate(instants):
+        for cid in ids:
+            if cid not in inst:
+                continue
+            img = inst[cid]
+            gray = img if img.dtype == np.uint8 and img.ndim == 2 else to_uint8_gray(img)
+            cv2.imwrite(str(img_dir / f"{_image_stem(cid, k)}.png"), gray)
     colmap_ids: dict[str, int] = {}
     # write_camera creates a trivial rig per camera; the images (and their frames) are created by
-    # feature extraction, tied to the camera through existing_camera_id
+    # feature extraction, tied to the camera through existing_camera_id (every instant of a camera
+    # is an image of the same COLMAP camera)
     with pycolmap.Database.open(str(db_path)) as db:
         for cid in ids:
             colmap_ids[cid] = int(db.write_camera(_colmap_camera(intrinsics[cid])))
     eo = options.sift.colmap()
-    for cid in ids:
-        ro = pycolmap.ImageReaderOptions()
-        ro.existing_camera_id = colmap_ids[cid]
-        pycolmap.extract_features(str(db_path), str(img_dir), image_names=[f"{cid}.png"],
-                                  reader_options=ro, extraction_options=eo, device=pycolmap.Device.cpu)
+    for k, inst in enumerate(instants):
+        for cid in ids:
+            if cid not in inst:
+                continue
+            ro = pycolmap.ImageReaderOptions()
+            ro.existing_camera_id = colmap_ids[cid]
+            pycolmap.extract_features(str(db_path), str(img_dir), image_names=[f"{_image_stem(cid, k)}.png"],
+                                      reader_options=ro, extraction_options=eo, device=pycolmap.Device.cpu)
     return db_path, img_dir
 
 
-def _match(db_path: Path, options: StaticSfmOptions) -> None:
+def _match(db_path: Path, options: StaticSfmOptions, groups: Sequence[Sequence[str]] | None = None,
+           work: Path | None = None) -> None:
+    """Exhaustive matching (``groups`` None), or every pair within each group of image stems only
+    (pooled instants: the images of one instant)."""
     mo = pycolmap.FeatureMatchingOptions()
     mo.sift.max_ratio = options.match_max_ratio
     mo.num_threads = options.num_threads
     mo.guided_matching = options.guided_matching
     vo = pycolmap.TwoViewGeometryOptions()
     vo.min_num_inliers = options.min_pair_inliers
-    pycolmap.match_exhaustive(str(db_path), matching_options=mo, verification_options=vo,
-                              device=pycolmap.Device.cpu)
+    if groups is None:
+        pycolmap.match_exhaustive(str(db_path), matching_options=mo, verification_options=vo,
+                                  device=pycolmap.Device.cpu)
+        return
+    pairs = [f"{a}.png {b}.png" for g in groups for i, a in enumerate(g) for b in g[i + 1:]]
+    path = Path(work if work is not None else db_path.parent) / "pairs.txt"
+    path.write_text("\n".join(pairs) + "\n")
+    po = pycolmap.ImportedPairingOptions()
+    po.match_list_path = path
+    pycolmap.match_image_pairs(str(db_path), matching_options=mo, pairing_options=po, verification_options=vo,
+                               device=pycolmap.Device.cpu)
 
 
 def _read_features(db_path: Path) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Keypoints (OpenCV px) and descriptors per image stem (:func:`_image_stem`)."""
     kps, descs = {}, {}
     with pycolmap.Database.open(str(db_path)) as db:
         for im in db.read_all_images():
-            cid = im.name[:-4]
+            stem = im.name[:-4]
             k = np.asarray(db.read_keypoints(im.image_id), np.float64)
-            kps[cid] = k[:, :2] - COLMAP_PIXEL_OFFSET
-            descs[cid] = np.asarray(db.read_descriptors(im.image_id).data, np.uint8)
+            kps[stem] = k[:, :2] - COLMAP_PIXEL_OFFSET
+            descs[stem] = np.asarray(db.read_descriptors(im.image_id).data, np.uint8)
     return kps, descs
 
 
@@ -415,18 +494,21 @@ def _incremental(db_path: Path, img_dir: Path, work: Path, options: StaticSfmOpt
 def _seeded(db_path: Path, poses: Mapping[str, np.ndarray]) -> pycolmap.Reconstruction:
     """A reconstruction with the database's cameras and images at the given poses, no points."""
     rec = pycolmap.Reconstruction()
+    added: set[int] = set()
     with pycolmap.Database.open(str(db_path)) as db:
         cams = {c.camera_id: c for c in db.read_all_cameras()}
         for im in db.read_all_images():
-            cid = im.name[:-4]
+            cid = _split_stem(im.name[:-4])[0]    # every instant of a camera at its one pose
             if cid not in poses:
                 continue
-            rec.add_camera_with_trivial_rig(cams[im.camera_id])
+            if im.camera_id not in added:
+                rec.add_camera_with_trivial_rig(cams[im.camera_id])
+                added.add(im.camera_id)
             kp = np.asarray(db.read_keypoints(im.image_id), np.float64)[:, :2]
             img = pycolmap.Image(name=im.name, keypoints=kp, camera_id=im.camera_id, image_id=im.image_id)
             m = np.asarray(poses[cid], np.float64)
             rec.add_image_with_trivial_frame(img, pycolmap.Rigid3d(m[:3, :4]))
-    if rec.num_reg_images() < 2:
+    if len(added) < 2:
         raise RuntimeError("seeded static SfM needs at least two seeded cameras")
     return rec
 
@@ -453,18 +535,39 @@ def _final_bundle_adjustment(rec: pycolmap.Reconstruction, options: StaticSfmOpt
     pycolmap.bundle_adjustment(rec, ba)
 
 
-def _model_from_reconstruction(rec, ids, images, kps, descs) -> SparseModel:
-    reg: dict[str, int] = {}
+def _model_from_reconstruction(rec, ids, instants, kps, descs) -> SparseModel:
+    """The SparseModel of a reconstruction: one entry per camera, whatever its number of images
+    (instants): the pose of its first registered image (all of a camera's images share it in the
+    pooled path), its keypoints and descriptors those of its instants concatenated in instant order,
+    observations indexed into that concatenation."""
+    if isinstance(instants, Mapping):
+        instants = [instants]
+    reg: dict[str, dict[int, int]] = {}
     for iid in rec.reg_image_ids():
-        reg[rec.images[iid].name[:-4]] = iid
+        cid, k = _split_stem(rec.images[iid].name[:-4])
+        reg.setdefault(cid, {})[k] = iid
     cam_ids = [c for c in ids if c in reg]
     intr, poses = {}, {}
     for cid in cam_ids:
-        im = rec.images[reg[cid]]
+        im = rec.images[reg[cid][min(reg[cid])]]
         intr[cid] = _intrinsics_from_colmap(rec.cameras[im.camera_id])
         m = im.cam_from_world().matrix()
         poses[cid] = pose_matrix(m[:, :3], m[:, 3])
-    index_of_image = {reg[c]: i for i, c in enumerate(cam_ids)}
+    # per image: (camera index, keypoint offset in the camera's concatenation, the instant's image)
+    index_of_image, offsets = {}, {}
+    cam_kps, cam_descs = {}, {}
+    for i, cid in enumerate(cam_ids):
+        stems = [_image_stem(cid, k) for k in range(len(instants)) if _image_stem(cid, k) in kps]
+        off = 0
+        for stem in stems:
+            k = _split_stem(stem)[1]
+            offsets[stem] = off
+            off += len(kps[stem])
+            if k in reg[cid]:
+                index_of_image[reg[cid][k]] = (i, offsets[stem], instants[k][cid])
+        cam_kps[cid] = np.concatenate([kps[s] for s in stems]) if stems else np.zeros((0, 2))
+        cam_descs[cid] = np.concatenate([descs[s] for s in stems]) if stems else np.zeros((0, 128), np.uint8)
+    kps, descs = cam_kps, cam_descs
     pid_rows = {}
     pts, cols, tl = [], [], []
     obs_p, obs_c, obs_xy = [], [], []
@@ -476,17 +579,17 @@ def _model_from_reconstruction(rec, ids, images, kps, descs) -> SparseModel:
         rgb = []
         n = 0
         for el in p.track.elements:
-            ci = index_of_image.get(el.image_id)
-            if ci is None:
+            where = index_of_image.get(el.image_id)
+            if where is None:
                 continue
+            ci, off, img = where
             cid = cam_ids[ci]
-            xy = kps[cid][el.point2D_idx]
+            xy = kps[cid][off + el.point2D_idx]
             obs_p.append(row)
             obs_c.append(ci)
             obs_xy.append(xy)
-            pok[cid][el.point2D_idx] = row
+            pok[cid][off + el.point2D_idx] = row
             n += 1
-            img = images[cid]
             if img.ndim == 3:
                 x = int(np.clip(round(xy[0]), 0, img.shape[1] - 1))
                 y = int(np.clip(round(xy[1]), 0, img.shape[0] - 1))

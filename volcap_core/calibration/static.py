@@ -14,7 +14,9 @@ Pipeline (each step a pure function of the previous one's output):
 5. with a lidar scan: lidar-guided patch matching of the background plates between the cameras of
    step 4 (:mod:`volcap_core.calibration.guided`, ~30x the observations, over the whole image) and
    a second bundle adjustment on those tracks that also refines the principal points and leaves the
-   centres to the data (the mounts only a weak prior);
+   centres to the data (the mounts only a weak prior); without a scan the same matching runs through
+   a plane-sweep surface of the plates (:func:`surface_from_plates`), the centres held by the mounts,
+   and the stage frame and scale come from the mounts or a known distance (:func:`frame_without_lidar`);
 6. optionally, direct photometric refinement against the lidar
    (:mod:`volcap_core.calibration.photometric`): every textured background pixel seen by two cameras
    votes (off by default: it did not improve the demo capture).
@@ -31,7 +33,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 
@@ -69,6 +71,31 @@ class StaticCalibrationOptions:
     plate_frames: int = 8
     #: the take index calibrated on; None: the middle frame (the paper)
     reference_frame: int | None = None
+    #: instants of the take pooled into the static SfM (:func:`instant_frames`): 1 (default, the
+    #: paper) uses the reference frame alone; n > 1 adds n - 1 more spread evenly over the take, so a
+    #: capture whose background alone is too sparse at one instant (a dark stage, a moving board or
+    #: actor giving the texture) gathers observations from several. Features are matched between
+    #: cameras within an instant only, and each static camera keeps ONE pose over all of them
+    #: (:func:`~volcap_core.calibration.sfm.reconstruct_static`). Seeded SfM only.
+    instants: int = 1
+    #: the take indices to pool instead (the reference frame is always one of them); None: from
+    #: ``instants``
+    instant_frames: tuple[int, ...] | None = None
+    #: without a lidar scan, the metric scale from a measured distance between two static cameras'
+    #: optical centres: (camera id, camera id, metres). None: the scale (and the stage frame) come
+    #: from the rig's mounts alone (a robust similarity of the adjusted camera centres onto them).
+    #: With a scan the scan gives the scale; the distance is then only checked (stats
+    #: ``frame.known_distance_error_m``)
+    known_distance: tuple[str, str, float] | None = None
+    #: without a lidar scan, step 5 (guided matching and the second adjustment) runs through a
+    #: surface made by a plane sweep of the background plates with step 4's cameras
+    #: (:func:`surface_from_plates`) instead of the scan, the centres held by the mounts (step 4's
+    #: ``centre_sigma_m``) and no lidar prior; False: steps 1-4 only
+    surface_without_scan: bool = True
+    #: without a lidar scan: a camera whose adjusted centre is further than this from its mount
+    #: after the similarity onto the mounts is named in a warning (the mounts are surveyed to a few
+    #: cm; metres). The residual is in the stats (``frame.mount_residual_*``)
+    mount_tolerance_m: float = 0.10
     #: the SfM must register at least this fraction of the static cameras (and two): fewer means
     #: the views do not overlap enough (or the frame is wrong), and calibration stops there
     min_registered_fraction: float = 0.5
@@ -139,16 +166,42 @@ def nominal_pose(cam: RigCamera) -> np.ndarray:
     return pose_matrix(R, -R @ np.asarray(cam.mount.position_m, np.float64))
 
 
+def instant_frames(frame_count: int, reference: int, options: StaticCalibrationOptions) -> list[int]:
+    """The take indices the static SfM pools, the reference frame first: ``options.instant_frames``
+    when given, else the reference alone (``instants`` = 1) or ``instants`` frames spread evenly over
+    the take (the evenly spaced one nearest the reference replaced by it)."""
+    if options.instant_frames is not None:
+        bad = [k for k in options.instant_frames if not 0 <= k < frame_count]
+        if bad:
+            raise ValueError(f"instant_frames {bad} outside the take [0, {frame_count})")
+        rest = sorted(set(int(k) for k in options.instant_frames) - {reference})
+        return [reference] + rest
+    if options.instants < 1:
+        raise ValueError(f"instants must be >= 1, got {options.instants}")
+    n = min(options.instants, frame_count)
+    if n <= 1:
+        return [reference]
+    spread = [int(k) for k in np.unique(np.linspace(0, frame_count - 1, n).round().astype(int))]
+    spread[int(np.argmin([abs(k - reference) for k in spread]))] = reference
+    return [reference] + sorted(set(spread) - {reference})
+
+
 def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: LidarScan | None,
                              *, plates: Mapping[str, np.ndarray] | None = None,
-                             options: StaticCalibrationOptions = StaticCalibrationOptions()) -> StaticCalibration:
-    """Calibrate the rig's static cameras from one instant.
+                             options: StaticCalibrationOptions = StaticCalibrationOptions(),
+                             more_instants: Sequence[Mapping[str, np.ndarray]] = ()) -> StaticCalibration:
+    """Calibrate the rig's static cameras from one instant, or several pooled.
 
     ``images``: static camera id -> scene-linear RGB [H, W, 3] float at the middle frame.
+    ``more_instants``: the same cameras at other instants (:func:`instant_frames`), pooled into the
+    sparse SfM (features matched within an instant, one pose per camera); the later steps use
+    ``images`` / ``plates``.
     ``plates``: optional background plates (:func:`~volcap_core.calibration.photometric.background_plate`)
     for the guided matching and the photometric step (default: ``images``; plates have no actors, whom
     the scan does not have). ``scan``: the lidar scan of the static stage in the stage frame (None:
-    metric frame from the mounts only, no lidar terms, no guided matching, no photometric step).
+    no lidar terms, no guided matching, no photometric step; the stage frame and the metric scale
+    from a robust similarity of the adjusted camera centres onto the rig's mounts, or the scale
+    from ``options.known_distance``, see :func:`frame_without_lidar`).
     """
     t0 = time.perf_counter()
     ids = sorted(images)
@@ -157,7 +210,8 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
     seeds = {c: nominal_pose(cams[c]) for c in ids}
     mounts = {c: np.asarray(cams[c].mount.position_m, np.float64) for c in ids}
     stats: dict = {}
-    model = reconstruct_static(images, intr, options.sfm, initial_poses=seeds if options.seeded else None)
+    model = reconstruct_static(images, intr, options.sfm, initial_poses=seeds if options.seeded else None,
+                               more_instants=more_instants)
     stats["sfm"] = dict(model.stats)
     # distorted (or non-square) cameras: from here on everything works on their rectified square
     # pinholes (observations, images and plates resampled); ``raw_intr`` is what they came from
@@ -216,25 +270,42 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
             raise UnsupportedCameraError(reasons)
         K = {c: K[c] for c in reg}
         w2c = {c: w2c[c] for c in reg}
+    if scan is None:
+        # no lidar: the stage frame and the metric scale from the mounts (or a measured distance)
+        T, stats["frame"] = frame_without_lidar({c: w2c[c] for c in reg}, mounts, options)
+        w2c = {c: T.apply_pose(w2c[c]) for c in reg}
+        res = {**res, "points": T.apply(res["points"])}
+    elif options.known_distance is not None:
+        stats["frame"] = _check_known_distance(w2c, options.known_distance)
     t2 = time.perf_counter()
     background = plates if plates is not None else images
     guided_counts = None
-    if scan is not None and options.guided is not None:
+    guide, guided_bundle = scan, options.guided_bundle
+    if scan is None and options.guided is not None and options.surface_without_scan:
+        # no scan: step 5 warps its templates through a plane-sweep surface of the plates instead,
+        # with no lidar prior and the centres held by the mounts as in step 4 (they are the frame)
+        guide, stats["surface"] = surface_from_plates({c: background[c] for c in reg}, K, w2c)
+        guided_bundle = replace(guided_bundle, centre_sigma_m=options.bundle.centre_sigma_m)
+    if guide is not None and options.guided is not None:
         # the tracks' cameras come in ``reg`` order, the order of the dict passed
-        tracks = guided_tracks({c: background[c] for c in reg}, K, w2c, scan, options.guided)
+        tracks = guided_tracks({c: background[c] for c in reg}, K, w2c, guide, options.guided)
         P = np.stack([K[c] @ w2c[c][:3] for c in reg])
         start = triangulate_points(P, tracks.obs_point, tracks.obs_camera, tracks.obs_xy, len(tracks.points))
         start = np.where(np.isfinite(start), start, tracks.points)
         g = bundle_adjust(np.stack([w2c[c] for c in reg]), np.array([K[c][0, 0] for c in reg]),
                           np.array([[intr[c].cx, intr[c].cy] for c in reg]), start, tracks.obs_camera,
                           tracks.obs_point, tracks.obs_xy, scan=scan, focal_prior=np.array([intr[c].fx for c in reg]),
-                          centre_prior=np.stack([mounts[c] for c in reg]), options=options.guided_bundle)
+                          centre_prior=np.stack([mounts[c] for c in reg]), options=guided_bundle)
         K = {c: np.array([[g["focal"][i], 0, g["principal"][i, 0]], [0, g["focal"][i], g["principal"][i, 1]],
                           [0, 0, 1.0]]) for i, c in enumerate(reg)}
         w2c = {c: g["world_to_camera"][i] for i, c in enumerate(reg)}
         stats["guided"] = {**tracks.stats, "bundle": g["stats"], "inliers": int(g["inlier"].sum()),
-                           "median_reprojection_px": float(np.median(g["reprojection_px"][g["inlier"]]))}
+                           "median_reprojection_px": float(np.median(g["reprojection_px"][g["inlier"]])),
+                           "through": "lidar scan" if scan is not None else "plane-sweep surface"}
         guided_counts = np.bincount(tracks.obs_camera[g["inlier"]], minlength=len(reg))
+        if scan is None:   # the adjusted cameras onto the mounts again (or the known distance)
+            T, stats["frame"] = frame_without_lidar(w2c, mounts, options)
+            w2c = {c: T.apply_pose(w2c[c]) for c in reg}
     t_guided = time.perf_counter()
     if scan is not None and options.photometric is not None:
         ph = refine_photometric({c: background[c] for c in reg}, K, w2c, scan, centre_prior=mounts,
@@ -266,6 +337,107 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
                              unregistered=sorted(reasons), stats=stats, reasons=dict(sorted(reasons.items())),
                              support=support,
                              raw_intrinsics={c: raw_from_rectified(K[c], raw_intr[c]) for c in reg if c in raw_intr})
+
+
+def surface_from_plates(plates: Mapping[str, np.ndarray], K: Mapping[str, np.ndarray],
+                        world_to_camera: Mapping[str, np.ndarray], min_points: int = 2000,
+                        scale: float = 2.0) -> tuple[LidarScan | None, dict]:
+    """A stand-in for the lidar scan when a capture has none: the plane-sweep points of the
+    background plates (:func:`~volcap_core.calibration.dense.dense_points`, cross-view consistent)
+    seen by the cameras of step 4, normals from their neighbours. Step 4's cameras are consistent
+    with each other (0.1-0.2 px) even where they are off in the stage frame, so the surface is the
+    set as they see it, which is all the guided matching needs to predict where a pixel of one
+    camera lands in another. None (and the count in the stats) when fewer than ``min_points``
+    points pass."""
+    from volcap_core.calibration.dense import DenseOptions, dense_points
+
+    t0 = time.perf_counter()
+    # half resolution: a quarter of the sweep's cost; the guided matching searches ±3 px around what
+    # the surface predicts and refines by NCC on the full images
+    out = dense_points(dict(plates), {c: (K[c], world_to_camera[c]) for c in plates},
+                       options=DenseOptions(scale=scale))
+    n = len(out["positions"])
+    stats = {"points": n, "seconds": time.perf_counter() - t0}
+    if n < min_points:
+        return None, stats
+    return LidarScan(np.asarray(out["positions"], np.float64), None), stats
+
+
+def _centre(world_to_camera: np.ndarray) -> np.ndarray:
+    return -world_to_camera[:3, :3].T @ world_to_camera[:3, 3]
+
+
+class KnownDistanceError(ValueError):
+    """``StaticCalibrationOptions.known_distance`` names a camera that is not calibrated, or a
+    distance that is not positive."""
+
+
+def _check_known_distance(world_to_camera: Mapping[str, np.ndarray], known: tuple[str, str, float]) -> dict:
+    a, b, d = known
+    missing = [c for c in (a, b) if c not in world_to_camera]
+    if missing:
+        raise KnownDistanceError(f"known_distance names camera(s) {missing} that are not calibrated static cameras "
+                                 f"({', '.join(sorted(world_to_camera))})")
+    if not d > 0:
+        raise KnownDistanceError(f"known_distance between {a} and {b} must be positive, got {d}")
+    measured = float(np.linalg.norm(_centre(world_to_camera[a]) - _centre(world_to_camera[b])))
+    return {"known_distance_m": float(d), "known_distance_measured_m": measured,
+            "known_distance_error_m": measured - float(d)}
+
+
+def frame_without_lidar(world_to_camera: Mapping[str, np.ndarray], mounts: Mapping[str, np.ndarray],
+                        options: StaticCalibrationOptions = StaticCalibrationOptions()) -> tuple[Similarity, dict]:
+    """The stage frame and metric scale of cameras calibrated without a lidar scan: the robust
+    similarity (:func:`~volcap_core.calibration.geometry.robust_umeyama`, inliers within 0.25 m)
+    taking the adjusted camera centres onto the rig's mount positions; with
+    ``options.known_distance`` (two cameras' centre distance in metres) the scale is then set so
+    that distance comes out exact (a scaling about the mounts' centroid: the mounts still give the
+    orientation and position).
+
+    Returns the similarity (``x_stage = s R x + t``) and stats: ``scale`` (of the whole
+    transform), ``rotation_deg``, ``translation_m``, ``mount_inliers``, ``mount_residual_rms_m`` /
+    ``_median_m`` / ``_max_m`` (distance of each camera centre from its mount afterwards: with
+    mounts surveyed to a few cm and a good SfM, a few cm) and ``mount_residual.<id>``, and with a
+    known distance ``known_distance_*``. A camera further than ``options.mount_tolerance_m`` from its
+    mount is logged as a warning (``mount_outliers``: how many)."""
+    import logging
+
+    from volcap_core.calibration.geometry import rotation_angle_deg
+
+    ids = sorted(world_to_camera)
+    src = np.stack([_centre(world_to_camera[c]) for c in ids])
+    dst = np.stack([np.asarray(mounts[c], np.float64) for c in ids])
+    if len(ids) >= 3:
+        T, inl = robust_umeyama(src, dst, threshold=0.25)
+    else:   # two cameras do not fix a rotation: left where the mounts' prior put them
+        T, inl = Similarity(), np.ones(len(ids), bool)
+    stats: dict = {"scale_source": 0.0, "mount_inliers": int(inl.sum())}
+    if options.known_distance is not None:
+        a, b, d = options.known_distance
+        if a not in ids or b not in ids:
+            raise KnownDistanceError(f"known_distance names camera(s) {[c for c in (a, b) if c not in ids]} that "
+                                     f"are not calibrated static cameras ({', '.join(ids)})")
+        if not d > 0:
+            raise KnownDistanceError(f"known_distance between {a} and {b} must be positive, got {d}")
+        moved = T.apply(src)
+        now = float(np.linalg.norm(moved[ids.index(a)] - moved[ids.index(b)]))
+        k = float(d) / now
+        c0 = dst.mean(0)
+        T = Similarity(k, np.eye(3), c0 - k * c0).compose(T)
+        stats.update({"scale_source": 1.0, "known_distance_m": float(d), "known_distance_scale": k,
+                      "known_distance_from_mounts_m": now})
+    r = np.linalg.norm(T.apply(src) - dst, axis=1)
+    stats.update({"scale": float(T.s), "rotation_deg": float(rotation_angle_deg(T.R, np.eye(3))),
+                  "translation_m": float(np.linalg.norm(T.t)), "mount_residual_rms_m": float(np.sqrt(np.mean(r ** 2))),
+                  "mount_residual_median_m": float(np.median(r)), "mount_residual_max_m": float(r.max()),
+                  "mount_residual": {c: float(v) for c, v in zip(ids, r)}})
+    far = [f"{c} {v:.3f} m" for c, v in zip(ids, r) if v > options.mount_tolerance_m]
+    stats["mount_outliers"] = len(far)
+    if far:
+        logging.getLogger("volcap.calibrate").warning(
+            "no lidar scan: static camera(s) end further than %.2f m from their mounts after the similarity onto "
+            "the mounts: %s (check the rig's mount positions)", options.mount_tolerance_m, ", ".join(far))
+    return T, stats
 
 
 def camera_support(K: Mapping[str, np.ndarray], world_to_camera: Mapping[str, np.ndarray], camera_ids: list[str],

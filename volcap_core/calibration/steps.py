@@ -29,11 +29,12 @@ from safetensors.numpy import save as st_save
 from volcap_core import imageio
 from volcap_core.calibration.colour import ColourCalibrationOptions
 from volcap_core.calibration.dense import DenseOptions, dense_points
+from volcap_core.calibration.distortion import rectified_valid, rectify_frame
 from volcap_core.calibration.lidar import LidarScan
 from volcap_core.calibration.photometric import background_plate
 from volcap_core.calibration.record import Calibration, TrackingFrames, camera_at, encode_tracking_frames
 from volcap_core.calibration.static import (StaticCalibration, StaticCalibrationOptions, UnsupportedCameraError,
-                                            calibrate_static_cameras)
+                                            KnownDistanceError, calibrate_static_cameras, instant_frames)
 from volcap_core.calibration.tracking import (StaticReference, TrackingOptions, TrackingSolution,
                                               build_static_reference, calibrate_tracking_cameras)
 from volcap_core.capture import Capture
@@ -58,12 +59,19 @@ class CalibrationInputError(ValueError):
 
 
 class StaticCamera(BaseModel):
+    """One calibrated static camera: ``K`` the square pinhole it was calibrated as (on its
+    rectified images when its lens is distorted); ``raw_intrinsics`` (fx, fy, cx, cy on its own
+    images) and ``distortion`` (``Distortion.to_json``) for a camera with distortion or non-square
+    pixels (:attr:`StaticCalibration.raw_intrinsics`), None for a square pinhole."""
+
     model_config = ConfigDict(extra="forbid", frozen=True)
     id: str
     K: Matrix3
     world_to_camera: Matrix4
     width: int
     height: int
+    raw_intrinsics: tuple[float, float, float, float] | None = None
+    distortion: dict[str, Any] | None = None
 
 
 class StaticCalibrationRecord(Record):
@@ -225,16 +233,31 @@ def calibrate_static_step(cap_name: str, rig, static_ids: Sequence[str], trackin
         raise CalibrationInputError(
             f"capture {cap_name} has tracking cameras ({', '.join(tracking_ids)}) but no lidar scan: they register "
             "against the static set lifted onto the scan; name the scan in capture.json's 'lidar'")
+    if options.known_distance is not None:
+        unknown = [c for c in options.known_distance[:2] if c not in static_ids]
+        if unknown:
+            raise CalibrationInputError(f"capture {cap_name}: the known distance names camera(s) {', '.join(unknown)}, "
+                                        f"not static cameras of the capture ({', '.join(static_ids)})")
     if scan is None:
-        log.warning("capture %s has no lidar scan: the static cameras are placed by the SfM and their mounts only",
-                    cap_name)
+        log.warning("capture %s has no lidar scan: the static cameras are placed by the SfM and their mounts only%s",
+                    cap_name, "" if options.known_distance is None else
+                    f", scaled to the known distance {options.known_distance[2]} m between "
+                    f"{options.known_distance[0]} and {options.known_distance[1]}")
     ref_frame = reference_frame(frame_count, options)
     plate_idx = plate_frames(frame_count, options)
     images = {c: load(c, ref_frame) for c in static_ids}
     plates = {c: background_plate([load(c, k) for k in plate_idx]) for c in static_ids}
+    # more instants pooled into the SfM (options.instants / instant_frames; none by default)
+    try:
+        pooled = instant_frames(frame_count, ref_frame, options)
+    except ValueError as exc:
+        raise CalibrationInputError(f"capture {cap_name}: {exc}") from exc
+    more = [{c: load(c, k) for c in static_ids} for k in pooled[1:]]
     need = max(2, math.ceil(options.min_registered_fraction * len(static_ids)))
     try:
-        static = calibrate_static_cameras(images, rig, scan, plates=plates, options=options)
+        static = calibrate_static_cameras(images, rig, scan, plates=plates, options=options, more_instants=more)
+        if len(pooled) > 1:
+            static.stats["instants"] = {"count": len(pooled), **{f"frame_{i}": k for i, k in enumerate(pooled)}}
     except UnsupportedCameraError as exc:
         names = sorted(exc.reasons)
         many = len(names) > 1
@@ -246,6 +269,8 @@ def calibrate_static_step(cap_name: str, rig, static_ids: Sequence[str], trackin
         raise CalibrationInputError(
             f"capture {cap_name}, frame {ref_frame}: static camera{'s' if many else ''} {', '.join(names)} "
             f"cannot be calibrated: {why}; check {'their' if many else 'its'} footage and mount, or {hint}") from exc
+    except KnownDistanceError as exc:   # e.g. a camera of the known distance was left out
+        raise CalibrationInputError(f"capture {cap_name}, frame {ref_frame}: {exc}") from exc
     except RuntimeError as exc:  # the SfM registered no / too few cameras
         raise CalibrationInputError(f"capture {cap_name}, frame {ref_frame}: static calibration of "
                                     f"{', '.join(static_ids)} failed: {exc}") from exc
@@ -260,9 +285,33 @@ def calibrate_static_step(cap_name: str, rig, static_ids: Sequence[str], trackin
                     "; ".join(f"{c}: {static.reasons.get(c, 'not registered')}" for c in static.unregistered))
     reference = None
     if tracking_ids:
-        reference = build_static_reference({c: plates[c] for c in static.camera_ids}, static.K,
-                                           static.world_to_camera, scan)
+        # the plates are the cameras' own (distorted) images: resampled into the pinholes ``static.K``
+        # the reference lifts their features with
+        reference = build_static_reference({c: _plate_in_pinhole(plates[c], static, c) for c in static.camera_ids},
+                                           static.K, static.world_to_camera, scan)
     return StaticStep(static, ref_frame, plate_idx, plates, reference)
+
+
+def _plate_in_pinhole(plate: np.ndarray, static: StaticCalibration, camera: str) -> np.ndarray:
+    """A static camera's plate (its own pixels) resampled into the pinhole ``static.K[camera]`` it
+    was calibrated as; unchanged for a square pinhole."""
+    raw = (getattr(static, "raw_intrinsics", {}) or {}).get(camera)
+    if raw is None:
+        return plate
+    import cv2
+
+    from volcap_core.calibration.distortion import undistort_maps
+    from volcap_core.calibration.sfm import Intrinsics
+
+    K = static.K[camera]
+    out = Intrinsics(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), raw.width, raw.height)
+    mx, my = undistort_maps(raw, raw.distortion, out)
+    # the border is replicated, not black: a black corner's edge is a ring of strong SIFT features
+    # that are no part of the scene. Measured on the distorted demo capture (6 frames), tracking
+    # camera S011: black border 155° off (a flipped solution); replicated 0.18°, focal 0.36 %; the
+    # raw plates read as pinholes (before) 0.51°, focal 1.24 %
+    return cv2.remap(np.ascontiguousarray(plate, np.float32), mx, my, cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REPLICATE)
 
 
 def encode_reference(ref: StaticReference) -> bytes:
@@ -295,8 +344,18 @@ def _matrix(m: np.ndarray) -> tuple:
 def static_record(cap_name: str, step: StaticStep, reference: ArtifactRef | None) -> StaticCalibrationRecord:
     """The record of a static step; ``reference``: the stored :func:`encode_reference` of its reference."""
     static = step.calibration
+    raw = getattr(static, "raw_intrinsics", {}) or {}
+
+    def raw_fields(c: str) -> dict:
+        if c not in raw:
+            return {}
+        r = raw[c]
+        return {"raw_intrinsics": (float(r.fx), float(r.fy), float(r.cx), float(r.cy)),
+                "distortion": r.distortion.to_json()}
+
     cams = tuple(StaticCamera(id=c, K=_matrix(static.K[c]), world_to_camera=_matrix(static.world_to_camera[c]),
-                              width=static.size[c][0], height=static.size[c][1]) for c in static.camera_ids)
+                              width=static.size[c][0], height=static.size[c][1], **raw_fields(c))
+                 for c in static.camera_ids)
     stats = _floats(static.stats)
     stats["sparse_points"] = float(len(static.model.points))
     return StaticCalibrationRecord(capture=cap_name, reference_frame=step.reference_frame,
@@ -313,11 +372,21 @@ def static_calibration(rec: StaticCalibrationRecord) -> StaticCalibration:
     stats: dict[str, Any] = {}
     if "bundle.median_reprojection_px" in rec.stats:
         stats["bundle"] = {"median_reprojection_px": rec.stats["bundle.median_reprojection_px"]}
+    # the no-lidar stage frame's figures (static.frame_without_lidar), top level only
+    frame = {k[6:]: v for k, v in rec.stats.items() if k.startswith("frame.") and "." not in k[6:]}
+    if frame:
+        stats["frame"] = frame
+    from volcap_core.calibration.distortion import Distortion
+    from volcap_core.calibration.sfm import Intrinsics
+
+    raw = {c.id: Intrinsics(*c.raw_intrinsics, c.width, c.height, Distortion.from_json(c.distortion))
+           for c in rec.cameras if c.raw_intrinsics is not None}
     return StaticCalibration(camera_ids=ids, K={c.id: np.asarray(c.K, np.float64) for c in rec.cameras},
                              world_to_camera={c.id: np.asarray(c.world_to_camera, np.float64) for c in rec.cameras},
                              size={c.id: (c.width, c.height) for c in rec.cameras}, model=None,
                              unregistered=list(rec.unregistered), stats=stats,
-                             reasons={c: rec.unregistered_reasons.get(c, "not registered") for c in rec.unregistered})
+                             reasons={c: rec.unregistered_reasons.get(c, "not registered") for c in rec.unregistered},
+                             raw_intrinsics=raw)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -428,7 +497,9 @@ def dense_points_step(cap: Capture, calib: Calibration, frame: int, load: FrameS
     consistency (``volcap_core.calibration.dense``), colours linear. ``exclude_cameras`` (a
     reconstruction's held-out cameras) take no part: points seen or coloured by a camera would
     leak its footage into the model it is meant to test. ``scale`` < 1 matches downscaled images
-    (a quarter of the work at 0.5): previews and tests."""
+    (a quarter of the work at 0.5): previews and tests. A distorted camera's frame is rectified
+    first (:func:`~volcap_core.calibration.distortion.rectify_frame`: the pinhole of its record's
+    K) and its pixels outside the source take no part."""
     if not 0 <= frame < cap.frame_count:
         raise CalibrationInputError(f"capture {cap.name}: frame {frame} outside the take [0, {cap.frame_count})")
     if calib.capture != cap.name:
@@ -442,10 +513,12 @@ def dense_points_step(cap: Capture, calib: Calibration, frame: int, load: FrameS
     if len(ids) < 2:
         raise CalibrationInputError(f"capture {cap.name}, frame {frame}: dense points need two calibrated static "
                                     f"cameras, the calibration has {len(ids)}")
-    images = {c: load(c, frame) for c in ids}
+    # a distorted camera's frame is resampled into the pinhole of its record's K (rectify_frame)
+    images = {c: rectify_frame(load(c, frame), calib.camera(c)) for c in ids}
     cams = {c: camera_at(calib, c, frame)[:2] for c in ids}
     # DenseOptions.scale is the library's downscale *factor* (2 = half size), hence the division.
-    out = dense_points(images, cams, options=replace(options, scale=options.scale / scale))
+    valid = {c: rectified_valid(calib.camera(c)) for c in ids}
+    out = dense_points(images, cams, options=replace(options, scale=options.scale / scale), valid=valid)
     if len(out["positions"]) == 0:
         log.warning("capture %s, frame %d: no dense point passed the consistency check", cap.name, frame)
     return DenseFrame(out["positions"], out["colours"], ids, float(out["seconds"]))
@@ -565,6 +638,8 @@ def chart_view_colours(view: ChartView, get_bytes: GetBytes,
             K, w2c, _, _ = camera_at(calib, view.camera, view.frame, tracking)
         except (KeyError, IndexError) as exc:
             raise CalibrationInputError(f"colour chart ({view.label()}): {exc}") from exc
+        if view.camera in calib.static_ids:   # the record's K is the pinhole of the rectified frame
+            image = rectify_frame(image, calib.camera(view.camera))
         return chart_patches_in_view(image, K, w2c, np.asarray(view.patches_m, np.float64), view.patch_size_m,
                                      options.window_fraction)
     if view.corners_px is not None:

@@ -99,9 +99,10 @@ def score_segment(model: Poly4DGS, grids: ExposureGrids, data: SegmentData,
     held_renders = render_views(model, held_views, config, device=device)
     held_targets = [v.load()[..., :3].to(device) for v in held_views]
     held_ids, held_frames = [v.camera_id for v in held_views], [v.frame for v in held_views]
-    tfs = cross_fitted_transforms(held_renders, held_targets, held_ids, held_frames)
+    held_valid = [v.load_valid() for v in held_views]
+    tfs = cross_fitted_transforms(held_renders, held_targets, held_ids, held_frames, held_valid)
     trained_views = score_views(held_renders, held_targets, held_ids, held_frames,
-                                [v.load_mask() for v in held_views], transforms=tfs)
+                                [v.load_mask() for v in held_views], transforms=tfs, valid=held_valid)
     held_out = {"trained": summarise(trained_views),
                 "initial": summarise(evaluate_held_out(initial, held_views, config, device=device)),
                 "empty": summarise(evaluate_held_out(None, held_views, config, device=device))}
@@ -113,7 +114,7 @@ def score_segment(model: Poly4DGS, grids: ExposureGrids, data: SegmentData,
     masks = [v.load_mask() for v in scored]
     # the grids are the training fit: scored as they are, the "fitted" figure equals the raw one
     ident = score_views(renders, targets, [f"{v.camera_id}#{v.frame}" for v in scored],
-                        [0] * len(scored), masks)
+                        [0] * len(scored), masks, valid=[v.load_valid() for v in scored])
     training = summarise(ident)
 
     rows = []
@@ -132,7 +133,7 @@ def score_segment(model: Poly4DGS, grids: ExposureGrids, data: SegmentData,
     pick_cams = [train_cams[0]] + ([train_cams[-1]] if len(train_cams) > 1 else [])
     for v in sheet_views(train_views, pick_cams):
         r = grids.apply(render_views(model, [v], config, device=device)[0], v.camera_id)
-        p = score_views([r], [v.load()[..., :3].to(device)], ["x"], [0])[0].psnr
+        p = score_views([r], [v.load()[..., :3].to(device)], ["x"], [0], valid=[v.load_valid()])[0].psnr
         rows.append(_row(f"{v.camera_id} frame {v.frame} training  PSNR {p:.1f} dB", v, r))
     return SegmentScores(held_out, training, trained_views, rows)
 

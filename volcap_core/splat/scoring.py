@@ -109,15 +109,29 @@ class ViewScore:
     ssim_performers: float | None = None
 
 
-def _display_scores(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None
-                    ) -> tuple[float, float, float | None, float | None]:
+def _display_scores(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor | None,
+                    valid: torch.Tensor | None = None) -> tuple[float, float, float | None, float | None]:
     p = srgb_encode(pred.detach().float())
     t = srgb_encode(target.detach().float())
     pad = "valid" if min(p.shape[:2]) > 11 else "same"
-    full_psnr, full_ssim = float(psnr(p, t)), float(ssim(p, t, padding=pad))
+    if valid is None:
+        full_psnr, full_ssim = float(psnr(p, t)), float(ssim(p, t, padding=pad))
+    else:
+        # pixels without footage (a rectified lens's border) are left out: PSNR over the others,
+        # SSIM averaged over the others' windows (the render replaced by the footage outside them)
+        v = valid.detach().to(p.device).reshape(p.shape[:2]).bool()
+        p = torch.where(v[..., None], p, t)
+        mse = float(((p - t) ** 2)[v].mean()) if bool(v.any()) else 0.0
+        full_psnr = float(10.0 * np.log10(1.0 / max(mse, 1e-20)))
+        smap = ssim(p, t, padding=pad, reduction="none")
+        dh, dw = (v.shape[0] - smap.shape[0]) // 2, (v.shape[1] - smap.shape[1]) // 2
+        vv = v[dh:dh + smap.shape[0], dw:dw + smap.shape[1]]
+        full_ssim = float(smap[vv].mean()) if bool(vv.any()) else float(smap.mean())
     if mask is None:
         return full_psnr, full_ssim, None, None
     m = mask.detach().float().reshape(p.shape[:2]) >= 0.5
+    if valid is not None:
+        m = m & v
     if not bool(m.any()):
         return full_psnr, full_ssim, None, None
     mse = float(((p - t) ** 2)[m].mean())
@@ -130,7 +144,8 @@ def _display_scores(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor
 def score_views(renders: Sequence[torch.Tensor], targets: Sequence[torch.Tensor],
                 camera_ids: Sequence[str], frames: Sequence[int],
                 masks: Sequence[torch.Tensor | None] | None = None,
-                transforms: Sequence[ColourTransform] | None = None) -> list[ViewScore]:
+                transforms: Sequence[ColourTransform] | None = None,
+                valid: Sequence[torch.Tensor | None] | None = None) -> list[ViewScore]:
     """Score held-out views under the protocol of the module doc.
 
     Args:
@@ -140,26 +155,36 @@ def score_views(renders: Sequence[torch.Tensor], targets: Sequence[torch.Tensor]
         masks: optional ``[H, W]`` performer coverage in [0, 1] per view (None entries allowed).
         transforms: :func:`cross_fitted_transforms` of these views when the caller already has
             them (it uses them too); fitted here otherwise.
+        valid: optional ``[H, W]`` bool per view, the pixels that hold footage (None entries:
+            all); the others take no part in any figure nor in the fitted transforms.
     Returns:
         one :class:`ViewScore` per view, in the given order.
     """
     n = len(renders)
     masks = list(masks) if masks is not None else [None] * n
+    valid = list(valid) if valid is not None else [None] * n
     if transforms is None:
-        transforms = cross_fitted_transforms(renders, targets, camera_ids, frames)
+        transforms = cross_fitted_transforms(renders, targets, camera_ids, frames, valid)
     out = []
     for i in range(n):
-        raw_p, raw_s, _, _ = _display_scores(renders[i], targets[i], None)
-        p, s, pp, ps = _display_scores(transforms[i].apply(renders[i]), targets[i], masks[i])
+        raw_p, raw_s, _, _ = _display_scores(renders[i], targets[i], None, valid[i])
+        p, s, pp, ps = _display_scores(transforms[i].apply(renders[i]), targets[i], masks[i], valid[i])
         out.append(ViewScore(camera_ids[i], int(frames[i]), raw_p, raw_s, p, s, pp, ps))
     return out
 
 
 def cross_fitted_transforms(renders: Sequence[torch.Tensor], targets: Sequence[torch.Tensor],
-                            camera_ids: Sequence[str], frames: Sequence[int]) -> list[ColourTransform]:
+                            camera_ids: Sequence[str], frames: Sequence[int],
+                            valid: Sequence[torch.Tensor | None] | None = None) -> list[ColourTransform]:
     """Per view, the transform of its camera fitted on the camera's views of the *other* fold
-    (frames split by parity); identity when the camera has no other frame."""
+    (frames split by parity); identity when the camera has no other frame. ``valid``: per view the
+    pixels that hold footage (None: all), the only ones fitted on."""
     n = len(renders)
+    if valid is not None and any(v is not None for v in valid):
+        def pick(x: torch.Tensor, v: torch.Tensor | None) -> torch.Tensor:
+            return x if v is None else x[v.to(x.device).reshape(x.shape[:2]).bool()]
+        renders = [pick(r, v) for r, v in zip(renders, valid)]
+        targets = [pick(t, v) for t, v in zip(targets, valid)]
     if not (len(targets) == len(camera_ids) == len(frames) == n):
         raise ValueError("renders, targets, camera_ids and frames must have one entry per view")
     by_camera: dict[str, list[int]] = {}

@@ -92,6 +92,9 @@ class View:
             zero-argument callable returning it (loaded lazily, e.g. from the artifact store).
         mask: where the performers are, ``[H, W]`` in [0, 1] (a synthetic capture's ground
             truth), a callable returning it or None; only scoring reads it.
+        valid: which pixels hold footage, ``[H, W]`` bool, a callable returning it or None (all):
+            a distorted camera's frame rectified into a pinhole has none where its rays leave the
+            sensor. Training's loss and the scores leave the others out.
     """
 
     camera_id: str
@@ -100,6 +103,18 @@ class View:
     camera: Camera
     image: torch.Tensor | Callable[[], torch.Tensor]
     mask: torch.Tensor | Callable[[], torch.Tensor | None] | None = None
+    valid: torch.Tensor | Callable[[], torch.Tensor | None] | None = None
+
+    def load_valid(self) -> torch.Tensor | None:
+        """``[H, W]`` bool, or None when every pixel holds footage."""
+        v = self.valid() if callable(self.valid) else self.valid
+        if v is None:
+            return None
+        v = torch.as_tensor(v).to(torch.bool)
+        if tuple(v.shape) != (self.camera.height, self.camera.width):
+            raise ValueError(f"view {self.camera_id}@{self.frame}: valid mask {tuple(v.shape)}, camera "
+                             f"{self.camera.width}x{self.camera.height}")
+        return v
 
     def load_mask(self) -> torch.Tensor | None:
         m = self.mask() if callable(self.mask) else self.mask
@@ -133,7 +148,8 @@ class SegmentData:
     def build(cls, *, frames: tuple[int, int], camera_ids: Sequence[str], fps: float,
               load_image: Callable[[str, int], torch.Tensor],
               camera_for: Callable[[str, int], Camera], lazy: bool = True,
-              load_mask: Callable[[str, int], torch.Tensor | None] | None = None) -> "SegmentData":
+              load_mask: Callable[[str, int], torch.Tensor | None] | None = None,
+              load_valid: Callable[[str, int], torch.Tensor | None] | None = None) -> "SegmentData":
         """Assemble from an ingested capture and a calibration.
 
         Args:
@@ -147,6 +163,8 @@ class SegmentData:
                 frames) when decoding is expensive.
             load_mask: ``(camera_id, take_index) -> [H, W]`` performer coverage or None, read
                 lazily, only when views are scored.
+            load_valid: ``(camera_id, take_index) -> [H, W]`` bool (pixels that hold footage) or
+                None, read lazily (:attr:`View.valid`).
         """
         a, b = frames
         if not 0 <= a < b:
@@ -156,7 +174,8 @@ class SegmentData:
             for f in range(a, b):
                 img = (lambda c=cam, i=f: load_image(c, i)) if lazy else load_image(cam, f)
                 mask = (lambda c=cam, i=f: load_mask(c, i)) if load_mask is not None else None
-                views.append(View(cam, f, f / fps, camera_for(cam, f), img, mask))
+                valid = (lambda c=cam, i=f: load_valid(c, i)) if load_valid is not None else None
+                views.append(View(cam, f, f / fps, camera_for(cam, f), img, mask, valid))
         return cls((a, b), views)
 
     @property
@@ -399,7 +418,7 @@ def evaluate_held_out(model: Poly4DGS | None, views: Sequence[View], config: Tra
     renders = render_views(model, views, config, device=device)
     return score_views(renders, [v.load()[..., :3].to(renders[0]) for v in views],
                        [v.camera_id for v in views], [v.frame for v in views],
-                       [v.load_mask() for v in views])
+                       [v.load_mask() for v in views], valid=[v.load_valid() for v in views])
 
 
 def _eval_subset(views: Sequence[View], n: int) -> list[View]:
@@ -572,7 +591,15 @@ def train_segment(views: SegmentData, init_points: Sequence[PointsAtTime], confi
         pred = apply_grids(out["rgb"],
                            grid_params["exposure"][row] if config.optimise_exposure else None,
                            grid_params["black"][row] if config.optimise_black_level else None)
-        loss, parts = reconstruction_loss(pred, target[..., :3], ssim_weight=config.ssim_weight)
+        target_rgb = target[..., :3]
+        valid = view.load_valid()
+        if valid is not None:
+            # no footage there (a rectified lens's border): render and target are both 0 there, so
+            # those pixels add no error, no gradient, and whatever the frame holds there is unseen
+            v = valid.to(device)[..., None]
+            target_rgb = torch.where(v, target_rgb, torch.zeros_like(target_rgb))
+            pred = torch.where(v, pred, target_rgb)
+        loss, parts = reconstruction_loss(pred, target_rgb, ssim_weight=config.ssim_weight)
         if config.alpha_weight and target.shape[2] == 4:
             loss = loss + config.alpha_weight * (out["alpha"] - target[..., 3:]).abs().mean()
         reg, _ = grid_regularisers(

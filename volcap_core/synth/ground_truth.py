@@ -65,18 +65,24 @@ def calibration(cameras_json: dict, capture_name: str, camera_ids: Sequence[str]
 
 
 def backproject_depth(depth: np.ndarray, image: np.ndarray, K: np.ndarray, world_to_camera: np.ndarray,
-                      stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+                      stride: int = 1, distortion: Distortion | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Pixels with finite positive depth → (xyz [N, 3] world metres, rgb [N, 3] linear).
 
     ``depth`` [H, W] is the distance along the optical axis (camera z); ``image`` [H, W, >=3].
+    ``distortion``: the camera's lens (the depth map and image are its own, distorted pixels): a
+    pixel's ray is its undistorted normalized coordinates.
     """
     h, w = depth.shape
     v, u = np.mgrid[0:h:stride, 0:w:stride]
     z = depth[v, u]
     ok = np.isfinite(z) & (z > 0)
     ui, vi, z = u[ok], v[ok], z[ok].astype(np.float64)
-    x = (ui - K[0, 2]) / K[0, 0] * z
-    y = (vi - K[1, 2]) / K[1, 1] * z
+    xn = (ui - K[0, 2]) / K[0, 0]
+    yn = (vi - K[1, 2]) / K[1, 1]
+    if distortion is not None and not distortion.is_none:
+        xy = distortion.undistort(np.stack([xn, yn], axis=-1))
+        xn, yn = xy[:, 0], xy[:, 1]
+    x, y = xn * z, yn * z
     cam = np.stack([x, y, z], axis=-1)
     R, t = world_to_camera[:3, :3], world_to_camera[:3, 3]
     world = (cam - t) @ R  # R^T (x - t), as row vectors
@@ -128,12 +134,14 @@ class GroundTruthFiles:
 
 
 def depth_points(files: GroundTruthFiles, camera_ids: Sequence[str], frame: int, load_image, camera_at_frame,
-                 budget: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+                 budget: int, seed: int, distortion_of=None) -> tuple[np.ndarray, np.ndarray]:
     """One frame's dense points from the true depth maps of ``camera_ids``, coloured by their
     images, at most ``budget`` (uniformly, seeded by ``seed + frame``).
 
     ``load_image(camera, frame)`` -> linear RGB [H, W, 3]; ``camera_at_frame(camera, frame)`` ->
-    (K [3, 3], world_to_camera [4, 4]). Returns xyz [N, 3], rgb [N, 3] float32.
+    (K [3, 3], world_to_camera [4, 4]); ``distortion_of(camera)`` -> its lens
+    :class:`~volcap_core.calibration.distortion.Distortion` (None: pinholes; the depth maps and
+    frames are in each camera's own pixels). Returns xyz [N, 3], rgb [N, 3] float32.
     """
     from volcap_core import imageio
 
@@ -141,7 +149,8 @@ def depth_points(files: GroundTruthFiles, camera_ids: Sequence[str], frame: int,
     for cam in camera_ids:
         depth, _ = imageio.decode_exr_native(files.read(f"depth/{cam}/{frame:06d}.exr"))
         K, w2c = camera_at_frame(cam, frame)
-        xyz, rgb = backproject_depth(depth[..., 0].astype(np.float32), load_image(cam, frame), K, w2c)
+        xyz, rgb = backproject_depth(depth[..., 0].astype(np.float32), load_image(cam, frame), K, w2c,
+                                     distortion=distortion_of(cam) if distortion_of is not None else None)
         xyz_all.append(xyz)
         rgb_all.append(rgb)
     return subsample(np.concatenate(xyz_all), np.concatenate(rgb_all), budget, seed + frame)

@@ -248,7 +248,7 @@ def _render_camera(plan: CameraPlan, world: World, fps: float, frames: int, seed
 
 def _synthesize(out_dir: Path, rig_name: str | Path, seed: int, frames: int, kind: str, n_actors: int,
                 ss: int, cameras: Sequence[str] | None, write_depth: bool, lidar_spacing_m: float,
-                progress: Progress | None, name: str | None) -> Path:
+                progress: Progress | None, name: str | None, lidar: bool = True) -> Path:
     if frames < 1:
         raise ValueError("frames must be >= 1")
     if ss < 1:
@@ -317,7 +317,7 @@ def _synthesize(out_dir: Path, rig_name: str | Path, seed: int, frames: int, kin
     desc = CaptureDescription(
         name=name or f"synth-{rig.name}-s{seed}", rig=rig_ref, fps=fps,
         take=Take(start_timecode=TAKE_START, frame_count=frames), cameras=sources, ground_truth=GT_DIR,
-        lidar=LIDAR_FILE)
+        lidar=LIDAR_FILE if lidar else None)
     # ground truth
     convention = ("world: metres, z up, origin at the stage centre on the floor. world_to_camera: 4x4, "
                   "OpenCV camera axes (x right, y down, z forward). Pixels: OpenCV, centre of the "
@@ -357,7 +357,8 @@ def _synthesize(out_dir: Path, rig_name: str | Path, seed: int, frames: int, kin
     pts, nrm = stage.lidar(_rng(seed, "lidar"), lidar_spacing_m)
     sio.write_ply(gt_dir / "lidar.ply", pts, nrm,
                   comment="volcap synthetic lidar scan of the static set, world frame, metres")
-    shutil.copyfile(gt_dir / "lidar.ply", out_dir / LIDAR_FILE)
+    if lidar:   # without: the capture has no scan (ground truth keeps it, for evaluation only)
+        shutil.copyfile(gt_dir / "lidar.ply", out_dir / LIDAR_FILE)
     sio.write_json(out_dir / "capture.json", desc.model_dump(mode="json", exclude_none=True))
     return out_dir / "capture.json"
 
@@ -365,18 +366,21 @@ def _synthesize(out_dir: Path, rig_name: str | Path, seed: int, frames: int, kin
 def synthesize_capture(out_dir: Path, rig: str = "demo_scene", seed: int = 0, frames: int = 24, *,
                        progress: Progress | None = None, actors: int = 2, supersample: int = 2,
                        cameras: Sequence[str] | None = None, write_depth: bool = False,
-                       lidar_spacing_m: float = 0.05, name: str | None = None) -> Path:
+                       lidar_spacing_m: float = 0.05, name: str | None = None, lidar: bool = True) -> Path:
     """Render a Scene Rig capture of ``actors`` walking, talking actors; returns capture.json's path.
 
     ``rig``: a built-in rig name or a rig JSON file (copied into the capture). ``cameras`` renders a
-    subset of the rig (tests). ``supersample``: ss x ss samples per pixel. ``write_depth``: also write
+    subset of the rig (tests; the static cameras alone make a capture without tracking cameras).
+    ``supersample``: ss x ss samples per pixel. ``write_depth``: also write
     ground-truth depth maps and performer masks per camera and take frame (``ground_truth/depth/``,
-    ``ground_truth/masks/``). Same arguments, same bytes.
+    ``ground_truth/masks/``). ``lidar=False``: a capture without a lidar scan (no ``lidar.ply`` input,
+    none in capture.json; ``ground_truth/lidar.ply`` is still written, for evaluation). Same
+    arguments, same bytes.
     """
     if not 1 <= actors <= 3:
         raise ValueError("actors must be 1, 2 or 3")
     return _synthesize(Path(out_dir), rig, seed, frames, "scene", actors, supersample, cameras, write_depth,
-                       lidar_spacing_m, progress, name)
+                       lidar_spacing_m, progress, name, lidar)
 
 
 def synthesize_face_capture(out_dir: Path, rig: str = "demo_face", seed: int = 0, frames: int = 48, *,
