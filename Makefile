@@ -39,6 +39,7 @@ bench: $(STAMP)
 	$(BIN)/python bench/bench_calibration.py
 	$(BIN)/python bench/bench_poly4dgs.py
 	$(BIN)/python bench/bench_production.py
+	$(BIN)/python bench/bench_enhance.py
 
 clean:
 	rm -rf $(VENV) .volcap demo .pytest_cache

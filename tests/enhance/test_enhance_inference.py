@@ -16,14 +16,6 @@ from volcap_core.enhance.inference import (
 from volcap_core.enhance.model import Enhancer, EnhancerConfig, build_enhancer
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 @pytest.fixture(scope="module")
 def model() -> Enhancer:
     """A tiny enhancer whose condition columns are non-zero, as training makes them (at

@@ -38,14 +38,6 @@ from volcap_core.enhance.model import (
 )
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def _base_forward(transformer, tokens, sigma, ids, prompt):
     pooled, seq = prompt
     return transformer(hidden_states=tokens, encoder_hidden_states=seq[None], pooled_projections=pooled[None],

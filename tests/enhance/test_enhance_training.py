@@ -32,14 +32,6 @@ from volcap_core.enhance.training import (
 from volcap_core.splat.optim import AdamState, adam_step
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
-
 def _face_like(t: int = 3, h: int = 64, w: int = 64, seed: int = 0) -> torch.Tensor:
     """Smooth RGBA frames ``[t, 4, h, w]`` drifting right by one pixel per frame (a disc of
     coverage, premultiplied colour)."""

@@ -1,0 +1,14 @@
+"""The enhancer's tests run torch on one thread: they are small, and the suite shares 2 cores."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
