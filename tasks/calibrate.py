@@ -80,7 +80,7 @@ def calibrate_tracking_camera(store: str, capture: ArtifactRef, static: Artifact
     return s.put_record(steps.tracking_record(cap.name, camera, sol, frames))
 
 
-@volcap_task(name="assemble-calibration", version="3")
+@volcap_task(name="assemble-calibration", version="4")
 def assemble_calibration(store: str, capture: ArtifactRef, static: ArtifactRef,
                          tracking: list[ArtifactRef]) -> ArtifactRef:
     """The Calibration record (and its tracking-frames blob) from the static and per-camera results,

@@ -63,6 +63,20 @@ def test_rectify_frame_undoes_the_lens_and_marks_the_border():
     assert np.allclose(ref[valid], out[valid], atol=1e-5)
 
 
+def test_a_rational_lens_keeps_all_eight_coefficients_in_the_record():
+    rational = Distortion.from_opencv((0.1, -0.02, 0.0005, -0.0003, 0.01, 0.05, -0.01, 0.002))
+    assert rational.model == "FULL_OPENCV"
+    cam = _camera(distortion=Distortion.none(), ).model_copy(update={"distortion": tuple(rational.opencv())})
+    again = CameraCalibration.model_validate_json(cam.model_dump_json())
+    assert len(again.distortion) == 8 and record_distortion(again) == rational
+    # the rectification uses the rational term: it differs from the same lens without k4-k6
+    img = _texture()
+    five = _camera(distortion=Distortion("OPENCV", rational.params[:4]))
+    assert not np.allclose(rectify_frame(img, again), rectify_frame(img, five), atol=1e-3)
+    with pytest.raises(ValueError, match="5 or 8 coefficients"):
+        CameraCalibration.model_validate({**cam.model_dump(), "distortion": (0.1, 0.0, 0.0, 0.0, 0.0, 0.0)})
+
+
 def test_a_pinhole_camera_is_left_alone():
     cam = _camera(Distortion.none())
     img = _texture()

@@ -89,7 +89,7 @@ def build_record(capture_name: str, rig: Rig, static: StaticCalibration, trackin
         raw = getattr(static, "raw_intrinsics", {}).get(cid)
         if raw is not None:       # a distorted lens: its intrinsics on its own frames, and the distortion
             K = raw.K
-            extra["distortion"] = tuple(float(v) for v in raw.distortion.opencv()[:5])
+            extra["distortion"] = tuple(float(v) for v in raw.distortion.opencv())  # 5, or 8 (rational)
         cams.append(CameraCalibration(id=cid, role=rig.camera(cid).role.value, static=True, width=w, height=h,
                                       intrinsics=(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])),
                                       world_to_camera=matrix4(static.world_to_camera[cid]), **extra))

@@ -3,7 +3,8 @@
 Conventions: world = the stage frame (metres, z up, origin at the stage centre on the floor);
 ``world_to_camera`` is 4x4 with OpenCV camera axes (x right, y down, z forward), ``x_cam = R x + t``;
 intrinsics in OpenCV pixels (centre of the top-left pixel at (0, 0)); distortion in OpenCV's order
-``(k1, k2, p1, p2, k3)`` (all zero for the pinhole cameras calibrated here).
+``(k1, k2, p1, p2, k3)``, or ``(k1, k2, p1, p2, k3, k4, k5, k6)`` for a rational (FULL_OPENCV) lens
+(all zero for pinhole cameras).
 
 Size: static cameras carry one pose in the JSON record. Tracking cameras change every frame; their
 per-frame arrays live in one safetensors blob referenced by ``Calibration.tracking_frames``:
@@ -39,10 +40,19 @@ class CameraCalibration(BaseModel):
     height: int = Field(gt=0)
     intrinsics: tuple[float, float, float, float] | None = Field(
         default=None, description="fx, fy, cx, cy in OpenCV pixels (static cameras)")
-    distortion: tuple[float, float, float, float, float] = (0.0, 0.0, 0.0, 0.0, 0.0)
+    distortion: tuple[float, ...] = Field(
+        default=(0.0, 0.0, 0.0, 0.0, 0.0),
+        description="OpenCV distCoeffs of the camera's own frames: 5 (k1 k2 p1 p2 k3) or 8 (… k4 k5 k6)")
     world_to_camera: Matrix4 | None = Field(default=None, description="4x4, OpenCV axes (static cameras)")
     quality: dict[str, float] = Field(default_factory=dict,
                                       description="per-camera fit statistics (reprojection px, inliers...)")
+
+    @field_validator("distortion")
+    @classmethod
+    def _opencv_length(cls, v):
+        if len(v) not in (5, 8):
+            raise ValueError(f"distortion holds OpenCV's 5 or 8 coefficients, got {len(v)}")
+        return v
 
     @field_validator("world_to_camera")
     @classmethod
