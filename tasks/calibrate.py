@@ -42,7 +42,7 @@ ERRORS_MEDIA = "application/vnd.volcap.calibration-errors+json"
 CALIBRATION_LIBRARIES = ("pycolmap", "cv2", "kornia", "torch", "numpy", "scipy")
 
 
-@volcap_task(name="calibrate-static", version="4", libraries=CALIBRATION_LIBRARIES)
+@volcap_task(name="calibrate-static", version="5", libraries=CALIBRATION_LIBRARIES)
 def calibrate_static(store: str, capture: ArtifactRef,
                      options: StaticCalibrationOptions = StaticCalibrationOptions()) -> ArtifactRef:
     """Static cameras on the middle frame (+ background plates), registered to the capture's lidar;

@@ -140,3 +140,25 @@ def test_colmap_export_writes_the_distortion(tmp_path):
     assert by_name["A.png"].model_name == "OPENCV" and by_name["B.png"].model_name == "PINHOLE"
     (fx, fy, cx, cy), d2 = from_colmap_camera(by_name["A.png"].model_name, by_name["A.png"].params)
     assert np.allclose([fx, fy, cx, cy], [FX, FY, CX, CY]) and d2.opencv_full() == d.opencv_full()
+
+
+def test_a_lens_group_is_one_colmap_camera(tmp_path):
+    """Cameras sharing a body and lens are images of one COLMAP camera, so a refined focal or
+    distortion is one per group; a group whose members' intrinsics differ is refused."""
+    import pycolmap
+
+    from volcap_core.calibration.sfm import Intrinsics, StaticSfmOptions, _build_database
+
+    rng = np.random.default_rng(0)
+    images = {c: (rng.random((48, 64)) * 255).astype(np.uint8) for c in ("A", "B", "C")}
+    lens = Intrinsics.measured(60.0, 60.5, 31.0, 24.0, 64, 48, Distortion("OPENCV", (-0.05, 0.01, 0.0, 0.0)))
+    intr = {"A": lens, "B": lens, "C": Intrinsics.nominal(55.0, 64, 48)}
+    db, _ = _build_database([images], intr, sorted(images), StaticSfmOptions(), tmp_path / "g",
+                            lens_groups={"A": "body-1", "B": "body-1"})
+    with pycolmap.Database.open(str(db)) as d:
+        cams = {im.name: im.camera_id for im in d.read_all_images()}
+        assert len(d.read_all_cameras()) == 2
+    assert cams["A.png"] == cams["B.png"] != cams["C.png"]
+    with pytest.raises(ValueError, match="share lens group 'body-1' but not their intrinsics"):
+        _build_database([images], {**intr, "B": Intrinsics.nominal(60.0, 64, 48)}, sorted(images),
+                        StaticSfmOptions(), tmp_path / "h", lens_groups={"A": "body-1", "B": "body-1"})

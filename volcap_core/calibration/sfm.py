@@ -293,7 +293,8 @@ def reconstruct_static(images: Mapping[str, np.ndarray], intrinsics: Mapping[str
                        options: StaticSfmOptions = StaticSfmOptions(),
                        initial_poses: Mapping[str, np.ndarray] | None = None,
                        work_dir: str | Path | None = None,
-                       more_instants: Sequence[Mapping[str, np.ndarray]] = ()) -> SparseModel:
+                       more_instants: Sequence[Mapping[str, np.ndarray]] = (),
+                       lens_groups: Mapping[str, str] | None = None) -> SparseModel:
     """Sparse SfM of static cameras seen at one instant (the middle frame), or pooled over several.
 
     ``images``: camera id -> scene-linear RGB(A) float [H, W, C] (or uint8 gray [H, W]).
@@ -312,6 +313,9 @@ def reconstruct_static(images: Mapping[str, np.ndarray], intrinsics: Mapping[str
     model, its keypoints are those of all its instants concatenated (instant order). A COLMAP
     adjustment (``seeded_rounds`` > 1, ``refine_distortion``) would move each image on its own: the
     poses of a camera's images are then averaged back into one (:func:`_tie_instant_poses`).
+    ``lens_groups``: camera id -> lens group (the rig's ``lens_group``); the cameras of a group
+    share one COLMAP camera, so refined intrinsics are one set per group (their intrinsics must be
+    equal: ``ValueError`` otherwise).
 
     Returns the largest reconstruction; cameras it could not register are in ``unregistered``.
     Raises ``RuntimeError`` when fewer than two cameras register.
@@ -337,7 +341,7 @@ def reconstruct_static(images: Mapping[str, np.ndarray], intrinsics: Mapping[str
     with tempfile.TemporaryDirectory(prefix="volcap-sfm-") as tmp:
         work = Path(work_dir) if work_dir is not None else Path(tmp)
         t0 = time.perf_counter()
-        db_path, img_dir = _build_database(instants, intrinsics, ids, options, work)
+        db_path, img_dir = _build_database(instants, intrinsics, ids, options, work, lens_groups)
         t1 = time.perf_counter()
         _match(db_path, options, [[_image_stem(c, k) for c in sorted(inst)] for k, inst in enumerate(instants)]
                if pooled else None, work)
@@ -401,7 +405,7 @@ def _tie_instant_poses(rec: pycolmap.Reconstruction) -> None:
 
 
 def _build_database(instants: Sequence[Mapping[str, np.ndarray]], intrinsics, ids, options: StaticSfmOptions,
-                    work: Path) -> tuple[Path, Path]:
+                    work: Path, lens_groups: Mapping[str, str] | None = None) -> tuple[Path, Path]:
     img_dir = work / "images"
     img_dir.mkdir(parents=True, exist_ok=True)
     db_path = work / "database.db"
@@ -418,9 +422,22 @@ def _build_database(instants: Sequence[Mapping[str, np.ndarray]], intrinsics, id
     # write_camera creates a trivial rig per camera; the images (and their frames) are created by
     # feature extraction, tied to the camera through existing_camera_id (every instant of a camera
     # is an image of the same COLMAP camera)
+    # cameras of one lens group (one body and lens model) are images of ONE COLMAP camera, so an
+    # adjustment that refines intrinsics (refine_focal, refine_distortion) fits one set per group
+    first_of: dict[tuple[str, str], str] = {}
     with pycolmap.Database.open(str(db_path)) as db:
         for cid in ids:
-            colmap_ids[cid] = int(db.write_camera(_colmap_camera(intrinsics[cid])))
+            group = (lens_groups or {}).get(cid)
+            key = ("group", group) if group else ("camera", cid)
+            if key not in first_of:
+                first_of[key] = cid
+                colmap_ids[cid] = int(db.write_camera(_colmap_camera(intrinsics[cid])))
+                continue
+            other = first_of[key]
+            if intrinsics[cid] != intrinsics[other]:
+                raise ValueError(f"cameras {other} and {cid} share lens group {group!r} but not their "
+                                 f"intrinsics ({intrinsics[other]} vs {intrinsics[cid]})")
+            colmap_ids[cid] = colmap_ids[other]
     eo = options.sift.colmap()
     for k, inst in enumerate(instants):
         for cid in ids:
@@ -494,13 +511,15 @@ def _incremental(db_path: Path, img_dir: Path, work: Path, options: StaticSfmOpt
 def _seeded(db_path: Path, poses: Mapping[str, np.ndarray]) -> pycolmap.Reconstruction:
     """A reconstruction with the database's cameras and images at the given poses, no points."""
     rec = pycolmap.Reconstruction()
-    added: set[int] = set()
+    added: set[int] = set()     # COLMAP cameras (a lens group's cameras share one)
+    seeded: set[str] = set()    # our cameras
     with pycolmap.Database.open(str(db_path)) as db:
         cams = {c.camera_id: c for c in db.read_all_cameras()}
         for im in db.read_all_images():
             cid = _split_stem(im.name[:-4])[0]    # every instant of a camera at its one pose
             if cid not in poses:
                 continue
+            seeded.add(cid)
             if im.camera_id not in added:
                 rec.add_camera_with_trivial_rig(cams[im.camera_id])
                 added.add(im.camera_id)
@@ -508,7 +527,7 @@ def _seeded(db_path: Path, poses: Mapping[str, np.ndarray]) -> pycolmap.Reconstr
             img = pycolmap.Image(name=im.name, keypoints=kp, camera_id=im.camera_id, image_id=im.image_id)
             m = np.asarray(poses[cid], np.float64)
             rec.add_image_with_trivial_frame(img, pycolmap.Rigid3d(m[:3, :4]))
-    if len(added) < 2:
+    if len(seeded) < 2:
         raise RuntimeError("seeded static SfM needs at least two seeded cameras")
     return rec
 

@@ -211,7 +211,8 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
     mounts = {c: np.asarray(cams[c].mount.position_m, np.float64) for c in ids}
     stats: dict = {}
     model = reconstruct_static(images, intr, options.sfm, initial_poses=seeds if options.seeded else None,
-                               more_instants=more_instants)
+                               more_instants=more_instants,
+                               lens_groups={c: cams[c].lens_group for c in ids if cams[c].lens_group})
     stats["sfm"] = dict(model.stats)
     # distorted (or non-square) cameras: from here on everything works on their rectified square
     # pinholes (observations, images and plates resampled); ``raw_intr`` is what they came from
