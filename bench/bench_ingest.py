@@ -14,12 +14,15 @@ Everything in one run, side by side, on one machine state:
 2. The baseline, per size: a bare ``OpenEXR.File`` decode of every frame (every channel's pixels)
    plus one ``ArtifactStore.put_file`` of the same file's bytes into an empty store.
 3. The ingest flow on the same files, in this process, against a ``prefect server`` this benchmark
-   starts (``tests/prefect_cluster.py``): the first run (fingerprint, checks, decode, linearise, half
-   EXR encode, store put; one Prefect task run per camera and step), then a fully cached rerun.
+   starts (``tests/prefect_cluster.py``): the first run (fingerprint, checks, restamp or convert, decode,
+   store put; one Prefect task run per camera and step), then a fully cached rerun.
 4. ``volcap ingest`` of the same capture as a command (a new process: imports, the flow, exit)
    against that server, cached: at least 3 runs, median and spread. The same for the demo capture.
-5. The per-frame breakdown of ingest's conversion (cProfile of two cameras, one thread): the two
-   BLAKE3 passes, header probe, decode, linearise, NaN check, encode, store put.
+5. The per-frame breakdown of ingest's conversion (cProfile of two cameras, one thread): header
+   probe, the fingerprint's BLAKE3 pass and the unchanged check's (on the bytes read once), the
+   structure check and restamp of a plain frame, its decode and NaN check; for frames that are
+   converted instead, linearise, working primaries, windows and encode; the store put. Rows the
+   run never reached are left out.
 6. The demo (``--skip-demo`` leaves it out, ``--only-demo`` runs only it): ``volcap synth`` of the
    demo capture (timed apart), then ``volcap demo`` on it without a server (what ``make demo``
    does: a temporary Prefect API, its database migrated beforehand as on any machine past its first
