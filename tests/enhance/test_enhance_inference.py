@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import copy
+
 import pytest
 import torch
 import torch.nn.functional as F
@@ -39,6 +41,7 @@ def test_enhanced_frame_is_rgba_of_the_input_size(model):
     assert out.shape == (4, 40, 56) and out.dtype == torch.float32
     assert torch.isfinite(out).all()
     assert float(out[3].min()) >= 0.0 and float(out[3].max()) <= 1.0
+    assert float(out[:3].min()) >= 0.0
     assert torch.equal(out, enhance_frame(model, lq, steps=2, seed=0))  # deterministic
     assert not torch.equal(out, enhance_frame(model, lq, steps=2, seed=1))
 
@@ -137,13 +140,91 @@ def test_sequence_uses_dis_flow_by_default(model):
 
 
 def test_low_frequency_swap_takes_the_lowest_level_from_the_input(model):
+    from volcap_core.colour import srgb_encode_unbounded
     from volcap_core.enhance.pyramid import lowpass
 
     lq = _frames(1, 64, 64, seed=6)[0]
     swapped = enhance_frame(model, lq, steps=2, seed=0)
     raw = enhance_frame(model, lq, steps=2, seed=0, lowfreq_swap=False)
-    err = lambda out: float((lowpass(out[:3], 3) - lowpass(lq[:3], 3)).abs().mean())  # noqa: E731
-    assert err(swapped) < 0.25 * err(raw)
+    # the lowest level (5 levels: 2x2 here) of the display-encoded RGB, where the swap is done
+    low = lambda img: lowpass(srgb_encode_unbounded(img[:3]), 5)  # noqa: E731
+    err = lambda out: float((low(out) - low(lq)).abs().mean())  # noqa: E731
+    assert err(swapped) < 0.1 * err(raw)  # not exact: negative light is clamped before and after
+    alpha_err = lambda out: float((lowpass(out[3:], 5) - lowpass(lq[3:], 5)).abs().mean())  # noqa: E731
+    assert alpha_err(swapped) < 0.2 * alpha_err(raw)  # alpha: linear, clamped to [0, 1] after
     # the high frequencies stay the model's
-    hp = lambda img: img[:3] - F.avg_pool2d(img[None, :3], 5, 1, 2, count_include_pad=False)[0]  # noqa: E731
+    def hp(img):  # high-pass of the encoded RGB
+        e = srgb_encode_unbounded(img[:3].clamp(min=0.0))
+        return e - F.avg_pool2d(e[None], 5, 1, 2, count_include_pad=False)[0]
+
     assert float((hp(swapped) - hp(raw)).abs().mean()) < 0.5 * float(hp(raw).abs().mean())
+
+
+def test_low_frequency_swap_leaves_a_black_background_black():
+    """The swap runs on display-encoded RGB: a model output whose face is 30 % too dark gets the
+    LQ's brightness back without the correction spreading as a haze over the black background
+    beside it (in linear light it does, and the display encoding magnifies it near black)."""
+    from volcap_core.colour import srgb_encode
+    from volcap_core.enhance.inference import swap_low_frequency_encoded
+    from volcap_core.enhance.pyramid import swap_low_frequency
+
+    h = w = 256  # 5 levels: an 8x8 lowest level, a 160-px face on black
+    yy, xx = torch.meshgrid(torch.arange(h), torch.arange(w), indexing="ij")
+    r2 = (yy - 128) ** 2 + (xx - 128) ** 2
+    face = (r2 < 80 ** 2).float()
+    lq = torch.cat([0.3 * face.expand(3, h, w), face[None]])
+    out = torch.cat([0.3 * face.expand(3, h, w) * (0.7 + 0.1 * torch.sin(xx / 2.0)), face[None]])
+    swapped = swap_low_frequency_encoded(out, lq)
+    black = r2 > 100 ** 2  # background from 20 px beside the face
+    haze = lambda img: float(srgb_encode(img[:3]).amax(0)[black].max())  # noqa: E731
+    assert haze(swapped) < 0.03  # measured 0.019: 5 codes of 255
+    assert haze(swap_low_frequency(out, lq)) > 4 * haze(swapped)  # linear light: 0.148, 38 codes
+    # the face's brightness is the LQ's again (display-encoded), its detail the output's
+    inside = r2 < 60 ** 2
+    mean_face = lambda img: float(srgb_encode(img[:3]).mean(0)[inside].mean())  # noqa: E731
+    assert abs(mean_face(swapped) - mean_face(lq)) < 0.2 * abs(mean_face(out) - mean_face(lq))
+    row = lambda img: srgb_encode(img[:3])[0, 128, 100:156]  # noqa: E731
+    ripple = lambda img: row(img) - row(img).mean()  # noqa: E731
+    assert float((ripple(swapped) - ripple(out)).abs().max()) < 0.3 * float(ripple(out).abs().max())
+    assert float(swapped[:3].min()) >= 0.0 and float(swapped[3].min()) >= 0.0 and float(swapped[3].max()) <= 1.0
+
+
+def test_strength_starts_the_sampler_from_the_noised_lq(model):
+    from volcap_core.enhance.inference import img2img_steps
+    from volcap_core.enhance.model import decode_rgba, encode_conditions
+
+    assert [img2img_steps(8, s) for s in (1.0, 0.5, 0.3, 0.01)] == [8, 4, 2, 1]
+    for bad in (0.0, -0.5, 1.5):
+        with pytest.raises(ValueError, match="strength"):
+            img2img_steps(8, bad)
+    lq = _frames(1, 48, 48, seed=7)[0]
+    with pytest.raises(ValueError, match="strength"):
+        enhance_frame(model, lq, steps=4, strength=0.0)
+    calls = []
+    hook = model.transformer.register_forward_hook(lambda *a: calls.append(1))
+    try:
+        enhance_frame(model, lq, steps=8, strength=0.5, seed=0)
+    finally:
+        hook.remove()
+    assert len(calls) == 4  # only the last half of the noise levels are run
+    # the start: with a velocity of zero the sampler returns its start, the LQ latents noised to
+    # the first noise level run (nearly the LQ through the VAE at a weak strength), or pure noise
+    still = copy.deepcopy(model)
+    with torch.no_grad():
+        still.transformer.proj_out.weight.zero_()
+        still.transformer.proj_out.bias.zero_()
+        vae_lq = decode_rgba(still, encode_conditions(still, lq[None], None, None)[:, :32])[0].clamp(min=0)
+    kw = {"steps": 50, "seed": 0, "lowfreq_swap": False, "mu": 0.0}  # no shift: the last level is 0.02
+    err = lambda out: float((out - vae_lq).abs().mean())  # noqa: E731
+    # (the random VAE decoder magnifies even 2 % of noise: measured 0.046 against 0.178)
+    assert err(enhance_frame(still, lq, strength=0.02, **kw)) < 0.4 * err(enhance_frame(still, lq, **kw))
+
+
+def test_transparent_pixels_carry_no_colour():
+    from volcap_core.enhance.inference import TRANSPARENT, premultiplied
+
+    rgba = torch.rand(2, 4, 8, 8)
+    rgba[:, 3, :4] = 0.5 * TRANSPARENT  # transparent: top half
+    out = premultiplied(rgba)
+    assert torch.equal(out[:, :3, :4], torch.zeros(2, 3, 4, 8))
+    assert torch.equal(out[:, :, 4:], rgba[:, :, 4:]) and torch.equal(out[:, 3], rgba[:, 3])
