@@ -115,3 +115,42 @@ def test_weight_metrics_refuse_without_weights(tmp_path):
             call(None)
         with pytest.raises(MetricUnavailable, match="no weights file"):
             call(tmp_path / "absent.pt")
+
+
+class _InceptionStandIn(torch.nn.Module):
+    """A TorchScript stand-in with the call of StyleGAN3's Inception detector (uint8 [N, 3, H, W],
+    ``return_features``) -> [N, 6] features: per-channel mean and spread of the image. Not the real
+    network (its weights cannot be shipped): it checks the plumbing (display conversion, batching,
+    the Fréchet distance of the features)."""
+
+    def forward(self, x: torch.Tensor, return_features: bool = True) -> torch.Tensor:
+        assert x.dtype == torch.uint8
+        f = x.float() / 255.0
+        return torch.cat([f.mean(dim=(2, 3)), f.std(dim=(2, 3))], dim=1)
+
+
+class _I3DStandIn(torch.nn.Module):
+    """The same for StyleGAN-V's I3D call (videos [N, 3, T, H, W] in [-1, 1]) -> [N, 4] features:
+    mean colour and mean absolute temporal difference."""
+
+    def forward(self, x: torch.Tensor, rescale: bool = False, resize: bool = True,
+                return_features: bool = True) -> torch.Tensor:
+        assert float(x.min()) >= -1.0 and float(x.max()) <= 1.0
+        motion = (x[:, :, 1:] - x[:, :, :-1]).abs().mean(dim=(1, 2, 3, 4))
+        return torch.cat([x.mean(dim=(2, 3, 4)), motion[:, None]], dim=1)
+
+
+def test_fid_and_fvd_run_a_local_torchscript_detector(tmp_path):
+    inception = tmp_path / "inception.pt"
+    torch.jit.script(_InceptionStandIn()).save(str(inception))
+    i3d = tmp_path / "i3d.pt"
+    torch.jit.script(_I3DStandIn()).save(str(i3d))
+    g = torch.Generator().manual_seed(0)
+    real = torch.rand(40, 3, 16, 16, generator=g) * 0.5
+    assert fid(real, real, inception, batch=7) == pytest.approx(0.0, abs=1e-6)
+    brighter = fid(real, real * 1.5, inception)
+    assert brighter > 1e-3 and fid(real, real * 2.0, inception) > brighter  # grows with the change
+    videos = [torch.rand(10, 3, 8, 8, generator=g) * 0.5 for _ in range(6)]
+    still = [v[:1] + 0.01 * torch.rand(10, 3, 8, 8, generator=g) for v in videos]  # nearly frozen
+    assert fvd(videos, videos, i3d) == pytest.approx(0.0, abs=1e-6)
+    assert fvd(videos, still, i3d) > 1e-3  # the frozen videos lose most of their motion
