@@ -26,12 +26,14 @@ def assemble_performance(store: str, name: str, capture: ArtifactRef, segments: 
     return s.put_record(Performance(name=name, capture=capture, fps=records[0].fps, segments=entries))
 
 
-@volcap_task(name="render-shot", version="2", libraries=("torch", "OpenEXR"))
+@volcap_task(name="render-shot", version="3", libraries=("torch", "OpenEXR"))
 def render_shot(store: str, performance: ArtifactRef, shot: dict) -> ArtifactRef:
     """Every frame of ``shot`` (a shot's JSON, ``docs/shots.md``) over ``performance``: a tree of
     ``<frame:06d>.exr`` files, linear premultiplied RGBA half float cropped to the actors, the
-    camera in each header. ``content: stage`` shots render only the Gaussians inside the
-    capture's stage volume (the performers, not the set)."""
+    camera in each header, and from the second frame on the exact backward flow to the previous
+    frame in half channels ``flow.x``, ``flow.y`` (none across a segment boundary; v3).
+    ``content: stage`` shots render only the Gaussians inside the capture's stage volume (the
+    performers, not the set)."""
     s = ArtifactStore(store)
     perf = s.get_record(performance, Performance)
     stage = stage_volume(s.get_record(perf.capture, Capture).rig.stage_size_m)

@@ -67,8 +67,11 @@ def test_production_runs_plans_and_explains(prefect_api, static_capture, tmp_pat
     assert sorted(frames) == [f"{f:06d}.exr" for f in range(4)]
     # (after 20 steps the Gaussians are still large blobs filling the stage volume, so the crop to
     # the performers cannot show at this budget: test_production_shot tests it on a built model)
-    rgba, _ = imageio.decode_exr_native(s.get_bytes(frames["000002.exr"].digest))
-    assert rgba.shape[-1] == 4 and np.isfinite(rgba).all() and rgba[..., 3].max() > 0.5
+    pixels, _ = imageio.decode_exr_native(s.get_bytes(frames["000002.exr"].digest))
+    # RGBA, then flow.x/flow.y on frames with an exact flow to the previous one (docs/shots.md)
+    assert pixels.shape[-1] in (4, 6)
+    rgba = pixels[..., :4]
+    assert np.isfinite(rgba).all() and rgba[..., 3].max() > 0.5
     perf = s.get_record(out["shots"]["orbit"]["performance"], Performance)
     assert [seg.frames for seg in perf.segments] == [(0, 3), (2, 4)]
     assert s.get_ref("productions/flow-test/shots/orbit").digest == out["shots"]["orbit"]["frames"]

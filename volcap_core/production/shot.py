@@ -5,7 +5,9 @@ keyframes (frame, position, orientation quaternion *or* look-at point, focal len
 optional roll). :func:`camera_at` interpolates them into a
 :class:`~volcap_core.splat.camera.Camera`; :func:`render_shot_frame` renders the performance
 through it and returns a linear, premultiplied RGBA half-float EXR cropped to the actors, with
-the camera in its header.
+the camera in its header and, from the second frame on, the exact backward flow to the previous
+frame in two extra channels ``flow.x``, ``flow.y`` (:func:`render_performance_flow`; none across a
+segment boundary).
 
 Conventions:
 
@@ -51,13 +53,14 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from volcap_core.calibration.geometry import look_at_rotation
 from volcap_core.chromaticities import WORKING_CHROMATICITIES
 from volcap_core.production._errors import format_validation_error
-from volcap_core.production.performance import Box, Performance, render_performance
+from volcap_core.production.performance import Box, Performance, render_performance, segments_at
 from volcap_core.records import ArtifactRef
 from volcap_core.splat.camera import Camera
-from volcap_core.splat.model import Poly4DGS
-from volcap_core.splat.render import Backend
+from volcap_core.splat.model import Gaussians3D, Poly4DGS, evaluate
+from volcap_core.splat.render import FLOW_MIN_ALPHA, Backend, gaussians_at, render_flow
 
 __all__ = [
+    "FLOW_CHANNELS",
     "SHOT_FORMAT",
     "CropSettings",
     "Interpolation",
@@ -69,11 +72,15 @@ __all__ = [
     "encode_shot_exr",
     "load_shot",
     "opengl_world_to_camera_row_major",
+    "render_performance_flow",
     "render_shot_frame",
     "render_shot_frames",
 ]
 
 SHOT_FORMAT = "volcap-shot/1"
+#: the EXR channels of a shot frame's exact backward flow to the previous shot frame (half, px,
+#: x right / y down; ``docs/shots.md``)
+FLOW_CHANNELS = ("flow.x", "flow.y")
 Vec3 = tuple[float, float, float]
 
 
@@ -430,7 +437,8 @@ def opengl_world_to_camera_row_major(world_to_camera_cv: np.ndarray) -> np.ndarr
 
 
 def encode_shot_exr(rgba: np.ndarray, camera: Camera, shot: Shot, frame: int, *,
-                    extra: Mapping[str, str | int | float] | None = None) -> bytes:
+                    extra: Mapping[str, str | int | float] | None = None,
+                    flow: np.ndarray | None = None) -> bytes:
     """Half-float RGBA EXR of one shot frame, cropped to the actors, camera in the header.
 
     ``rgba``: ``[H, W, 4]`` linear, premultiplied (a render over nothing). The display window is
@@ -442,6 +450,10 @@ def encode_shot_exr(rgba: np.ndarray, camera: Camera, shot: Shot, frame: int, *,
     ``x_cam = M · x_world``), ``volcap.focalMm``, ``volcap.sensorMm`` (v2d),
     ``volcap.alphaThreshold``, ``volcap.cropMarginPx``, ``volcap.empty``, and the standard
     ``worldToCamera`` (m44f, OpenEXR's convention, see :func:`opengl_world_to_camera_row_major`).
+
+    ``flow``: ``[H, W, 2]`` the frame's exact backward flow to the previous shot frame (px, x then
+    y; :func:`render_performance_flow`), written as two more half channels :data:`FLOW_CHANNELS`
+    over the same data window (not for an empty frame). None: RGBA only.
     """
     import OpenEXR
 
@@ -449,6 +461,8 @@ def encode_shot_exr(rgba: np.ndarray, camera: Camera, shot: Shot, frame: int, *,
     h, w = px.shape[:2]
     if px.ndim != 3 or px.shape[2] != 4:
         raise ValueError(f"rgba must be [H, W, 4], got {px.shape}")
+    if flow is not None and np.shape(flow) != (h, w, 2):
+        raise ValueError(f"flow must be [H, W, 2] = {(h, w, 2)}, got {np.shape(flow)}")
     if (w, h) != (camera.width, camera.height):
         raise ValueError(f"image {w}x{h} does not match the camera's {camera.width}x{camera.height}")
     crop = shot.crop
@@ -488,17 +502,77 @@ def encode_shot_exr(rgba: np.ndarray, camera: Camera, shot: Shot, frame: int, *,
         header[f"volcap.{key}"] = (np.array([value], dtype=np.float64)
                                    if isinstance(value, float) else value)
     planes = {c: np.ascontiguousarray(cropped[..., i]) for i, c in enumerate("RGBA")}
+    if flow is not None and not empty:
+        f16 = np.clip(np.nan_to_num(np.asarray(flow, np.float32), nan=0.0), -65504.0, 65504.0).astype(np.float16)
+        for i, c in enumerate(FLOW_CHANNELS):
+            planes[c] = np.ascontiguousarray(f16[y0:y1 + 1, x0:x1 + 1, i])
     out = io.BytesIO()
     OpenEXR.File(header, planes).write(out)
     return out.getvalue()
 
 
+def _in_volume(gaussians: Gaussians3D, volume: Box | None) -> Gaussians3D:
+    """The Gaussians whose centre is inside ``volume`` (:func:`render_performance`'s selection)."""
+    if volume is None:
+        return gaussians
+    lo = torch.tensor(volume[0], dtype=gaussians.means.dtype, device=gaussians.means.device)
+    hi = torch.tensor(volume[1], dtype=gaussians.means.dtype, device=gaussians.means.device)
+    inside = ((gaussians.means >= lo) & (gaussians.means <= hi)).all(dim=1)
+    return gaussians.select(torch.nonzero(inside).squeeze(1))
+
+
+def _segment_key(seg) -> tuple:
+    return seg.frames, seg.model.digest
+
+
+def render_performance_flow(performance: Performance, load_model: Callable[[ArtifactRef], Poly4DGS],
+                            camera: Camera, t: float, prev_camera: Camera, prev_t: float,
+                            backend: Backend = "auto", *, volume: Box | None = None) -> torch.Tensor | None:
+    """The exact backward flow ``[H, W, 2]`` (px, x then y) of :func:`render_performance` at ``t``
+    through ``camera`` to its render at ``prev_t`` through ``prev_camera``, or **None** where there
+    is none: when the two frames are not rendered by the same segments (a segment boundary, or
+    entering or leaving an overlap) or ``prev_t`` is outside the performance. A Gaussian exists in
+    one segment's model only, so flow across models has no correspondence; the enhancer falls back
+    to DIS for that pair.
+
+    Per segment: :func:`~volcap_core.splat.render.render_flow` of the Gaussians the colour render
+    draws at ``t`` (evaluated at ``t``, the same ``volume`` selection by their centre at ``t``)
+    and the same Gaussians at ``prev_t`` (:func:`~volcap_core.splat.render.gaussians_at`: defined
+    even for a Gaussian invisible then). Inside an overlap (both frames blend the same two
+    segments) each segment's exact flow is combined like the image blend: ``Σ w_s α_s f_s /
+    Σ w_s α_s`` with the weights at ``t``. Pixels whose alpha is below
+    :data:`~volcap_core.splat.render.FLOW_MIN_ALPHA` get 0.
+    """
+    parts = segments_at(performance, t)
+    try:
+        prev_parts = segments_at(performance, prev_t)
+    except ValueError:  # the previous frame is outside the performance: nothing to flow to
+        return None
+    if sorted(_segment_key(s) for s, _ in parts) != sorted(_segment_key(s) for s, _ in prev_parts):
+        return None
+    num = den = None
+    with torch.no_grad():
+        for seg, w in parts:
+            model = load_model(seg.model)
+            gaussians = _in_volume(evaluate(model, t), volume)
+            out = render_flow(gaussians, gaussians_at(model, prev_t, gaussians.ids), camera, prev_camera,
+                              backend=backend, min_alpha=0.0)
+            wa = w * out["alpha"]
+            num = wa * out["flow"] if num is None else num + wa * out["flow"]
+            den = wa if den is None else den + wa
+        return torch.where(den >= FLOW_MIN_ALPHA, num / den.clamp(min=1e-10), torch.zeros_like(num))
+
+
 def render_shot_frame(shot: Shot, performance: Performance,
                       load_model: Callable[[ArtifactRef], Poly4DGS], frame: int, *,
                       backend: Backend = "auto", device: torch.device | str | None = None,
-                      stage: Box | None = None) -> bytes:
+                      stage: Box | None = None, flow: bool = True) -> bytes:
     """Render shot frame ``frame`` of ``performance`` and encode it (:func:`encode_shot_exr`):
     linear premultiplied RGBA, half float, cropped to the actors, camera in the header.
+
+    With ``flow`` (default), every frame but the shot's first also carries the exact backward flow
+    to frame ``frame - 1`` (:func:`render_performance_flow`, channels :data:`FLOW_CHANNELS`),
+    unless the two frames are rendered by different segments (then no flow channels).
 
     ``load_model`` maps a segment's model ref to the model on the rendering device (cache it);
     ``device`` moves the camera there."""
@@ -510,17 +584,26 @@ def render_shot_frame(shot: Shot, performance: Performance,
         camera = camera.to(device)
     if shot.content == "stage" and stage is None:
         raise ValueError(f"shot {shot.name}: content 'stage' needs the capture's stage volume")
-    out = render_performance(performance, load_model, camera, shot.time_at(frame), backend,
-                             volume=stage if shot.content == "stage" else None)
+    volume = stage if shot.content == "stage" else None
+    out = render_performance(performance, load_model, camera, shot.time_at(frame), backend, volume=volume)
     rgba = torch.cat([out["rgb"], out["alpha"]], dim=-1).float().cpu().numpy()
-    return encode_shot_exr(rgba, camera, shot, frame, extra={"content": shot.content})
+    motion = None
+    if flow and frame > a:
+        prev_camera = camera_at(shot, frame - 1)
+        if device is not None:
+            prev_camera = prev_camera.to(device)
+        motion = render_performance_flow(performance, load_model, camera, shot.time_at(frame), prev_camera,
+                                         shot.time_at(frame - 1), backend, volume=volume)
+        motion = None if motion is None else motion.float().cpu().numpy()
+    return encode_shot_exr(rgba, camera, shot, frame, extra={"content": shot.content}, flow=motion)
 
 
 def render_shot_frames(shot: Shot, performance: Performance, model_bytes: Callable[[ArtifactRef], bytes], *,
                        device: torch.device | str | None = None, stage: Box | None = None):
     """Every frame of ``shot`` in order: yields (``<frame:06d>.exr``, EXR bytes of
-    :func:`render_shot_frame`). ``model_bytes(ref)`` reads a segment model's stored bytes; the last
-    few models stay loaded on ``device`` (a boundary needs two; frames walk forward)."""
+    :func:`render_shot_frame`, with the exact flow to the previous frame). ``model_bytes(ref)``
+    reads a segment model's stored bytes; the last few models stay loaded on ``device`` (a
+    boundary needs two; frames walk forward)."""
     import functools
 
     from volcap_core.splat import load_model

@@ -4,7 +4,8 @@ Modules, one concern each (see ``docs/poly4dgs.md``):
 
 - :mod:`~volcap_core.splat.model` — parameters, :func:`evaluate` (slice at time t), save/load.
 - :mod:`~volcap_core.splat.camera` — :class:`Camera` (OpenCV axes, pixels).
-- :mod:`~volcap_core.splat.render` — :func:`render`, the one rasterization entry point.
+- :mod:`~volcap_core.splat.render` — :func:`render`, the one rasterization entry point, and
+  :func:`render_flow` (the exact backward flow between two instants, for the enhancer).
 - :mod:`~volcap_core.splat.rasterize` — the pure-PyTorch back-end (gsplat conventions).
 - :mod:`~volcap_core.splat.grids` — per-camera exposure / black-level grids.
 - :mod:`~volcap_core.splat.loss` — L1 + SSIM in unbounded sRGB, regularisers, PSNR/SSIM.
@@ -24,7 +25,7 @@ from volcap_core.splat.model import (
                                      save_model,
 )
 from volcap_core.splat.ply import export_ply
-from volcap_core.splat.render import render
+from volcap_core.splat.render import gaussians_at, render, render_flow
 from volcap_core.splat.train import (
                                      EvalPoint,
                                      PointsAtTime,
@@ -38,5 +39,6 @@ from volcap_core.splat.train import (
 __all__ = [
     "Camera", "EvalPoint", "ExposureGrids", "Gaussians3D", "PointsAtTime", "Poly4DGS",
     "Poly4DGSConfig", "SegmentData", "TrainConfig", "TrainResult", "View", "apply_grids",
-    "evaluate", "export_ply", "load_model", "look_at", "render", "save_model", "train_segment",
+    "evaluate", "export_ply", "gaussians_at", "load_model", "look_at", "render", "render_flow", "save_model",
+    "train_segment",
 ]

@@ -2,6 +2,10 @@
 
     out = render(gaussians, camera)   # {"rgb": [H,W,3] linear, "alpha": [H,W,1], "depth": [H,W,1]}
 
+and its companion for the detail enhancer's temporal conditioning, the exact backward flow of a
+frame to the previous one (:func:`render_flow`, with :func:`gaussians_at` for the same Gaussians at
+the previous frame's time).
+
 Colour path (paper eq. 1): each Gaussian's SH is evaluated at the direction from the camera
 centre, giving an *unbounded sRGB* colour; that is linearised with
 :func:`~volcap_core.colour.srgb_decode_unbounded` (no clamp) and the linear colours are
@@ -50,7 +54,7 @@ import torch
 
 from volcap_core.colour import srgb_decode_unbounded
 from volcap_core.splat.camera import Camera
-from volcap_core.splat.model import Gaussians3D
+from volcap_core.splat.model import Gaussians3D, Poly4DGS, evaluate
 from volcap_core.splat.rasterize import (
     EPS2D,
     Projected,
@@ -61,8 +65,9 @@ from volcap_core.splat.rasterize import (
 from volcap_core.splat.sh import sh_to_colour
 
 __all__ = [
-    "Backend", "BackendChoice", "BackendName", "BackendUnavailable", "GsplatProbe",
-    "gaussian_colours", "gsplat_available", "probe_gsplat", "render", "resolve_backend",
+    "FLOW_MIN_ALPHA", "Backend", "BackendChoice", "BackendName", "BackendUnavailable", "GsplatProbe",
+    "gaussian_colours", "gaussians_at", "gsplat_available", "probe_gsplat", "render", "render_flow",
+    "resolve_backend",
 ]
 
 log = logging.getLogger(__name__)
@@ -289,3 +294,195 @@ def _render_gsplat(g: Gaussians3D, cam: Camera):
         near_plane=cam.near, far_plane=cam.far, eps2d=EPS2D, rasterize_mode="antialiased",
         render_mode="RGB+ED", packed=False)
     return renders[0, ..., :3], alphas[0], renders[0, ..., 3:4]
+
+
+# ------------------------------------------------------------------------------------------------
+# Exact rendered flow
+
+#: Pixels whose accumulated alpha (of Gaussians with a defined displacement) is below this get a
+#: flow of exactly 0 (:func:`render_flow`): the rasterizer's own fragment threshold, 1/255, which
+#: is also the shots' default crop threshold.
+FLOW_MIN_ALPHA = 1.0 / 255.0
+
+
+def gaussians_at(model: Poly4DGS, t: float, ids: torch.Tensor) -> Gaussians3D:
+    """The model's Gaussians ``ids`` (``[M]`` int64 indices into the model, e.g.
+    :attr:`Gaussians3D.ids` of :func:`~volcap_core.splat.model.evaluate` at another time) at time
+    ``t`` seconds, in that order, **whatever their opacity at** ``t``.
+
+    :func:`~volcap_core.splat.model.evaluate` itself (on those rows, without its opacity cut):
+    ``evaluate`` drops a Gaussian outside its lifespan (opacity below 1/255), but its centre,
+    rotation and scale are still defined there, and they say where the same Gaussian "was" in a
+    frame it was invisible in (:func:`render_flow`). A Gaussian whose opacity is not even a number
+    gets NaN geometry (its displacement is then undefined). Not differentiable."""
+    with torch.no_grad():
+        ids = ids.to(model.params["means"].device)
+        sub = Poly4DGS(model.config, {k: v.detach()[ids] for k, v in model.params.items()})
+        g = evaluate(sub, t, min_opacity=float("-inf"))
+        if len(g) != len(ids):  # NaN opacities: keep the rows aligned with ``ids``
+            def full(x: torch.Tensor) -> torch.Tensor:
+                out = x.new_full((len(ids), *x.shape[1:]), float("nan"))
+                out[g.ids] = x
+                return out
+            g = Gaussians3D(means=full(g.means), quats=full(g.quats), scales=full(g.scales),
+                            opacities=full(g.opacities), sh=full(g.sh), ids=ids, colour_space=g.colour_space)
+        return Gaussians3D(means=g.means, quats=g.quats, scales=g.scales, opacities=g.opacities, sh=g.sh,
+                           ids=ids, colour_space=g.colour_space)
+
+
+def _rotations(quats: torch.Tensor) -> torch.Tensor:
+    """``[M, 3, 3]`` rotation matrices of wxyz quaternions (normalised here)."""
+    q = torch.nn.functional.normalize(quats, dim=-1, eps=1e-12)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+    ], dim=-1).reshape(-1, 3, 3)
+
+
+#: A Gaussian whose first-order motion (:func:`_flow_values`) changes by more than this many px per
+#: px across its footprint between two frames (a centre crossing near a camera plane, a degenerate
+#: scale change) is not trusted to first order: its centre's displacement alone is used.
+_FLOW_MAX_GRADIENT = 4.0
+
+
+def _flow_values(cur: Gaussians3D, prev: Gaussians3D, camera: Camera, prev_camera: Camera) -> torch.Tensor:
+    """Per-Gaussian values ``[M, 7]`` composited by :func:`render_flow`: ``v · (a, B, 1)`` such
+    that Gaussian ``i`` moves the point it draws at pixel position ``p`` (px) by
+    ``f_i(p) = a_i + B_i (p − o)`` (``o`` the image centre, which keeps ``a_i`` small), and ``v`` =
+    1 where that is defined (finite, centre in front of both cameras), else 0 (the row is all
+    zeros). In float64 until the end.
+
+    ``f_i(p) = d_i + (M_i − I)(p − c_i)``: ``c_i`` the centre's projection now, ``d_i`` the
+    centre's displacement (previous projection minus ``c_i``), ``M_i`` the 2×2 Jacobian of the
+    previous pixel position with respect to the current one for the points of the Gaussian at the
+    centre's camera depth: back-projection at depth ``z_i`` through ``camera``, the Gaussian's own
+    affine motion ``X ↦ μ' + R' diag(s'/s) Rᵀ (X − μ)`` (rotation and scale change, which carry
+    its density exactly), projection through ``prev_camera``. ``B_i = M_i − I`` is dropped (0)
+    where an entry exceeds :data:`_FLOW_MAX_GRADIENT`."""
+    f64 = torch.float64
+    dev = cur.means.device
+    Wc, Kc = camera.world_to_camera.to(dev, f64), camera.K.to(dev, f64)
+    Wp, Kp = prev_camera.world_to_camera.to(dev, f64), prev_camera.K.to(dev, f64)
+    mu, mu_p = cur.means.to(f64), prev.means.to(f64)
+    xc = mu @ Wc[:3, :3].T + Wc[:3, 3]                                   # [M, 3] camera t
+    yp = mu_p @ Wp[:3, :3].T + Wp[:3, 3]                                 # [M, 3] camera t-1
+    z, zp = xc[:, 2], yp[:, 2]
+    c = torch.stack([Kc[0, 0] * xc[:, 0] / z + Kc[0, 2], Kc[1, 1] * xc[:, 1] / z + Kc[1, 2]], -1)
+    cp = torch.stack([Kp[0, 0] * yp[:, 0] / zp + Kp[0, 2], Kp[1, 1] * yp[:, 1] / zp + Kp[1, 2]], -1)
+    d = cp - c
+    # d(world point)/d(pixel) on the plane z_cam = z through the centre:
+    # R_cᵀ · z · [[1/fx, 0], [0, 1/fy], [0, 0]]
+    focal = torch.stack([Kc[0, 0], Kc[1, 1]])
+    back = Wc[:2, :3].T.expand(len(mu), 3, 2) * (z[:, None, None] / focal[None, None])
+    rot, rot_p = _rotations(cur.quats.to(f64)), _rotations(prev.quats.to(f64))
+    ratio = prev.scales.to(f64) / cur.scales.to(f64)
+    Q = (rot_p * ratio[:, None, :]) @ rot.transpose(1, 2)                # the Gaussian's own motion
+    zero = torch.zeros_like(zp)
+    proj = torch.stack([Kp[0, 0] / zp, zero, -Kp[0, 0] * yp[:, 0] / (zp * zp),
+                        zero, Kp[1, 1] / zp, -Kp[1, 1] * yp[:, 1] / (zp * zp)], -1).reshape(-1, 2, 3)
+    M = proj @ Wp[:3, :3] @ Q @ back                                     # [M, 2, 2]
+    B = M - torch.eye(2, dtype=f64, device=dev)
+    B = torch.where((B.abs() <= _FLOW_MAX_GRADIENT).all(-1).all(-1)[:, None, None], B, torch.zeros_like(B))
+    o = torch.tensor([camera.width / 2.0, camera.height / 2.0], dtype=f64, device=dev)
+    a = d - (B @ (c - o)[:, :, None])[:, :, 0]
+    vals = torch.cat([a, B.reshape(-1, 4)], -1)
+    valid = torch.isfinite(vals).all(-1) & (z > 0) & (zp > 0)
+    vals = torch.where(valid[:, None], vals, torch.zeros_like(vals))
+    return torch.cat([vals, valid[:, None].to(f64)], dim=-1).to(torch.float32)
+
+
+def render_flow(gaussians: Gaussians3D, previous: Gaussians3D, camera: Camera, prev_camera: Camera, *,
+                backend: Backend = "auto", tile_size: int = 8, min_alpha: float = FLOW_MIN_ALPHA
+                ) -> dict[str, torch.Tensor]:
+    """The exact backward flow of a render to the previous frame: where what each pixel of the
+    frame rendered from ``gaussians`` into ``camera`` shows was in the previous frame's image.
+
+    Each Gaussian ``i`` moves by its centre's 2-D displacement ``d_i = P_{t-1}(μ_i(t-1)) −
+    P_t(μ_i(t))`` (px: its centre at the previous frame's time through the previous camera, minus
+    its centre now through this camera), plus the first-order variation of that motion across its
+    footprint (the Gaussian as an affine body: its rotation and scale change, the cameras'
+    perspective; exact for a dolly or a turning Gaussian, where the centre alone is off by the
+    flow's gradient times the distance to the centre): ``f_i(p) = d_i + (M_i − I)(p − c_i)``
+    (:func:`_flow_values`). The ``f_i`` are alpha-composited front to back exactly like colour
+    (same Gaussians, same weights ``α_i T_i`` as :func:`render`; the affine terms are composited
+    as 6 channels and evaluated at each pixel centre), and normalised by the accumulated alpha:
+    ``flow(p) = Σ α_i T_i f_i(p) / Σ α_i T_i``.
+
+    Convention (:mod:`volcap_core.enhance.temporal`): **backward** flow in pixels, x then y (y
+    down), ``cur(x, y) ≈ prev(x + flow_x, y + flow_y)``; pass ``flow.permute(2, 0, 1)`` to
+    :func:`~volcap_core.enhance.temporal.warp`.
+
+    Args:
+        gaussians: M Gaussians of frame ``t`` (:func:`~volcap_core.splat.model.evaluate` at ``t``,
+            after any selection the colour render had).
+        previous: the same M Gaussians at frame ``t-1``'s time (:func:`gaussians_at` of the **same
+            model** with ``gaussians.ids``; a Gaussian invisible at ``t-1``, outside its lifespan,
+            still has a centre then); its means, quats and scales are used. Gaussians of another
+            model have no correspondence: across a segment boundary there is no exact flow.
+        camera, prev_camera: the cameras of frames ``t`` and ``t-1``.
+        backend, tile_size: as :func:`render` (the gsplat back-end rasterizes the 7 flow values
+            as N-channel colours, which gsplat pads to 8).
+        min_alpha: pixels whose accumulated alpha of Gaussians with a defined displacement is
+            below it get flow **0** (nothing there moves; a shot frame is a render over nothing,
+            so there is no background whose camera motion would matter). A displacement is
+            undefined for a centre that is not in front of a camera (``z <= 0``) or not finite:
+            such a Gaussian still occludes, but adds no weight to the normaliser.
+    Returns:
+        ``{"flow": [H, W, 2] float32 px, "alpha": [H, W, 1]}``: ``alpha`` is the accumulated alpha
+        of the Gaussians with a defined displacement (the render's alpha when all have one).
+        Not differentiable.
+    """
+    if previous.means.shape != gaussians.means.shape:
+        raise ValueError(f"previous Gaussians {tuple(previous.means.shape)} must match the Gaussians "
+                         f"{tuple(gaussians.means.shape)}")
+    dev = gaussians.means.device
+    cam, prev_cam = camera.to(dev), prev_camera.to(dev)
+    prev = Gaussians3D(**{f: getattr(previous, f).to(dev)
+                          for f in ("means", "quats", "scales", "opacities", "sh", "ids")},
+                       colour_space=previous.colour_space)
+    with torch.no_grad():
+        if resolve_backend(backend, dev).name == "gsplat":
+            acc = _render_flow_gsplat(gaussians, prev, cam, prev_cam)
+        else:
+            acc = _render_flow_torch(gaussians, prev, cam, prev_cam, tile_size)
+        h, w = acc.shape[:2]
+        # pixel centres in K's frame (+0.5), relative to the image centre (_flow_values' o)
+        px = torch.arange(w, device=dev, dtype=acc.dtype)[None, :] + 0.5 - w / 2.0
+        py = torch.arange(h, device=dev, dtype=acc.dtype)[:, None] + 0.5 - h / 2.0
+        fx = acc[..., 0] + acc[..., 2] * px + acc[..., 3] * py
+        fy = acc[..., 1] + acc[..., 4] * px + acc[..., 5] * py
+        weight = acc[..., 6:7]
+        flow = torch.where(weight >= min_alpha, torch.stack([fx, fy], -1) / weight.clamp(min=1e-10),
+                           torch.zeros_like(acc[..., :2]))
+    return {"flow": flow, "alpha": weight}
+
+
+def _render_flow_torch(g: Gaussians3D, prev: Gaussians3D, cam: Camera, prev_cam: Camera,
+                       tile_size: int) -> torch.Tensor:
+    # the survivors of _render_torch exactly: projection culling, then non-finite colours
+    proj = project_gaussians(g.means, g.quats, g.scales, g.opacities, cam, eps2d=EPS2D,
+                             antialiased=True)
+    finite = torch.isfinite(gaussian_colours(g.select(proj.ids), cam)).all(-1)
+    if not bool(finite.all()):
+        keep = torch.nonzero(finite).squeeze(1)
+        proj = Projected(ids=proj.ids[keep], means2d=proj.means2d[keep],
+                         conics=proj.conics[keep], opacities=proj.opacities[keep],
+                         depths=proj.depths[keep], radii=proj.radii[keep])
+    values = _flow_values(g.select(proj.ids), prev.select(proj.ids), cam, prev_cam)
+    acc, _ = rasterize_tiles(proj.means2d, proj.conics, proj.opacities, proj.depths, proj.radii,
+                             values.to(proj.means2d.dtype), cam.width, cam.height, tile_size=tile_size)
+    return acc
+
+
+def _render_flow_gsplat(g: Gaussians3D, prev: Gaussians3D, cam: Camera, prev_cam: Camera) -> torch.Tensor:
+    from gsplat import rasterization  # resolve_backend has loaded it (probe_gsplat)
+
+    values = _flow_values(g, prev, cam, prev_cam)
+    renders, _, _ = rasterization(
+        means=g.means, quats=g.quats, scales=g.scales, opacities=g.opacities, colors=values,
+        viewmats=cam.world_to_camera[None], Ks=cam.K[None], width=cam.width, height=cam.height,
+        near_plane=cam.near, far_plane=cam.far, eps2d=EPS2D, rasterize_mode="antialiased",
+        render_mode="RGB", packed=False)
+    return renders[0]
