@@ -158,13 +158,15 @@ def train_enhancer_task(store: str, pair_sets: list[ArtifactRef], prompts: dict[
     return ref
 
 
-@volcap_task(name="enhance-shot", version="1", libraries=(*ENHANCER_LIBRARIES, "OpenEXR"))
+@volcap_task(name="enhance-shot", version="3", libraries=(*ENHANCER_LIBRARIES, "OpenEXR"))
 def enhance_shot(store: str, frames: ArtifactRef, enhancer: ArtifactRef, group: str,
                  settings: EnhanceSettings = EnhanceSettings()) -> ArtifactRef:
     """Enhance a shot: ``frames`` (a ``render-shot`` tree of ``<frame:06d>.exr``) frame by frame
     in order with the ``train-enhancer`` model ``enhancer`` and prompt ``group``
-    (:func:`~volcap_core.enhance.production.enhance_shot_frames`). A tree of the same names: half
-    RGBA EXRs with the render's header (shot metadata, camera, crop) plus ``volcap.enhanced``."""
+    (:func:`~volcap_core.enhance.production.enhance_shot_frames`), conditioned through the exact
+    flow the frames carry (``settings.flow = "rendered"``, DIS where a frame has none; v3). A tree
+    of the same names: half RGBA EXRs with the render's header (shot metadata, camera, crop) plus
+    ``volcap.enhanced``."""
     from volcap_core.enhance.model import enhancer_from_bytes
     from volcap_core.enhance.production import enhance_shot_frames
 

@@ -46,7 +46,7 @@ ENHANCER_TRAINING_FIELDS = ("enhancer_architecture", "enhancer_weights", "enhanc
                             "enhancer_lora_rank", "enhancer_lr", "enhancer_batch", "enhancer_crop",
                             "enhancer_vae_steps", "enhancer_checkpoint_every")
 #: The preset fields that shape a shot's enhancement (an enhance-shot step carries them).
-ENHANCING_FIELDS = ("enhancer_sampling_steps", "enhancer_tile", "enhancer_vae_tiling")
+ENHANCING_FIELDS = ("enhancer_sampling_steps", "enhancer_strength", "enhancer_tile", "enhancer_vae_tiling")
 
 _TRAIN = TrainConfig.model_fields
 _MCMC = MCMCConfig.model_fields
@@ -100,6 +100,7 @@ class QualityPreset(BaseModel):
     enhancer_vae_steps: int = Field(0, ge=0, description="VAE pre-training steps (the tiny model's VAE is random)")
     enhancer_checkpoint_every: int = Field(500, ge=0)
     enhancer_sampling_steps: int = Field(28, ge=1, description="Euler steps per frame")
+    enhancer_strength: float = Field(1.0, gt=0, le=1, description="fraction of the sampler's noise levels run, starting from the noised LQ (1: from pure noise, as Flux samples)")
     enhancer_tile: int | None = Field(1024, ge=16, description="latent tile (px, multiple of 16); null: whole frame")
     enhancer_vae_tiling: bool = Field(True, description="the VAE's own tiling for large frames")
 
@@ -173,8 +174,8 @@ class QualityPreset(BaseModel):
         """The :class:`~volcap_core.enhance.production.EnhanceSettings` of a shot's enhancement."""
         from volcap_core.enhance.production import EnhanceSettings
 
-        return EnhanceSettings(steps=self.enhancer_sampling_steps, tile=self.enhancer_tile,
-                               vae_tiling=self.enhancer_vae_tiling)
+        return EnhanceSettings(steps=self.enhancer_sampling_steps, strength=self.enhancer_strength,
+                               tile=self.enhancer_tile, vae_tiling=self.enhancer_vae_tiling)
 
     def train_config(self, *, degrees: str = "poly4dgs", held_out: Sequence[str] = (),
                      max_gaussians: int | None = None, **overrides: Any) -> TrainConfig:
@@ -223,12 +224,14 @@ class QualityPreset(BaseModel):
 
 #: Face Rig and enhancer sizes of the presets that run on a CPU: the tiny enhancer (random weights,
 #: its VAE pre-trained first), full fine-tuning on 64-px crops of 4 sequences of 128-px pairs, 4
-#: sampling steps over whole frames. What it costs: docs/enhancer.md ("Cost on a CPU")
+#: sampling steps over whole frames, started from the noised LQ (strength 0.4: a CPU-sized model
+#: enhances the LQ rather than drawing a face from noise; docs/benchmarks.md "Detail enhancer").
+#: What it costs: docs/enhancer.md ("Cost on a CPU")
 _CPU_FACE = dict(face_subsequences=2, face_subsequence_frames=4, face_camera_paths=2,
                  face_hq_gaussians_per_frame=2_000, face_lq_gaussians=(200, 500), pair_resolution=128,
                  enhancer_architecture="tiny", enhancer_steps=20, enhancer_finetune="full", enhancer_lr=1e-3,
                  enhancer_crop=64, enhancer_vae_steps=30, enhancer_checkpoint_every=10,
-                 enhancer_sampling_steps=4, enhancer_tile=None, enhancer_vae_tiling=False)
+                 enhancer_sampling_steps=4, enhancer_strength=0.4, enhancer_tile=None, enhancer_vae_tiling=False)
 
 PRESETS: dict[str, QualityPreset] = {
     # CI and laptops: 20 steps at full resolution, tiny segments. The reconstruct tests' measured

@@ -71,18 +71,23 @@ def test_face_windows_spread_over_the_take_and_square_crops_follow_the_performer
     assert square_window(np.zeros((40, 100), np.float32)) == (0, 30, 40)
 
 
-def _shot_frame(rgba: np.ndarray, window=(2, 3, 9, 7)) -> bytes:
-    """A frame as render-shot writes it: a cropped data window, metadata of every type."""
+def _shot_frame(rgba: np.ndarray, window=(2, 3, 9, 7), *, frame: int = 3, flow: np.ndarray | None = None) -> bytes:
+    """A frame as render-shot writes it: a cropped data window, metadata of every type, and the
+    exact flow ``[H, W, 2]`` in ``flow.x``/``flow.y`` when given."""
     x0, y0, x1, y1 = window
     h, w = rgba.shape[:2]
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
               "dataWindow": (np.array([x0, y0], np.int32), np.array([x1, y1], np.int32)),
               "displayWindow": (np.array([0, 0], np.int32), np.array([w - 1, h - 1], np.int32)),
-              "volcap.shot": "cu", "volcap.frame": 3, "volcap.time": np.array([0.125]),
+              "volcap.shot": "cu", "volcap.frame": frame, "volcap.time": np.array([0.125]),
               "volcap.K": np.eye(3), "volcap.empty": 0}
     crop = rgba[y0:y1 + 1, x0:x1 + 1].astype(np.float16)
+    planes = {c: np.ascontiguousarray(crop[..., i]) for i, c in enumerate("RGBA")}
+    if flow is not None:
+        for i, c in enumerate(("flow.x", "flow.y")):
+            planes[c] = np.ascontiguousarray(flow[y0:y1 + 1, x0:x1 + 1, i].astype(np.float16))
     buf = io.BytesIO()
-    OpenEXR.File(header, {c: np.ascontiguousarray(crop[..., i]) for i, c in enumerate("RGBA")}).write(buf)
+    OpenEXR.File(header, planes).write(buf)
     return buf.getvalue()
 
 
@@ -124,6 +129,64 @@ def test_shot_frames_are_enhanced_in_order_with_alpha_in_range():
         assert header["volcap.enhanceSeed"] == t and header["volcap.lqFrame"] == f"{t:06d}.exr"
     again = list(enhance_shot_frames(model, frames, settings, group="anna", model_digest="blake3:m"))
     assert again == out                                                # deterministic
+
+
+def test_the_rendered_flow_is_read_and_used_and_dis_only_where_a_frame_has_none(monkeypatch):
+    """``flow="rendered"`` (the default) conditions a frame on the exact flow it carries, without
+    running DIS; a frame without flow (a segment boundary) falls back to DIS; the header says which."""
+    import volcap_core.enhance.temporal as temporal
+    from volcap_core.enhance.model import EnhancerConfig, build_enhancer
+    from volcap_core.production.shot import FLOW_CHANNELS
+
+    assert FLOW_CHANNELS == ("flow.x", "flow.y") and EnhanceSettings().flow == "rendered"
+    window = (3, 2, 18, 17)
+    frames, shifts = [], [None, (-1.0, 0.5), (-1.0, 0.5), None]           # frame 3: across a boundary
+    for t, shift in enumerate(shifts):
+        rgba = np.zeros((20, 24, 4), np.float32)
+        rgba[4 + t:14 + t, 5:15] = [0.4, 0.3, 0.2, 1.0]
+        flow = None if shift is None else np.broadcast_to(np.float32(shift), (20, 24, 2)).copy()
+        frames.append((f"{t:06d}.exr", _shot_frame(rgba, window, frame=t, flow=flow)))
+    header, full, flow = read_shot_frame(frames[1][1], with_flow=True)
+    inside = np.zeros((20, 24), bool)
+    inside[2:18, 3:19] = True
+    assert np.array_equal(flow[inside], np.broadcast_to(np.float32([-1.0, 0.5]), (inside.sum(), 2)))
+    assert not flow[~inside].any() and read_shot_frame(frames[0][1], with_flow=True)[2] is None
+    assert len(read_shot_frame(frames[1][1])) == 2                         # the RGBA reader as before
+
+    dis_calls, seen = [], []
+
+    class CountingDis:
+        def __init__(self, *args, **kwargs):
+            pass
+
+        def __call__(self, prev, cur):
+            dis_calls.append(tuple(cur.shape))
+            return torch.zeros(2, *cur.shape[-2:])
+
+    condition = temporal.temporal_condition
+
+    def spy(prev_output, prev_lq, cur_lq, flow, **kw):
+        seen.append(flow)
+        return condition(prev_output, prev_lq, cur_lq, flow, **kw)
+
+    monkeypatch.setattr(temporal, "DisFlow", CountingDis)
+    monkeypatch.setattr(temporal, "temporal_condition", spy)
+    model = build_enhancer(EnhancerConfig.tiny(), seed=0)
+
+    def run(**kw):
+        dis_calls.clear()
+        seen.clear()
+        out = list(enhance_shot_frames(model, frames, EnhanceSettings(steps=1, tile=None, vae_tiling=False, **kw),
+                                       group="anna", model_digest="blake3:m"))
+        return [_exr(data)[0]["volcap.enhanceFlow"] for _, data in out]
+
+    assert run() == ["none", "rendered", "rendered", "dis"]
+    assert len(dis_calls) == 1 and isinstance(seen[2], CountingDis)         # DIS for frame 3 only
+    for f in seen[:2]:
+        assert isinstance(f, torch.Tensor) and f.shape == (2, 20, 24)
+        assert torch.equal(f[:, 5, 10], torch.tensor([-1.0, 0.5]))
+    assert run(flow="dis") == ["none", "dis", "dis", "dis"] and len(dis_calls) == 3
+    assert run(flow="zero") == ["none", "zero", "zero", "zero"] and seen == [None] * 3 and not dis_calls
 
 
 # ---------------------------------------------------------------------------------------------
@@ -217,6 +280,10 @@ def test_an_enhanced_shot_runs_end_to_end_and_reruns_cached(prefect_api, static_
             if key.startswith("volcap.") or key in ("dataWindow", "displayWindow", "worldToCamera"):
                 assert np.array_equal(np.asarray(header[key]), np.asarray(value)), key
         assert header["volcap.enhanced"] == 1 and header["volcap.enhancer"] == model.model.digest
+        # the render carries its exact flow from the second frame on (one segment), and it was used
+        has_flow = {"flow.x", "flow.y"} <= set(OpenEXR.File(io.BytesIO(s.get_bytes(lq_tree[name].digest))).channels())
+        assert has_flow == (name != "000000.exr"), name
+        assert header["volcap.enhanceFlow"] == ("none" if name == "000000.exr" else "rendered"), name
     # the un-enhanced shot is the render alone: no enhancement ran on it
     assert out["steps"]["render-shot:wide"]["frames"] == out["shots"]["wide"]["frames"]
     assert "enhance-shot:wide" not in out["steps"]

@@ -119,20 +119,25 @@ class EnhancerModel(Record):
 class EnhanceSettings(BaseModel):
     """How a shot is enhanced (the ``enhance-shot`` task's settings; part of its key).
 
-    ``steps``: Euler sampling steps; ``seed``: frame ``t`` is sampled from noise seeded ``seed + t``;
+    ``steps``: Euler sampling steps; ``strength``: the fraction of them run, starting from the noised
+    LQ (:func:`~volcap_core.enhance.inference.enhance_frame`; 1: from pure noise);
+    ``seed``: frame ``t`` is sampled from noise seeded ``seed + t``;
     ``tile``/``overlap``: latent tiling in px (None: the whole frame in one pass);
     ``vae_tiling``: the VAE's own tiling for frames larger than its tile (needed at 4K, a waste on
-    small frames with the tiny model, whose VAE tile is 64 px); ``flow``: ``dis`` (OpenCV DIS
-    between consecutive LQ frames; the shot renderer gives no exact flow yet) or ``zero``;
+    small frames with the tiny model, whose VAE tile is 64 px); ``flow``: the flow between
+    consecutive LQ frames: ``rendered`` (default: the exact flow the shot renderer wrote into the
+    frame, channels ``flow.x``/``flow.y``, and OpenCV DIS for a frame without it: across a segment
+    boundary, or frames not rendered by render-shot v3+), ``dis`` (always DIS) or ``zero``;
     ``temporal``/``lowfreq_swap``: the ablation switches of :func:`~volcap_core.enhance.inference.enhance_frame`."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
     steps: int = Field(28, ge=1)
+    strength: float = Field(1.0, gt=0, le=1)
     seed: int = 0
     tile: int | None = Field(1024, ge=16)
     overlap: int | None = Field(None, ge=0)
     vae_tiling: bool = True
-    flow: Literal["dis", "zero"] = "dis"
+    flow: Literal["rendered", "dis", "zero"] = "rendered"
     temporal: bool = True
     lowfreq_swap: bool = True
 
@@ -268,14 +273,17 @@ def face_pairs_from_capture(capture, get_bytes: GetBytes, *, subsequences: int, 
 # ---------------------------------------------------------------------------- shot frames (EXR)
 
 #: what an enhanced frame's header adds to the render-shot frame's (docs/enhancer.md)
-ENHANCED_FRAME_ATTRIBUTES = ("volcap.enhanced", "volcap.enhancer", "volcap.enhanceSteps", "volcap.enhanceSeed",
-                             "volcap.lqFrame")
+ENHANCED_FRAME_ATTRIBUTES = ("volcap.enhanced", "volcap.enhancer", "volcap.enhanceSteps", "volcap.enhanceStrength",
+                             "volcap.enhanceSeed", "volcap.enhanceFlow", "volcap.lqFrame")
 
 
-def read_shot_frame(data: bytes) -> tuple[dict[str, Any], np.ndarray]:
+def read_shot_frame(data: bytes, *, with_flow: bool = False):
     """A render-shot frame (cropped half RGBA EXR) as ``(header, rgba [H, W, 4] float32)`` over
     its whole display window (zeros outside the data window: the render is premultiplied over
-    nothing there)."""
+    nothing there). With ``with_flow``: ``(header, rgba, flow)``, ``flow`` the frame's exact
+    backward flow to the previous shot frame ``[H, W, 2]`` float32 in px (channels ``flow.x``,
+    ``flow.y``, ``docs/shots.md``; zeros outside the data window) or None when the frame has none
+    (the shot's first frame, a segment boundary, an empty frame)."""
     import OpenEXR
 
     f = OpenEXR.File(io.BytesIO(bytes(data)))
@@ -291,9 +299,18 @@ def read_shot_frame(data: bytes) -> tuple[dict[str, Any], np.ndarray]:
         pixels = plane.pixels
     (dx0, dy0), (dx1, dy1) = (tuple(int(v) for v in p) for p in header["displayWindow"])
     (x0, y0), (x1, y1) = (tuple(int(v) for v in p) for p in header["dataWindow"])
-    full = np.zeros((dy1 - dy0 + 1, dx1 - dx0 + 1, 4), np.float32)
-    full[y0 - dy0:y1 - dy0 + 1, x0 - dx0:x1 - dx0 + 1] = np.asarray(pixels, np.float32)
-    return header, full
+    size = (dy1 - dy0 + 1, dx1 - dx0 + 1)
+    window = (slice(y0 - dy0, y1 - dy0 + 1), slice(x0 - dx0, x1 - dx0 + 1))
+    full = np.zeros((*size, 4), np.float32)
+    full[window] = np.asarray(pixels, np.float32)
+    if not with_flow:
+        return header, full
+    fx, fy = channels.get("flow.x"), channels.get("flow.y")
+    if fx is None or fy is None:
+        return header, full, None
+    flow = np.zeros((*size, 2), np.float32)
+    flow[window] = np.stack([np.asarray(fx.pixels, np.float32), np.asarray(fy.pixels, np.float32)], axis=-1)
+    return header, full, flow
 
 
 def encode_enhanced_frame(rgba: np.ndarray, header: Mapping[str, Any],
@@ -330,31 +347,49 @@ def enhance_shot_frames(model, frames: Sequence[tuple[str, bytes]] | Iterable[tu
 
     Frame ``t`` is :func:`~volcap_core.enhance.inference.enhance_frame` of the LQ frame over its
     display window, conditioned on output ``t-1`` warped by the flow between LQ ``t-1`` and ``t``
-    (OpenCV DIS; none for the first frame), noise seeded ``settings.seed + t``. Output RGB is
+    (none for the first frame), noise seeded ``settings.seed + t``. The flow (``settings.flow``):
+    ``rendered`` takes the exact flow the frame carries (``flow.x``/``flow.y``, written by
+    render-shot) when it has one and its ``volcap.frame`` follows the previous frame's, OpenCV
+    DIS otherwise (across a segment boundary); ``dis`` always DIS; ``zero`` no motion. Which one
+    conditioned the frame is recorded as ``volcap.enhanceFlow`` (``rendered``, ``dis``, ``zero``,
+    or ``none``: first frame, after an empty frame, temporal conditioning off). Output RGB is
     clamped to >= 0 (it is premultiplied, as the render is), alpha is in [0, 1]. An empty frame
     (``volcap.empty``: nothing in view) stays empty and restarts the temporal chain.
     Only one frame and its predecessor are held in memory."""
     from volcap_core.enhance.inference import enhance_frame
     from volcap_core.enhance.temporal import DisFlow
 
-    flow = DisFlow() if settings.flow == "dis" and settings.temporal else None
-    prev_out = prev_lq = None
+    dis = None
+    prev_out = prev_lq = prev_frame = None
     for t, (name, data) in enumerate(frames):
-        header, lq_np = read_shot_frame(data)
+        header, lq_np, flow_np = read_shot_frame(data, with_flow=True)
         lq = torch.from_numpy(lq_np).permute(2, 0, 1).contiguous()
+        frame_no = header.get("volcap.frame")
+        used = "none"
         if int(header.get("volcap.empty", 0)):
             out = lq.clone()
             prev_out = prev_lq = None
         else:
-            out = enhance_frame(model, lq, prev_out, prev_lq if prev_out is not None else None,
-                                flow if prev_out is not None else None,
-                                steps=settings.steps, seed=settings.seed + t, tile=settings.tile,
-                                overlap=settings.overlap, group=group, temporal=settings.temporal,
+            flow = None
+            if prev_out is not None and settings.temporal:
+                follows = frame_no is None or prev_frame is None or int(frame_no) == int(prev_frame) + 1
+                if settings.flow == "zero":
+                    used = "zero"
+                elif settings.flow == "rendered" and flow_np is not None and follows:
+                    flow, used = torch.from_numpy(flow_np).permute(2, 0, 1).contiguous(), "rendered"
+                else:
+                    dis = dis or DisFlow()
+                    flow, used = dis, "dis"
+            out = enhance_frame(model, lq, prev_out, prev_lq if prev_out is not None else None, flow,
+                                steps=settings.steps, strength=settings.strength, seed=settings.seed + t,
+                                tile=settings.tile, overlap=settings.overlap, group=group, temporal=settings.temporal,
                                 lowfreq_swap=settings.lowfreq_swap, vae_tiling=settings.vae_tiling)
             out = torch.cat([out[:3].clamp(min=0.0), out[3:].clamp(0.0, 1.0)])
             prev_out, prev_lq = out, lq
+        prev_frame = frame_no
         attrs = {"volcap.enhanced": 1, "volcap.enhancer": model_digest, "volcap.enhanceSteps": settings.steps,
-                 "volcap.enhanceSeed": settings.seed + t, "volcap.lqFrame": name}
+                 "volcap.enhanceStrength": settings.strength,
+                 "volcap.enhanceSeed": settings.seed + t, "volcap.enhanceFlow": used, "volcap.lqFrame": name}
         yield name, encode_enhanced_frame(out.permute(1, 2, 0).numpy(), header, attrs)
         if progress is not None:
             progress(t + 1, name)
