@@ -237,3 +237,39 @@ def test_resume_refuses_another_configuration():
     with pytest.raises(ValueError, match="lora_rank"):
         train_enhancer(build_enhancer(EnhancerConfig.tiny()), pairs, cfg.model_copy(update={"lora_rank": 3}),
                        resume_from=blobs[0])
+
+
+def test_bfloat16_frozen_weights_train_float32_adapters_and_resume_exactly():
+    """``frozen_dtype="bfloat16"`` (how FLUX.1 LoRA training fits a GPU): the frozen base weights
+    and the VAE are halved, the adapters and widened layers stay float32 master weights, the loss
+    falls, a resumed run is bit-identical, and the merged model is one bfloat16 model that
+    enhances a frame."""
+    from volcap_core.enhance.inference import enhance_frame
+
+    pairs = [_pairs(3, seed=0)]
+    cfg = EnhancerTrainConfig(steps=40, batch=2, crop=48, lr=2e-3, finetune="lora", lora_rank=4,
+                              checkpoint_every=20, seed=3, frozen_dtype="bfloat16")
+    seen: dict[str, set] = {}
+
+    def watch(step, total, info):
+        if step == 1:
+            for name, p in model.transformer.named_parameters():
+                kind = "lora" if ".lora_" in name else ("widened" if name.startswith(("x_embedder", "proj_out"))
+                                                        else "base")
+                seen.setdefault(kind, set()).add(p.dtype)
+            seen["vae"] = {p.dtype for p in model.vae.parameters()}
+
+    model = build_enhancer(EnhancerConfig.tiny(), seed=0)
+    blobs: dict[int, bytes] = {}
+    run = train_enhancer(model, pairs, cfg, progress=watch, checkpoint=lambda b, s: blobs.__setitem__(s, b))
+    assert seen == {"lora": {torch.float32}, "widened": {torch.float32}, "base": {torch.bfloat16},
+                    "vae": {torch.bfloat16}}
+    assert all(torch.isfinite(torch.tensor(run.losses)))
+    assert sum(run.losses[-10:]) < 0.8 * sum(run.losses[:10])
+    assert {p.dtype for p in run.model.parameters()} == {torch.bfloat16}  # merged, one dtype
+    resumed = train_enhancer(build_enhancer(EnhancerConfig.tiny(), seed=0), pairs, cfg, resume_from=blobs[20])
+    assert resumed.losses == run.losses
+    for (k, a), (_, b) in zip(_final_state(run).items(), _final_state(resumed).items()):
+        assert torch.equal(a, b), k
+    out = enhance_frame(run.model, pairs[0].lq[0], steps=2)
+    assert out.dtype == torch.float32 and torch.isfinite(out).all()
