@@ -96,7 +96,7 @@ def actor_prompt(store: str, group: str, config: EnhancerConfig, text: str | Non
     return s.put_bytes(emb.to_bytes(), MEDIA_SAFETENSORS)
 
 
-@volcap_task(name="train-enhancer", version="1", retries=1, locations=("base_weights",),
+@volcap_task(name="train-enhancer", version="2", retries=1, locations=("base_weights",),
              libraries=ENHANCER_LIBRARIES)
 def train_enhancer_task(store: str, pair_sets: list[ArtifactRef], prompts: dict[str, ArtifactRef],
                         config: EnhancerTrainConfig, architecture: EnhancerConfig | None = None,
@@ -119,7 +119,11 @@ def train_enhancer_task(store: str, pair_sets: list[ArtifactRef], prompts: dict[
     sets = [s.get_record(r, FacePairSet) for r in pair_sets]
     pairs = load_pair_sets(sets, s.get_bytes)
     if base_weights is not None:
-        model = Enhancer.from_pretrained(base_weights)
+        import torch
+
+        # bfloat16 frozen weights: loaded so, never 48 GB of float32 in host or GPU memory
+        model = Enhancer.from_pretrained(base_weights, torch_dtype=torch.bfloat16 if config.frozen_dtype == "bfloat16"
+                                         else None)
         base = base_fingerprint or "unpinned"
     else:
         model = build_enhancer(architecture, seed=seed)

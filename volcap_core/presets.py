@@ -43,7 +43,7 @@ TRAINING_FIELDS = ("train_steps", "grid_size", "eval_every", "eval_max_views", "
 
 #: The preset fields that shape the enhancer's training (a train-enhancer step carries them).
 ENHANCER_TRAINING_FIELDS = ("enhancer_architecture", "enhancer_weights", "enhancer_steps", "enhancer_finetune",
-                            "enhancer_lora_rank", "enhancer_lr", "enhancer_batch", "enhancer_crop",
+                            "enhancer_frozen_dtype", "enhancer_lora_rank", "enhancer_lr", "enhancer_batch", "enhancer_crop",
                             "enhancer_vae_steps", "enhancer_checkpoint_every")
 #: The preset fields that shape a shot's enhancement (an enhance-shot step carries them).
 ENHANCING_FIELDS = ("enhancer_sampling_steps", "enhancer_strength", "enhancer_tile", "enhancer_vae_tiling")
@@ -93,6 +93,8 @@ class QualityPreset(BaseModel):
     enhancer_weights: str | None = Field(None, description="local FLUX.1 directory (transformer/, vae/, text "
                                          "encoders optional); relative paths are relative to the spec file")
     enhancer_finetune: Literal["lora", "full"] = "lora"
+    enhancer_frozen_dtype: Literal["float32", "bfloat16"] = Field(
+        "bfloat16", description="dtype of the weights training does not change (FLUX.1's transformer: 48 GB in float32)")
     enhancer_lora_rank: int = Field(16, ge=1)
     enhancer_lr: float = Field(1e-4, gt=0)
     enhancer_batch: int = Field(1, ge=1)
@@ -168,7 +170,8 @@ class QualityPreset(BaseModel):
         return EnhancerTrainConfig(steps=self.enhancer_steps, lr=self.enhancer_lr, batch=self.enhancer_batch,
                                    crop=self.enhancer_crop, finetune=self.enhancer_finetune,
                                    lora_rank=self.enhancer_lora_rank, vae_steps=self.enhancer_vae_steps,
-                                   checkpoint_every=self.enhancer_checkpoint_every)
+                                   checkpoint_every=self.enhancer_checkpoint_every,
+                                   frozen_dtype=self.enhancer_frozen_dtype)
 
     def enhance_settings(self):
         """The :class:`~volcap_core.enhance.production.EnhanceSettings` of a shot's enhancement."""
@@ -230,6 +233,7 @@ class QualityPreset(BaseModel):
 _CPU_FACE = dict(face_subsequences=2, face_subsequence_frames=4, face_camera_paths=2,
                  face_hq_gaussians_per_frame=2_000, face_lq_gaussians=(200, 500), pair_resolution=128,
                  enhancer_architecture="tiny", enhancer_steps=20, enhancer_finetune="full", enhancer_lr=1e-3,
+                 enhancer_frozen_dtype="float32",
                  enhancer_crop=64, enhancer_vae_steps=30, enhancer_checkpoint_every=10,
                  enhancer_sampling_steps=4, enhancer_strength=0.4, enhancer_tile=None, enhancer_vae_tiling=False)
 
