@@ -835,6 +835,13 @@ def test_kill_9_during_puts_leaves_no_bad_object(backend, zygote, tmp_path):
         [pid] = zygote.start([{"kind": "writer", "url": store.url, "log": str(log), "seed": trial,
                                "chunk": chunk, "min_size": 2 * chunk + 1, "max_size": 12 * chunk,
                                "refs": f"trial{trial}", "env": _job_env(backend)}])
+        if trial % 2:
+            # every other writer is killed at a random moment after its first acknowledged put:
+            # on a busy machine (other test workers, other jobs) a writer to S3 may need longer
+            # than the whole window to start and put once, and no trial would acknowledge a put
+            deadline = time.monotonic() + 60
+            while not (log.exists() and log.stat().st_size) and time.monotonic() < deadline:
+                time.sleep(0.005)
         time.sleep(rng.uniform(0.01, 0.25 if backend.kind == "file" else 0.5))
         os.kill(pid, signal.SIGKILL)
         [status] = zygote.wait()
