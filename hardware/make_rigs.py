@@ -31,7 +31,9 @@ Choices not fixed by the paper (documented here and in ``docs/synthetic-capture.
   ``demo_face``: 7 wall cameras 30 degrees apart (-90..90) alternating 1.55 / 1.95 m, one ceiling.
 - **Distorted demo rig** (``demo_scene_distorted``): ``demo_scene`` whose static cameras carry
   measured intrinsics (a lens calibration): OPENCV distortion, k1 -0.1 ... 0.1, principal points
-  2-6 px off centre, two cameras sharing a lens group (values in ``DISTORTED_STATIC``).
+  2-6 px off centre, two cameras sharing a lens group (values in ``DISTORTED_STATIC``); its tracking
+  cameras carry zoom lens tables (``zoom_intrinsics``: OPENCV over the focal, ``ZOOM_LENSES``):
+  barrel at the wide end, pincushion at the long end, as zooms are.
 """
 
 from __future__ import annotations
@@ -234,10 +236,47 @@ def _measured(nominal_mm: float, px: tuple[int, int], spec) -> dict:
             "cy": _r((px[1] - 1) / 2 + dy), "model": "OPENCV", "params": [float(v) for v in params]}
 
 
+#: ``demo_scene_distorted``'s tracking cameras: per camera, its zoom lens's distortion at the image
+#: corner (radial, a fraction of the corner's radius) at the two ends of its zoom, ``(wide, long)``,
+#: linear in log focal in between (so it crosses zero, barrel -> pincushion, 70-75 % of the way
+#: along the zoom in log focal: ~125 mm of 45-175 mm, ~80 mm of 14-140 mm), the sample focals, and its
+#: decentering ``(t1, t2)`` (the tangential terms' shift of the corner, a share of its radius). Each camera is its
+#: own unit (its own table). Converted to OPENCV (k1, 0, p1, p2) on normalized coordinates: the
+#: corner's normalized radius is ``half diagonal / focal``, so k1 = D f² / h² grows with the focal
+#: (+0.5 % at 175 mm is k1 = 2.2): see :func:`_zoom_table`.
+ZOOM_LENSES = {
+    "S008": ((-0.015, 0.005), (45.0, 55.0, 70.0, 90.0, 115.0, 145.0, 175.0), (1.0e-4, -0.6e-4)),
+    "S009": ((-0.014, 0.006), (45.0, 55.0, 70.0, 90.0, 115.0, 145.0, 175.0), (-0.8e-4, 0.5e-4)),
+    "S010": ((-0.030, 0.010), (14.0, 18.0, 24.0, 35.0, 50.0, 75.0, 105.0, 140.0), (0.7e-4, 0.9e-4)),
+    "S011": ((-0.028, 0.011), (14.0, 18.0, 24.0, 35.0, 50.0, 75.0, 105.0, 140.0), (-1.1e-4, -0.4e-4)),
+}
+
+
+def _zoom_table(corner: tuple[float, float], focals: tuple[float, ...], tangential: tuple[float, float],
+                sensor_mm: tuple[float, float]) -> dict:
+    """A zoom lens table (``ZoomIntrinsics``): at each focal f the radial distortion D(f) at the
+    image corner (linear in log f from ``corner[0]`` at the first focal to ``corner[1]`` at the
+    last) as k1 = D / r² with r = h / f the corner's normalized radius (h the half diagonal, mm),
+    k2 = 0 (a narrow field: r ≤ 0.6), and p1, p2 = t / r (the tangential terms, ~p r², then move
+    the corner by a constant share t of its radius)."""
+    h2 = (sensor_mm[0] / 2) ** 2 + (sensor_mm[1] / 2) ** 2
+    lo, hi = focals[0], focals[-1]
+    samples = []
+    for f in focals:
+        d = corner[0] + (corner[1] - corner[0]) * math.log(f / lo) / math.log(hi / lo)
+        r2 = h2 / f ** 2
+        samples.append({"focal_mm": float(f), "params": [float(f"{d / r2:.6g}"), 0.0,
+                                                         float(f"{tangential[0] / math.sqrt(r2):.4g}"),
+                                                         float(f"{tangential[1] / math.sqrt(r2):.4g}")]})
+    return {"model": "OPENCV", "samples": samples}
+
+
 def demo_scene_distorted() -> dict:
     """``demo_scene`` with measured intrinsics on its static cameras: OPENCV distortion with k1 from
     -0.1 to 0.1, principal points 2-6 px off the centre, focals within 1.1 % of the nominal, fy/fx
-    within 0.12 %; the synthetic capture renders these lenses (``docs/synthetic-capture.md``)."""
+    within 0.12 %; and zoom lens tables on its tracking cameras (``ZOOM_LENSES``: -1.4 ... -3 % at
+    the corner at the wide end, +0.5 ... +1.1 % at the long end); the synthetic capture renders
+    these lenses (``docs/synthetic-capture.md``)."""
     rig = demo_scene()
     rig["name"] = "demo_scene_distorted"
     for cam in rig["cameras"]:
@@ -245,6 +284,9 @@ def demo_scene_distorted() -> dict:
             cam["intrinsics"] = _measured(cam["nominal_focal_mm"], DEMO_PX, DISTORTED_STATIC[cam["id"]])
         elif cam["id"] in DISTORTED_GROUP_OF:
             cam["lens_group"] = DISTORTED_GROUP_OF[cam["id"]]
+        elif cam["id"] in ZOOM_LENSES:
+            s = cam["sensor"]
+            cam["zoom_intrinsics"] = _zoom_table(*ZOOM_LENSES[cam["id"]], (s["width_mm"], s["height_mm"]))
     rig["lens_groups"] = {g: _measured(14.0, DEMO_PX, spec) for g, spec in DISTORTED_GROUPS.items()}
     return rig
 

@@ -9,17 +9,24 @@ Roles (paper, "Hardware Setup of the Scene Rig"):
 - ``static``: wide field-of-view cameras (14-42 mm on the Scene Rig) that never move during a take;
 - ``tracking-landscape``: pan/tilt/zoom heads (45-175 mm) framing faces, lens encoders report focal;
 - ``tracking-portrait``: portrait-oriented tracking cameras framing full/upper/lower body.
+
+Lens calibrations (optional): a static camera's ``intrinsics`` (:class:`MeasuredIntrinsics`, or its
+``lens_group``'s), a tracking camera's ``zoom_intrinsics`` (:class:`ZoomIntrinsics`: its distortion,
+and optionally its principal point, sampled over its focal in mm, linear in the focal in between).
 """
 
 from __future__ import annotations
 
+import bisect
 import json
+import math
 from enum import Enum
 from importlib import resources
 from pathlib import Path
-from typing import Literal
+from typing import Iterable, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, SerializerFunctionWrapHandler, model_serializer, model_validator
+from pydantic import (BaseModel, ConfigDict, Field, SerializerFunctionWrapHandler, ValidationError, model_serializer,
+                      model_validator)
 
 
 class CameraRole(str, Enum):
@@ -127,6 +134,120 @@ class MeasuredIntrinsics(BaseModel):
                                  f"the rig's resolution {sensor.width_px}x{sensor.height_px})")
 
 
+class ZoomSample(BaseModel):
+    """One sample of a zoom lens's calibration: at focal ``focal_mm`` (the focal the lens has at
+    that zoom setting, as a checkerboard calibration there measured it: its fx in pixels times the
+    sensor's ``width_mm / width_px``; not an encoder count), the distortion ``params`` (in the
+    table's ``model``, COLMAP's order, on normalized coordinates) and optionally the principal point
+    ``cx``, ``cy`` (pixels at the camera's ``sensor.width_px`` x ``height_px``, OpenCV convention)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    focal_mm: float = Field(gt=0)
+    params: tuple[float, ...] = ()
+    cx: float | None = None
+    cy: float | None = None
+
+    @model_serializer(mode="wrap")
+    def _omit_unset(self, handler: SerializerFunctionWrapHandler):
+        return _drop_empty(handler(self), ("cx", "cy"))
+
+
+class ZoomIntrinsics(BaseModel):
+    """A zoom lens's distortion (and principal point) as a function of its focal length: a table of
+    :class:`ZoomSample` in increasing focal, one distortion ``model`` for all of them (one of
+    :data:`DISTORTION_MODELS`).
+
+    Between samples every parameter is **linear in the focal** (mm): :meth:`at`. For the OPENCV
+    family without a rational term the distorted point is linear in the parameters, so this is the
+    linear blend of the two samples' distortion fields. Coefficients on normalized coordinates grow
+    about as focal² for a lens whose distortion at the image corner (in %) changes slowly (the
+    corner's normalized radius is ``half diagonal / focal``): for k ∝ focal² a line in the focal
+    errs a third as much as a line in 1/focal (0.6x on the demo rig's tables). Outside the table the end sample
+    holds (**clamped**): readings and estimates stray a little past the zoom's end stops (the
+    encoder's noise and gain error), and a table must reach both ends of the lens's range
+    (:meth:`check_against`), so the clamp never extrapolates over more than that."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    model: str = "OPENCV"
+    samples: tuple[ZoomSample, ...]
+
+    @model_validator(mode="after")
+    def _table_is_consistent(self) -> "ZoomIntrinsics":
+        names = DISTORTION_MODELS.get(self.model)
+        if names is None:
+            raise ValueError(f"unknown distortion model {self.model!r}: one of {', '.join(DISTORTION_MODELS)}")
+        if len(self.samples) < 2:
+            raise ValueError(f"a zoom lens table needs at least two samples (its zoom's ends), got {len(self.samples)}")
+        for s in self.samples:
+            if len(s.params) != len(names):
+                raise ValueError(f"the sample at {s.focal_mm} mm: distortion model {self.model} takes {len(names)} "
+                                 f"parameters ({', '.join(names) or 'none'}), got {len(s.params)}")
+            if not all(math.isfinite(v) for v in s.params):
+                raise ValueError(f"the sample at {s.focal_mm} mm: non-finite parameters {s.params}")
+            if (s.cx is None) != (s.cy is None):
+                raise ValueError(f"the sample at {s.focal_mm} mm: give both cx and cy, or neither")
+        with_pp = {s.cx is not None for s in self.samples}
+        if len(with_pp) > 1:
+            raise ValueError("the principal point (cx, cy) is given at some samples and not at others: give it at "
+                             "every sample or at none")
+        focals = [s.focal_mm for s in self.samples]
+        for a, b in zip(focals, focals[1:]):
+            if b == a:
+                raise ValueError(f"focal {a} mm is sampled twice")
+            if b < a:
+                raise ValueError(f"samples must be in increasing focal order: {b} mm comes after {a} mm")
+        return self
+
+    def check_against(self, cam_id: str, sensor: Sensor, lens: Lens) -> None:
+        """Refuse a table that cannot belong to this camera: a sample outside its lens's zoom range
+        (e.g. a focal in pixels), a table that does not reach both ends of that range (1 %: beyond
+        the ends it would be clamped), a principal point outside the image."""
+        lo, hi = self.samples[0].focal_mm, self.samples[-1].focal_mm
+        for s in self.samples:
+            if not lens.contains(s.focal_mm, tol_mm=1e-6 * lens.focal_max_mm):
+                raise ValueError(f"camera {cam_id}: zoom lens sample at {s.focal_mm} mm is outside its lens range "
+                                 f"{lens.focal_min_mm}-{lens.focal_max_mm} mm (focals in mm, not pixels)")
+        if lo > lens.focal_min_mm * 1.01 or hi < lens.focal_max_mm * 0.99:
+            raise ValueError(f"camera {cam_id}: the zoom lens table covers {lo}-{hi} mm of its lens range "
+                             f"{lens.focal_min_mm}-{lens.focal_max_mm} mm: sample both ends of the zoom (beyond the "
+                             f"table the end sample would hold)")
+        for s in self.samples:
+            if s.cx is not None and not (0 <= s.cx <= sensor.width_px - 1 and 0 <= s.cy <= sensor.height_px - 1):
+                raise ValueError(f"camera {cam_id}: zoom lens sample at {s.focal_mm} mm: principal point "
+                                 f"({s.cx}, {s.cy}) px is outside the {sensor.width_px}x{sensor.height_px} image")
+
+    @property
+    def focals_mm(self) -> tuple[float, ...]:
+        return tuple(s.focal_mm for s in self.samples)
+
+    @property
+    def has_principal(self) -> bool:
+        return self.samples[0].cx is not None
+
+    def at(self, focal_mm: float) -> ZoomSample:
+        """The lens at one focal (mm): a :class:`ZoomSample` of the interpolated parameters (and
+        principal point, when the table has one) with ``focal_mm`` the focal asked for. Linear in
+        the focal between the samples, the end sample's values outside them."""
+        return self.at_each([focal_mm])[0]
+
+    def at_each(self, focals_mm: Iterable[float]) -> list[ZoomSample]:
+        """:meth:`at` for each focal of ``focals_mm`` (mm; a list or a numpy array)."""
+        focals = self.focals_mm
+        out = []
+        for f in (float(v) for v in focals_mm):
+            if not math.isfinite(f):
+                raise ValueError(f"zoom lens at a non-finite focal {f}")
+            i = max(0, min(len(focals) - 2, bisect.bisect_right(focals, f) - 1))
+            a, b = self.samples[i], self.samples[i + 1]
+            w = min(1.0, max(0.0, (f - a.focal_mm) / (b.focal_mm - a.focal_mm)))
+            params = tuple((1 - w) * p + w * q for p, q in zip(a.params, b.params))
+            pp = {}
+            if a.cx is not None:
+                pp = {"cx": (1 - w) * a.cx + w * b.cx, "cy": (1 - w) * a.cy + w * b.cy}
+            out.append(ZoomSample.model_construct(focal_mm=f, params=params, **pp))
+        return out
+
+
 def _drop_empty(data, keys: tuple[str, ...]):
     if isinstance(data, dict):
         for k in keys:
@@ -149,11 +270,32 @@ class RigCamera(BaseModel):
         default=None, pattern=r"^[A-Za-z0-9_.-]+$",
         description="cameras sharing a body and lens; the rig's lens_groups entry of that name, when there "
                     "is one, is their measured intrinsics")
+    zoom_intrinsics: ZoomIntrinsics | None = Field(
+        default=None, description="a tracking camera's zoom lens calibration: distortion (and principal point) "
+                                  "as a function of its focal; None: a pinhole with its principal point at the "
+                                  "image centre")
 
     @model_serializer(mode="wrap")
     def _omit_unset(self, handler: SerializerFunctionWrapHandler):
         # rigs (and the Capture records holding them) without measured intrinsics serialise as before
-        return _drop_empty(handler(self), ("intrinsics", "lens_group"))
+        return _drop_empty(handler(self), ("intrinsics", "lens_group", "zoom_intrinsics"))
+
+    @model_validator(mode="wrap")
+    @classmethod
+    def _name_the_camera(cls, data, handler):
+        # a zoom lens table's own errors (order, parameter counts...) are raised inside the nested
+        # model, where the camera is not known: name it
+        try:
+            return handler(data)
+        except ValidationError as exc:
+            cam_id = data.get("id") if isinstance(data, dict) else getattr(data, "id", None)
+            zoom = [e for e in exc.errors() if e["loc"][:1] == ("zoom_intrinsics",)]
+            if cam_id is None or not zoom:
+                raise
+            e = zoom[0]
+            where = ".".join(str(x) for x in e["loc"])
+            msg = e["msg"].removeprefix("Value error, ")
+            raise ValueError(f"camera {cam_id}: {where}: {msg}") from None
 
     @model_validator(mode="after")
     def _focal_in_range(self) -> "RigCamera":
@@ -166,8 +308,14 @@ class RigCamera(BaseModel):
         if self.intrinsics is not None:
             if self.role.tracks:
                 raise ValueError(f"camera {self.id}: measured intrinsics on a {self.role.value} camera: a zoom "
-                                 f"lens's intrinsics change with its focal, which rigs do not describe yet")
+                                 f"lens's intrinsics change with its focal: give them as a table over its focal "
+                                 f"(zoom_intrinsics)")
             self.intrinsics.check_against(self.id, self.sensor, self.lens)
+        if self.zoom_intrinsics is not None:
+            if not self.role.tracks:
+                raise ValueError(f"camera {self.id}: a zoom lens table (zoom_intrinsics) on a static camera: its "
+                                 f"focal does not change during a take; give its measured intrinsics instead")
+            self.zoom_intrinsics.check_against(self.id, self.sensor, self.lens)
         return self
 
 
@@ -222,7 +370,8 @@ class Rig(BaseModel):
                 if cam.role.tracks:
                     raise ValueError(f"rig {self.name}: camera {cam.id} is a {cam.role.value} camera in lens "
                                      f"group {cam.lens_group!r} with measured intrinsics: a zoom lens's "
-                                     f"intrinsics change with its focal, which rigs do not describe yet")
+                                     f"intrinsics change with its focal: give the camera a table over its "
+                                     f"focal (zoom_intrinsics)")
                 shared.check_against(cam.id, cam.sensor, cam.lens)
         unused = sorted(set(self.lens_groups) - set(groups))
         if unused:

@@ -220,3 +220,85 @@ def test_lens_group_validation():
     tr["lens_group"] = "g1"
     with pytest.raises(ValidationError, match="another sensor or lens|tracking"):
         Rig.model_validate(zoom)
+
+
+# --------------------------------------------------------------------------- zoom lens tables
+
+def _zoom(**kw) -> dict:
+    d = {"model": "OPENCV", "samples": [{"focal_mm": 45.0, "params": [-0.44, 0.0, 0.0005, -0.0003]},
+                                        {"focal_mm": 90.0, "params": [-0.57, 0.0, 0.001, -0.0006]},
+                                        {"focal_mm": 175.0, "params": [2.2, 0.0, 0.002, -0.0013]}]}
+    d.update(kw)
+    return d
+
+
+def _with_zoom(zoom: dict, camera: str = "S008") -> dict:
+    rig = _demo()
+    next(c for c in rig["cameras"] if c["id"] == camera)["zoom_intrinsics"] = zoom
+    return rig
+
+
+def test_zoom_lens_table_accepted_and_serialised():
+    rig = Rig.model_validate(_with_zoom(_zoom()))
+    z = rig.camera("S008").zoom_intrinsics
+    assert z.focals_mm == (45.0, 90.0, 175.0) and not z.has_principal
+    assert z.at(67.5).params[0] == pytest.approx(-0.505)
+    again = Rig.model_validate(rig.model_dump(mode="json"))
+    assert again == rig
+    # cameras without a table serialise as before (no zoom_intrinsics key, no cx/cy keys)
+    dumped = rig.model_dump(mode="json")
+    assert "zoom_intrinsics" not in dumped["cameras"][0]
+    assert "cx" not in dumped["cameras"][8]["zoom_intrinsics"]["samples"][0]
+    with_pp = _zoom()
+    for s, c in zip(with_pp["samples"], (160.1, 159.6, 158.9)):
+        s.update(cx=c, cy=89.5)
+    assert Rig.model_validate(_with_zoom(with_pp)).camera("S008").zoom_intrinsics.at(175.0).cx == 158.9
+
+
+def _samples(*focals_params):
+    return [{"focal_mm": f, "params": p} for f, p in focals_params]
+
+
+@pytest.mark.parametrize("zoom, message", [
+    (_zoom(samples=_samples((45.0, [-0.4, 0, 0, 0]), (175.0, [2.0, 0, 0, 0]), (90.0, [-0.5, 0, 0, 0]))),
+     "camera S008: zoom_intrinsics: samples must be in increasing focal order: 90.0 mm comes after 175.0 mm"),
+    (_zoom(samples=_samples((45.0, [-0.4, 0, 0, 0]), (90.0, [-0.5, 0, 0, 0]), (90.0, [-0.5, 0, 0, 0]),
+                            (175.0, [2.0, 0, 0, 0]))),
+     "camera S008: zoom_intrinsics: focal 90.0 mm is sampled twice"),
+    (_zoom(samples=_samples((45.0, [-0.4, 0, 0, 0]), (90.0, [-0.5, 0.0]), (175.0, [2.0, 0, 0, 0]))),
+     r"camera S008: zoom_intrinsics: the sample at 90.0 mm: distortion model OPENCV takes 4 parameters .* got 2"),
+    (_zoom(model="FISHEYE"), "camera S008: zoom_intrinsics: unknown distortion model 'FISHEYE'"),
+    (_zoom(samples=_samples((45.0, [-0.4, 0, 0, 0]))),
+     "camera S008: zoom_intrinsics: a zoom lens table needs at least two samples"),
+    (_zoom(samples=_samples((45.0, [-0.4, 0, 0, 0]), (998.0, [2.0, 0, 0, 0]))),
+     r"camera S008: zoom lens sample at 998.0 mm is outside its lens range 45.0-175.0 mm \(focals in mm, not "
+     r"pixels\)"),
+    (_zoom(samples=_samples((45.0, [-0.4, 0, 0, 0]), (140.0, [1.0, 0, 0, 0]))),
+     "camera S008: the zoom lens table covers 45.0-140.0 mm of its lens range 45.0-175.0 mm"),
+    (_zoom(samples=[{"focal_mm": 45.0, "params": [-0.4, 0, 0, 0], "cx": 160.0},
+                    {"focal_mm": 175.0, "params": [2.0, 0, 0, 0], "cx": 160.0}]),
+     "camera S008: zoom_intrinsics: the sample at 45.0 mm: give both cx and cy, or neither"),
+    (_zoom(samples=[{"focal_mm": 45.0, "params": [-0.4, 0, 0, 0], "cx": 160.0, "cy": 90.0},
+                    {"focal_mm": 175.0, "params": [2.0, 0, 0, 0]}]),
+     "camera S008: zoom_intrinsics: the principal point .* is given at some samples and not at others"),
+    (_zoom(samples=[{"focal_mm": 45.0, "params": [-0.4, 0, 0, 0], "cx": 400.0, "cy": 90.0},
+                    {"focal_mm": 175.0, "params": [2.0, 0, 0, 0], "cx": 160.0, "cy": 90.0}]),
+     r"camera S008: zoom lens sample at 45.0 mm: principal point \(400.0, 90.0\) px is outside the 320x180 image"),
+    (_zoom(samples=_samples((-45.0, [-0.4, 0, 0, 0]), (175.0, [2.0, 0, 0, 0]))),
+     "camera S008: zoom_intrinsics.samples.0.focal_mm: Input should be greater than 0"),
+])
+def test_zoom_lens_table_validation_names_the_camera(zoom, message):
+    with pytest.raises(ValidationError, match=message):
+        Rig.model_validate(_with_zoom(zoom))
+
+
+def test_zoom_lens_table_only_on_tracking_cameras():
+    with pytest.raises(ValidationError, match="camera S000: a zoom lens table .* on a static camera"):
+        Rig.model_validate(_with_zoom(_zoom(samples=_samples((14.0, [-0.1, 0, 0, 0]), (42.0, [0.1, 0, 0, 0]))),
+                                      camera="S000"))
+    # a tracking camera's measured intrinsics point to the table
+    bad = _demo()
+    next(c for c in bad["cameras"] if c["id"] == "S008")["intrinsics"] = _intrinsics(fx=1600.0, fy=1600.0)
+    with pytest.raises(ValidationError, match=r"camera S008: measured intrinsics on a tracking-landscape camera: "
+                                              r".*\(zoom_intrinsics\)"):
+        Rig.model_validate(bad)

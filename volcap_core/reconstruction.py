@@ -21,7 +21,7 @@ from pydantic import BaseModel, ConfigDict
 
 from volcap_core import imageio
 from volcap_core.calibration.distortion import needs_rectify, rectified_valid, rectify_frame
-from volcap_core.calibration.record import Calibration, TrackingFrames, camera_at
+from volcap_core.calibration.record import Calibration, TrackingFrames, camera_at, frame_camera
 from volcap_core.capture import Capture
 from volcap_core.pointcloud import PointCloudSequence
 from volcap_core.records import ArtifactRef, Record
@@ -151,7 +151,9 @@ def segment_data(capture: Capture, calibration: Calibration, tracking: dict[str,
     record's K: its frames (and masks) are rectified into it as they are loaded
     (:func:`~volcap_core.calibration.distortion.rectify_frame`, before any downscale), and its views
     carry ``valid`` (the pixels whose source lies inside the frame, after a downscale those wholly
-    made of such pixels): training's loss and the scores leave the others out.
+    made of such pixels): training's loss and the scores leave the others out. A tracking camera
+    with a zoom lens has a lens per frame (the tracking blob's ``distortion``): each frame is
+    rectified with its own (:func:`~volcap_core.calibration.record.frame_camera`).
     """
     if not 0 < scale <= 1:
         raise ValueError(f"scale must be in (0, 1], got {scale}")
@@ -163,15 +165,22 @@ def segment_data(capture: Capture, calibration: Calibration, tracking: dict[str,
     if missing:
         raise ValueError(f"calibration lacks camera(s) {', '.join(missing)} of capture {capture.name}")
 
+    tracking_ids = set(calibration.tracking_ids) & set(tracking or {})
+
     def camera_for(cam: str, f: int) -> Camera:
         camera = splat_camera(*camera_at(calibration, cam, f, tracking))
         return camera if scale == 1 else camera.scaled(scale)
 
-    valid_cache: dict[str, torch.Tensor | None] = {}
+    valid_cache: dict[tuple[str, int], torch.Tensor | None] = {}
+
+    def lens(cam: str, f: int):
+        # the camera at that frame: a tracking camera's lens follows its zoom (record.frame_camera)
+        return frame_camera(calibration, cam, f, tracking)
 
     def valid_for(cam: str, f: int) -> torch.Tensor | None:
-        if cam not in valid_cache:
-            v = rectified_valid(calibration.camera(cam))
+        key = (cam, f if cam in tracking_ids else -1)
+        if key not in valid_cache:
+            v = rectified_valid(lens(cam, f))
             if v is not None:
                 v = torch.from_numpy(np.asarray(v, np.float32))
                 if scale != 1:
@@ -179,11 +188,11 @@ def segment_data(capture: Capture, calibration: Calibration, tracking: dict[str,
                     v = torch.nn.functional.interpolate(v[None, None], size=(size.height, size.width),
                                                         mode="area")[0, 0]
                 v = v >= 0.999
-            valid_cache[cam] = v
-        return valid_cache[cam]
+            valid_cache[key] = v
+        return valid_cache[key]
 
     def load_image(cam: str, f: int) -> torch.Tensor:
-        image = rectify_frame(load_frame(capture.camera(cam).frames[f]), calibration.camera(cam))
+        image = rectify_frame(load_frame(capture.camera(cam).frames[f]), lens(cam, f))
         if scale == 1:
             return image
         size = camera_for(cam, f)
@@ -194,13 +203,15 @@ def segment_data(capture: Capture, calibration: Calibration, tracking: dict[str,
         m = load_mask(cam, f) if load_mask is not None else None
         if m is None:
             return None
-        m = torch.from_numpy(np.asarray(rectify_frame(np.asarray(m, np.float32), calibration.camera(cam))))
+        m = torch.from_numpy(np.asarray(rectify_frame(np.asarray(m, np.float32), lens(cam, f))))
         if scale == 1:
             return m
         size = camera_for(cam, f)
         return torch.nn.functional.interpolate(m[None, None], size=(size.height, size.width), mode="area")[0, 0]
 
-    distorted = any(needs_rectify(calibration.camera(c)) for c in ids)
+    distorted = (any(needs_rectify(calibration.camera(c)) for c in ids)
+                 or any(tracking[c].distortion is not None and np.any(tracking[c].distortion)
+                        for c in ids if c in tracking_ids))
     return SegmentData.build(frames=frames, camera_ids=ids, fps=capture.fps, load_image=load_image,
                              camera_for=camera_for, load_mask=mask_for if load_mask is not None else None,
                              load_valid=valid_for if distorted else None)

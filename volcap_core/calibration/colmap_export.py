@@ -21,7 +21,7 @@ import pycolmap
 
 from volcap_core.calibration.distortion import Distortion
 from volcap_core.calibration.geometry import COLMAP_PIXEL_OFFSET
-from volcap_core.calibration.record import Calibration, TrackingFrames, camera_at
+from volcap_core.calibration.record import Calibration, TrackingFrames, camera_at, frame_camera
 from volcap_core.colour import srgb_encode
 
 Camera = tuple   # (K [3, 3], world_to_camera [4, 4], width, height[, Distortion])
@@ -30,14 +30,16 @@ Camera = tuple   # (K [3, 3], world_to_camera [4, 4], width, height[, Distortion
 def cameras_at(calibration: Calibration, frame: int,
                tracking: Mapping[str, TrackingFrames] | None = None) -> dict[str, Camera]:
     """Every camera of a calibration at one take index (tracking cameras need the decoded blob);
-    a camera with distortion in the record gets it as a 5th element."""
+    a camera with distortion in the record (a tracking camera's: that frame's lens) gets it as a 5th
+    element."""
     out = {}
     for cam in calibration.cameras:
         if not cam.static and tracking is None:
             continue
         out[cam.id] = camera_at(calibration, cam.id, frame, tracking)
-        if any(cam.distortion):
-            out[cam.id] = (*out[cam.id], Distortion.from_opencv(cam.distortion))
+        dist = frame_camera(calibration, cam.id, frame, tracking).distortion
+        if any(dist):
+            out[cam.id] = (*out[cam.id], Distortion.from_opencv(dist))
     return out
 
 

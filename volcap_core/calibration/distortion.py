@@ -44,7 +44,10 @@ Footage after calibration: :func:`rectify_frame` resamples a frame of a calibrat
 *same* fx, fy, cx, cy and size and no distortion, so the record's ``K`` (``record.camera_at``) is
 the pinhole of the rectified frame. Every reader of footage after calibration (dense points,
 training and scoring, the ground truth's depth and masks) goes through it; a camera without
-distortion comes back untouched. :func:`rectified_valid` says which rectified pixels have their
+distortion comes back untouched. A tracking camera with a zoom lens has a lens per frame (the
+tracking-frames blob's ``distortion``): rectify frame t with
+``record.frame_camera(calibration, id, t, tracking)``, which carries that frame's intrinsics and
+lens. :func:`rectified_valid` says which rectified pixels have their
 whole bilinear footprint inside the source frame; the others are 0 in the rectified frame and
 training's loss and the scores leave them out (``splat.train.View.valid``).
 """
@@ -364,7 +367,8 @@ class _Pinhole(NamedTuple):
 
 def record_distortion(camera: Any) -> Distortion:
     """The :class:`Distortion` of a ``Calibration`` record's camera (its OpenCV ``distortion``
-    ``(k1, k2, p1, p2, k3)``; none for a pinhole or a tracking camera)."""
+    ``(k1, k2, p1, p2, k3)``; none for a pinhole). A tracking camera's lens follows its zoom: pass
+    that frame's camera, ``record.frame_camera(calibration, id, frame, tracking)``."""
     return Distortion.from_opencv(tuple(getattr(camera, "distortion", None) or ()))
 
 

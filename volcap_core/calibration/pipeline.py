@@ -21,7 +21,7 @@ from volcap_core.calibration.record import Calibration, CameraCalibration, matri
 from volcap_core.calibration.static import StaticCalibration, StaticCalibrationOptions
 from volcap_core.calibration.steps import calibrate_static_step, tracking_blob
 from volcap_core.calibration.tracking import (StaticReference, TrackingOptions, TrackingSolution,
-                                              calibrate_tracking_cameras)
+                                              calibrate_tracking_cameras, zoom_lens)
 
 FrameSource = Callable[[str, int], np.ndarray]
 
@@ -68,7 +68,8 @@ def calibrate_capture(load: FrameSource, rig: Rig, camera_ids: list[str], frame_
         frames = {c: [load(c, t) for t in range(frame_count)] for c in trackers}
         ppm = {c: rig.camera(c).sensor.width_px / rig.camera(c).sensor.width_mm for c in trackers}
         mounts = {c: np.asarray(rig.camera(c).mount.position_m, np.float64) for c in trackers}
-        tracking = calibrate_tracking_cameras(frames, encoder, ppm, mounts, reference, options.tracking)
+        lenses = {c: zoom_lens(rig.camera(c).zoom_intrinsics) for c in trackers}   # zoom lens tables
+        tracking = calibrate_tracking_cameras(frames, encoder, ppm, mounts, reference, options.tracking, lenses)
         blob = tracking_blob(tracking)
     else:
         stats["tracking"] = "skipped: the capture has no tracking cameras"

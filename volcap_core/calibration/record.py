@@ -9,8 +9,15 @@ intrinsics in OpenCV pixels (centre of the top-left pixel at (0, 0)); distortion
 Size: static cameras carry one pose in the JSON record. Tracking cameras change every frame; their
 per-frame arrays live in one safetensors blob referenced by ``Calibration.tracking_frames``:
 ``<camera id>/intrinsics`` float64 [T, 4] (fx, fy, cx, cy) and ``<camera id>/world_to_camera``
-float64 [T, 4, 4], T = ``frame_count``. :func:`encode_tracking_frames` / :func:`decode_tracking_frames`
-turn them into / from bytes; the task layer stores the bytes and puts the ref in the record.
+float64 [T, 4, 4], T = ``frame_count``; for a camera with a zoom lens table also
+``<camera id>/distortion`` float64 [T, 5] or [T, 8]: OpenCV's distCoeffs of each frame's lens (the
+lens at that frame's focal), so frame t of that camera is rectified with
+``intrinsics[t]`` and ``distortion[t]`` (:func:`frame_camera`), and its ``intrinsics[t]`` is the
+pinhole of the rectified frame. The blob's format is in its metadata: ``volcap-tracking-frames/1``
+(no distortion: the bytes are those written before distortion existed) or ``/2`` (some camera has
+per-frame distortion); :func:`decode_tracking_frames` reads both and refuses anything else.
+:func:`encode_tracking_frames` / :func:`decode_tracking_frames` turn them into / from bytes; the
+task layer stores the bytes and puts the ref in the record.
 """
 
 from __future__ import annotations
@@ -105,14 +112,21 @@ class Calibration(Record):
 @dataclass(frozen=True)
 class TrackingFrames:
     """Per-frame arrays of one tracking camera: ``intrinsics`` [T, 4] (fx, fy, cx, cy) and
-    ``world_to_camera`` [T, 4, 4], float64."""
+    ``world_to_camera`` [T, 4, 4], float64; ``distortion`` [T, 5] or [T, 8] (OpenCV's distCoeffs of
+    each frame's lens) or None (pinhole frames)."""
 
     intrinsics: np.ndarray
     world_to_camera: np.ndarray
+    distortion: np.ndarray | None = None
+
+
+#: the tracking-frames blob's formats: 1 without distortion, 2 with per-frame distortion
+TRACKING_FRAMES_FORMATS = ("volcap-tracking-frames/1", "volcap-tracking-frames/2")
 
 
 def encode_tracking_frames(frames: Mapping[str, TrackingFrames]) -> bytes:
-    """Tracking cameras' per-frame arrays -> safetensors bytes (deterministic: sorted keys)."""
+    """Tracking cameras' per-frame arrays -> safetensors bytes (deterministic: sorted keys). Format
+    ``/1`` when no camera has distortion (the bytes written before it existed), else ``/2``."""
     tensors: dict[str, np.ndarray] = {}
     for cid in sorted(frames):
         f = frames[cid]
@@ -125,17 +139,51 @@ def encode_tracking_frames(frames: Mapping[str, TrackingFrames]) -> bytes:
             raise ValueError(f"camera {cid}: non-finite values")
         tensors[f"{cid}/intrinsics"] = intr
         tensors[f"{cid}/world_to_camera"] = w2c
-    return st_save(tensors, metadata={"format": "volcap-tracking-frames/1"})
+        if f.distortion is not None:
+            tensors[f"{cid}/distortion"] = _checked_distortion(cid, f.distortion, len(intr))
+    fmt = TRACKING_FRAMES_FORMATS[1 if any(k.endswith("/distortion") for k in tensors) else 0]
+    return st_save(tensors, metadata={"format": fmt})
+
+
+def _checked_distortion(cid: str, d, T: int) -> np.ndarray:
+    d = np.ascontiguousarray(np.asarray(d, np.float64))
+    if d.ndim != 2 or d.shape[0] != T or d.shape[1] not in (5, 8):
+        raise ValueError(f"camera {cid}: distortion must be [T, 5] or [T, 8] (OpenCV's distCoeffs per frame, "
+                         f"T = {T}), got {d.shape}")
+    if not np.isfinite(d).all():
+        raise ValueError(f"camera {cid}: non-finite distortion")
+    return d
+
+
+def _blob_format(data: bytes) -> str | None:
+    import json
+
+    n = int.from_bytes(data[:8], "little")
+    header = json.loads(data[8:8 + n])
+    return (header.get("__metadata__") or {}).get("format")
 
 
 def decode_tracking_frames(data: bytes) -> dict[str, TrackingFrames]:
-    """Inverse of :func:`encode_tracking_frames`."""
+    """Inverse of :func:`encode_tracking_frames`; refuses a blob of another format or with arrays
+    that do not fit (a camera without its world_to_camera, a distortion of another length)."""
+    try:
+        fmt = _blob_format(data)
+    except (ValueError, UnicodeDecodeError) as exc:
+        raise ValueError(f"not a tracking-frames blob: {exc}") from exc
+    if fmt not in TRACKING_FRAMES_FORMATS:
+        raise ValueError(f"tracking-frames blob of format {fmt!r}: this version reads "
+                         f"{', '.join(TRACKING_FRAMES_FORMATS)}")
     t = st_load(data)
     out: dict[str, TrackingFrames] = {}
     for key in t:
         cid, name = key.rsplit("/", 1)
         if name == "intrinsics":
-            out[cid] = TrackingFrames(t[key], t[f"{cid}/world_to_camera"])
+            if f"{cid}/world_to_camera" not in t:
+                raise ValueError(f"tracking-frames blob: camera {cid} has no world_to_camera")
+            dist = t.get(f"{cid}/distortion")
+            if dist is not None:
+                dist = _checked_distortion(cid, dist, len(t[key]))
+            out[cid] = TrackingFrames(t[key], t[f"{cid}/world_to_camera"], dist)
     return out
 
 
@@ -169,6 +217,23 @@ def camera_at(calibration: Calibration, camera_id: str, frame: int,
         w2c = np.asarray(tf.world_to_camera[frame], np.float64)
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     return K, w2c.copy(), cam.width, cam.height
+
+
+def frame_camera(calibration: Calibration, camera_id: str, frame: int,
+                 tracking: Mapping[str, TrackingFrames] | None = None) -> CameraCalibration:
+    """Camera ``camera_id`` at take index ``frame`` as a record camera with that frame's
+    ``intrinsics``, ``distortion`` and ``world_to_camera``: what
+    :func:`~volcap_core.calibration.distortion.rectify_frame` and ``rectified_valid`` take to
+    rectify that frame. A static camera is returned as it is; a tracking camera needs ``tracking``
+    (its distortion is that frame's lens, zeros for pinhole frames)."""
+    cam = calibration.camera(camera_id)
+    if cam.static:
+        return cam
+    K, w2c, _, _ = camera_at(calibration, camera_id, frame, tracking)
+    d = tracking[camera_id].distortion
+    dist = tuple(float(v) for v in d[frame]) if d is not None else cam.distortion
+    return cam.model_copy(update={"intrinsics": (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])),
+                                  "distortion": dist, "world_to_camera": matrix4(w2c)})
 
 
 def matrix4(m: np.ndarray) -> Matrix4:

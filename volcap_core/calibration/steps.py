@@ -32,11 +32,12 @@ from volcap_core.calibration.dense import DenseOptions, dense_points
 from volcap_core.calibration.distortion import rectified_valid, rectify_frame
 from volcap_core.calibration.lidar import LidarScan
 from volcap_core.calibration.photometric import background_plate
-from volcap_core.calibration.record import Calibration, TrackingFrames, camera_at, encode_tracking_frames
+from volcap_core.calibration.record import (Calibration, TrackingFrames, camera_at, encode_tracking_frames,
+                                            frame_camera)
 from volcap_core.calibration.static import (StaticCalibration, StaticCalibrationOptions, UnsupportedCameraError,
                                             KnownDistanceError, calibrate_static_cameras, instant_frames)
 from volcap_core.calibration.tracking import (StaticReference, TrackingOptions, TrackingSolution,
-                                              build_static_reference, calibrate_tracking_cameras)
+                                              build_static_reference, calibrate_tracking_cameras, zoom_lens)
 from volcap_core.capture import Capture
 from volcap_core.records import ArtifactRef, Record
 
@@ -420,18 +421,23 @@ def calibrate_tracking_step(cap: Capture, camera: str, reference: StaticReferenc
     frames = LazyFrames(load, camera, cap.frame_count)
     ppm = rig_cam.sensor.width_px / rig_cam.sensor.width_mm
     try:
+        # a zoom lens table in the rig: each frame is undistorted with the lens at its focal
         sols = calibrate_tracking_cameras({camera: frames}, {camera: encoder}, {camera: ppm},
                                           {camera: np.asarray(rig_cam.mount.position_m, np.float64)}, reference,
-                                          options)
+                                          options, lenses={camera: zoom_lens(rig_cam.zoom_intrinsics)})
     except RuntimeError as exc:  # e.g. too few 2D-3D matches over the take
         raise CalibrationInputError(f"capture {cap.name}, tracking camera {camera}: {exc}") from exc
     return sols[camera]
 
 
 def encode_tracking_solution(sol: TrackingSolution) -> bytes:
-    """Safetensors ``K`` [T, 3, 3] and ``world_to_camera`` [T, 4, 4] float64 of one camera."""
-    return st_save({"K": np.ascontiguousarray(sol.K, np.float64),
-                    "world_to_camera": np.ascontiguousarray(sol.world_to_camera, np.float64)})
+    """Safetensors ``K`` [T, 3, 3] and ``world_to_camera`` [T, 4, 4] float64 of one camera, and its
+    ``distortion`` [T, 5|8] (each frame's lens) when its frames were undistorted."""
+    arrays = {"K": np.ascontiguousarray(sol.K, np.float64),
+              "world_to_camera": np.ascontiguousarray(sol.world_to_camera, np.float64)}
+    if sol.distortion is not None:
+        arrays["distortion"] = np.ascontiguousarray(sol.distortion, np.float64)
+    return st_save(arrays)
 
 
 def tracking_record(cap_name: str, camera: str, sol: TrackingSolution, frames: ArtifactRef) -> TrackingCameraRecord:
@@ -445,7 +451,7 @@ def tracking_solution(rec: TrackingCameraRecord, frames: bytes) -> TrackingSolut
     """The library's TrackingSolution from a stored record and its frames blob."""
     arr = st_load(frames)
     return TrackingSolution(arr["K"], arr["world_to_camera"], rec.gain, rec.offset,
-                            np.asarray(rec.centre, np.float64), dict(rec.stats))
+                            np.asarray(rec.centre, np.float64), dict(rec.stats), arr.get("distortion"))
 
 
 def assemble_calibration_record(cap: Capture, static: StaticCalibrationRecord,
@@ -471,9 +477,10 @@ def assemble_calibration_record(cap: Capture, static: StaticCalibrationRecord,
 
 
 def tracking_blob(sols: Mapping[str, TrackingSolution]) -> bytes:
-    """The Calibration record's tracking-frames blob: per camera fx, fy, cx, cy and world_to_camera."""
+    """The Calibration record's tracking-frames blob: per camera fx, fy, cx, cy and world_to_camera,
+    and each frame's lens (``distortion``) for a camera whose frames were undistorted."""
     return encode_tracking_frames({c: TrackingFrames(np.stack([v.K[:, 0, 0], v.K[:, 1, 1], v.K[:, 0, 2],
-                                                               v.K[:, 1, 2]], 1), v.world_to_camera)
+                                                               v.K[:, 1, 2]], 1), v.world_to_camera, v.distortion)
                                    for c, v in sols.items()})
 
 
@@ -638,8 +645,8 @@ def chart_view_colours(view: ChartView, get_bytes: GetBytes,
             K, w2c, _, _ = camera_at(calib, view.camera, view.frame, tracking)
         except (KeyError, IndexError) as exc:
             raise CalibrationInputError(f"colour chart ({view.label()}): {exc}") from exc
-        if view.camera in calib.static_ids:   # the record's K is the pinhole of the rectified frame
-            image = rectify_frame(image, calib.camera(view.camera))
+        # the record's K is the pinhole of the rectified frame (a tracking camera's: of that frame's lens)
+        image = rectify_frame(image, frame_camera(calib, view.camera, view.frame, tracking))
         return chart_patches_in_view(image, K, w2c, np.asarray(view.patches_m, np.float64), view.patch_size_m,
                                      options.window_fraction)
     if view.corners_px is not None:

@@ -32,19 +32,29 @@ The refinement is run from several starts along the zoom/dolly valley (:func:`do
 
 ``mode="free"`` drops both priors (per-frame focal and centre free, still joint); ``"independent"``
 also drops the 2D-2D terms: every frame alone, the classic per-frame registration.
+
+Zoom lenses (:func:`zoom_lens`, ``lenses`` of :func:`prepare_tracking`): a tracking camera whose rig
+carries a zoom lens table (``RigCamera.zoom_intrinsics``: distortion, optionally principal point,
+over the focal) has each frame's keypoints undistorted, right after SIFT and before any matching,
+with the lens at that frame's focal as the smoothed encoder gives it (the prior ``s(t)``, known before
+the solve), into the pinhole of ``K_t = (s(t), s(t), c_t)``; everything after (2D-3D and 2D-2D
+matching, the background homographies, the solve) works on pinholes, and the solution's ``K`` is
+the pinhole of that frame's rectified image (the same fx, fy, cx, cy as the raw frame, no
+distortion). The lens each frame was undistorted with is :attr:`TrackingSolution.distortion`.
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from typing import Mapping, Sequence
+from typing import Callable, Mapping, Sequence
 
 import cv2
 import numpy as np
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
+from volcap_core.calibration.distortion import Distortion
 from volcap_core.calibration.features import SiftOptions, extract_sift, match_descriptors
 from volcap_core.calibration.images import to_uint8_gray
 from volcap_core.calibration.lidar import LidarScan, lift_to_lidar
@@ -79,6 +89,11 @@ class TrackingOptions:
     #: The factors cover encoder errors of ±3 %; (1.0,) turns the scan off
     focal_scale_starts: tuple[float, ...] = (0.97, 0.98, 0.99, 1.0, 1.01, 1.02, 1.03)
     mode: str = "priors"            # priors | free | independent
+    #: undistort each frame with its zoom lens at its focal (the ``lenses`` given to
+    #: :func:`prepare_tracking`, from the rig's ``zoom_intrinsics``); False reads the raw frames as
+    #: pinholes with the principal point at the image centre (what was done before the rigs held
+    #: zoom lens tables; kept to measure what the lens is worth)
+    zoom_distortion: bool = True
     ransac_iterations: int = 2000
     ransac_px: float = 12.0
     device: str = "cpu"
@@ -178,13 +193,28 @@ class TrackingObservations:
     seconds: float = 0.0
 
 
+#: ``undistort(take index, raw pixels [N, 2]) -> (pinhole pixels [N, 2], converged [N] bool)``
+Undistorter = Callable[[int, np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
 def observe_tracking_camera(frames: Sequence[np.ndarray], reference: StaticReference,
-                            options: TrackingOptions = TrackingOptions()) -> TrackingObservations:
-    """Features and matches of one tracking camera. ``frames``: linear RGB [H, W, 3] per take index."""
+                            options: TrackingOptions = TrackingOptions(),
+                            undistort: Undistorter | None = None) -> TrackingObservations:
+    """Features and matches of one tracking camera. ``frames``: linear RGB [H, W, 3] per take index.
+    ``undistort`` (:func:`frame_undistorter`): each frame's keypoints are moved into that frame's
+    pinhole before any matching (a keypoint beyond the lens's fold is dropped)."""
     t0 = time.perf_counter()
     T = len(frames)
     h, w = frames[0].shape[:2]
-    feats = [extract_sift(to_uint8_gray(f), options.sift) for f in frames]
+    feats = []
+    for t, f in enumerate(frames):
+        kp, de = extract_sift(to_uint8_gray(f), options.sift)
+        if undistort is not None and len(kp):
+            kp = np.array(kp, dtype=np.float64, copy=True)
+            uv, ok = undistort(t, kp[:, :2].astype(np.float64))
+            kp[:, :2] = uv
+            kp, de = kp[ok], de[ok]
+        feats.append((kp, de))
     f3, uv3, X3 = [], [], []
     for t, (kp, de) in enumerate(feats):
         m = match_descriptors(de, reference.descriptors, ratio=options.ratio_3d)
@@ -253,6 +283,17 @@ def _background_homography(a: np.ndarray, b: np.ndarray, o: "TrackingOptions"):
 
 # --------------------------------------------------------------------------- initialisation
 
+def _principal_per_frame(principal, T: int) -> np.ndarray:
+    """(cx, cy) or [T', 2] -> [T, 2] float64 (one principal point per frame; rows past T' repeat
+    the last)."""
+    pp = np.asarray(principal, np.float64)
+    if pp.ndim == 1:
+        return np.broadcast_to(pp.reshape(1, 2), (T, 2)).copy()
+    if len(pp) < T:
+        pp = np.concatenate([pp, np.repeat(pp[-1:], T - len(pp), 0)])
+    return pp[:T].reshape(T, 2).copy()
+
+
 def _orthonormal(M: np.ndarray) -> np.ndarray:
     U, _, Vt = np.linalg.svd(M)
     R = U @ Vt
@@ -299,14 +340,15 @@ def _kabsch(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def initialise_tracking(obs: TrackingObservations, focal_px: np.ndarray, centre: np.ndarray,
-                        principal: tuple[float, float], options: TrackingOptions = TrackingOptions()
+                        principal, options: TrackingOptions = TrackingOptions()
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray, dict]:
     """Initial rotations [T, 3, 3], centres [T, 3] and focal lengths [T] of one tracking camera.
 
-    ``focal_px`` [T]: the smoothed encoder focal; ``centre`` [3]: the mount position (metres).
+    ``focal_px`` [T]: the smoothed encoder focal; ``centre`` [3]: the mount position (metres);
+    ``principal``: (cx, cy), or [T, 2] one per frame (a zoom lens whose axis moves with the zoom).
     """
     T = obs.frame_count
-    cx, cy = principal
+    pp = _principal_per_frame(principal, T)
     # relative rotations R_t R_{t-1}^T: robust Kabsch on the bearings of the matches of (t-1, t)
     rng = np.random.default_rng(options.seed)
     rel = [np.eye(3)]
@@ -316,8 +358,8 @@ def initialise_tracking(obs: TrackingObservations, focal_px: np.ndarray, centre:
         if sel.sum() < 3:
             rel.append(rel[-1])
             continue
-        bi = _bearings(obs.m2_ui[sel], focal_px[t - 1], cx, cy)
-        bj = _bearings(obs.m2_uj[sel], focal_px[t], cx, cy)
+        bi = _bearings(obs.m2_ui[sel], focal_px[t - 1], *pp[t - 1])
+        bj = _bearings(obs.m2_uj[sel], focal_px[t], *pp[t])
         rel.append(_ransac_rotation(bi, bj, 2.0 / focal_px[t], rng, 200) @ rel[-1])
     rel = np.asarray(rel)
     # pooled bearings in the frame-0 orientation
@@ -325,7 +367,8 @@ def initialise_tracking(obs: TrackingObservations, focal_px: np.ndarray, centre:
     uv = obs.m3_uv
     if len(t3) < 3:
         raise RuntimeError("tracking camera: fewer than 3 2D-3D matches over the whole take")
-    rays = np.stack([(uv[:, 0] - cx) / focal_px[t3], (uv[:, 1] - cy) / focal_px[t3], np.ones(len(t3))], 1)
+    rays = np.stack([(uv[:, 0] - pp[t3, 0]) / focal_px[t3], (uv[:, 1] - pp[t3, 1]) / focal_px[t3],
+                     np.ones(len(t3))], 1)
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
     b = np.einsum("nji,nj->ni", rel[t3], rays)                    # R_rel^T ray
     d = obs.m3_X - centre
@@ -345,7 +388,10 @@ def initialise_tracking(obs: TrackingObservations, focal_px: np.ndarray, centre:
 @dataclass
 class TrackingSolution:
     """Per frame: ``K`` [T, 3, 3], ``world_to_camera`` [T, 4, 4]; per camera: focal ``gain``
-    (multiplier on the smoothed encoder focal) and ``offset`` (px), mean ``centre`` [3]."""
+    (multiplier on the smoothed encoder focal) and ``offset`` (px), mean ``centre`` [3].
+    ``distortion`` [T, 5 or 8]: OpenCV's distCoeffs of each frame's lens (a zoom lens: the lens at
+    that frame's focal) that the frame's observations were undistorted with, so ``K[t]`` is the
+    pinhole of frame t rectified with it; None: the raw frames are pinholes."""
 
     K: np.ndarray
     world_to_camera: np.ndarray
@@ -353,6 +399,7 @@ class TrackingSolution:
     offset: float
     centre: np.ndarray
     stats: dict
+    distortion: np.ndarray | None = None
 
 
 def _skew(v: torch.Tensor) -> torch.Tensor:
@@ -405,7 +452,7 @@ class _Batch:
         self.j2 = L(j2, (0,)).long()
         self.ui2 = L(ui2, (0, 2)).to(torch.float64)
         self.uj2 = L(uj2, (0, 2)).to(torch.float64)
-        self.pp = torch.as_tensor(principal, **f64)                                   # [B, 2]
+        self.pp = torch.as_tensor(principal, **f64)                                   # [B, T, 2]
         self.s = torch.stack([torch.as_tensor(p, **f64) for p in prior_px])            # [B, T]
         self.mount = torch.as_tensor(np.stack([ob_mount for ob_mount in mounts]), **f64)  # [B, 3]
         self.valid_frame = torch.zeros(self.B, self.T, dtype=torch.bool, device=dev)
@@ -437,7 +484,7 @@ def _terms(st: _State, bt: _Batch, o: TrackingOptions, jac: bool):
         w = (R @ (bt.X3 - st.C[b, t])[..., None])[..., 0]
         ft = f[b, t]
         z = w[:, 2].clamp(min=1e-6)
-        pred = ft[:, None] * w[:, :2] / z[:, None] + bt.pp[b]
+        pred = ft[:, None] * w[:, :2] / z[:, None] + bt.pp[b, t]
         r = (pred - bt.uv3) / o.pixel_sigma_3d
         behind = w[:, 2] <= 1e-6
         r = torch.where(behind[:, None], torch.full_like(r, 1e3), r)
@@ -454,8 +501,8 @@ def _terms(st: _State, bt: _Batch, o: TrackingOptions, jac: bool):
     if len(bt.c2):
         b, i, j = bt.c2, bt.i2, bt.j2
         fi, fj = f[b, i], f[b, j]
-        pp = bt.pp[b]
-        ray = torch.cat([(bt.ui2 - pp) / fi[:, None], torch.ones_like(fi)[:, None]], 1)
+        ppi, pp = bt.pp[b, i], bt.pp[b, j]
+        ray = torch.cat([(bt.ui2 - ppi) / fi[:, None], torch.ones_like(fi)[:, None]], 1)
         Ri, Rj = st.R[b, i], st.R[b, j]
         v = (Ri.transpose(1, 2) @ ray[..., None])[..., 0]
         w = (Rj @ v[..., None])[..., 0]
@@ -469,7 +516,7 @@ def _terms(st: _State, bt: _Batch, o: TrackingOptions, jac: bool):
             RjRiT = Rj @ Ri.transpose(1, 2)
             Jwi = d @ RjRiT @ _skew(ray)
             dray = torch.zeros_like(ray)
-            dray[:, :2] = -(bt.ui2 - pp) / fi[:, None]
+            dray[:, :2] = -(bt.ui2 - ppi) / fi[:, None]
             Jfi = d @ (RjRiT @ dray[..., None])
             Jfj = (fj[:, None] * w[:, :2] / z[:, None])[..., None]
             zero3 = torch.zeros(len(b), 2, 3, dtype=w.dtype, device=w.device)
@@ -574,13 +621,15 @@ def refine_tracking(obs: list[TrackingObservations], init: list[tuple[np.ndarray
     """Jointly refine every tracking camera's sequence (batched over cameras).
 
     ``init[b]`` = (R [T, 3, 3], C [T, 3], f [T]) from :func:`initialise_tracking`; ``prior_px[b]`` [T]
-    the smoothed encoder focal in px; ``principal`` [B, 2] held fixed; ``mounts[b]`` [3] the nominal
-    centre (prior of the mean centre).
+    the smoothed encoder focal in px; ``principal`` [B, 2], or per camera [T, 2] (a principal point
+    per frame), held fixed; ``mounts[b]`` [3] the nominal centre (prior of the mean centre).
     """
     t0 = time.perf_counter()
     dev = torch.device(options.device)
     f64 = dict(dtype=torch.float64, device=dev)
-    bt = _Batch(obs, np.asarray(principal, np.float64), prior_px, mounts, options, dev)
+    T_max = max(ob.frame_count for ob in obs)
+    pp = np.stack([_principal_per_frame(principal[b], T_max) for b in range(len(obs))])       # [B, T, 2]
+    bt = _Batch(obs, pp, prior_px, mounts, options, dev)
     B, T = bt.B, bt.T
 
     def pad(a, shape_tail, fill):
@@ -624,7 +673,7 @@ def refine_tracking(obs: list[TrackingObservations], init: list[tuple[np.ndarray
         K = np.zeros((Tb, 3, 3))
         K[:, 0, 0] = f[b, :Tb].cpu().numpy()
         K[:, 1, 1] = K[:, 0, 0]
-        K[:, 0, 2], K[:, 1, 2] = principal[b]
+        K[:, 0, 2], K[:, 1, 2] = pp[b, :Tb, 0], pp[b, :Tb, 1]
         K[:, 2, 2] = 1
         Rb = st.R[b, :Tb].cpu().numpy()
         Cb = st.C[b, :Tb].cpu().numpy()
@@ -661,46 +710,136 @@ def _per_frame_residuals(st, bt, o, b, Tb) -> dict:
 
 # --------------------------------------------------------------------------- the whole stage
 
+#: a zoom lens: ``lens(focal_mm [T]) -> (distCoeffs [T, 5 or 8] OpenCV, principal [T, 2] px or None)``
+ZoomLens = Callable[[np.ndarray], tuple[np.ndarray, np.ndarray | None]]
+
+
+def zoom_lens(table) -> ZoomLens | None:
+    """A rig's zoom lens table (``hardware.rig.ZoomIntrinsics``: ``model``, ``at_each(focals_mm)``
+    -> samples with ``params``, ``cx``, ``cy``; None -> None) as a :data:`ZoomLens`: OpenCV's
+    coefficients at each focal (5, or 8 when the table has a rational term), and the principal point
+    when the table has one."""
+    if table is None:
+        return None
+
+    def lens(focal_mm: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        smp = table.at_each(np.asarray(focal_mm, np.float64).reshape(-1))
+        coeffs = np.array([Distortion(table.model, s.params).opencv_full() for s in smp], np.float64).reshape(-1, 8)
+        n = 8 if np.any(coeffs[:, 5:]) else 5
+        pp = None
+        if smp and smp[0].cx is not None:
+            pp = np.array([[s.cx, s.cy] for s in smp], np.float64)
+        return coeffs[:, :n], pp
+
+    return lens
+
+
+def frame_undistorter(focal_px: np.ndarray, principal: np.ndarray, coeffs: np.ndarray) -> Undistorter:
+    """An :data:`Undistorter` for a camera whose frame t has the lens ``coeffs[t]`` (OpenCV) with
+    focal ``focal_px[t]`` and principal point ``principal[t]``: raw pixels -> the pinhole with the
+    same focal and principal point."""
+    focal_px = np.asarray(focal_px, np.float64)
+    principal = np.asarray(principal, np.float64)
+    lenses = [Distortion.from_opencv(c) for c in np.asarray(coeffs, np.float64)]
+
+    def undistort(t: int, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        f, c = focal_px[t], principal[t]
+        xy, ok = lenses[t].undistort_converged((np.asarray(uv, np.float64) - c) / f)
+        return xy * f + c, ok
+
+    return undistort
+
+
+def undistort_observations(obs: TrackingObservations, undistort: Undistorter) -> TrackingObservations:
+    """Matched observations of raw frames (already matched, e.g. a synthetic test's) moved into each
+    frame's pinhole by ``undistort`` (:func:`frame_undistorter`); a match with a point beyond the
+    lens's fold is dropped. :func:`observe_tracking_camera` does the same to keypoints before
+    matching."""
+    def move(frames: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        out, ok = np.array(uv, np.float64, copy=True), np.ones(len(uv), bool)
+        for t in np.unique(frames):
+            sel = frames == t
+            out[sel], ok[sel] = undistort(int(t), uv[sel])
+        return out, ok
+
+    uv3, ok3 = move(obs.m3_frame, obs.m3_uv)
+    ui, oki = move(obs.m2_i, obs.m2_ui)
+    uj, okj = move(obs.m2_j, obs.m2_uj)
+    ok2 = oki & okj
+    return TrackingObservations(obs.frame_count, obs.width, obs.height, obs.m3_frame[ok3], uv3[ok3], obs.m3_X[ok3],
+                                obs.m2_i[ok2], obs.m2_j[ok2], ui[ok2], uj[ok2], dict(obs.H), obs.seconds)
+
+
+def lens_corner_shift_px(focal_px: np.ndarray, principal: np.ndarray, coeffs: np.ndarray, width: int,
+                         height: int) -> np.ndarray:
+    """[T]: how far each frame's lens moves the image corners (px, the largest of the four): the
+    size of what undistortion corrects."""
+    corners = np.array([[-0.5, -0.5], [width - 0.5, -0.5], [-0.5, height - 0.5], [width - 0.5, height - 0.5]])
+    und = frame_undistorter(focal_px, principal, coeffs)
+    return np.array([np.linalg.norm(und(t, corners)[0] - corners, axis=1).max() for t in range(len(focal_px))])
+
+
 @dataclass
 class TrackingProblem:
-    """Observations and initial values of every tracking camera (see :func:`prepare_tracking`)."""
+    """Observations and initial values of every tracking camera (see :func:`prepare_tracking`).
+    ``principal``: [B, 2] or per camera [T, 2]; ``distortion``: per camera the lens [T, 5|8] its
+    observations were undistorted with (None: none)."""
 
     ids: list[str]
     obs: list[TrackingObservations]
     inits: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
     priors_px: list[np.ndarray]
-    principal: np.ndarray
+    principal: np.ndarray | list[np.ndarray]
     mounts: list[np.ndarray]
     info: dict
+    distortion: list[np.ndarray | None] | None = None
 
 
 def prepare_tracking(frames: Mapping[str, Sequence[np.ndarray]],
                      encoder: Mapping[str, tuple[np.ndarray, np.ndarray]],
                      focal_px_per_mm: Mapping[str, float], mounts: Mapping[str, np.ndarray],
-                     reference: StaticReference, options: TrackingOptions = TrackingOptions()) -> TrackingProblem:
+                     reference: StaticReference, options: TrackingOptions = TrackingOptions(),
+                     lenses: Mapping[str, ZoomLens | None] | None = None) -> TrackingProblem:
     """Features, matches, the encoder prior and the initial values of every tracking camera.
 
     ``frames``: id -> T linear RGB images [H, W, 3] (take indices 0..T-1); ``encoder``: id ->
     (take indices [S], focal mm [S]) lens-encoder readings; ``focal_px_per_mm``: id -> sensor
-    pixels per mm; ``mounts``: id -> nominal centre [3] (metres); ``reference``: the static model.
+    pixels per mm; ``mounts``: id -> nominal centre [3] (metres); ``reference``: the static model;
+    ``lenses``: id -> its zoom lens (:func:`zoom_lens`; absent or None: a pinhole with its principal
+    point at the image centre). With ``options.zoom_distortion`` a camera's frame t is undistorted
+    with its lens at the smoothed encoder focal of frame t (the prior, known before the solve): a
+    focal ε off moves an undistorted point by ~3 ε k1 r² of its radius (0.12 px at the corners for
+    a 2.4 % corner distortion and ε = 1.2 %), which left the solve's focal and rotation unchanged
+    to 0.01 % and 0.01° (docs/calibration.md, "Lens distortion").
     """
     ids = sorted(frames)
-    obs, inits, priors, pps, info = [], [], [], [], {}
+    obs, inits, priors, pps, dists, info = [], [], [], [], [], {}
     for cid in ids:
         seq = frames[cid]
-        ob = observe_tracking_camera(seq, reference, options)
         idx, mm = encoder[cid]
         prior = smooth_encoder_focal(idx, mm, len(seq), options.smooth_lambda) * focal_px_per_mm[cid]
         h, w = seq[0].shape[:2]
-        pp = ((w - 1) / 2.0, (h - 1) / 2.0)
+        pp = np.tile([(w - 1) / 2.0, (h - 1) / 2.0], (len(seq), 1))
+        lens = (lenses or {}).get(cid) if options.zoom_distortion else None
+        coeffs, undistort, extra = None, None, {}
+        if lens is not None:
+            coeffs, lens_pp = lens(prior / focal_px_per_mm[cid])
+            if lens_pp is not None:
+                pp = np.asarray(lens_pp, np.float64).reshape(len(seq), 2)
+            undistort = frame_undistorter(prior, pp, coeffs)
+            shift = lens_corner_shift_px(prior, pp, coeffs, w, h)
+            extra = {"zoom_lens": 1.0, "lens_corner_shift_px_mean": float(shift.mean()),
+                     "lens_corner_shift_px_max": float(shift.max())}
+        ob = observe_tracking_camera(seq, reference, options, undistort)
         R, C, f, st = initialise_tracking(ob, prior, np.asarray(mounts[cid], np.float64), pp, options)
         obs.append(ob)
         inits.append((R, C, f))
         priors.append(prior)
         pps.append(pp)
-        info[cid] = {**st, "observe_s": ob.seconds}
-    return TrackingProblem(ids, obs, inits, priors, np.asarray(pps, np.float64).reshape(-1, 2),
-                           [np.asarray(mounts[c], np.float64) for c in ids], info)
+        dists.append(coeffs)
+        info[cid] = {**st, "observe_s": ob.seconds, **extra}
+    return TrackingProblem(ids, obs, inits, priors, pps, [np.asarray(mounts[c], np.float64) for c in ids], info,
+                           dists)
 
 
 def dolly_zoom_start(init: tuple[np.ndarray, np.ndarray, np.ndarray], obs: TrackingObservations,
@@ -731,8 +870,10 @@ def solve_tracking(problem: TrackingProblem, options: TrackingOptions = Tracking
             if best[k] is None or s.stats["cost"] < best[k].stats["cost"]:
                 best[k] = s
     out = {}
-    for cid, s in zip(problem.ids, best):
+    for k, (cid, s) in enumerate(zip(problem.ids, best)):
         s.stats.update(problem.info[cid])
+        if problem.distortion is not None and problem.distortion[k] is not None:
+            s.distortion = np.asarray(problem.distortion[k], np.float64).copy()
         out[cid] = s
     return out
 
@@ -740,10 +881,13 @@ def solve_tracking(problem: TrackingProblem, options: TrackingOptions = Tracking
 def calibrate_tracking_cameras(frames: Mapping[str, Sequence[np.ndarray]],
                                encoder: Mapping[str, tuple[np.ndarray, np.ndarray]],
                                focal_px_per_mm: Mapping[str, float], mounts: Mapping[str, np.ndarray],
-                               reference: StaticReference, options: TrackingOptions = TrackingOptions()
+                               reference: StaticReference, options: TrackingOptions = TrackingOptions(),
+                               lenses: Mapping[str, ZoomLens | None] | None = None
                                ) -> dict[str, TrackingSolution]:
     """Register and refine every tracking camera at every frame: :func:`prepare_tracking` then
-    :func:`solve_tracking`. Returns id -> :class:`TrackingSolution`; {} for no tracking camera."""
+    :func:`solve_tracking`. Returns id -> :class:`TrackingSolution`; {} for no tracking camera.
+    ``lenses``: id -> zoom lens (:func:`zoom_lens`), see :func:`prepare_tracking`."""
     if not frames:
         return {}
-    return solve_tracking(prepare_tracking(frames, encoder, focal_px_per_mm, mounts, reference, options), options)
+    return solve_tracking(prepare_tracking(frames, encoder, focal_px_per_mm, mounts, reference, options, lenses),
+                          options)

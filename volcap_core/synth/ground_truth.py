@@ -55,7 +55,12 @@ def calibration(cameras_json: dict, capture_name: str, camera_ids: Sequence[str]
         else:
             cams.append(CameraCalibration(id=cid, role=gt["role"], static=False, width=gt["width"],
                                           height=gt["height"]))
-            tracking[cid] = TrackingFrames(intr, w2c)
+            dist = None
+            if any(f.get("distortion") for f in frames):      # a zoom lens: each frame's lens at its focal
+                coeffs = [Distortion.from_json(f.get("distortion")).opencv_full() for f in frames]
+                dist = np.asarray(coeffs, np.float64)
+                dist = dist if np.any(dist[:, 5:]) else dist[:, :5]
+            tracking[cid] = TrackingFrames(intr, w2c, dist)
     blob = encode_tracking_frames(tracking) if tracking else None
     record = Calibration(capture=capture_name, frame_count=n, fps=float(cameras_json["fps"]), reference_frame=n // 2,
                          stage_size_m=tuple(stage_size_m), cameras=tuple(cams),
@@ -139,7 +144,8 @@ def depth_points(files: GroundTruthFiles, camera_ids: Sequence[str], frame: int,
     images, at most ``budget`` (uniformly, seeded by ``seed + frame``).
 
     ``load_image(camera, frame)`` -> linear RGB [H, W, 3]; ``camera_at_frame(camera, frame)`` ->
-    (K [3, 3], world_to_camera [4, 4]); ``distortion_of(camera)`` -> its lens
+    (K [3, 3], world_to_camera [4, 4]); ``distortion_of(camera, frame)`` -> its lens at that frame
+    (a tracking camera's follows its zoom), a
     :class:`~volcap_core.calibration.distortion.Distortion` (None: pinholes; the depth maps and
     frames are in each camera's own pixels). Returns xyz [N, 3], rgb [N, 3] float32.
     """
@@ -150,7 +156,7 @@ def depth_points(files: GroundTruthFiles, camera_ids: Sequence[str], frame: int,
         depth, _ = imageio.decode_exr_native(files.read(f"depth/{cam}/{frame:06d}.exr"))
         K, w2c = camera_at_frame(cam, frame)
         xyz, rgb = backproject_depth(depth[..., 0].astype(np.float32), load_image(cam, frame), K, w2c,
-                                     distortion=distortion_of(cam) if distortion_of is not None else None)
+                                     distortion=distortion_of(cam, frame) if distortion_of is not None else None)
         xyz_all.append(xyz)
         rgb_all.append(rgb)
     return subsample(np.concatenate(xyz_all), np.concatenate(rgb_all), budget, seed + frame)

@@ -11,7 +11,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from hardware.rig import CameraRole, Rig, RigCamera, load_rig
+from hardware.rig import CameraRole, Rig, RigCamera, ZoomIntrinsics, load_rig
 from volcap_core.calibration.distortion import MODELS, Distortion
 from volcap_core.calibration.geometry import look_at_rotation
 from volcap_core.capture import (CameraSource, CaptureDescription, Encoding, LensSample, Take,
@@ -36,6 +36,13 @@ Progress = Callable[[int, int], None]
 #: principal point 0.3 px, k1 and k2 0.002, p1 and p2 0.0001, k3..k6 0 (drawn from their own random
 #: stream: the camera's pose, noise and everything else are those of the same rig without them)
 LENS_CALIBRATION_ERROR = {"focal_rel": 0.002, "centre_px": 0.3, "k": 0.002, "p": 0.0001}
+#: a tracking camera whose rig carries a zoom lens table (``zoom_intrinsics``) is rendered through
+#: that table plus, at every sample, the error of a good calibration at that zoom (1 sigma, drawn
+#: per sample from the camera's "lens" stream): the radial distortion at the image corner 0.05 % of
+#: its radius (k1 += N(0, 0.0005) / r² with r the corner's normalized radius at that focal; k2 and
+#: the higher terms 0), the tangential shift there 0.002 % (p += N(0, 0.00002) / r), the principal
+#: point (when the table has one) 0.3 px. Each frame's lens is the true table at its true focal.
+ZOOM_CALIBRATION_ERROR = {"corner": 0.0005, "tangential": 0.00002, "centre_px": 0.3}
 
 
 def _rng(seed: int, *keys) -> np.random.Generator:
@@ -64,6 +71,8 @@ class CameraPlan:
     zoom_period_s: float = 3.0
     zoom_phase: float = 0.0
     wobble: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
+    #: a tracking camera's true zoom lens (the rig's ``zoom_intrinsics`` plus a calibration's error)
+    zoom: ZoomIntrinsics | None = None
 
     @property
     def tracks(self) -> bool:
@@ -98,7 +107,13 @@ def camera_at(plan: CameraPlan, world: World, t: float) -> tuple[PinholeCamera, 
     f_mm = s.height_mm * dist / plan.extent_m * smooth_zoom(t, plan.zoom_period_s, plan.zoom_phase)
     f_mm = float(np.clip(f_mm, plan.cam.lens.focal_min_mm, plan.cam.lens.focal_max_mm))
     f_px = s.focal_px(f_mm)
-    cam = PinholeCamera(s.width_px, s.height_px, f_px, f_px, plan.cx, plan.cy, R, -R @ plan.position)
+    cx, cy, dist = plan.cx, plan.cy, Distortion.none()
+    if plan.zoom is not None:           # the lens at this frame's (true) focal
+        lens = plan.zoom.at(f_mm)
+        dist = Distortion(plan.zoom.model, lens.params)
+        if lens.cx is not None:
+            cx, cy = lens.cx, lens.cy
+    cam = PinholeCamera(s.width_px, s.height_px, f_px, f_px, cx, cy, R, -R @ plan.position, dist)
     return cam, f_mm, float(np.linalg.norm(target - plan.position))
 
 
@@ -161,6 +176,8 @@ def _plans(rig: Rig, seed: int, actor_centres: list[tuple[float, float]], camera
             plan.zoom_phase = float(r.uniform(0, 2 * math.pi))
             plan.wobble = (float(r.uniform(0.3, 0.8)), float(r.uniform(0.3, 0.8)),
                            float(r.uniform(0, 6.3)), float(r.uniform(0, 6.3)))
+            if cam.zoom_intrinsics is not None:
+                plan.zoom = _true_zoom(cam.zoom_intrinsics, s, _rng(seed, "lens", cam.id))
         plans.append(plan)
     return plans
 
@@ -182,6 +199,28 @@ def _true_lens(m, r: np.random.Generator) -> tuple[float, float, float, float, D
     # the model keeps its own parameters (a RADIAL lens stays RADIAL: its error is in k1, k2 only)
     params = tuple(float(coeff[n]) for n in MODELS[d.model])
     return float(m.fx * scale), float(m.fy * scale), float(cx), float(cy), Distortion(d.model, params)
+
+
+def _true_zoom(z: ZoomIntrinsics, sensor, r: np.random.Generator) -> ZoomIntrinsics:
+    """The true zoom lens of a tracking camera whose rig carries the table ``z``: each sample plus
+    :data:`ZOOM_CALIBRATION_ERROR` (its own draw per sample)."""
+    e = ZOOM_CALIBRATION_ERROR
+    h2 = (sensor.width_mm / 2) ** 2 + (sensor.height_mm / 2) ** 2
+    names = MODELS[z.model]
+    samples = []
+    for smp in z.samples:
+        r2 = h2 / smp.focal_mm ** 2           # the image corner's normalized radius, squared
+        full = np.asarray(Distortion(z.model, smp.params).opencv_full())
+        full[0] += r.normal(0, e["corner"]) / r2
+        full[[2, 3]] += r.normal(0, e["tangential"], 2) / np.sqrt(r2)
+        coeff = dict(zip(("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"), full))
+        coeff["k"] = coeff["k1"]
+        # the model keeps its own parameters (a RADIAL lens has no tangential error)
+        upd = {"params": tuple(float(coeff[n]) for n in names)}
+        if smp.cx is not None:
+            upd.update(cx=float(smp.cx + r.normal(0, e["centre_px"])), cy=float(smp.cy + r.normal(0, e["centre_px"])))
+        samples.append(smp.model_copy(update=upd))
+    return z.model_copy(update={"samples": tuple(samples)})
 
 
 # --------------------------------------------------------------------------- actors
@@ -314,6 +353,8 @@ def _synthesize(out_dir: Path, rig_name: str | Path, seed: int, frames: int, kin
             "tracking": ({"actor": plan.actor, "target": plan.mode, "framing_extent_m": plan.extent_m,
                           "lag_s": plan.lag_s} if plan.tracks else None),
             "frames": res["frames"]}
+        if plan.zoom is not None:   # the true zoom lens table (each frame's 'distortion' is it at that focal)
+            gt_cams[cid]["zoom_lens"] = plan.zoom.model_dump(mode="json")
     desc = CaptureDescription(
         name=name or f"synth-{rig.name}-s{seed}", rig=rig_ref, fps=fps,
         take=Take(start_timecode=TAKE_START, frame_count=frames), cameras=sources, ground_truth=GT_DIR,
@@ -323,7 +364,7 @@ def _synthesize(out_dir: Path, rig_name: str | Path, seed: int, frames: int, kin
                   "OpenCV camera axes (x right, y down, z forward). Pixels: OpenCV, centre of the "
                   "top-left pixel at (0, 0) (COLMAP: +0.5). Pinhole, no distortion. frames[i] is take "
                   "index i; 'frame' is the camera's own frame number.")
-    if any(p.static is not None and not p.static.distortion.is_none for p in plans):
+    if any((p.static is not None and not p.static.distortion.is_none) or p.zoom is not None for p in plans):
         convention = convention.replace(
             "Pinhole, no distortion.", "Pinhole unless a frame has 'distortion' {model, params} (COLMAP's model "
             "names and parameter order, OpenCV's equations on normalized coordinates; the images are rendered "
