@@ -22,23 +22,55 @@ from tasks.calibrate import (assemble_calibration, calibrate_colour, calibrate_s
                              calibration_errors, dense_points_frame, point_cloud_sequence, tracking_camera_ids)
 from volcap_core.calibration.steps import CalibrationInputError, ChartView, ColourMatrixRecord
 from volcap_core.calibration.record import Calibration
+from volcap_core.calibration.scale import KnownPoints, KnownPointsError
 from volcap_core.calibration.static import StaticCalibrationOptions
 from volcap_core.capture import Capture
 from volcap_core.records import ArtifactRef
 from volcap_core.store import ArtifactStore
 
 
+def static_calibration_options(allow_unregistered: bool = False, instants: int = 1,
+                               known_distance: tuple[str, str, float] | None = None
+                               ) -> StaticCalibrationOptions | None:
+    """The static calibration's settings from the options of ``volcap calibrate`` / ``volcap
+    reconstruct``: only those given differ from the defaults; None when none is given (the
+    defaults' cache key). The calibrate and reconstruct flows both build them here, so the same
+    options give the same (cached) calibration from either command."""
+    given = {k: v for k, v in (("allow_unregistered", allow_unregistered), ("instants", instants),
+                               ("known_distance", tuple(known_distance) if known_distance else None))
+             if v != getattr(StaticCalibrationOptions, k)}
+    return StaticCalibrationOptions(**given) if given else None
+
+
+def known_points_spec(doc: dict | KnownPoints | None, known_distance=None) -> KnownPoints | None:
+    """Known scene points (``volcap calibrate --known-points``'s JSON, :mod:`volcap_core.calibration.scale`)
+    validated; a :class:`CalibrationInputError` naming the field, or when a known distance between
+    cameras is given too."""
+    if doc is None:
+        return None
+    if known_distance:
+        raise CalibrationInputError("give either a known distance between two cameras (--known-distance) or "
+                                    "known scene points (--known-points), not both")
+    try:
+        return KnownPoints.parse(doc)
+    except KnownPointsError as exc:
+        raise CalibrationInputError(str(exc)) from None
+
+
 def calibrate_capture(store: str, capture: ArtifactRef,
-                      static_options: StaticCalibrationOptions | None = None) -> ArtifactRef:
+                      static_options: StaticCalibrationOptions | None = None,
+                      known_points: KnownPoints | None = None) -> ArtifactRef:
     """The capture's Calibration ref: static cameras once, each tracking camera in its own task,
     then the record. Call it inside a flow run (any). Every step is cached by its inputs' digests.
     ``static_options``: the static calibration's settings (None: the task's defaults, the same key
-    as the defaults spelled out)."""
+    as the defaults spelled out); ``known_points``: distances between marked scene points, the scale
+    of a capture without a lidar scan (:mod:`volcap_core.calibration.scale`)."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
     trackers = tracking_camera_ids(cap)
-    static = calibrate_static(store, capture) if static_options is None else calibrate_static(store, capture,
-                                                                                              static_options)
+    extra = {} if known_points is None else {"known_points": known_points}
+    static = calibrate_static(store, capture, **extra) if static_options is None else calibrate_static(
+        store, capture, static_options, **extra)
     tracking: list[ArtifactRef] = []
     if trackers:
         futures = calibrate_tracking_camera.map(unmapped(store), unmapped(capture), unmapped(static), trackers)
@@ -132,11 +164,35 @@ def calibrate_colour_flow(store: str, charts: dict, onto: str = "scene", name: s
     return out
 
 
+def scale_source_text(stage_frame: dict) -> str:
+    """Where a capture without a scan took its scale from, in words (``stage_frame``: the
+    ``static_frame_*`` stats of the Calibration record)."""
+    source = stage_frame.get("scale_source")
+    if source == 2.0:
+        return "known distance between scene points"
+    return "known distance between cameras" if source == 1.0 else "rig's mounts"
+
+
+def known_points_text(stage_frame: dict, has_scan: bool) -> str:
+    """The known scene points' figures of a calibration's ``stage_frame`` in one line."""
+    d, t, sg = (stage_frame.get(k) for k in ("known_points_distance_m", "known_points_triangulated_m",
+                                              "known_points_sigma_m"))
+    n = int(stage_frame.get("known_points_distances", 1))
+    text = (f"{d:.3f} m measured, {t:.3f} m ± {1000 * sg:.1f} mm triangulated"
+            + (f" (first of {n} distances)" if n > 1 else ""))
+    if has_scan:
+        off = 1000 * stage_frame["known_points_residual_max_m"]
+        return text + f"; with the lidar scan's scale: off by {off:.1f} mm"
+    return (text + f"; scaled by {stage_frame['known_points_scale']:.5f}"
+            + (f", distances within {1000 * stage_frame['known_points_residual_max_m']:.1f} mm after" if n > 1 else ""))
+
+
 @flow(name="calibrate", persist_result=False)
 def calibrate_flow(store: str, capture: str, frames: tuple[int, int] | None = None,
                    allow_unregistered: bool = False, colour_charts: dict | None = None,
                    colour_base_dir: str | None = None, instants: int = 1,
-                   known_distance: tuple[str, str, float] | None = None) -> dict:
+                   known_distance: tuple[str, str, float] | None = None,
+                   known_points: dict | None = None) -> dict:
     """Calibrate ``capture`` (a ref name such as ``captures/demo`` or a digest) and compute dense
     points for ``frames`` [a, b) (all frames when None).
 
@@ -144,7 +200,9 @@ def calibrate_flow(store: str, capture: str, frames: tuple[int, int] | None = No
     ``unregistered`` with the reason) instead of failing the run. ``instants``: take instants pooled
     into the static SfM (``StaticCalibrationOptions.instants``: a sparse background). ``known_distance``:
     (camera, camera, metres) between two static cameras' centres, the scale of a capture without a
-    lidar scan (``StaticCalibrationOptions.known_distance``; default: the rig's mounts).
+    lidar scan (``StaticCalibrationOptions.known_distance``; default: the rig's mounts). ``known_points``:
+    the JSON of :class:`~volcap_core.calibration.scale.KnownPoints` (named scene points marked in two or
+    more static cameras and the measured distance between them), the scale instead.
 
     Returns JSON: ``calibration`` and ``points`` (ref dumps), ``errors`` (the error table of
     ``volcap_core.calibration.metrics`` when the capture carries ground truth, else None),
@@ -152,7 +210,7 @@ def calibrate_flow(store: str, capture: str, frames: tuple[int, int] | None = No
     and ``points/<capture name>`` in the store.
 
     ``stage_frame``: for a capture without a lidar scan, how its stage frame and scale were set
-    (``static.frame_without_lidar``: ``scale_source`` 0 mounts / 1 known distance, ``scale``,
+    (``static.frame_without_lidar``: ``scale_source`` 0 mounts / 1 known distance / 2 known points, ``scale``,
     ``mount_residual_rms_m`` / ``_max_m``...; with a scan and a known distance, its check), else None.
 
     ``colour_charts``: ``{"face": view, "scene": view}`` (:func:`chart_view`; relative image paths
@@ -160,6 +218,7 @@ def calibrate_flow(store: str, capture: str, frames: tuple[int, int] | None = No
     ``colour`` (:func:`colour_summary`) to the result, the record named ``colour/<capture name>``.
     """
     log = get_run_logger()
+    known = known_points_spec(known_points, known_distance)
     s = ArtifactStore(store)
     capture_ref = s.resolve(capture)
     cap = s.get_record(capture_ref, Capture)
@@ -168,10 +227,8 @@ def calibrate_flow(store: str, capture: str, frames: tuple[int, int] | None = No
     log.info("capture %s: %d static + %d tracking cameras, dense points for frames %d:%d", cap.name,
              len(cap.cameras) - len(trackers), len(trackers), a, b)
     # only the settings given differ from the task's defaults (none given: the defaults' cache key)
-    given = {k: v for k, v in (("allow_unregistered", allow_unregistered), ("instants", instants),
-                               ("known_distance", tuple(known_distance) if known_distance else None))
-             if v != getattr(StaticCalibrationOptions, k)}
-    calib_ref = calibrate_capture(store, capture_ref, StaticCalibrationOptions(**given) if given else None)
+    calib_ref = calibrate_capture(store, capture_ref,
+                                  static_calibration_options(allow_unregistered, instants, known_distance), known)
     calib = s.get_record(calib_ref, Calibration)
     unregistered = calib.unregistered
     # without a lidar scan: the stage frame from the mounts (or a known distance) and their residual
@@ -179,8 +236,10 @@ def calibrate_flow(store: str, capture: str, frames: tuple[int, int] | None = No
     if stage_frame is not None and cap.lidar is None:
         log.info("capture %s has no lidar scan: stage frame and scale from the %s; camera centres %.3f m rms "
                  "(max %.3f m) from their mounts", cap.name,
-                 "known distance" if stage_frame.get("scale_source") == 1.0 else "rig's mounts",
+                 scale_source_text(stage_frame),
                  stage_frame.get("mount_residual_rms_m", float("nan")), stage_frame.get("mount_residual_max_m", float("nan")))
+    if stage_frame is not None and "known_points_distance_m" in stage_frame:
+        log.info("capture %s: known points: %s", cap.name, known_points_text(stage_frame, cap.lidar is not None))
     for cam, why in unregistered.items():
         log.warning("capture %s: camera %s left out of the calibration: %s", cap.name, cam, why)
     points_ref = point_cloud_for_frames(store, capture_ref, calib_ref, list(range(a, b)))

@@ -176,6 +176,9 @@ def reconstruct(capture: Annotated[str, typer.Argument(help="capture ref name (c
                 points: Annotated[Optional[str], typer.Option(help="PointCloudSequence ref; dense points of the frames when omitted")] = None,
                 ground_truth: Annotated[bool, typer.Option("--ground-truth", help="use a synthetic capture's true cameras and depth points instead of estimating them")] = False,
                 held_out: Annotated[Optional[str], typer.Option(help="comma-separated cameras never trained on")] = None,
+                allow_unregistered: Annotated[bool, typer.Option("--allow-unregistered", help="the calibration run here (no --calibration) leaves out (and lists) a static camera the adjustment cannot support instead of failing, as volcap calibrate --allow-unregistered; training leaves it out")] = False,
+                known_distance: Annotated[Optional[str], typer.Option(help="CAM_A,CAM_B,METRES for the calibration run here (no --calibration), as volcap calibrate --known-distance")] = None,
+                known_points: Annotated[Optional[Path], typer.Option(help="JSON of named scene points and their measured distance for the calibration run here (no --calibration), as volcap calibrate --known-points")] = None,
                 seed: Annotated[int, typer.Option()] = 0,
                 out: Annotated[Path, typer.Option(help="folder for each segment's contact sheet PNG")] = Path("reconstruct"),
                 store: StoreOpt = DEFAULT_STORE, json_out: JsonOpt = False) -> None:
@@ -187,9 +190,19 @@ def reconstruct(capture: Annotated[str, typer.Argument(help="capture ref name (c
 
     span = _frame_span(frames)
     held = [c for c in held_out.split(",") if c] if held_out is not None else None
+    distance, marks = _scale_options(known_distance, known_points)
+    given = [o for o, v in (("--allow-unregistered", allow_unregistered), ("--known-distance", distance),
+                            ("--known-points", marks)) if v]
+    if given and (calibration or ground_truth):
+        raise typer.BadParameter(f"{', '.join(given)} set the calibration reconstruct runs itself; with "
+                                 f"{'--calibration' if calibration else '--ground-truth'} it runs none "
+                                 "(pass them to volcap calibrate instead)", param_hint=given[0])
+    extra = {k: v for k, v in (("allow_unregistered", allow_unregistered), ("known_distance", distance),
+                               ("known_points", marks)) if v}
     summary = _run(reconstruct_flow, store=_store_url(store), capture=capture, frames=span, preset=preset,
                    degrees=degrees, segment_frames=segment_frames, calibration=calibration, points=points,
-                   held_out=held, seed=seed, ground_truth=ground_truth, steps=steps, max_gaussians=max_gaussians)
+                   held_out=held, seed=seed, ground_truth=ground_truth, steps=steps, max_gaussians=max_gaussians,
+                   **extra)
     result = summary.result
     st = _open(_store_url(store))
     lines = []
@@ -207,6 +220,38 @@ def reconstruct(capture: Annotated[str, typer.Argument(help="capture ref name (c
                      f"{_fmt(seg['floor_initial_psnr'])} dB; training views {_fmt(seg['training_psnr'])} dB\n"
                      f"    contact sheet: {seg.get('contact_sheet_png', 'none')}")
     _emit({**result, **summary.counts()}, json_out, "\n".join(lines))
+
+
+def _scale_options(known_distance: str | None, known_points: Path | None
+                   ) -> tuple[tuple[str, str, float] | None, dict | None]:
+    """``--known-distance CAM_A,CAM_B,METRES`` -> (a, b, metres); ``--known-points FILE`` -> its
+    JSON, checked (:class:`~volcap_core.calibration.scale.KnownPoints`); not both."""
+    if known_distance is not None and known_points is not None:
+        raise typer.BadParameter("give either --known-distance (between two cameras) or --known-points, not both",
+                                 param_hint="--known-points")
+    distance = None
+    if known_distance is not None:
+        parts = known_distance.split(",")
+        try:
+            distance = (parts[0].strip(), parts[1].strip(), float(parts[2]))
+            if len(parts) != 3 or not distance[2] > 0:
+                raise ValueError
+        except (ValueError, IndexError):
+            raise typer.BadParameter("expected CAM_A,CAM_B,METRES with a positive distance, e.g. S000,S004,8.41",
+                                     param_hint="--known-distance") from None
+    marks = None
+    if known_points is not None:
+        from volcap_core.calibration.scale import KnownPoints, KnownPointsError
+
+        try:
+            marks = json.loads(known_points.read_text())
+        except (OSError, ValueError) as exc:
+            raise CommandError(f"{known_points}: not a readable JSON file: {exc}") from None
+        try:
+            KnownPoints.parse(marks, str(known_points))
+        except KnownPointsError as exc:
+            raise CommandError(str(exc)) from None
+    return distance, marks
 
 
 def _frame_span(frames: str | None) -> tuple[int, int] | None:
@@ -232,6 +277,7 @@ def calibrate(capture: Annotated[str, typer.Argument(help="capture ref name (cap
               colour_charts: Annotated[Optional[Path], typer.Option(help="also calibrate colour between the rigs: the JSON file of volcap calibrate-colour (Face Rig onto Scene Rig)")] = None,
               instants: Annotated[int, typer.Option(min=1, help="take instants pooled into the static cameras' SfM, spread over the take (a sparse or dark background); 1: the middle frame alone")] = 1,
               known_distance: Annotated[Optional[str], typer.Option(help="CAM_A,CAM_B,METRES: measured distance between two static cameras' optical centres, the scale of a capture without a lidar scan (default: the rig's mounts)")] = None,
+              known_points: Annotated[Optional[Path], typer.Option(help="JSON file: named scene points (marks on the floor, a scale bar's ends) by their pixels in two or more static cameras and the measured distance between them, the scale of a capture without a lidar scan (docs/calibration.md)")] = None,
               store: StoreOpt = DEFAULT_STORE, json_out: JsonOpt = False) -> None:
     """Calibrate every camera of an ingested capture and compute per-frame dense points.
 
@@ -247,29 +293,25 @@ def calibrate(capture: Annotated[str, typer.Argument(help="capture ref name (cap
             charts = json.loads(colour_charts.read_text())
         except (OSError, ValueError) as exc:
             raise CommandError(f"{colour_charts}: not a readable JSON file: {exc}") from None
-    distance = None
-    if known_distance is not None:
-        parts = known_distance.split(",")
-        try:
-            distance = (parts[0].strip(), parts[1].strip(), float(parts[2]))
-            if len(parts) != 3 or not distance[2] > 0:
-                raise ValueError
-        except (ValueError, IndexError):
-            raise typer.BadParameter("expected CAM_A,CAM_B,METRES with a positive distance, e.g. S000,S004,8.41",
-                                     param_hint="--known-distance") from None
+    distance, marks = _scale_options(known_distance, known_points)
     summary = _run(calibrate_flow, store=_store_url(store), capture=capture, frames=_frame_span(frames),
                    allow_unregistered=allow_unregistered, colour_charts=charts, instants=instants,
-                   known_distance=distance,
+                   known_distance=distance, known_points=marks,
                    colour_base_dir=str(colour_charts.resolve().parent) if colour_charts is not None else None)
     out = summary.result
     lines = [f"calibration: {out['calibration']['digest']}", f"points: {out['points']['digest']}"]
     lines += [f"left out (unregistered): {cam}: {why}" for cam, why in out["unregistered"].items()]
     sf = out.get("stage_frame") or {}
     if "mount_residual_rms_m" in sf:
-        source = "a known distance" if sf.get("scale_source") == 1.0 else "the rig's mounts"
-        lines.append(f"no lidar scan: stage frame and scale from {source}; camera centres "
+        from flows.calibrate import scale_source_text
+
+        lines.append(f"no lidar scan: stage frame and scale from the {scale_source_text(sf)}; camera centres "
                      f"{100 * sf['mount_residual_rms_m']:.1f} cm rms (max {100 * sf['mount_residual_max_m']:.1f} cm) "
                      f"from their mounts")
+    if "known_points_distance_m" in sf:
+        from flows.calibrate import known_points_text
+
+        lines.append("known points: " + known_points_text(sf, "mount_residual_rms_m" not in sf))
     if out["errors"] is not None:
         lines += _error_lines(out["errors"])
     if out.get("colour"):

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 from prefect import flow, get_run_logger, unmapped
 
-from flows.calibrate import calibrate_capture, point_cloud_for_frames
+from flows.calibrate import calibrate_capture, known_points_spec, point_cloud_for_frames, static_calibration_options
 from tasks.reconstruct import ground_truth_calibration, ground_truth_points, train_segment_task
 from volcap_core import reconstruction
 from volcap_core.calibration.record import Calibration
@@ -56,7 +56,9 @@ def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = 
                      calibration: str | None = None, points: str | None = None,
                      held_out: list[str] | None = None, points_per_frame: int | None = None,
                      max_gaussians: int | None = None, seed: int = 0, ground_truth: bool = False,
-                     steps: int | None = None) -> dict:
+                     steps: int | None = None, allow_unregistered: bool = False,
+                     known_distance: tuple[str, str, float] | None = None,
+                     known_points: dict | None = None) -> dict:
     """Train the segments of ``capture`` (a ref name such as ``captures/demo`` or a digest).
 
     ``calibration`` / ``points``: refs of a Calibration and a PointCloudSequence. When omitted, the
@@ -64,6 +66,9 @@ def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = 
     for the frames trained (at most ``points_per_frame`` each when given; training thins them to its
     own budget, so the default keeps every point for the static/moving split to see). ``ground_truth=True`` uses a synthetic
     capture's ground truth instead (true cameras, points from true depth): benchmarks, fast tests.
+    ``allow_unregistered``, ``known_distance``, ``known_points``: the calibration run here, as
+    ``calibrate_flow`` takes them (the same settings give the same cached calibration); refused
+    with ``calibration`` or ``ground_truth``, which run none.
 
     Segments: :func:`plan_reconstruction` (``segment_frames`` caps their length). Training: the
     preset's TrainConfig, stretched to ``steps`` when given; the Gaussian budget is
@@ -73,6 +78,12 @@ def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = 
     its frames and its core (the frames no neighbour shares).
     """
     log = get_run_logger()
+    calibrating = {k: v for k, v in (("allow_unregistered", allow_unregistered), ("known_distance", known_distance),
+                                     ("known_points", known_points)) if v}
+    if calibrating and (calibration or ground_truth):
+        raise ValueError(f"{', '.join(calibrating)}: settings of the calibration reconstruct runs itself, which it "
+                         f"does not run with {'a given calibration' if calibration else 'the ground truth'}")
+    known = known_points_spec(known_points, known_distance)
     s = ArtifactStore(store)
     capture_ref = s.resolve(capture)
     cap = s.get_record(capture_ref, Capture)
@@ -85,7 +96,9 @@ def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = 
     elif ground_truth:
         calib_ref = ground_truth_calibration(store, capture_ref)
     else:
-        calib_ref = calibrate_capture(store, capture_ref)
+        calib_ref = calibrate_capture(store, capture_ref,
+                                      static_calibration_options(allow_unregistered, known_distance=known_distance),
+                                      known)
     held = (held_out if held_out is not None
             else reconstruction.default_held_out(cap, calibration=s.get_record(calib_ref, Calibration)))
     # held-out cameras take no part in the initial points: their footage must not reach the model

@@ -20,12 +20,13 @@ from __future__ import annotations
 import json
 
 from tasks.contract import volcap_task
-from volcap_core.calibration import steps
+from volcap_core.calibration import scale, steps
 from volcap_core.calibration.colour import ColourCalibrationOptions
 from volcap_core.calibration.dense import DenseOptions
 from volcap_core.calibration.lidar import LidarScan
 from volcap_core.calibration.metrics import calibration_report, ground_truth_from_json
 from volcap_core.calibration.record import Calibration, decode_tracking_frames
+from volcap_core.calibration.scale import KnownPoints
 from volcap_core.calibration.static import StaticCalibrationOptions
 from volcap_core.calibration.steps import (CalibrationInputError, ChartView, ColourMatrixRecord, DensePointsFrame,
                                            StaticCalibrationRecord, TrackingCameraRecord, split_cameras,
@@ -42,9 +43,10 @@ ERRORS_MEDIA = "application/vnd.volcap.calibration-errors+json"
 CALIBRATION_LIBRARIES = ("pycolmap", "cv2", "kornia", "torch", "numpy", "scipy")
 
 
-@volcap_task(name="calibrate-static", version="5", libraries=CALIBRATION_LIBRARIES)
+@volcap_task(name="calibrate-static", version="6", libraries=CALIBRATION_LIBRARIES)
 def calibrate_static(store: str, capture: ArtifactRef,
-                     options: StaticCalibrationOptions = StaticCalibrationOptions()) -> ArtifactRef:
+                     options: StaticCalibrationOptions = StaticCalibrationOptions(),
+                     known_points: KnownPoints | None = None) -> ArtifactRef:
     """Static cameras on the middle frame (+ background plates), registered to the capture's lidar;
     with tracking cameras, also the static reference they register against. A camera the adjustment
     cannot support is an error naming it, or (``options.allow_unregistered``) left out and listed.
@@ -55,22 +57,33 @@ def calibrate_static(store: str, capture: ArtifactRef,
     calibrated pinholes (before: raw plates read with the pinhole K); also (same version) several
     instants pooled into the SfM (``options.instants`` / ``instant_frames``), and a capture without
     a lidar scan placed by a robust similarity onto the mounts or scaled by ``options.known_distance``,
-    its residual in the stats (``frame.*``)."""
+    its residual in the stats (``frame.*``). Version 6: without a scan the stand-in surface's sweep
+    depths come from the scene (``static.surface_from_plates``); ``known_points`` (distances between
+    marked scene points, ``volcap_core.calibration.scale``) scale a capture without a scan."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
     statics, trackers = split_cameras(cap)
+    if known_points is not None:
+        scale.check_for_capture(cap.name, known_points, statics, trackers, options.known_distance)
     step = steps.calibrate_static_step(cap.name, cap.rig, statics, trackers, cap.frame_count,
                                        steps.frame_loader(s.get_bytes, cap), steps.load_lidar(s.get_bytes, cap),
                                        options)
+    if known_points is not None:
+        step.calibration = scale.apply_to_static_step(cap.name, cap.rig, step.calibration, known_points,
+                                                      has_scan=cap.lidar is not None,
+                                                      mount_tolerance_m=options.mount_tolerance_m)
     reference = (s.put_bytes(steps.encode_reference(step.reference), MEDIA_SAFETENSORS)
                  if step.reference is not None else None)
     return s.put_record(steps.static_record(cap.name, step, reference))
 
 
-@volcap_task(name="calibrate-tracking-camera", version="2", libraries=CALIBRATION_LIBRARIES)
+@volcap_task(name="calibrate-tracking-camera", version="3", libraries=CALIBRATION_LIBRARIES)
 def calibrate_tracking_camera(store: str, capture: ArtifactRef, static: ArtifactRef, camera: str,
                               options: TrackingOptions = TrackingOptions()) -> ArtifactRef:
-    """One tracking camera at every frame of the take, against the fixed static reference."""
+    """One tracking camera at every frame of the take, against the fixed static reference.
+    Version 3: a camera whose rig carries a zoom lens table (``zoom_intrinsics``) has each frame's
+    keypoints undistorted with the lens at that frame's smoothed encoder focal before matching
+    (``options.zoom_distortion``), and its frames blob carries each frame's lens (``distortion``)."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
     st = s.get_record(static, StaticCalibrationRecord)
@@ -80,14 +93,16 @@ def calibrate_tracking_camera(store: str, capture: ArtifactRef, static: Artifact
     return s.put_record(steps.tracking_record(cap.name, camera, sol, frames))
 
 
-@volcap_task(name="assemble-calibration", version="4")
+@volcap_task(name="assemble-calibration", version="5")
 def assemble_calibration(store: str, capture: ArtifactRef, static: ArtifactRef,
                          tracking: list[ArtifactRef]) -> ArtifactRef:
     """The Calibration record (and its tracking-frames blob) from the static and per-camera results,
     exactly as ``volcap_core.calibration.pipeline.calibrate_capture`` makes it in one call.
     Version 2: the record lists the cameras left out (``unregistered``, with the reasons).
     Version 3: a distorted camera is recorded with its intrinsics on its own frames and its
-    distortion, as ``calibrate_capture`` records it (before: the rectified pinhole, no distortion)."""
+    distortion, as ``calibrate_capture`` records it (before: the rectified pinhole, no distortion).
+    Version 5: a tracking camera with a zoom lens has each frame's lens in the tracking-frames blob
+    (``<id>/distortion`` [T, 5|8], blob format ``volcap-tracking-frames/2``)."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
     record, blob = steps.assemble_calibration_record(

@@ -15,7 +15,7 @@ from tasks.artifacts import ProgressArtifact, artifact_key, publish_image, publi
 from tasks.contract import current_run_key, volcap_task
 from volcap_core import imageio, reconstruction
 from volcap_core.calibration.distortion import record_distortion
-from volcap_core.calibration.record import Calibration, camera_at
+from volcap_core.calibration.record import Calibration, camera_at, frame_camera
 from volcap_core.capture import Capture
 from volcap_core.pointcloud import POINTS_MEDIA, PointCloudFrame, PointCloudSequence, encode_points
 from volcap_core.records import MEDIA_EXR, MEDIA_SAFETENSORS, ArtifactRef
@@ -73,7 +73,8 @@ def ground_truth_points(store: str, capture: ArtifactRef, calibration: ArtifactR
     frames = []
     for f in range(cap.frame_count):
         xyz, rgb = ground_truth.depth_points(files, ids, f, load_image, camera_at_frame, points_per_frame, seed,
-                                             distortion_of=lambda c: record_distortion(calib.camera(c)))
+                                             distortion_of=lambda c, k: record_distortion(
+                                                 frame_camera(calib, c, k, tracking)))
         frames.append(PointCloudFrame(frame=f, time=cap.frame_time(f), count=len(xyz),
                                       points=s.put_bytes(encode_points(xyz, rgb), POINTS_MEDIA)))
     return s.put_record(PointCloudSequence(calibration=calibration, frames=tuple(frames),

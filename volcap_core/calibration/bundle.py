@@ -11,17 +11,36 @@ calibration needs (all robust, Cauchy, in units of their sigma):
 - a weak prior on each camera centre around a seed (the rig's nominal mounts), which only fixes
   what nothing else observes;
 - optionally a prior on each principal point around the image centre (``principal_sigma_px``; None,
-  the default, holds the principal points where they are given).
+  the default, holds the principal points where they are given);
+- optionally (``distortion_sigma``; None, the default, holds the lens) corrections ``dk1``, ``dk2`` to
+  the radial distortion the observations were rectified with (``bundle_adjust(lens=...)``: cameras
+  whose images and observations were resampled into a pinhole through a lens calibration's k1, k2),
+  with a prior of that sigma around zero (the lens calibration's accuracy). To first order in the
+  correction, a rectified observation of the true lens sits at ``u + (u - c) g(rho²)``, ``u`` the
+  pinhole projection, ``c`` / ``f_r`` the rectification's principal point and focal, ``rho = |u - c| /
+  f_r`` and ``g = (dk1 rho² + dk2 rho⁴) / (1 + 3 k1 rho² + 5 k2 rho⁴)`` (the correction of the
+  distorted radius mapped back through the rectification's radial derivative; 0.0002 px from the
+  exact rectification for a 0.003 correction of k1 = 0.1 at the corners of a 320x180 view at f = 310 px).
+
+Cameras of one lens group (``lens_group``: the rig's ``lens_group``, one body and lens model) can
+share ONE log focal (``BundleOptions.share_group_focal``), one principal point
+(``share_group_principal``) and one lens correction (``share_group_distortion``); poses are always
+per camera. A shared parameter is one unknown of the normal equations (:func:`camera_parameters`),
+with one prior. All three are off by default: the units of one model differ (the principal point is
+where a unit's sensor sits behind its lens; focal and distortion by the lens's tolerance), and
+holding two units of the distorted demo rig to one focal made its static cameras worse.
 
 Levenberg-Marquardt on the normal equations with the points eliminated by a Schur complement:
-the reduced camera system is dense [9C, 9C] (C cameras), the point blocks are 3x3. Rotations are
-updated on the left (``R <- exp(w) R``, kornia's axis-angle map). float64 throughout.
+the reduced camera system is dense [9C, 9C] (C cameras; fewer unknowns when a lens group shares its
+intrinsics: the per-camera system is summed onto the shared ones), the point blocks are 3x3.
+Rotations are updated on the left (``R <- exp(w) R``, kornia's axis-angle map). float64 throughout.
 """
 
 from __future__ import annotations
 
 import time
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 import torch
@@ -30,6 +49,7 @@ from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 from volcap_core.calibration.lidar import LidarScan
 
 NCAM = 9  # rotation (3), centre (3), log focal (1), principal point (2)
+NDIST = 2  # with lens corrections: dk1, dk2 (after the 9)
 
 
 @dataclass(frozen=True)
@@ -41,9 +61,25 @@ class BundleOptions:
     centre_sigma_m: float = 1.0
     #: None holds the principal points fixed; a value (px) refines them around the ones given
     principal_sigma_px: float | None = None
+    #: None holds the lens (the observations are taken as rectified exactly); a value refines
+    #: corrections to the radial k1, k2 of the cameras given a ``lens`` with this prior sigma around
+    #: zero (a lens calibration's accuracy in k1 and k2)
+    distortion_sigma: float | None = None
     iterations: int = 15
     #: after each round, observations reprojecting worse than this (px) are dropped
     outlier_px: tuple[float, ...] = (8.0, 4.0, 3.0, 2.0)
+    #: cameras of one lens group (``bundle_adjust(lens_group=...)``) share one focal: one unknown,
+    #: one prior (around the mean of the members' priors). Off by default: a lens group is one body and
+    #: lens *model* calibrated once (``hardware.rig``), its units' focals differ by that calibration's
+    #: error, and on the distorted demo capture (its two units 0.15 % apart) one focal for both took
+    #: the static rotation from 0.052° / 0.084° (mean / max) to 0.069° / 0.102° (docs/calibration.md)
+    share_group_focal: bool = False
+    #: ... and one principal point (when principal points are refined). Off: a lens group is one
+    #: body and lens *model*, and each unit's principal point is where its sensor sits behind its lens
+    share_group_principal: bool = False
+    #: ... and one lens correction (when the distortion is refined). Off: each unit has its own
+    #: lens, the group's calibration being of one of them (or of the model)
+    share_group_distortion: bool = False
     device: str = "cpu"
 
 
@@ -62,30 +98,150 @@ def _cauchy_cost(r2: torch.Tensor) -> torch.Tensor:
     return torch.log1p(r2).sum()
 
 
+@dataclass(frozen=True)
+class CameraParameters:
+    """How the per-camera blocks of the normal equations map onto the unknowns: ``index`` [C * n]
+    the unknown of each camera's rotation (3), centre (3), log focal (1), principal point (2) and,
+    with ``distortion``, radial corrections (2), in camera-major order (``n`` = :attr:`per_camera`);
+    ``count`` the number of unknowns; ``focal_of`` / ``principal_of`` / ``distortion_of`` [C] the
+    index of each camera's focal / principal point / correction among those; ``*_weight`` [C] each
+    camera's share of its (possibly shared) prior, 1 / the size of the group sharing it, so a shared
+    parameter carries its prior once."""
+
+    index: np.ndarray
+    count: int
+    focal_of: np.ndarray
+    principal_of: np.ndarray
+    distortion_of: np.ndarray
+    focal_weight: np.ndarray
+    principal_weight: np.ndarray
+    distortion_weight: np.ndarray
+    per_camera: int
+
+    @property
+    def shared(self) -> bool:
+        return self.count < len(self.index)
+
+
+def camera_parameters(lens_group: Sequence[str | None] | None, ncam: int, *, share_focal: bool = False,
+                      share_principal: bool = False, distortion: bool = False,
+                      share_distortion: bool = False) -> CameraParameters:
+    """The unknowns of ``ncam`` cameras whose lens groups are ``lens_group`` (None, or None for a
+    camera: its own): a pose per camera, a log focal per lens group (``share_focal``), a principal
+    point per lens group (``share_principal``) and, with ``distortion``, radial corrections per lens
+    group (``share_distortion``), otherwise per camera."""
+    groups = list(lens_group) if lens_group is not None else [None] * ncam
+    if len(groups) != ncam:
+        raise ValueError(f"lens_group has {len(groups)} entries for {ncam} cameras")
+
+    def classes(share: bool) -> np.ndarray:
+        seen: dict = {}
+        return np.array([seen.setdefault(("group", g) if share and g is not None else ("camera", i), len(seen))
+                         for i, g in enumerate(groups)], np.int64).reshape(ncam)
+
+    focal_of, principal_of, distortion_of = classes(share_focal), classes(share_principal), classes(share_distortion)
+    nf, npp = int(focal_of.max(initial=-1)) + 1, int(principal_of.max(initial=-1)) + 1
+    nd = int(distortion_of.max(initial=-1)) + 1 if distortion else 0
+    n = NCAM + (NDIST if distortion else 0)
+    index = np.zeros((ncam, n), np.int64)
+    index[:, :6] = np.arange(6 * ncam).reshape(ncam, 6)
+    index[:, 6] = 6 * ncam + focal_of
+    index[:, 7] = 6 * ncam + nf + 2 * principal_of
+    index[:, 8] = index[:, 7] + 1
+    if distortion:
+        index[:, 9] = 6 * ncam + nf + 2 * npp + 2 * distortion_of
+        index[:, 10] = index[:, 9] + 1
+
+    def share(of):
+        return 1.0 / np.bincount(of, minlength=1)[of] if ncam else np.zeros(0)
+
+    return CameraParameters(index=index.reshape(-1), count=6 * ncam + nf + 2 * npp + 2 * nd, focal_of=focal_of,
+                            principal_of=principal_of, distortion_of=distortion_of, focal_weight=share(focal_of),
+                            principal_weight=share(principal_of), distortion_weight=share(distortion_of),
+                            per_camera=n)
+
+
+def group_mean(values: torch.Tensor, of: np.ndarray) -> torch.Tensor:
+    """Each camera's value [C, ...] replaced by the mean over the cameras sharing it (``of`` [C])."""
+    idx = torch.as_tensor(of, dtype=torch.long, device=values.device)
+    n = int(of.max(initial=-1)) + 1
+    sums = torch.zeros((n,) + values.shape[1:], dtype=values.dtype, device=values.device).index_add_(0, idx, values)
+    counts = torch.bincount(idx, minlength=n).to(values.dtype).reshape((n,) + (1,) * (values.dim() - 1))
+    return (sums / counts)[idx]
+
+
+def solve_shared(S: torch.Tensor, rhs: torch.Tensor, params: CameraParameters) -> torch.Tensor:
+    """Solve the per-camera system ``S x = rhs`` ([Cn, Cn], [Cn]) with the parameters ``params``
+    shares tied: with ``T`` the [Cn, N] 0/1 map from the unknowns to the per-camera parameters,
+    ``(Tᵀ S T) y = Tᵀ rhs`` and ``x = T y``. Untied (every parameter its own) it is a plain solve."""
+    if not params.shared:
+        return torch.linalg.solve(S, rhs)
+    idx = torch.as_tensor(params.index, dtype=torch.long, device=S.device)
+    n = params.count
+    St = torch.zeros(n, len(idx), dtype=S.dtype, device=S.device).index_add_(0, idx, S)
+    Sr = torch.zeros(n, n, dtype=S.dtype, device=S.device).index_add_(1, idx, St)
+    rr = torch.zeros(n, dtype=rhs.dtype, device=rhs.device).index_add_(0, idx, rhs)
+    return torch.linalg.solve(Sr, rr)[idx]
+
+
 class _State:
-    def __init__(self, R, C, logf, pp, X):
-        self.R, self.C, self.logf, self.pp, self.X = R, C, logf, pp, X
+    def __init__(self, R, C, logf, pp, X, dk=None):
+        self.R, self.C, self.logf, self.pp, self.X, self.dk = R, C, logf, pp, X, dk
 
     def updated(self, dc: torch.Tensor, dp: torch.Tensor) -> "_State":
         dR = axis_angle_to_rotation_matrix(dc[:, :3])
-        return _State(dR @ self.R, self.C + dc[:, 3:6], self.logf + dc[:, 6], self.pp + dc[:, 7:9], self.X + dp)
+        dk = None if self.dk is None else self.dk + dc[:, 9:11]
+        return _State(dR @ self.R, self.C + dc[:, 3:6], self.logf + dc[:, 6], self.pp + dc[:, 7:9], self.X + dp, dk)
+
+
+@dataclass
+class _Problem:
+    """What stays fixed through the adjustment: priors, options, the unknowns' map, the lenses."""
+
+    pp0: torch.Tensor
+    logf0: torch.Tensor
+    C0: torch.Tensor
+    options: BundleOptions
+    fix_focal: bool
+    params: CameraParameters
+    wf: torch.Tensor
+    wpp: torch.Tensor
+    wd: torch.Tensor
+    #: [C, 5] (f, cx, cy, k1, k2) of each camera's rectification and [C] bool which have one (None:
+    #: no lens corrections)
+    lens: torch.Tensor | None = None
+    has_lens: torch.Tensor | None = None
+    #: [C] each camera's principal-point prior sigma (px), when principal points are refined
+    pps: torch.Tensor | None = None
 
 
 def bundle_adjust(world_to_camera: np.ndarray, focal: np.ndarray, principal: np.ndarray,
                   points: np.ndarray, obs_camera: np.ndarray, obs_point: np.ndarray, obs_xy: np.ndarray,
                   *, scan: LidarScan | None = None, focal_prior: np.ndarray | None = None,
-                  centre_prior: np.ndarray | None = None,
+                  centre_prior: np.ndarray | None = None, lens_group: Sequence[str | None] | None = None,
+                  lens: Sequence[Sequence[float] | None] | None = None,
+                  principal_sigma: Sequence[float] | None = None,
                   options: BundleOptions = BundleOptions()) -> dict:
     """Refine static cameras and points.
 
     Shapes: ``world_to_camera`` [C, 4, 4] (OpenCV), ``focal`` [C] px (fx = fy), ``principal``
     [C, 2] OpenCV px (held fixed unless ``options.principal_sigma_px``), ``points`` [P, 3] metres, observations ``obs_camera`` [M],
     ``obs_point`` [M], ``obs_xy`` [M, 2] OpenCV px. ``focal_prior`` [C] px (default: ``focal``),
-    ``centre_prior`` [C, 3] (default: the initial centres).
+    ``centre_prior`` [C, 3] (default: the initial centres). ``lens_group`` [C]: each camera's lens
+    group (the rig's ``lens_group``; None: its own); the cameras of a group share one focal
+    (``options.share_group_focal``), started at and held around the mean of their focals and priors
+    (one prior for the group), and with ``options.share_group_principal`` one principal point.
+    ``lens`` [C]: per camera whose observations were rectified through a lens calibration, that
+    rectification's ``(f, cx, cy, k1, k2)`` (the pinhole it resampled into and its radial terms),
+    None for the others; with ``options.distortion_sigma`` those cameras get radial corrections
+    (module docstring), the others none. ``principal_sigma`` [C]: each camera's principal-point prior
+    sigma (px) when ``options.principal_sigma_px`` refines them (default: that value for every camera;
+    e.g. tighter for cameras whose principal point a lens calibration measured).
 
     Returns a dict: ``world_to_camera`` [C, 4, 4], ``focal`` [C], ``principal`` [C, 2], ``points`` [P, 3],
     ``on_lidar`` [P] bool (points that carried a lidar term in the last round), ``reprojection_px``
-    [M], ``inlier`` [M] bool (observations kept in the last round) and ``stats``.
+    [M], ``inlier`` [M] bool (observations kept in the last round), ``stats``, and with lens
+    corrections ``distortion`` [C, 2] (dk1, dk2: zero for the cameras without a lens).
     """
     t0 = time.perf_counter()
     dev = torch.device(options.device)
@@ -104,8 +260,33 @@ def bundle_adjust(world_to_camera: np.ndarray, focal: np.ndarray, principal: np.
     C0 = C.clone() if centre_prior is None else torch.as_tensor(np.asarray(centre_prior, np.float64), **f64)
     fix_focal = options.focal_sigma_rel is None
     pairs = _observation_pairs(op, npt)
+    refine_lens = options.distortion_sigma is not None and lens is not None and any(v is not None for v in lens)
+    params = camera_parameters(lens_group, ncam, share_focal=options.share_group_focal,
+                               share_principal=options.share_group_principal, distortion=refine_lens,
+                               share_distortion=options.share_group_distortion)
+    # a shared focal / principal point that is refined starts at (and is held around) the mean of
+    # its cameras' (held ones stay as given)
+    if not fix_focal:
+        logf, logf0 = group_mean(logf, params.focal_of), group_mean(logf0, params.focal_of)
+    if options.principal_sigma_px is not None:
+        pp0 = group_mean(pp0, params.principal_of)
+    lens_t = has_lens = dk = None
+    if refine_lens:
+        if len(lens) != ncam:
+            raise ValueError(f"lens has {len(lens)} entries for {ncam} cameras")
+        has_lens = torch.as_tensor([v is not None for v in lens], device=dev)
+        lens_t = torch.as_tensor(np.array([v if v is not None else (1.0, 0.0, 0.0, 0.0, 0.0) for v in lens],
+                                          np.float64).reshape(ncam, 5), **f64)
+        dk = torch.zeros(ncam, NDIST, **f64)
+    pps = None
+    if options.principal_sigma_px is not None:
+        pps = torch.as_tensor(np.full(ncam, options.principal_sigma_px, np.float64) if principal_sigma is None
+                              else np.asarray(principal_sigma, np.float64).reshape(ncam), **f64)
+    prob = _Problem(pp0, logf0, C0, options, fix_focal, params, torch.as_tensor(params.focal_weight, **f64),
+                    torch.as_tensor(params.principal_weight, **f64), torch.as_tensor(params.distortion_weight, **f64),
+                    lens_t, has_lens, pps)
 
-    state = _State(R, C, logf, pp0.clone(), X)
+    state = _State(R, C, logf, pp0.clone(), X, dk)
     on_lidar = torch.zeros(npt, dtype=torch.bool, device=dev)
     history = []
     gates = options.lidar_gates_m if scan is not None else (None,) * len(options.outlier_px)
@@ -114,7 +295,7 @@ def bundle_adjust(world_to_camera: np.ndarray, focal: np.ndarray, principal: np.
     for rnd, gate in enumerate(gates):
         if rnd > 0 and options.outlier_px:
             thr = options.outlier_px[min(rnd - 1, len(options.outlier_px) - 1)]
-            keep = _residual_px(state, oc_all, op_all, uv_all).norm(dim=1) < thr
+            keep = _residual_px(state, prob, oc_all, op_all, uv_all).norm(dim=1) < thr
             cnt = torch.bincount(op_all[keep], minlength=npt)
             keep &= cnt[op_all] >= 2
             oc, op, uv = oc_all[keep], op_all[keep], uv_all[keep]
@@ -124,12 +305,11 @@ def bundle_adjust(world_to_camera: np.ndarray, focal: np.ndarray, principal: np.
         else:
             plane_n = plane_d = None
         lam = 1e-3
-        cost = _cost(state, pp0, oc, op, uv, plane_n, plane_d, on_lidar, logf0, C0, options, fix_focal)
+        cost = _cost(state, prob, oc, op, uv, plane_n, plane_d, on_lidar)
         for _ in range(options.iterations):
-            dc, dp = _lm_step(state, pp0, oc, op, uv, plane_n, plane_d, on_lidar, logf0, C0, options,
-                              fix_focal, pairs, lam, ncam, npt)
+            dc, dp = _lm_step(state, prob, oc, op, uv, plane_n, plane_d, on_lidar, pairs, lam, ncam, npt)
             new = state.updated(dc, dp)
-            new_cost = _cost(new, pp0, oc, op, uv, plane_n, plane_d, on_lidar, logf0, C0, options, fix_focal)
+            new_cost = _cost(new, prob, oc, op, uv, plane_n, plane_d, on_lidar)
             if new_cost < cost:
                 rel = (cost - new_cost) / max(cost, 1e-12)
                 state, cost = new, new_cost
@@ -145,13 +325,17 @@ def bundle_adjust(world_to_camera: np.ndarray, focal: np.ndarray, principal: np.
     out_w2c = torch.eye(4, **f64).repeat(ncam, 1, 1)
     out_w2c[:, :3, :3] = Rn
     out_w2c[:, :3, 3] = -(Rn @ Cn[..., None])[..., 0]
-    res = _residual_px(state, oc_all, op_all, uv_all)
-    return {"world_to_camera": out_w2c.cpu().numpy(), "focal": torch.exp(state.logf).cpu().numpy(),
-            "principal": state.pp.cpu().numpy(),
-            "points": state.X.cpu().numpy(), "on_lidar": on_lidar.cpu().numpy(),
-            "reprojection_px": res.norm(dim=1).cpu().numpy(), "inlier": keep.cpu().numpy(),
-            "stats": {"cost_per_round": history, "seconds": time.perf_counter() - t0,
-                      "lidar_points": int(on_lidar.sum())}}
+    res = _residual_px(state, prob, oc_all, op_all, uv_all)
+    out = {"world_to_camera": out_w2c.cpu().numpy(), "focal": torch.exp(state.logf).cpu().numpy(),
+           "principal": state.pp.cpu().numpy(),
+           "points": state.X.cpu().numpy(), "on_lidar": on_lidar.cpu().numpy(),
+           "reprojection_px": res.norm(dim=1).cpu().numpy(), "inlier": keep.cpu().numpy(),
+           "stats": {"cost_per_round": history, "seconds": time.perf_counter() - t0,
+                     "lidar_points": int(on_lidar.sum()), "focals": int(params.focal_of.max(initial=-1)) + 1,
+                     "principal_points": int(params.principal_of.max(initial=-1)) + 1}}
+    if state.dk is not None:
+        out["distortion"] = state.dk.cpu().numpy()
+    return out
 
 
 def _observation_pairs(op: torch.Tensor, npt: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -193,41 +377,71 @@ def _project(state: _State, oc, op):
     return Xc, z, xn, f, R
 
 
-def _residual_px(state, oc, op, uv):
+def _lens_terms(state: _State, prob: _Problem, oc, u: torch.Tensor):
+    """The lens correction of pinhole pixels ``u`` [M, 2] of cameras ``oc``: (offset [M, 2] to add,
+    d offset / d (dk1, dk2) [M, 2, 2]), or None without lens corrections."""
+    if prob.lens is None:
+        return None
+    L = prob.lens[oc]
+    d = u - L[:, 1:3]
+    rho2 = (d ** 2).sum(1) / L[:, 0] ** 2
+    slope = 1.0 + 3.0 * L[:, 3] * rho2 + 5.0 * L[:, 4] * rho2 ** 2
+    on = prob.has_lens[oc].to(u.dtype)
+    basis = torch.stack([rho2, rho2 ** 2], 1) * (on / slope)[:, None]                  # [M, 2]
+    g = (basis * state.dk[oc]).sum(1)
+    return d * g[:, None], d[:, :, None] * basis[:, None, :]
+
+
+def _residual_px(state, prob: _Problem, oc, op, uv):
     _, _, xn, f, _ = _project(state, oc, op)
-    return f[:, None] * xn + state.pp[oc] - uv
+    u = f[:, None] * xn + state.pp[oc]
+    lt = _lens_terms(state, prob, oc, u)
+    if lt is not None:
+        u = u + lt[0]
+    return u - uv
 
 
-def _cost(state, pp0, oc, op, uv, plane_n, plane_d, on_lidar, logf0, C0, o: BundleOptions, fix_focal):
-    r = _residual_px(state, oc, op, uv) / o.pixel_sigma
+def _cost(state, prob: _Problem, oc, op, uv, plane_n, plane_d, on_lidar):
+    o = prob.options
+    r = _residual_px(state, prob, oc, op, uv) / o.pixel_sigma
     c = _cauchy_cost((r ** 2).sum(1))
     if plane_n is not None and on_lidar.any():
         rl = ((plane_n * state.X).sum(1) - plane_d)[on_lidar] / o.lidar_sigma_m
         c = c + _cauchy_cost(rl ** 2)
-    if not fix_focal:
-        c = c + (((state.logf - logf0) / o.focal_sigma_rel) ** 2).sum()
-    c = c + (((state.C - C0) / o.centre_sigma_m) ** 2).sum()
+    if not prob.fix_focal:
+        c = c + (prob.wf * ((state.logf - prob.logf0) / o.focal_sigma_rel) ** 2).sum()
+    c = c + (((state.C - prob.C0) / o.centre_sigma_m) ** 2).sum()
     if o.principal_sigma_px is not None:
-        c = c + (((state.pp - pp0) / o.principal_sigma_px) ** 2).sum()
+        c = c + (prob.wpp[:, None] * ((state.pp - prob.pp0) / prob.pps[:, None]) ** 2).sum()
+    if state.dk is not None:
+        c = c + (prob.wd[:, None] * (state.dk / o.distortion_sigma) ** 2).sum()
     return float(c)
 
 
-def _lm_step(state, pp0, oc, op, uv, plane_n, plane_d, on_lidar, logf0, C0, o: BundleOptions, fix_focal,
-             pairs, lam, ncam, npt):
+def _lm_step(state, prob: _Problem, oc, op, uv, plane_n, plane_d, on_lidar, pairs, lam, ncam, npt):
+    o, fix_focal = prob.options, prob.fix_focal
+    wf, wpp = prob.wf, prob.wpp
+    n = prob.params.per_camera
     Xc, z, xn, f, R = _project(state, oc, op)
-    r = (f[:, None] * xn + state.pp[oc] - uv) / o.pixel_sigma                     # [M, 2]
-    w = _cauchy_weight((r ** 2).sum(1)).sqrt()                              # [M]
-    # d pi / d Xc  [M, 2, 3]
+    u = f[:, None] * xn + state.pp[oc]
+    lt = _lens_terms(state, prob, oc, u)
+    if lt is not None:
+        u = u + lt[0]
+    # d pi / d Xc  [M, 2, 3] (of the pinhole: the lens correction's own dependence on the pose is
+    # second order, ~1e-3 of it)
     dpi = torch.zeros(len(z), 2, 3, dtype=z.dtype, device=z.device)
     dpi[:, 0, 0] = f / z
     dpi[:, 1, 1] = f / z
     dpi[:, 0, 2] = -f * xn[:, 0] / z
     dpi[:, 1, 2] = -f * xn[:, 1] / z
+    Jf = (f[:, None] * xn)[..., None]
+    Jd = lt[1] if lt is not None else None
+    r = (u - uv) / o.pixel_sigma                                            # [M, 2]
+    w = _cauchy_weight((r ** 2).sum(1)).sqrt()                              # [M]
     Jw = dpi @ (-_skew(Xc))
     JC = dpi @ (-R)
-    Jf = (f[:, None] * xn)[..., None]
     Jpp = torch.eye(2, dtype=z.dtype, device=z.device).expand(len(z), 2, 2)
-    Jc = torch.cat([Jw, JC, Jf, Jpp], 2)                                    # [M, 2, 9]
+    Jc = torch.cat([Jw, JC, Jf, Jpp] + ([Jd] if Jd is not None else []), 2)     # [M, 2, n]
     if fix_focal:
         Jc[..., 6] = 0.0
     if o.principal_sigma_px is None:
@@ -236,54 +450,61 @@ def _lm_step(state, pp0, oc, op, uv, plane_n, plane_d, on_lidar, logf0, C0, o: B
     s = (w / o.pixel_sigma)[:, None, None]
     Jc, Jp = Jc * s, Jp * s
     rw = r * w[:, None]
-    Hcc = torch.zeros(ncam, NCAM, NCAM, dtype=z.dtype, device=z.device)
-    gc = torch.zeros(ncam, NCAM, dtype=z.dtype, device=z.device)
+    Hcc = torch.zeros(ncam, n, n, dtype=z.dtype, device=z.device)
+    gc = torch.zeros(ncam, n, dtype=z.dtype, device=z.device)
     Hcc.index_add_(0, oc, Jc.transpose(1, 2) @ Jc)
     gc.index_add_(0, oc, (Jc.transpose(1, 2) @ rw[..., None])[..., 0])
     Hpp = torch.zeros(npt, 3, 3, dtype=z.dtype, device=z.device)
     gp = torch.zeros(npt, 3, dtype=z.dtype, device=z.device)
     Hpp.index_add_(0, op, Jp.transpose(1, 2) @ Jp)
     gp.index_add_(0, op, (Jp.transpose(1, 2) @ rw[..., None])[..., 0])
-    Hcp = Jc.transpose(1, 2) @ Jp                                           # [M, 9, 3]
+    Hcp = Jc.transpose(1, 2) @ Jp                                           # [M, n, 3]
     if plane_n is not None and on_lidar.any():
         rl = ((plane_n * state.X).sum(1) - plane_d) / o.lidar_sigma_m
         wl = _cauchy_weight(rl ** 2) * on_lidar.to(rl.dtype)
         nn = plane_n[:, :, None] * plane_n[:, None, :] / o.lidar_sigma_m ** 2
         Hpp = Hpp + wl[:, None, None] * nn
         gp = gp + (wl * rl / o.lidar_sigma_m)[:, None] * plane_n
-    # priors
+    # priors (a shared focal's or principal point's prior split between its cameras, so that it
+    # counts once when their blocks are summed onto the shared unknown)
     idx = torch.arange(3, 6, device=z.device)
     Hcc[:, idx, idx] += 1.0 / o.centre_sigma_m ** 2
-    gc[:, 3:6] += (state.C - C0) / o.centre_sigma_m ** 2
+    gc[:, 3:6] += (state.C - prob.C0) / o.centre_sigma_m ** 2
     if fix_focal:
         Hcc[:, 6, 6] += 1.0
     else:
-        Hcc[:, 6, 6] += 1.0 / o.focal_sigma_rel ** 2
-        gc[:, 6] += (state.logf - logf0) / o.focal_sigma_rel ** 2
+        Hcc[:, 6, 6] += wf / o.focal_sigma_rel ** 2
+        gc[:, 6] += wf * (state.logf - prob.logf0) / o.focal_sigma_rel ** 2
     idx = torch.arange(7, 9, device=z.device)
     if o.principal_sigma_px is None:
         Hcc[:, idx, idx] += 1.0
     else:
-        Hcc[:, idx, idx] += 1.0 / o.principal_sigma_px ** 2
-        gc[:, 7:9] += (state.pp - pp0) / o.principal_sigma_px ** 2
+        Hcc[:, idx, idx] += (wpp / prob.pps ** 2)[:, None]
+        gc[:, 7:9] += (wpp / prob.pps ** 2)[:, None] * (state.pp - prob.pp0)
+    if state.dk is not None:
+        idx = torch.arange(9, 11, device=z.device)
+        Hcc[:, idx, idx] += prob.wd[:, None] / o.distortion_sigma ** 2
+        gc[:, 9:11] += prob.wd[:, None] * state.dk / o.distortion_sigma ** 2
     # Levenberg-Marquardt damping
-    eyec = torch.eye(NCAM, dtype=z.dtype, device=z.device)
+    eyec = torch.eye(n, dtype=z.dtype, device=z.device)
     eye3 = torch.eye(3, dtype=z.dtype, device=z.device)
     Hcc_d = Hcc + lam * (Hcc.diagonal(dim1=1, dim2=2)[..., None] * eyec) + 1e-12 * eyec
     Hpp_d = Hpp + lam * (Hpp.diagonal(dim1=1, dim2=2)[..., None] * eye3) + 1e-9 * eye3
     Hpp_inv = torch.linalg.inv(Hpp_d)
     # Schur complement on the points
     a, b = pairs
-    blocks = Hcp[a] @ Hpp_inv[op[a]] @ Hcp[b].transpose(1, 2)              # [Q, 9, 9]
-    S = torch.zeros(ncam * ncam, NCAM, NCAM, dtype=z.dtype, device=z.device)
+    blocks = Hcp[a] @ Hpp_inv[op[a]] @ Hcp[b].transpose(1, 2)              # [Q, n, n]
+    S = torch.zeros(ncam * ncam, n, n, dtype=z.dtype, device=z.device)
     S.index_add_(0, oc[a] * ncam + oc[b], -blocks)
-    S = S.view(ncam, ncam, NCAM, NCAM)
+    S = S.view(ncam, ncam, n, n)
     S[torch.arange(ncam), torch.arange(ncam)] += Hcc_d
-    S = S.permute(0, 2, 1, 3).reshape(ncam * NCAM, ncam * NCAM)
+    S = S.permute(0, 2, 1, 3).reshape(ncam * n, ncam * n)
     v = Hpp_inv @ gp[..., None]                                             # [P, 3, 1]
     rhs = -gc
     rhs = rhs.index_add(0, oc, (Hcp @ v[op])[..., 0])
-    dc = torch.linalg.solve(S, rhs.reshape(-1)).view(ncam, NCAM)
+    # a lens group's shared focal (principal point): its cameras' rows and columns summed onto one
+    # unknown; the damping above is then the summed diagonal, as for any other parameter
+    dc = solve_shared(S, rhs.reshape(-1), prob.params).view(ncam, n)
     # back-substitute the points
     t = gp.clone()
     t.index_add_(0, op, (Hcp.transpose(1, 2) @ dc[oc][..., None])[..., 0])

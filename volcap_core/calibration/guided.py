@@ -55,6 +55,12 @@ class GuidedMatchOptions:
     search_step_px: float = 0.5
     #: a match needs this NCC at its peak
     min_ncc: float = 0.85
+    #: after the grid search, this many re-centred refinements: NCC at the current estimate and
+    #: ``refine_step_px`` either side in x and y, a parabola through each triple. The grid's parabola
+    #: alone is biased towards the grid's nodes, which sit at whole steps from the prediction, so its
+    #: matches leaned towards where the previous cameras predicted them (0: the grid's parabola only)
+    refine_iterations: int = 0
+    refine_step_px: float = 0.25
     #: |cos| of the angle between the scan normal and each view ray must exceed this
     min_view_cos: float = 0.2
     #: the predicted point must be within this relative depth of the other camera's scan z-buffer
@@ -82,14 +88,37 @@ def log_luminance(linear: np.ndarray) -> np.ndarray:
     return np.log(np.maximum(luminance(linear), 1e-4)).astype(np.float32)
 
 
-def anchor_corners(linear: np.ndarray, options: GuidedMatchOptions = GuidedMatchOptions()) -> np.ndarray:
+def _eroded(valid: np.ndarray, radius: int) -> np.ndarray:
+    """``valid`` [H, W] bool shrunk by ``radius`` pixels (a square neighbourhood), the image's own
+    border not counting as invalid."""
+    if radius <= 0:
+        return valid.copy()
+    k = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+    return cv2.erode(valid.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=1).astype(bool)
+
+
+def anchor_corners(linear: np.ndarray, options: GuidedMatchOptions = GuidedMatchOptions(),
+                   valid: np.ndarray | None = None) -> np.ndarray:
     """Sub-pixel Shi-Tomasi corners [N, 2] (OpenCV px) of a linear RGB image [H, W, 3], found in log
     luminance so that the dark floor's texture counts as much as the lit walls' (the floor's points
-    are the near ones that pin the camera centres)."""
+    are the near ones that pin the camera centres).
+
+    ``valid`` [H, W] bool: the pixels holding footage (a rectified view's black corners are not:
+    :func:`~volcap_core.calibration.distortion.undistort_valid_mask`). The contrast stretch is taken
+    over them and no corner is kept whose template (``options.template_half_px``) reaches outside
+    them: the edge of a black corner is the strongest "corner" of the image but not in the scene,
+    and it set the quality threshold (a fraction of the strongest response) that the scene's own
+    corners were measured against."""
     L = log_luminance(linear)
-    lo, hi = np.percentile(L, [0.5, 99.5])
+    mask = None
+    if valid is not None and not valid.all():
+        lo, hi = np.percentile(L[valid], [0.5, 99.5]) if valid.any() else (0.0, 1.0)
+        mask = _eroded(valid, options.template_half_px + 2).astype(np.uint8) * 255
+    else:
+        lo, hi = np.percentile(L, [0.5, 99.5])
     g = np.clip(np.round(255 * (L - lo) / max(hi - lo, 1e-6)), 0, 255).astype(np.uint8)
-    c = cv2.goodFeaturesToTrack(g, options.max_corners, options.corner_quality, options.min_corner_distance_px)
+    c = cv2.goodFeaturesToTrack(g, options.max_corners, options.corner_quality, options.min_corner_distance_px,
+                                mask=mask)
     if c is None:
         return np.zeros((0, 2))
     c = cv2.cornerSubPix(g, c.astype(np.float32).reshape(-1, 1, 2), (2, 2), (-1, -1),
@@ -147,20 +176,46 @@ def _match_patches(image: torch.Tensor, template: torch.Tensor, warped: np.ndarr
         dy = 0.5 * (up - down) / (up - 2 * c0 + down - 1e-9)
         ok &= (dx.abs() < 0.6) & (dy.abs() < 0.6)
         shift = torch.stack([steps[bx] + dx * options.search_step_px, steps[by] + dy * options.search_step_px], -1)
+        if options.refine_iterations > 0:
+            shift, ok = _refine_shift(image, template[lo:hi], w, shift, ok, options)
         matches[lo:hi] = warped[lo:hi, centre_q] + shift.double().numpy()
         good[lo:hi] = ok.numpy()
     return matches, good
 
 
+def _refine_shift(image: torch.Tensor, template: torch.Tensor, warped: torch.Tensor, shift: torch.Tensor,
+                  ok: torch.Tensor, options: GuidedMatchOptions) -> tuple[torch.Tensor, torch.Tensor]:
+    """Re-centred sub-pixel refinement of the grid's peaks ``shift`` [m, 2]: NCC at the estimate and
+    ``refine_step_px`` either side in x and in y, a parabola through each triple, repeated
+    ``refine_iterations`` times. A match whose refinement leaves the search window, or whose NCC
+    stops being a peak (a triple that is not concave), is dropped."""
+    h = options.refine_step_px
+    probe = torch.tensor([[0.0, 0.0], [-h, 0.0], [h, 0.0], [0.0, -h], [0.0, h]])
+    for _ in range(options.refine_iterations):
+        values = _sample(image, warped[:, None] + (shift[:, None, :] + probe[None])[:, :, None, :])   # [m, 5, Q]
+        c0, left, right, up, down = _ncc(template[:, None], values).unbind(1)
+        cx, cy = left - 2 * c0 + right, up - 2 * c0 + down
+        ok = ok & (cx < 0) & (cy < 0)
+        dx = (0.5 * (left - right) / (cx - 1e-9)).clamp(-1.0, 1.0)
+        dy = (0.5 * (up - down) / (cy - 1e-9)).clamp(-1.0, 1.0)
+        shift = shift + torch.stack([dx, dy], -1) * h
+    ok = ok & (shift.abs() <= options.search_px).all(-1)
+    return shift, ok
+
+
 def guided_tracks(images: Mapping[str, np.ndarray], K: Mapping[str, np.ndarray],
                   world_to_camera: Mapping[str, np.ndarray], scan: LidarScan,
-                  options: GuidedMatchOptions = GuidedMatchOptions()) -> GuidedTracks:
+                  options: GuidedMatchOptions = GuidedMatchOptions(),
+                  valid: Mapping[str, np.ndarray | None] | None = None) -> GuidedTracks:
     """Tracks between calibrated cameras, matched through the lidar scan (module docstring).
 
     ``images``: camera id -> linear RGB [H, W, 3] (background plates: actors are not in the scan),
     whose order is the tracks' camera order;
     ``K`` [3, 3] and ``world_to_camera`` [4, 4] per camera, good to a pixel or so (the search
-    window is ``options.search_px``).
+    window is ``options.search_px``);
+    ``valid``: camera id -> [H, W] bool, the pixels holding footage (None or absent: all), e.g. a
+    rectified pincushion view's black corners are not: no anchor's template and no match's search
+    window may reach outside them (NCC over a window with black in it is dominated by that edge).
     """
     t0 = time.perf_counter()
     ids = list(images)
@@ -173,9 +228,13 @@ def guided_tracks(images: Mapping[str, np.ndarray], K: Mapping[str, np.ndarray],
     points, obs = [], []            # obs rows: (track, camera index, x, y)
     n_anchor = 0
     margin = h + options.search_px + 1
+    valid = {c: v for c, v in (valid or {}).items() if v is not None and not np.all(v)}
+    # a match's window: the template's pixels shifted by up to search_px, read bilinearly
+    search_ok = {c: _eroded(v, int(np.ceil(options.search_px)) + 1) for c, v in valid.items()}
+    dropped = 0
     for ia, a in enumerate(ids):
         W, H = size[a]
-        uv = anchor_corners(images[a], options)
+        uv = anchor_corners(images[a], options, valid.get(a))
         inside = (uv[:, 0] > h + 1) & (uv[:, 0] < W - h - 2) & (uv[:, 1] > h + 1) & (uv[:, 1] < H - h - 2)
         uv = uv[inside]
         X, ok = lift_to_lidar(K[a], world_to_camera[a], uv, scan, W, H)
@@ -212,7 +271,15 @@ def guided_tracks(images: Mapping[str, np.ndarray], K: Mapping[str, np.ndarray],
             if not len(sel):
                 continue
             warped, _ = project(K[b], world_to_camera[b], template_world[sel].reshape(-1, 3))
-            match, good = _match_patches(logl[b], template[sel], warped.reshape(len(sel), -1, 2), options)
+            warped = warped.reshape(len(sel), -1, 2)
+            if b in search_ok:
+                wi = np.clip(np.round(warped).astype(np.int64), 0, [Wb - 1, Hb - 1])
+                inside = search_ok[b][wi[..., 1], wi[..., 0]].all(1)
+                dropped += int((~inside).sum())
+                sel, warped = sel[inside], warped[inside]
+                if not len(sel):
+                    continue
+            match, good = _match_patches(logl[b], template[sel], warped, options)
             obs.append(np.c_[track[sel[good]], np.full(int(good.sum()), ib), match[good]])
     obs_all = np.concatenate(obs) if obs else np.zeros((0, 4))
     count = np.bincount(obs_all[:, 0].astype(np.int64), minlength=n_anchor)
@@ -222,4 +289,5 @@ def guided_tracks(images: Mapping[str, np.ndarray], K: Mapping[str, np.ndarray],
     return GuidedTracks(camera_ids=ids, points=pts, obs_point=obs_point.astype(np.int64),
                         obs_camera=obs_all[:, 1].astype(np.int64), obs_xy=obs_all[:, 2:4].astype(np.float64),
                         stats={"anchors": int(n_anchor), "tracks": int(len(kept)),
-                               "observations": int(len(obs_all)), "seconds": time.perf_counter() - t0})
+                               "observations": int(len(obs_all)), "outside_footage": dropped,
+                               "seconds": time.perf_counter() - t0})

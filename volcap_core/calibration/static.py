@@ -39,6 +39,7 @@ import numpy as np
 
 from hardware.rig import Rig, RigCamera
 from volcap_core.calibration.bundle import BundleOptions, bundle_adjust
+from volcap_core.calibration.distortion import Distortion, undistort_valid_mask
 from volcap_core.calibration.geometry import (Similarity, look_at_rotation, pose_matrix, robust_umeyama,
                                               triangulate_points)
 from volcap_core.calibration.guided import GuidedMatchOptions, guided_tracks
@@ -46,6 +47,12 @@ from volcap_core.calibration.lidar import LidarScan, align_to_lidar
 from volcap_core.calibration.photometric import PhotometricOptions, refine_photometric
 from volcap_core.calibration.sfm import (Intrinsics, SparseModel, StaticSfmOptions, raw_from_rectified,
                                          reconstruct_static, rectify_static_inputs)
+
+
+#: the prior (1σ) of the step-5 adjustment's corrections to a lens calibration's radial k1 and k2
+DISTORTION_SIGMA = 0.002
+#: the prior (1σ, px) of the step-5 adjustment on a measured principal point
+MEASURED_PRINCIPAL_SIGMA_PX = 0.5
 
 
 @dataclass(frozen=True)
@@ -60,8 +67,16 @@ class StaticCalibrationOptions:
     #: reproject to ~0.05 px: at the first adjustment's 1 px the priors outweighed them along the
     #: principal-point/rotation valley), principal points refined (σ 2 px around the image centre),
     #: centres left to the data (σ 0.3 m around the mounts)
+    #: A rectified camera's (one with a lens calibration's distortion) radial k1, k2 are refined there
+    #: too, with a prior of ``distortion_sigma`` around the rig's values (``bundle.py``): the guided
+    #: tracks cover the whole image, where the few hundred SfM points did not
     guided_bundle: BundleOptions = BundleOptions(pixel_sigma=0.1, focal_sigma_rel=0.03, centre_sigma_m=0.3,
-                                                 principal_sigma_px=2.0)
+                                                 principal_sigma_px=2.0, distortion_sigma=DISTORTION_SIGMA)
+    #: in that adjustment, the principal-point prior (px) of a camera whose rig carries measured
+    #: intrinsics (a lens calibration, its own or its lens group's) around the measured principal
+    #: point, in place of ``guided_bundle.principal_sigma_px`` (which is for nominal cameras: a centred
+    #: principal point, a sensor's ~1 px tolerance). None: ``guided_bundle``'s for every camera
+    measured_principal_sigma_px: float | None = MEASURED_PRINCIPAL_SIGMA_PX
     #: None (default) skips the photometric refinement: on the demo capture it did not beat the
     #: lidar-constrained bundle adjustment (rotation 0.19° vs 0.17° mean, centres 0.8 % vs 0.5 % of
     #: the stage) at ten times the cost; ``PhotometricOptions(max_points=20000, centre_sigma_m=0.03)``
@@ -243,7 +258,8 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
                         np.array([[model.intrinsics[c].cx, model.intrinsics[c].cy] for c in reg]),
                         model.points, model.obs_camera, model.obs_point, model.obs_xy, scan=scan,
                         focal_prior=np.array([intr[c].fx for c in reg]),
-                        centre_prior=np.stack([mounts[c] for c in reg]), options=options.bundle)
+                        centre_prior=np.stack([mounts[c] for c in reg]),
+                        lens_group=[cams[c].lens_group for c in reg], options=options.bundle)
     K = {c: np.array([[res["focal"][i], 0, intr[c].cx], [0, res["focal"][i], intr[c].cy], [0, 0, 1.0]])
          for i, c in enumerate(reg)}
     w2c = {c: res["world_to_camera"][i] for i, c in enumerate(reg)}
@@ -288,15 +304,21 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
         guide, stats["surface"] = surface_from_plates({c: background[c] for c in reg}, K, w2c)
         guided_bundle = replace(guided_bundle, centre_sigma_m=options.bundle.centre_sigma_m)
     if guide is not None and options.guided is not None:
-        # the tracks' cameras come in ``reg`` order, the order of the dict passed
-        tracks = guided_tracks({c: background[c] for c in reg}, K, w2c, guide, options.guided)
+        # the tracks' cameras come in ``reg`` order, the order of the dict passed; a rectified view's
+        # pixels without footage (a pincushion lens's black corners) take no part in the matching
+        valid = {c: undistort_valid_mask(raw_intr[c], raw_intr[c].distortion, intr[c], margin_px=1.0)
+                 for c in reg if c in raw_intr}
+        tracks = guided_tracks({c: background[c] for c in reg}, K, w2c, guide, options.guided, valid=valid)
         P = np.stack([K[c] @ w2c[c][:3] for c in reg])
         start = triangulate_points(P, tracks.obs_point, tracks.obs_camera, tracks.obs_xy, len(tracks.points))
         start = np.where(np.isfinite(start), start, tracks.points)
         g = bundle_adjust(np.stack([w2c[c] for c in reg]), np.array([K[c][0, 0] for c in reg]),
                           np.array([[intr[c].cx, intr[c].cy] for c in reg]), start, tracks.obs_camera,
                           tracks.obs_point, tracks.obs_xy, scan=scan, focal_prior=np.array([intr[c].fx for c in reg]),
-                          centre_prior=np.stack([mounts[c] for c in reg]), options=guided_bundle)
+                          centre_prior=np.stack([mounts[c] for c in reg]),
+                          lens_group=[cams[c].lens_group for c in reg],
+                          lens=[_radial_lens(intr[c], raw_intr.get(c)) for c in reg],
+                          principal_sigma=_principal_sigmas(reg, rig, guided_bundle, options), options=guided_bundle)
         K = {c: np.array([[g["focal"][i], 0, g["principal"][i, 0]], [0, g["focal"][i], g["principal"][i, 1]],
                           [0, 0, 1.0]]) for i, c in enumerate(reg)}
         w2c = {c: g["world_to_camera"][i] for i, c in enumerate(reg)}
@@ -304,6 +326,13 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
                            "median_reprojection_px": float(np.median(g["reprojection_px"][g["inlier"]])),
                            "through": "lidar scan" if scan is not None else "plane-sweep surface"}
         guided_counts = np.bincount(tracks.obs_camera[g["inlier"]], minlength=len(reg))
+        if "distortion" in g:   # the lens as refined: what the record and the frames rectified after use
+            for i, c in enumerate(reg):
+                if _radial_lens(intr[c], raw_intr.get(c)) is not None:
+                    raw_intr[c] = replace(raw_intr[c], distortion=_with_radial(raw_intr[c].distortion,
+                                                                               g["distortion"][i]))
+                    stats["guided"].setdefault("distortion_correction", {})[c] = {
+                        "dk1": float(g["distortion"][i][0]), "dk2": float(g["distortion"][i][1])}
         if scan is None:   # the adjusted cameras onto the mounts again (or the known distance)
             T, stats["frame"] = frame_without_lidar(w2c, mounts, options)
             w2c = {c: T.apply_pose(w2c[c]) for c in reg}
@@ -340,28 +369,174 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
                              raw_intrinsics={c: raw_from_rectified(K[c], raw_intr[c]) for c in reg if c in raw_intr})
 
 
+def _radial_lens(rect: Intrinsics, raw: Intrinsics | None) -> tuple[float, float, float, float, float] | None:
+    """``bundle_adjust``'s ``lens`` of a camera: the square pinhole ``rect`` its views and
+    observations were rectified into and the radial k1, k2 of its lens ``raw``; None when it was not
+    rectified, or its lens has no k1 and k2 to correct (PINHOLE with non-square pixels), or is a
+    rational FULL_OPENCV (k4-k6: the correction's radial slope assumes a polynomial): held."""
+    if raw is None or raw.distortion.model not in ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV"):
+        return None
+    full = [float(v) for v in raw.distortion.opencv_full()]
+    if any(full[5:]):
+        return None
+    return (rect.fx, rect.cx, rect.cy, full[0], full[1])
+
+
+def _with_radial(d: Distortion, correction) -> Distortion:
+    """``d`` with ``correction`` (dk1, dk2) added to its k1 and k2 (a SIMPLE_RADIAL lens becomes the
+    RADIAL one it then is)."""
+    if d.model == "SIMPLE_RADIAL":
+        d = Distortion("RADIAL", (d.params[0], 0.0))
+    params = list(d.params)
+    params[0] += float(correction[0])
+    params[1] += float(correction[1])
+    return Distortion(d.model, tuple(params))
+
+
+def _principal_sigmas(reg: Sequence[str], rig: Rig, bundle: BundleOptions,
+                      options: StaticCalibrationOptions) -> list[float] | None:
+    """The step-5 principal-point prior of each camera: ``options.measured_principal_sigma_px`` for a
+    camera with measured intrinsics in the rig, ``bundle.principal_sigma_px`` for the others."""
+    if bundle.principal_sigma_px is None or options.measured_principal_sigma_px is None:
+        return None
+    return [options.measured_principal_sigma_px if rig.measured_intrinsics(c) is not None
+            else bundle.principal_sigma_px for c in reg]
+
+
 def surface_from_plates(plates: Mapping[str, np.ndarray], K: Mapping[str, np.ndarray],
                         world_to_camera: Mapping[str, np.ndarray], min_points: int = 2000,
                         scale: float = 2.0) -> tuple[LidarScan | None, dict]:
     """A stand-in for the lidar scan when a capture has none: the plane-sweep points of the
-    background plates (:func:`~volcap_core.calibration.dense.dense_points`, cross-view consistent)
-    seen by the cameras of step 4, normals from their neighbours. Step 4's cameras are consistent
-    with each other (0.1-0.2 px) even where they are off in the stage frame, so the surface is the
-    set as they see it, which is all the guided matching needs to predict where a pixel of one
-    camera lands in another. None (and the count in the stats) when fewer than ``min_points``
-    points pass."""
-    from volcap_core.calibration.dense import DenseOptions, dense_points
+    background plates (:func:`~volcap_core.calibration.dense.depth_map`, fused by cross-view
+    consistency) seen by the cameras of step 4, normals from their neighbours. Step 4's cameras are
+    consistent with each other (0.1-0.2 px) even where they are off in the stage frame, so the
+    surface is the set as they see it, which is all the guided matching needs to predict where a
+    pixel of one camera lands in another. None (and the count in the stats) when fewer than
+    ``min_points`` points pass.
+
+    The sweep's depths come from the scene, per camera (:func:`_surface_depth_ranges`): a probe
+    sweep at half the working resolution over everything from a quarter of the rig's camera spacing
+    (the median distance from a camera to its nearest neighbour) to a thousand times it, then each
+    camera's 1st-99th percentile of the probe's fused points in its view, widened to 0.7x and 1.4x;
+    its neighbours are chosen at its median probe depth (the triangulation angle they see its scene
+    at). A camera whose probe saw almost nothing takes the widest range of the others, and a
+    background reaching the probe's nearest depth is named in a warning; both are counted in the
+    stats (``depth_fallback_cameras``, ``near_limit_cameras``), as is every range
+    (``depth_range.<id>.min_m`` / ``.max_m``, ``depth_min_m`` / ``depth_max_m``). Nothing is swept
+    over a fixed range: a scene of any size gives the same surface (scaled)."""
+    t0 = time.perf_counter()
+    ids = sorted(plates)
+    cameras = {c: (np.asarray(K[c], np.float64), np.asarray(world_to_camera[c], np.float64)) for c in ids}
+    ranges, middle, stats = _surface_depth_ranges(plates, cameras, scale)
+    # the working resolution is half the plates': a quarter of the sweep's cost; the guided
+    # matching searches ±3 px around what the surface predicts and refines by NCC on the full images
+    pos, _ = _sweep_and_fuse(plates, cameras, scale, ranges, middle)
+    stats.update({"points": len(pos), "seconds": time.perf_counter() - t0})
+    if len(pos) < min_points:
+        return None, stats
+    return LidarScan(np.asarray(pos, np.float64), None), stats
+
+
+#: the stand-in surface's probe: from this fraction of the median distance between neighbouring
+#: cameras (a surface nearer than ~0.8 of it is seen by a neighbour at more than the sweep's 50°
+#: anyway) to ``_PROBE_FAR`` times it; each camera's range is its ``_DEPTH_PERCENTILES`` of the
+#: probe's points, times ``_DEPTH_MARGIN``; fewer than ``_MIN_PROBE_POINTS`` in view: the fallback
+_PROBE_NEAR, _PROBE_FAR = 0.25, 1000.0
+_DEPTH_PERCENTILES, _DEPTH_MARGIN = (1.0, 99.0), (0.7, 1.4)
+_MIN_PROBE_POINTS = 100
+
+
+def _camera_centre(world_to_camera: np.ndarray) -> np.ndarray:
+    return -world_to_camera[:3, :3].T @ world_to_camera[:3, 3]
+
+
+def _sweep_and_fuse(images: Mapping[str, np.ndarray], cameras: Mapping[str, tuple[np.ndarray, np.ndarray]],
+                    scale: float, ranges: Mapping[str, tuple[float, float]], scene_depth: Mapping[str, float],
+                    depth_tol: float | None = None) -> tuple[np.ndarray, dict]:
+    """:func:`~volcap_core.calibration.dense.dense_points` with a depth range per reference camera
+    (``ranges``: id -> (min, max) metres) and its neighbours chosen for their angle at the scene
+    ``scene_depth`` metres along its axis (not at a fixed 5 m). Returns the fused points [N, 3] and
+    the depth maps."""
+    from volcap_core.calibration.dense import DenseOptions, choose_neighbours, depth_map, fuse_depth_maps
+
+    base = DenseOptions(scale=scale)
+    if depth_tol is not None:
+        base = replace(base, depth_tol=depth_tol)
+    maps = {}
+    for r in sorted(cameras):
+        lo, hi = ranges[r]
+        nbs = choose_neighbours(cameras, r, base.neighbours, base.min_angle_deg, base.max_angle_deg,
+                                scene_depth=float(scene_depth[r]))
+        if nbs:
+            maps[r] = depth_map(images, cameras, r, nbs, replace(base, depth_min=lo, depth_max=hi))
+    pos, _, _ = fuse_depth_maps(maps, images, base)
+    return pos, maps
+
+
+def _depths_in_view(points: np.ndarray, K: np.ndarray, world_to_camera: np.ndarray,
+                    size: tuple[int, int]) -> np.ndarray:
+    """Depths of the points in front of a camera that project into its ``size`` = (W, H) image."""
+    X = np.asarray(points, np.float64) @ world_to_camera[:3, :3].T + world_to_camera[:3, 3]
+    z = X[:, 2]
+    front = z > 1e-9
+    uv = X[front, :2] / z[front, None] @ K[:2, :2].T + K[:2, 2]
+    w, h = size
+    inside = (uv[:, 0] > -0.5) & (uv[:, 0] < w - 0.5) & (uv[:, 1] > -0.5) & (uv[:, 1] < h - 0.5)
+    return z[front][inside]
+
+
+def _surface_depth_ranges(plates: Mapping[str, np.ndarray], cameras: Mapping[str, tuple[np.ndarray, np.ndarray]],
+                          scale: float) -> tuple[dict[str, tuple[float, float]], dict[str, float], dict]:
+    """Each camera's sweep depth range for :func:`surface_from_plates`, from a probe sweep of the
+    plates, its median depth (where its neighbours are chosen) and the stats saying how they were
+    found. The probe chooses neighbours at the median distance to the other cameras (a rig looks
+    across its stage)."""
+    import logging
 
     t0 = time.perf_counter()
-    # half resolution: a quarter of the sweep's cost; the guided matching searches ±3 px around what
-    # the surface predicts and refines by NCC on the full images
-    out = dense_points(dict(plates), {c: (K[c], world_to_camera[c]) for c in plates},
-                       options=DenseOptions(scale=scale))
-    n = len(out["positions"])
-    stats = {"points": n, "seconds": time.perf_counter() - t0}
-    if n < min_points:
-        return None, stats
-    return LidarScan(np.asarray(out["positions"], np.float64), None), stats
+    ids = sorted(cameras)
+    log = logging.getLogger("volcap.calibrate")
+    centres = np.stack([_camera_centre(cameras[c][1]) for c in ids])
+    gaps = np.linalg.norm(centres[:, None] - centres[None], axis=-1) + np.diag(np.full(len(ids), np.inf))
+    spacing = max(float(np.median(gaps.min(1))), 1e-6)
+    near, far = _PROBE_NEAR * spacing, _PROBE_FAR * spacing
+    across = {c: float(np.median(gaps[i][np.isfinite(gaps[i])])) for i, c in enumerate(ids)}
+    probe, _ = _sweep_and_fuse(plates, cameras, 2 * scale, {c: (near, far) for c in ids}, across, depth_tol=0.02)
+    stats: dict = {"probe_points": len(probe), "camera_spacing_m": spacing, "probe_near_m": near, "probe_far_m": far,
+                   "depth_range": {}}
+    found: dict[str, tuple[float, float]] = {}
+    middle = dict(across)
+    close: list[str] = []
+    for c in ids:
+        h, w = np.asarray(plates[c]).shape[:2]
+        z = _depths_in_view(probe, cameras[c][0], cameras[c][1], (w, h))
+        stats["depth_range"][c] = {"probe_points": len(z)}
+        if len(z) < _MIN_PROBE_POINTS:
+            continue
+        lo, hi = np.percentile(z, _DEPTH_PERCENTILES)
+        middle[c] = float(np.median(z))
+        found[c] = (max(near, _DEPTH_MARGIN[0] * float(lo)), min(far, _DEPTH_MARGIN[1] * float(hi)))
+        if lo < 2 * near:
+            close.append(f"{c} ({lo:.2f} m)")
+    if found:
+        widest = (min(v[0] for v in found.values()), max(v[1] for v in found.values()))
+    else:   # the probe saw (almost) nothing: the whole probe range, slow but nothing left out
+        widest = (near, far)
+    ranges = {c: found.get(c, widest) for c in ids}
+    fallback = [c for c in ids if c not in found]
+    if fallback:
+        log.warning("no lidar scan: the stand-in surface's probe saw fewer than %d points in camera(s) %s; they "
+                    "sweep %.2f-%.1f m (%s)", _MIN_PROBE_POINTS, ", ".join(fallback), *widest,
+                    "the other cameras' widest range" if found else "the whole probe range")
+    if close:
+        log.warning("no lidar scan: the background of camera(s) %s reaches the stand-in surface's nearest probe "
+                    "depth (%.2f m): anything nearer is left out of it", ", ".join(close), near)
+    for c in ids:
+        stats["depth_range"][c].update({"min_m": ranges[c][0], "max_m": ranges[c][1]})
+    stats.update({"depth_min_m": min(v[0] for v in ranges.values()), "depth_max_m": max(v[1] for v in ranges.values()),
+                  "depth_fallback_cameras": len(fallback), "near_limit_cameras": len(close),
+                  "probe_seconds": time.perf_counter() - t0})
+    return ranges, middle, stats
 
 
 def _centre(world_to_camera: np.ndarray) -> np.ndarray:
