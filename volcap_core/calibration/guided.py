@@ -56,9 +56,11 @@ class GuidedMatchOptions:
     #: a match needs this NCC at its peak
     min_ncc: float = 0.85
     #: after the grid search, this many re-centred refinements: NCC at the current estimate and
-    #: ``refine_step_px`` either side in x and y, a parabola through each triple. The grid's parabola
-    #: alone is biased towards the grid's nodes, which sit at whole steps from the prediction, so its
-    #: matches leaned towards where the previous cameras predicted them (0: the grid's parabola only)
+    #: ``refine_step_px`` either side in x and y, a parabola through each triple. On a noise-free
+    #: texture the grid's parabola errs by 0.045 px rms (±0.01 px of it depending on where the match
+    #: falls between the grid's nodes), two refinements by 0.014 px; on the distorted demo capture
+    #: the cameras did not improve (0.068° / 0.137° against 0.066° / 0.115°), so 0 (the grid's
+    #: parabola only) stays the default
     refine_iterations: int = 0
     refine_step_px: float = 0.25
     #: |cos| of the angle between the scan normal and each view ray must exceed this
