@@ -20,7 +20,7 @@ from __future__ import annotations
 import json
 
 from tasks.contract import volcap_task
-from volcap_core.calibration import scale, steps
+from volcap_core.calibration import steps
 from volcap_core.calibration.colour import ColourCalibrationOptions
 from volcap_core.calibration.dense import DenseOptions
 from volcap_core.calibration.lidar import LidarScan
@@ -63,15 +63,10 @@ def calibrate_static(store: str, capture: ArtifactRef,
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
     statics, trackers = split_cameras(cap)
-    if known_points is not None:
-        scale.check_for_capture(cap.name, known_points, statics, trackers, options.known_distance)
+    # the known points are checked and applied inside the step (as pipeline.calibrate_capture does)
     step = steps.calibrate_static_step(cap.name, cap.rig, statics, trackers, cap.frame_count,
                                        steps.frame_loader(s.get_bytes, cap), steps.load_lidar(s.get_bytes, cap),
-                                       options)
-    if known_points is not None:
-        step.calibration = scale.apply_to_static_step(cap.name, cap.rig, step.calibration, known_points,
-                                                      has_scan=cap.lidar is not None,
-                                                      mount_tolerance_m=options.mount_tolerance_m)
+                                       options, known_points)
     reference = (s.put_bytes(steps.encode_reference(step.reference), MEDIA_SAFETENSORS)
                  if step.reference is not None else None)
     return s.put_record(steps.static_record(cap.name, step, reference))

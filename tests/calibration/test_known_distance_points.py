@@ -218,3 +218,132 @@ def test_triangulated_marks_report_their_geometry():
     assert np.allclose(marks["A"].position, A, atol=1e-9) and np.allclose(marks["B"].position, B, atol=1e-9)
     assert 40 < marks["A"].angle_deg < 100 and marks["A"].depth_m["C0"] > 4
     assert np.all(np.linalg.eigvalsh(marks["A"].covariance) > 0)
+
+
+# --------------------------------------------------------------------------- through the static step
+# ``steps.calibrate_static_step`` checks and applies the known points for both the calibrate-static
+# task and ``pipeline.calibrate_capture``. The SfM is replaced by the analytic ring (a calibration
+# shrunk by 3 %, what mounts surveyed 3 % short give), the frames are blank: no images are matched.
+
+class _Role:
+    def __init__(self, tracks: bool):
+        self.tracks, self.value = tracks, ("tracking" if tracks else "static")
+
+
+class _Camera:
+    def __init__(self, position, tracks: bool = False):
+        self.role = _Role(tracks)
+        self.mount = type("Mount", (), {"position_m": tuple(float(v) for v in position)})()
+
+
+class _Rig:
+    """What the static step and the record read of a rig: roles, mounts, the stage size."""
+
+    stage_size_m = (8.0, 8.0, 4.0)
+
+    def __init__(self, trackers=()):
+        self.cameras = {c: _Camera(MOUNTS[c]) for c in TRUE}
+        self.cameras.update({t: _Camera((0.0, 6.0, 1.5), tracks=True) for t in trackers})
+
+    def camera(self, cid):
+        return self.cameras[cid]
+
+
+def _blank(camera_id: str, take_index: int) -> np.ndarray:
+    return np.zeros((H, W, 3), np.float32)
+
+
+@pytest.fixture
+def shrunk_sfm(monkeypatch):
+    """The static step's SfM replaced by the analytic cameras shrunk by 3 %; records its calls."""
+    from volcap_core.calibration import steps
+
+    calls = []
+
+    def fake(images, rig, scan, **kw):
+        calls.append(sorted(images))
+        return _static(_shrunk(0.97))
+
+    monkeypatch.setattr(steps, "calibrate_static_cameras", fake)
+    return calls
+
+
+def _known() -> KnownPoints:
+    d = float(np.linalg.norm(A - B))
+    return KnownPoints(points={"A": _marks(A, ["C0", "C1", "C7"]), "B": _marks(B, ["C2", "C3"])}, distance_m=d)
+
+
+def test_calibrate_capture_scales_to_known_points(shrunk_sfm):
+    from volcap_core.calibration.pipeline import calibrate_capture
+
+    ids = sorted(TRUE)
+    plain = calibrate_capture(_blank, _Rig(), ids, 2, 24.0, capture_name="cap-k", encoder={}, scan=None)
+    res = calibrate_capture(_blank, _Rig(), ids, 2, 24.0, capture_name="cap-k", encoder={}, scan=None,
+                            known_points=_known())
+    assert shrunk_sfm == [ids, ids]
+    # without the marks the calibration stays 3 % small; with them the true cameras come back
+    assert abs(np.linalg.norm(camera_centre(plain.static.world_to_camera["C0"]) - MOUNTS["C0"]) - 0.15) < 1e-6
+    for c in ids:
+        assert np.allclose(res.static.world_to_camera[c], TRUE[c], atol=1e-9), c
+        assert np.allclose(res.record.camera(c).world_to_camera, TRUE[c], atol=1e-9), c
+    assert res.static.stats["frame"]["scale_source"] == 2.0
+    assert abs(res.record.stats["static_frame_known_points_scale"] - 1 / 0.97) < 1e-9
+    assert set(res.static.stats["known_points"]["points"]) == {"A", "B"}
+
+
+def test_calibrate_capture_refuses_bad_known_points_before_calibrating(shrunk_sfm):
+    from volcap_core.calibration.pipeline import CalibrationOptions, calibrate_capture
+    from volcap_core.calibration.static import StaticCalibrationOptions
+    from volcap_core.calibration.steps import CalibrationInputError
+
+    ids = sorted(TRUE)
+    bad = KnownPoints(points={"A": {**_marks(A, ["C0"]), "T001": [100.0, 100.0]}, "B": _marks(B, ["C2", "C3"])},
+                      distance_m=1.0)
+    with pytest.raises(CalibrationInputError, match=r"capture cap-k: known points: point A is marked in camera "
+                                                    r"T001, a tracking camera"):
+        calibrate_capture(_blank, _Rig(["T001"]), ids + ["T001"], 2, 24.0, capture_name="cap-k", encoder={},
+                          scan=None, known_points=bad)
+    both = CalibrationOptions(static=StaticCalibrationOptions(known_distance=("C0", "C4", 10.0)))
+    with pytest.raises(CalibrationInputError, match="capture cap-k: give either a known distance"):
+        calibrate_capture(_blank, _Rig(), ids, 2, 24.0, capture_name="cap-k", encoder={}, scan=None,
+                          options=both, known_points=_known())
+    assert shrunk_sfm == []
+
+
+def test_tracking_cameras_without_a_scan_are_refused_with_known_points(shrunk_sfm):
+    """Known points scale the static cameras; the tracking cameras register against the static
+    reference lifted onto a scan, which known points do not replace: refused, naming the capture."""
+    from volcap_core.calibration.pipeline import calibrate_capture
+    from volcap_core.calibration.steps import CalibrationInputError
+
+    ids = sorted(TRUE) + ["T001"]
+    with pytest.raises(CalibrationInputError, match=r"capture cap-k has tracking cameras \(T001\) but no lidar scan"
+                                                    r".*known points scale the static cameras only"):
+        calibrate_capture(_blank, _Rig(["T001"]), ids, 2, 24.0, capture_name="cap-k", encoder={}, scan=None,
+                          known_points=_known())
+    assert shrunk_sfm == []
+
+
+def test_the_static_reference_is_built_from_the_scaled_cameras(shrunk_sfm, monkeypatch):
+    """The static step applies the known points before it builds the static reference, so the
+    reference and the static cameras it is handed back with are in one frame (with a scan nothing
+    moves; the step is checked here with its no-scan refusal lifted)."""
+    from volcap_core.calibration import steps
+    from volcap_core.calibration.tracking import StaticReference
+
+    seen = {}
+
+    def reference(images, K, world_to_camera, scan, **kw):
+        seen.update(world_to_camera)
+        return StaticReference(np.zeros((0, 3)), np.zeros((0, 128), np.uint8))
+
+    monkeypatch.setattr(steps, "build_static_reference", reference)
+    sentinel = object()                                  # a "scan" the step only hands on
+    monkeypatch.setattr(steps.scale, "apply_to_static_step",
+                        lambda *a, has_scan, **kw: steps.scale.scale_to_known_points(
+                            a[2], a[3], MOUNTS, has_scan=False))   # scale as without a scan
+    step = steps.calibrate_static_step("cap-k", _Rig(["T001"]), sorted(TRUE), ["T001"], 2, _blank, sentinel,
+                                       known_points=_known())
+    assert step.reference is not None
+    for c in TRUE:
+        assert np.allclose(seen[c], step.calibration.world_to_camera[c]) and np.allclose(seen[c], TRUE[c], atol=1e-9)

@@ -18,6 +18,7 @@ import numpy as np
 from hardware.rig import Rig
 from volcap_core.calibration.lidar import LidarScan
 from volcap_core.calibration.record import Calibration, CameraCalibration, matrix4, tracking_frames_ref
+from volcap_core.calibration.scale import KnownPoints
 from volcap_core.calibration.static import StaticCalibration, StaticCalibrationOptions
 from volcap_core.calibration.steps import calibrate_static_step, tracking_blob
 from volcap_core.calibration.tracking import (StaticReference, TrackingOptions, TrackingSolution,
@@ -47,18 +48,24 @@ class CalibrationResult:
 
 def calibrate_capture(load: FrameSource, rig: Rig, camera_ids: list[str], frame_count: int, fps: float, *,
                       capture_name: str, encoder: Mapping[str, tuple[np.ndarray, np.ndarray]],
-                      scan: LidarScan | None, options: CalibrationOptions = CalibrationOptions()
-                      ) -> CalibrationResult:
+                      scan: LidarScan | None, options: CalibrationOptions = CalibrationOptions(),
+                      known_points: KnownPoints | None = None) -> CalibrationResult:
     """Calibrate every camera of a capture.
 
     ``camera_ids``: the capture's cameras (their roles come from the rig); ``encoder``: tracking camera
     id -> (take indices [S], focal mm [S]). Tracking cameras are skipped (with a note in ``stats``)
-    when the capture has none.
+    when the capture has none. ``known_points``: marked scene points and their measured distances
+    (``volcap calibrate --known-points``): without a scan the static calibration is scaled to them,
+    with one they are only checked; checked and applied by the static step exactly as the
+    ``calibrate-static`` task does (:func:`~volcap_core.calibration.steps.calibrate_static_step`).
+    Raises :class:`~volcap_core.calibration.steps.CalibrationInputError` naming the capture (and the
+    point and camera) on input that cannot be calibrated.
     """
     t0 = time.perf_counter()
     statics = [c for c in camera_ids if not rig.camera(c).role.tracks]
     trackers = [c for c in camera_ids if rig.camera(c).role.tracks]
-    step = calibrate_static_step(capture_name, rig, statics, trackers, frame_count, load, scan, options.static)
+    step = calibrate_static_step(capture_name, rig, statics, trackers, frame_count, load, scan, options.static,
+                                 known_points)
     static, reference, ref_frame = step.calibration, step.reference, step.reference_frame
     t2 = time.perf_counter()
     stats: dict = {"time_static_s": t2 - t0}  # frames are loaded inside the static step

@@ -27,6 +27,7 @@ from safetensors.numpy import load as st_load
 from safetensors.numpy import save as st_save
 
 from volcap_core import imageio
+from volcap_core.calibration import scale
 from volcap_core.calibration.colour import ColourCalibrationOptions
 from volcap_core.calibration.dense import DenseOptions, dense_points
 from volcap_core.calibration.distortion import rectified_valid, rectify_frame
@@ -215,16 +216,30 @@ class StaticStep:
 
 def calibrate_static_step(cap_name: str, rig, static_ids: Sequence[str], tracking_ids: Sequence[str],
                           frame_count: int, load: FrameSource, scan: LidarScan | None,
-                          options: StaticCalibrationOptions = StaticCalibrationOptions()) -> StaticStep:
+                          options: StaticCalibrationOptions = StaticCalibrationOptions(),
+                          known_points: scale.KnownPoints | None = None) -> StaticStep:
     """Calibrate the static cameras on :func:`reference_frame` with background plates, register them
     to the scan and, when the capture has tracking cameras, build the reference they register against.
 
+    ``known_points`` (:class:`~volcap_core.calibration.scale.KnownPoints`): marked scene points and
+    their measured distances. Checked against the capture's cameras before anything is calibrated
+    (:func:`scale.check_for_capture`), then applied to the static calibration
+    (:func:`scale.apply_to_static_step`: without a scan it is scaled to them, with a scan they are only
+    checked) *before* the static reference is built, so the reference's points are in the same
+    (scaled) frame as the static cameras. The one implementation for the ``calibrate-static`` task
+    and :func:`volcap_core.calibration.pipeline.calibrate_capture`.
+
     Refuses (:class:`CalibrationInputError`, naming the capture, frame and cameras) fewer than two
-    static cameras, tracking cameras without a scan, a camera the adjustment cannot support (too
-    few observations or too uncertain a pose, ``options.min_observations`` etc.) unless
-    ``options.allow_unregistered``, and fewer than ``options.min_registered_fraction`` of the static
-    cameras calibrated (a seeded camera without observations is not calibrated).
+    static cameras, tracking cameras without a scan (with or without known points: the tracking
+    cameras register against the static set lifted onto the scan), a camera the adjustment cannot
+    support (too few observations or too uncertain a pose, ``options.min_observations`` etc.) unless
+    ``options.allow_unregistered``, fewer than ``options.min_registered_fraction`` of the static
+    cameras calibrated (a seeded camera without observations is not calibrated), and known points
+    that cannot give a scale (the message names the point and camera) or come with
+    ``options.known_distance``.
     """
+    if known_points is not None:
+        scale.check_for_capture(cap_name, known_points, static_ids, tracking_ids, options.known_distance)
     if len(static_ids) < 2:
         raise CalibrationInputError(f"capture {cap_name}: static calibration needs at least two static cameras, "
                                     f"it has {len(static_ids)} ({', '.join(static_ids) or 'none'})")
@@ -233,7 +248,8 @@ def calibrate_static_step(cap_name: str, rig, static_ids: Sequence[str], trackin
         # came out 70-145° wrong on the test capture. Refuse rather than hand out such a calibration.
         raise CalibrationInputError(
             f"capture {cap_name} has tracking cameras ({', '.join(tracking_ids)}) but no lidar scan: they register "
-            "against the static set lifted onto the scan; name the scan in capture.json's 'lidar'")
+            "against the static set lifted onto the scan; name the scan in capture.json's 'lidar'"
+            + ("" if known_points is None else " (known points scale the static cameras only)"))
     if options.known_distance is not None:
         unknown = [c for c in options.known_distance[:2] if c not in static_ids]
         if unknown:
@@ -284,6 +300,11 @@ def calibrate_static_step(cap_name: str, rig, static_ids: Sequence[str], trackin
         log.warning("capture %s, frame %d: static cameras left out of the calibration (allow_unregistered): %s",
                     cap_name, ref_frame,
                     "; ".join(f"{c}: {static.reasons.get(c, 'not registered')}" for c in static.unregistered))
+    if known_points is not None:
+        # before the reference: were the static cameras scaled (no scan), the reference lifted from
+        # them is in the same frame (with a scan nothing moves; tracking without a scan is refused above)
+        static = scale.apply_to_static_step(cap_name, rig, static, known_points, has_scan=scan is not None,
+                                            mount_tolerance_m=options.mount_tolerance_m)
     reference = None
     if tracking_ids:
         # the plates are the cameras' own (distorted) images: resampled into the pinholes ``static.K``
