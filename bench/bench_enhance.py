@@ -83,7 +83,7 @@ if str(ROOT) not in sys.path:
 
 # ------------------------------------------------------------------------------------ settings
 
-FULL = {"frames": 24, "cameras": None, "heldout": ["F002", "F006"], "size": 128, "vae_steps": 900,
+FULL = {"frames": 24, "cameras": None, "heldout": ["F002", "F006"], "size": 128, "vae_steps": 3000,
         "steps": 4000, "crop": 64, "batch": 4, "lr": 1e-3, "vae_lr": 3e-3, "vae_batch": 4,
         "sample_steps": 8, "strength": 0.4, "resolutions": [128, 256, 512, 1024], "sheet_frames": [12]}
 QUICK = {"frames": 6, "cameras": ["F000", "F001", "F002"], "heldout": ["F002"], "size": 64,
@@ -255,7 +255,7 @@ def write_sheets(sheet_dir: Path, held: list, outputs: dict, scores_per: dict, f
                         out[t, :3].permute(1, 2, 0).numpy(), hq[t, 3].numpy())
 
     written = []
-    groups = {"enhance_heldout.png": ["LQ input", "bicubic/unsharp", "untrained", "full"],
+    groups = {"enhance_heldout.png": ["LQ input", "bicubic/unsharp", "untrained", "VAE round trip of HQ", "full"],
               "enhance_ablations.png": ["full", "full, from noise", "w/o OFW", "w/o OFW, w/o LFS"]}
     for fname, names in groups.items():
         rows = []
@@ -285,6 +285,8 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--sheets", type=Path, help="folder for enhance_*.png contact sheets")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--no-timing", action="store_true")
+    ap.add_argument("--models", type=Path, help="folder to save the trained full and image models in "
+                    "(enhancer_to_bytes: full.safetensors, image.safetensors) for later inspection")
     for k in ("vae_steps", "steps", "sample_steps", "size", "frames", "batch", "crop"):
         ap.add_argument(f"--{k.replace('_', '-')}", type=int)
     for k in ("lr", "vae_lr", "strength"):
@@ -341,6 +343,12 @@ def main(argv: list[str] | None = None) -> dict:
                          progress=prog("w/o OFW"), device="cpu")
     img_wall = time.perf_counter() - t0
 
+    if args.models is not None:
+        from volcap_core.enhance.model import enhancer_to_bytes
+
+        args.models.mkdir(parents=True, exist_ok=True)
+        for name, r in (("full", full), ("image", img)):
+            (args.models / f"{name}.safetensors").write_bytes(enhancer_to_bytes(r.model))
     untrained = build_enhancer(EnhancerConfig.small(), seed=0)
     untrained.config = untrained.config.model_copy(update={"train_crop": full.model.config.train_crop})
     torch.set_num_threads(min(2, max(1, args.threads)))

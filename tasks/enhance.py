@@ -162,7 +162,7 @@ def train_enhancer_task(store: str, pair_sets: list[ArtifactRef], prompts: dict[
     return ref
 
 
-@volcap_task(name="enhance-shot", version="3", libraries=(*ENHANCER_LIBRARIES, "OpenEXR"))
+@volcap_task(name="enhance-shot", version="4", libraries=(*ENHANCER_LIBRARIES, "OpenEXR"))
 def enhance_shot(store: str, frames: ArtifactRef, enhancer: ArtifactRef, group: str,
                  settings: EnhanceSettings = EnhanceSettings()) -> ArtifactRef:
     """Enhance a shot: ``frames`` (a ``render-shot`` tree of ``<frame:06d>.exr``) frame by frame
@@ -170,7 +170,8 @@ def enhance_shot(store: str, frames: ArtifactRef, enhancer: ArtifactRef, group: 
     (:func:`~volcap_core.enhance.production.enhance_shot_frames`), conditioned through the exact
     flow the frames carry (``settings.flow = "rendered"``, DIS where a frame has none; v3). A tree
     of the same names: half RGBA EXRs with the render's header (shot metadata, camera, crop) plus
-    ``volcap.enhanced``."""
+    ``volcap.enhanced``. Version 4: the low-frequency swap's RGB change is weighted by the swapped
+    alpha (no colour added outside the matte; ``swap_low_frequency_encoded``)."""
     from volcap_core.enhance.model import enhancer_from_bytes
     from volcap_core.enhance.production import enhance_shot_frames
 

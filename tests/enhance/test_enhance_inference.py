@@ -144,6 +144,7 @@ def test_low_frequency_swap_takes_the_lowest_level_from_the_input(model):
     from volcap_core.enhance.pyramid import lowpass
 
     lq = _frames(1, 64, 64, seed=6)[0]
+    lq[3] = 1.0   # an opaque frame: the swap's RGB change is weighted by the swapped alpha
     swapped = enhance_frame(model, lq, steps=2, seed=0)
     raw = enhance_frame(model, lq, steps=2, seed=0, lowfreq_swap=False)
     # the lowest level (5 levels: 2x2 here) of the display-encoded RGB, where the swap is done
@@ -189,6 +190,35 @@ def test_low_frequency_swap_leaves_a_black_background_black():
     assert float(swapped[:3].min()) >= 0.0 and float(swapped[3].min()) >= 0.0 and float(swapped[3].max()) <= 1.0
 
 
+def test_low_frequency_swap_is_the_papers_inside_the_matte_and_adds_no_colour_outside():
+    """The RGB change of the swap is weighted by the swapped alpha: where the matte is full it is
+    the paper's swap (on encoded RGB) exactly, where it is empty the output's RGB is unchanged, in
+    between it is the alpha's share of the change."""
+    from volcap_core.colour import srgb_decode_unbounded, srgb_encode_unbounded
+    from volcap_core.enhance.inference import swap_low_frequency_encoded
+    from volcap_core.enhance.pyramid import swap_low_frequency
+
+    g = torch.Generator().manual_seed(3)
+    h = w = 128
+    xx = torch.arange(w).float().expand(h, w)
+    alpha = ((xx - 40) / 48).clamp(0, 1)            # empty | ramp | full, left to right
+    lq = torch.cat([0.4 * alpha.expand(3, h, w), alpha[None]])
+    out = torch.cat([(0.25 * alpha + 0.05 * torch.rand(h, w, generator=g)).expand(3, h, w), alpha[None]])
+    swapped = swap_low_frequency_encoded(out, lq)
+
+    enc = lambda x: torch.cat([srgb_encode_unbounded(x[:3].clamp(min=0)), x[3:]])  # noqa: E731
+    paper = swap_low_frequency(enc(out), enc(lq))
+    paper_alpha = paper[3].clamp(0, 1)
+    full, empty = paper_alpha >= 1.0, paper_alpha <= 0.0
+    assert full.any() and empty.any()
+    torch.testing.assert_close(swapped[3], paper_alpha)
+    assert torch.allclose(srgb_encode_unbounded(swapped[:3])[:, full], paper[:3, full].clamp(min=0), atol=1e-5)
+    torch.testing.assert_close(swapped[:3][:, empty], out[:3][:, empty], atol=1e-6, rtol=1e-5)
+    mid = (paper_alpha > 0.2) & (paper_alpha < 0.8)
+    want = srgb_decode_unbounded(enc(out)[:3] + paper_alpha * (paper[:3] - enc(out)[:3])).clamp(min=0)
+    torch.testing.assert_close(swapped[:3][:, mid], want[:, mid], atol=1e-5, rtol=1e-4)
+
+
 def test_strength_starts_the_sampler_from_the_noised_lq(model):
     from volcap_core.enhance.inference import img2img_steps
     from volcap_core.enhance.model import decode_rgba, encode_conditions
@@ -223,7 +253,8 @@ def test_strength_starts_the_sampler_from_the_noised_lq(model):
 def test_transparent_pixels_carry_no_colour():
     from volcap_core.enhance.inference import TRANSPARENT, premultiplied
 
-    rgba = torch.rand(2, 4, 8, 8)
+    rgba = torch.rand(2, 4, 8, 8, generator=torch.Generator().manual_seed(0))
+    rgba[:, 3] = TRANSPARENT + (1 - TRANSPARENT) * rgba[:, 3]  # visible: alpha >= one 8-bit code
     rgba[:, 3, :4] = 0.5 * TRANSPARENT  # transparent: top half
     out = premultiplied(rgba)
     assert torch.equal(out[:, :3, :4], torch.zeros(2, 3, 4, 8))

@@ -34,9 +34,13 @@ previous LQ and the flow between the LQ frames) into an enhanced RGBA frame:
    it (a 4x4 lowest level of a 128-px crop reaches ~30 px), and near black the display encoding
    magnifies that (linear 0.007 is display 0.08): measured on held-out frames of the bench's
    model, swapping in linear light cost 1.1-1.4 dB of display PSNR, in the encoded space 0.1-0.2 dB,
-   and with the img2img start (below) it gains 0.5-0.7 dB. Decoded RGB is clamped to >= 0 before
-   it (the decoder can return negative light, which no display shows) and after it, alpha to
-   [0, 1].
+   and with the img2img start (below) it gains 0.5-0.7 dB. Even there the lowest level (4x4 on a
+   128-px crop) carries the face's colour a few pixels past the silhouette, so the RGB change is
+   weighted by the swapped alpha: ``rgb + alpha (swapped_rgb - rgb)``, exactly the paper's swap
+   inside the matte (alpha 1), none outside it (alpha 0), where the LQ says there is no colour to
+   correct (measured on the whole-frame outputs of a 4000-step bench model: 23.58 dB / 0.631 SSIM
+   against 23.31 / 0.569 unweighted). Decoded RGB is clamped to >= 0 before it (the decoder can
+   return negative light, which no display shows) and after it, alpha to [0, 1].
 
 8. transparent pixels carry no colour: RGB is set to 0 where the enhanced alpha is below
    :data:`TRANSPARENT` (one 8-bit code). The output is premultiplied, as the render is, and a
@@ -246,17 +250,19 @@ def premultiplied(rgba: torch.Tensor) -> torch.Tensor:
 
 def swap_low_frequency_encoded(output: torch.Tensor, lq: torch.Tensor, levels: int = 5) -> torch.Tensor:
     """The low-frequency swap of RGBA ``output`` with ``lq`` (``[..., 4, H, W]``, linear RGB) done
-    on sRGB-encoded RGB and linear alpha (module docstring, 7.); returns linear RGB >= 0 and alpha
-    in [0, 1]."""
+    on sRGB-encoded RGB and linear alpha, the RGB change weighted by the swapped alpha (module
+    docstring, 7.); returns linear RGB >= 0 and alpha in [0, 1]. Where the swapped alpha is 1 this
+    is exactly the paper's swap."""
     from volcap_core.colour import srgb_decode_unbounded, srgb_encode_unbounded
     from volcap_core.enhance.pyramid import swap_low_frequency
 
-    def encoded(x: torch.Tensor) -> torch.Tensor:
-        return torch.cat([srgb_encode_unbounded(x[..., :3, :, :].clamp(min=0.0)), x[..., 3:, :, :]], dim=-3)
-
-    y = swap_low_frequency(encoded(output), encoded(lq), levels)
-    return torch.cat([srgb_decode_unbounded(y[..., :3, :, :]).clamp(min=0.0),
-                      y[..., 3:, :, :].clamp(0.0, 1.0)], dim=-3)
+    rgb = srgb_encode_unbounded(output[..., :3, :, :].clamp(min=0.0))
+    enc = torch.cat([rgb, output[..., 3:, :, :]], dim=-3)
+    enc_lq = torch.cat([srgb_encode_unbounded(lq[..., :3, :, :].clamp(min=0.0)), lq[..., 3:, :, :]], dim=-3)
+    y = swap_low_frequency(enc, enc_lq, levels)
+    alpha = y[..., 3:, :, :].clamp(0.0, 1.0)
+    rgb = rgb + alpha * (y[..., :3, :, :] - rgb)   # the colour change stays inside the matte
+    return torch.cat([srgb_decode_unbounded(rgb).clamp(min=0.0), alpha], dim=-3)
 
 
 def img2img_steps(steps: int, strength: float) -> int:
