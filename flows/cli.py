@@ -222,6 +222,15 @@ def reconstruct(capture: Annotated[str, typer.Argument(help="capture ref name (c
     _emit({**result, **summary.counts()}, json_out, "\n".join(lines))
 
 
+def _read_json(path: Path) -> Any:
+    """A JSON file given on the command line; a :class:`CommandError` naming it when it cannot be
+    read or parsed."""
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise CommandError(f"{path}: not a readable JSON file: {exc}") from None
+
+
 def _scale_options(known_distance: str | None, known_points: Path | None
                    ) -> tuple[tuple[str, str, float] | None, dict | None]:
     """``--known-distance CAM_A,CAM_B,METRES`` -> (a, b, metres); ``--known-points FILE`` -> its
@@ -243,10 +252,7 @@ def _scale_options(known_distance: str | None, known_points: Path | None
     if known_points is not None:
         from volcap_core.calibration.scale import KnownPoints, KnownPointsError
 
-        try:
-            marks = json.loads(known_points.read_text())
-        except (OSError, ValueError) as exc:
-            raise CommandError(f"{known_points}: not a readable JSON file: {exc}") from None
+        marks = _read_json(known_points)
         try:
             KnownPoints.parse(marks, str(known_points))
         except KnownPointsError as exc:
@@ -289,10 +295,7 @@ def calibrate(capture: Annotated[str, typer.Argument(help="capture ref name (cap
 
     charts = None
     if colour_charts is not None:
-        try:
-            charts = json.loads(colour_charts.read_text())
-        except (OSError, ValueError) as exc:
-            raise CommandError(f"{colour_charts}: not a readable JSON file: {exc}") from None
+        charts = _read_json(colour_charts)
     distance, marks = _scale_options(known_distance, known_points)
     summary = _run(calibrate_flow, store=_store_url(store), capture=capture, frames=_frame_span(frames),
                    allow_unregistered=allow_unregistered, colour_charts=charts, instants=instants,
@@ -329,10 +332,7 @@ def calibrate_colour_cmd(charts: Annotated[Path, typer.Argument(help="JSON file:
     Prints the record's ref, the 3x3 matrix and offset, and the chart's colour error (ΔE2000)
     before and after; --json adds it all as JSON.
     """
-    try:
-        spec = json.loads(charts.read_text())
-    except (OSError, ValueError) as exc:
-        raise CommandError(f"{charts}: not a readable JSON file: {exc}") from None
+    spec = _read_json(charts)
     start_api_early()
     from flows.calibrate import calibrate_colour_flow
 
@@ -455,7 +455,7 @@ def _camera_args(s, seg, camera: str | None, camera_json: Path | None, time_s: f
     import numpy as np
 
     if camera_json is not None:
-        doc = json.loads(camera_json.read_text())
+        doc = _read_json(camera_json)
         try:
             return np.asarray(doc["K"], float), np.asarray(doc["world_to_camera"], float), int(doc["width"]), int(doc["height"])
         except KeyError as exc:

@@ -91,6 +91,13 @@ def test_conflicting_or_bad_options_are_refused_before_any_flow(flow_calls, tmp_
     res = _invoke("calibrate", "captures/x", "--known-points", str(bad))
     assert isinstance(res.exception, cli.CommandError)
     assert str(res.exception) == f"{bad}: point A is marked in 1 camera(s) (S001); it needs at least two"
+    # a file that is not JSON, or is missing, is named (the same check for every JSON option)
+    broken = tmp_path / "broken.json"
+    broken.write_text("{not json")
+    for opt, path in (("--known-points", broken), ("--colour-charts", broken), ("--known-points", tmp_path / "no.json")):
+        res = _invoke("calibrate", "captures/x", opt, str(path))
+        assert isinstance(res.exception, cli.CommandError), res.output
+        assert str(res.exception).startswith(f"{path}: not a readable JSON file"), res.exception
     assert flow_calls == []
 
 
