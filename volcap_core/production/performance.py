@@ -32,7 +32,7 @@ from volcap_core.splat.camera import Camera
 from volcap_core.splat.model import Poly4DGS, evaluate
 from volcap_core.splat.render import Backend, render
 
-__all__ = ["Box", "Performance", "PerformanceSegment", "render_performance", "segments_at", "stage_volume"]
+__all__ = ["Box", "Performance", "PerformanceSegment", "gaussians_in_volume", "render_performance", "segments_at", "stage_volume"]
 
 
 class PerformanceSegment(BaseModel):
@@ -117,6 +117,17 @@ def stage_volume(stage_size_m: Sequence[float], floor_clearance_m: float = 0.03)
     return (-sx / 2, -sy / 2, floor_clearance_m), (sx / 2, sy / 2, sz)
 
 
+def gaussians_in_volume(gaussians, volume: Box | None):
+    """The :class:`~volcap_core.splat.Gaussians3D` whose centre is inside ``volume`` (all of them
+    when None): the selection :func:`render_performance` renders and the shot's flow follows."""
+    if volume is None:
+        return gaussians
+    lo = torch.tensor(volume[0], dtype=gaussians.means.dtype, device=gaussians.means.device)
+    hi = torch.tensor(volume[1], dtype=gaussians.means.dtype, device=gaussians.means.device)
+    inside = ((gaussians.means >= lo) & (gaussians.means <= hi)).all(dim=1)
+    return gaussians.select(torch.nonzero(inside).squeeze(1))
+
+
 def render_performance(performance: Performance, load_model: Callable[[ArtifactRef], Poly4DGS],
                        camera: Camera, t: float, backend: Backend = "auto", *,
                        background: torch.Tensor | None = None, volume: Box | None = None
@@ -141,13 +152,7 @@ def render_performance(performance: Performance, load_model: Callable[[ArtifactR
     with torch.no_grad():
         for seg, w in parts:
             model = load_model(seg.model)
-            gaussians = evaluate(model, t)
-            if volume is not None:
-                lo = torch.tensor(volume[0], dtype=gaussians.means.dtype, device=gaussians.means.device)
-                hi = torch.tensor(volume[1], dtype=gaussians.means.dtype, device=gaussians.means.device)
-                inside = ((gaussians.means >= lo) & (gaussians.means <= hi)).all(dim=1)
-                gaussians = gaussians.select(torch.nonzero(inside).squeeze(1))
-            out = render(gaussians, camera, backend=backend)
+            out = render(gaussians_in_volume(evaluate(model, t), volume), camera, backend=backend)
             wa = w * out["alpha"]
             if rgb is None:
                 rgb, alpha, depth_acc = w * out["rgb"], wa, wa * out["depth"]

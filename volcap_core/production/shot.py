@@ -53,10 +53,11 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from volcap_core.calibration.geometry import look_at_rotation
 from volcap_core.chromaticities import WORKING_CHROMATICITIES
 from volcap_core.production._errors import format_validation_error
-from volcap_core.production.performance import Box, Performance, render_performance, segments_at
+from volcap_core.production.performance import (Box, Performance, gaussians_in_volume, render_performance,
+                                               segments_at)
 from volcap_core.records import ArtifactRef
 from volcap_core.splat.camera import Camera
-from volcap_core.splat.model import Gaussians3D, Poly4DGS, evaluate
+from volcap_core.splat.model import Poly4DGS, evaluate
 from volcap_core.splat.render import FLOW_MIN_ALPHA, Backend, gaussians_at, render_flow
 
 __all__ = [
@@ -511,16 +512,6 @@ def encode_shot_exr(rgba: np.ndarray, camera: Camera, shot: Shot, frame: int, *,
     return out.getvalue()
 
 
-def _in_volume(gaussians: Gaussians3D, volume: Box | None) -> Gaussians3D:
-    """The Gaussians whose centre is inside ``volume`` (:func:`render_performance`'s selection)."""
-    if volume is None:
-        return gaussians
-    lo = torch.tensor(volume[0], dtype=gaussians.means.dtype, device=gaussians.means.device)
-    hi = torch.tensor(volume[1], dtype=gaussians.means.dtype, device=gaussians.means.device)
-    inside = ((gaussians.means >= lo) & (gaussians.means <= hi)).all(dim=1)
-    return gaussians.select(torch.nonzero(inside).squeeze(1))
-
-
 def _segment_key(seg) -> tuple:
     return seg.frames, seg.model.digest
 
@@ -554,7 +545,7 @@ def render_performance_flow(performance: Performance, load_model: Callable[[Arti
     with torch.no_grad():
         for seg, w in parts:
             model = load_model(seg.model)
-            gaussians = _in_volume(evaluate(model, t), volume)
+            gaussians = gaussians_in_volume(evaluate(model, t), volume)
             out = render_flow(gaussians, gaussians_at(model, prev_t, gaussians.ids), camera, prev_camera,
                               backend=backend, min_alpha=0.0)
             wa = w * out["alpha"]
