@@ -140,9 +140,19 @@ class Production:
         path = Path(w).expanduser()
         return path if path.is_absolute() else (self.spec_dir / path).resolve()
 
+    def enhancer_flow_weights(self) -> Path | None:
+        """The quality preset's ``enhancer_flow_weights`` (a local RAFT weights file; relative to the
+        spec file), None when not set."""
+        w = self.spec.quality_preset().enhancer_flow_weights
+        if w is None:
+            return None
+        path = Path(w).expanduser()
+        return path if path.is_absolute() else (self.spec_dir / path).resolve()
+
     def check_enhancer(self, where: str | Path | None = None) -> None:
         """Before anything runs: an enhanced shot with the FLUX.1 architecture needs its weights
-        directory (``ValueError`` naming the spec and the path otherwise)."""
+        directory, one with ``enhancer_flow`` RAFT its weights file and torchvision (``ValueError``
+        naming the spec and the path otherwise)."""
         if not any(s.kind in ENHANCER_STEPS for s in self.steps):
             return
         from volcap_core.enhance.production import check_flux_directory
@@ -163,6 +173,15 @@ class Production:
                 check_flux_directory(weights)
             except FileNotFoundError as exc:
                 raise ValueError(f"{where}: quality.{exc}") from None
+        if q.enhancer_flow in ("raft", "raft-small") and any(s.kind == "enhance-shot" for s in self.steps):
+            from volcap_core.enhance.production import check_raft_weights
+
+            try:  # the file and torchvision; the weights load when a shot is enhanced
+                check_raft_weights(q.enhancer_flow, self.enhancer_flow_weights(),
+                                   what=f"{where}: quality.enhancer_flow {q.enhancer_flow}",
+                                   knob="quality.enhancer_flow_weights")
+            except (FileNotFoundError, RuntimeError) as exc:
+                raise ValueError(str(exc)) from None
 
 
 def open_production(spec_path: str | Path, store: str | None = None,
@@ -257,6 +276,10 @@ def step_fingerprint(prod: Production, step: Step, done: dict[str, dict[str, Art
         from volcap_core.enhance.production import directory_fingerprint
 
         fp["weights"] = directory_fingerprint(prod.enhancer_weights())
+    elif step.kind == "enhance-shot" and prod.enhancer_flow_weights() is not None:
+        from volcap_core.enhance.production import directory_fingerprint
+
+        fp["flow_weights"] = directory_fingerprint(prod.enhancer_flow_weights())
     elif step.parameters.get("capture_ref"):
         fp["source"] = ArtifactStore(prod.store).resolve(step.parameters["capture_ref"]).digest
     return fp
@@ -564,12 +587,16 @@ def enhance_shots(prod: Production, s: ArtifactStore, q, captures: dict[str, Art
         s.set_ref(f"productions/{prod.spec.name}/enhancer", enhancer)
         finish(step, {"enhancer": enhancer, **{f"prompt:{a}": r for a, r in prompts.items()}})
     submitted = []
+    # RAFT's weights file (enhancer_flow raft / raft-small): a location, pinned by its fingerprint
+    flow_weights = prod.enhancer_flow_weights()
+    raft = {} if flow_weights is None else {"flow_weights": str(flow_weights),
+                                            "flow_weights_fingerprint": directory_fingerprint(flow_weights)}
     for step in (st for st in prod.steps if st.kind == "enhance-shot"):
         p = step.parameters
         frames = done[f"render-shot:{p['shot']}"]["frames"]
         # the shot's prompt group: its first actor's (a shot of several actors uses that one prompt)
         submitted.append((step, enhance_shot.submit(prod.store, frames, enhancer, p["actors"][0],
-                                                    q.enhance_settings())))
+                                                    q.enhance_settings(), **raft)))
     for step, future in submitted:
         shot = step.parameters["shot"]
         ref = future.result()

@@ -13,8 +13,9 @@ Each loads its inputs from the store, calls :mod:`volcap_core.enhance` (the prod
 - ``enhance-shot``: a shot's render-shot frames enhanced in order, as 16-bit RGBA EXRs keeping the
   render's header (the shot's metadata).
 
-Local weights (a FLUX.1 directory, its text encoders) are *locations*: their path is not in the
-key, their stat fingerprint (:func:`~volcap_core.enhance.production.directory_fingerprint`) is.
+Local weights (a FLUX.1 directory, its text encoders, enhance-shot's RAFT weights file) are
+*locations*: their path is not in the key, their stat fingerprint
+(:func:`~volcap_core.enhance.production.directory_fingerprint`) is.
 """
 
 from __future__ import annotations
@@ -162,25 +163,44 @@ def train_enhancer_task(store: str, pair_sets: list[ArtifactRef], prompts: dict[
     return ref
 
 
-@volcap_task(name="enhance-shot", version="4", libraries=(*ENHANCER_LIBRARIES, "OpenEXR"))
+@volcap_task(name="enhance-shot", version="4", locations=("flow_weights",),
+             libraries=(*ENHANCER_LIBRARIES, "OpenEXR"))
 def enhance_shot(store: str, frames: ArtifactRef, enhancer: ArtifactRef, group: str,
-                 settings: EnhanceSettings = EnhanceSettings()) -> ArtifactRef:
+                 settings: EnhanceSettings = EnhanceSettings(), flow_weights: str | None = None,
+                 flow_weights_fingerprint: str | None = None) -> ArtifactRef:
     """Enhance a shot: ``frames`` (a ``render-shot`` tree of ``<frame:06d>.exr``) frame by frame
     in order with the ``train-enhancer`` model ``enhancer`` and prompt ``group``
     (:func:`~volcap_core.enhance.production.enhance_shot_frames`), conditioned through the exact
     flow the frames carry (``settings.flow = "rendered"``, DIS where a frame has none; v3). A tree
     of the same names: half RGBA EXRs with the render's header (shot metadata, camera, crop) plus
     ``volcap.enhanced``. Version 4: the low-frequency swap's RGB change is weighted by the swapped
-    alpha (no colour added outside the matte; ``swap_low_frequency_encoded``)."""
+    alpha (no colour added outside the matte; ``swap_low_frequency_encoded``).
+
+    ``settings.flow = "raft"`` / ``"raft-small"``: torchvision's RAFT with the local weights file
+    ``flow_weights`` (a location: its path is not in the key), its content pinned by
+    ``flow_weights_fingerprint`` (:func:`~volcap_core.enhance.production.directory_fingerprint`,
+    required with it). The back-end is built before anything is loaded or stored: no torchvision,
+    no weights or weights that do not load fail naming the shot and the file
+    (:func:`~volcap_core.enhance.production.shot_flow_backend`)."""
     from volcap_core.enhance.model import enhancer_from_bytes
-    from volcap_core.enhance.production import enhance_shot_frames
+    from volcap_core.enhance.production import enhance_shot_frames, shot_flow_backend
 
     s = ArtifactStore(store)
     log = get_run_logger()
-    rec = s.get_record(enhancer, EnhancerModel)
-    model = enhancer_from_bytes(s.get_bytes(rec.model))
     tree = s.get_tree(frames)
     names = sorted(tree)
+    raft = settings.flow in ("raft", "raft-small")
+    shot = _shot_name(s, tree, names, frames) if raft or flow_weights is not None else f"of frames {frames.digest}"
+    if flow_weights is not None and not raft:
+        raise ValueError(f"shot {shot}: flow_weights {flow_weights} given but settings.flow is {settings.flow!r} "
+                         "(RAFT weights are for flow 'raft' / 'raft-small')")
+    if flow_weights is not None and flow_weights_fingerprint is None:
+        raise ValueError(f"shot {shot}: flow_weights {flow_weights} without flow_weights_fingerprint: the cache "
+                         "key would not see the file's content (directory_fingerprint(path))")
+    # before the enhancer is loaded (on the CPU, as RAFT then is) and before any frame is stored
+    backend = shot_flow_backend(settings, flow_weights, shot=shot, fingerprint=flow_weights_fingerprint)
+    rec = s.get_record(enhancer, EnhancerModel)
+    model = enhancer_from_bytes(s.get_bytes(rec.model))
     bar = ProgressArtifact(artifact_key("enhance", group), f"Enhancing {len(names)} frame(s): frames done")
 
     def inputs():
@@ -193,9 +213,21 @@ def enhance_shot(store: str, frames: ArtifactRef, enhancer: ArtifactRef, group: 
 
     out = {name: s.put_bytes(data, MEDIA_EXR)
            for name, data in enhance_shot_frames(model, inputs(), settings, group=group,
-                                                 model_digest=rec.model.digest, progress=progress)}
+                                                 model_digest=rec.model.digest, progress=progress,
+                                                 flow_backend=backend, shot=shot)}
     bar.finish()
     return s.put_tree(out)
+
+
+def _shot_name(s: ArtifactStore, tree, names: list[str], frames: ArtifactRef) -> str:
+    """The shot a render-shot tree holds (its first frame's ``volcap.shot``), for messages."""
+    from volcap_core.enhance.production import read_shot_frame
+
+    if names:
+        shot = read_shot_frame(s.get_bytes(tree[names[0]].digest))[0].get("volcap.shot")
+        if shot:
+            return str(shot)
+    return f"of frames {frames.digest}"
 
 
 __all__ = ["actor_prompt", "enhance_shot", "face_pairs", "train_enhancer_task"]

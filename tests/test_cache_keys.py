@@ -290,10 +290,22 @@ def test_enhancer_keys():
         enhance_tasks.enhance_shot, dict(frames=ref("a"), enhancer=ref("b"), group="anna", settings=settings),
         misses={"the frames": {"frames": ref("c")}, "the enhancer": {"enhancer": ref("c")}, "the group": {"group": "ben"},
                 "sampling steps": {"settings": settings.model_copy(update={"steps": settings.steps + 1})},
-                "tiling": {"settings": settings.model_copy(update={"tile": 512})}},
+                "tiling": {"settings": settings.model_copy(update={"tile": 512})},
+                "the flow back-end": {"settings": settings.model_copy(update={"flow": "dis"})}},
         hits={"the preset's settings rebuilt": {"settings": named_preset("test").enhance_settings()}})
+    # RAFT's weights file: a location, its content pinned by its fingerprint
+    raft = settings.model_copy(update={"flow": "raft"})
+    assert_key_behaviour(
+        enhance_tasks.enhance_shot, dict(frames=ref("a"), enhancer=ref("b"), group="anna", settings=raft,
+                                         flow_weights="/w/raft.pth", flow_weights_fingerprint="blake3:1"),
+        misses={"the RAFT weights' content": {"flow_weights_fingerprint": "blake3:2"},
+                "RAFT's small variant": {"settings": settings.model_copy(update={"flow": "raft-small"})},
+                "DIS instead": {"settings": settings.model_copy(update={"flow": "dis"}), "flow_weights": None,
+                                "flow_weights_fingerprint": None}},
+        hits={"where the RAFT weights are": {"flow_weights": "/elsewhere/raft_large.pth"}})
     assert enhance_tasks.enhance_shot.cache_policy.key(
-        {"store": STORE, "frames": ref("a"), "enhancer": ref("b"), "group": "anna", "settings": EnhanceSettings()}
+        {"store": STORE, "frames": ref("a"), "enhancer": ref("b"), "group": "anna", "settings": EnhanceSettings(),
+         "flow_weights": None, "flow_weights_fingerprint": None}
     ) == task_cache_key(enhance_tasks.enhance_shot, STORE, frames=ref("a"), enhancer=ref("b"), group="anna")
 
 

@@ -46,7 +46,8 @@ ENHANCER_TRAINING_FIELDS = ("enhancer_architecture", "enhancer_weights", "enhanc
                             "enhancer_frozen_dtype", "enhancer_lora_rank", "enhancer_lr", "enhancer_batch", "enhancer_crop",
                             "enhancer_vae_steps", "enhancer_checkpoint_every")
 #: The preset fields that shape a shot's enhancement (an enhance-shot step carries them).
-ENHANCING_FIELDS = ("enhancer_sampling_steps", "enhancer_strength", "enhancer_tile", "enhancer_vae_tiling")
+ENHANCING_FIELDS = ("enhancer_sampling_steps", "enhancer_strength", "enhancer_tile", "enhancer_vae_tiling",
+                    "enhancer_flow", "enhancer_flow_weights")
 
 _TRAIN = TrainConfig.model_fields
 _MCMC = MCMCConfig.model_fields
@@ -105,6 +106,13 @@ class QualityPreset(BaseModel):
     enhancer_strength: float = Field(1.0, gt=0, le=1, description="fraction of the sampler's noise levels run, starting from the noised LQ (1: from pure noise, as Flux samples)")
     enhancer_tile: int | None = Field(1024, ge=16, description="latent tile (px, multiple of 16); null: whole frame")
     enhancer_vae_tiling: bool = Field(True, description="the VAE's own tiling for large frames")
+    enhancer_flow: Literal["rendered", "dis", "zero", "raft", "raft-small"] = Field(
+        "rendered", description="flow between consecutive LQ frames: rendered (the shot renderer's exact flow, "
+                                "DIS where a frame has none), dis, zero, raft / raft-small (torchvision's RAFT "
+                                "from enhancer_flow_weights)")
+    enhancer_flow_weights: str | None = Field(None, description="local RAFT weights file (torchvision raft_large / "
+                                              "raft_small state dict) for enhancer_flow raft / raft-small; relative "
+                                              "paths are relative to the spec file")
 
     @model_validator(mode="after")
     def _cap(self) -> "QualityPreset":
@@ -112,6 +120,13 @@ class QualityPreset(BaseModel):
             raise ValueError("set max_gaussians_per_segment or gpu_memory_gb (or both)")
         if self.enhancer_tile is not None and self.enhancer_tile % 16:
             raise ValueError(f"enhancer_tile must be a multiple of 16 px, got {self.enhancer_tile}")
+        raft = self.enhancer_flow in ("raft", "raft-small")
+        if raft and self.enhancer_flow_weights is None:
+            raise ValueError(f"enhancer_flow {self.enhancer_flow} needs enhancer_flow_weights: a local RAFT weights "
+                             "file (docs/enhancer.md)")
+        if self.enhancer_flow_weights is not None and not raft:
+            raise ValueError(f"enhancer_flow_weights is set but enhancer_flow is {self.enhancer_flow}: RAFT weights "
+                             "are for raft / raft-small")
         if self.enhancer_crop % 16:
             raise ValueError(f"enhancer_crop must be a multiple of 16 px, got {self.enhancer_crop}")
         lo, hi = self.face_lq_gaussians
@@ -178,7 +193,7 @@ class QualityPreset(BaseModel):
         from volcap_core.enhance.production import EnhanceSettings
 
         return EnhanceSettings(steps=self.enhancer_sampling_steps, strength=self.enhancer_strength,
-                               tile=self.enhancer_tile, vae_tiling=self.enhancer_vae_tiling)
+                               tile=self.enhancer_tile, vae_tiling=self.enhancer_vae_tiling, flow=self.enhancer_flow)
 
     def train_config(self, *, degrees: str = "poly4dgs", held_out: Sequence[str] = (),
                      max_gaussians: int | None = None, **overrides: Any) -> TrainConfig:

@@ -190,6 +190,151 @@ def test_the_rendered_flow_is_read_and_used_and_dis_only_where_a_frame_has_none(
 
 
 # ---------------------------------------------------------------------------------------------
+# RAFT as a shot's flow: selected by the settings, its weights file a location
+
+
+def _no_torchvision(monkeypatch):
+    import sys
+
+    for name in ("torchvision", "torchvision.models", "torchvision.models.optical_flow"):
+        monkeypatch.setitem(sys.modules, name, None)                      # import raises ImportError
+
+
+def test_raft_is_a_flow_setting_and_refused_clearly_before_any_frame(tmp_path, monkeypatch):
+    """``flow="raft"`` without weights, with a missing file, a file changed since it was
+    fingerprinted, or without torchvision: an error naming the shot (and the file), raised before
+    the first frame is even read."""
+    from pydantic import ValidationError
+
+    from volcap_core.enhance.production import directory_fingerprint, shot_flow_backend
+    from volcap_core.enhance.temporal import FlowUnavailable
+
+    assert EnhanceSettings(flow="raft").flow == "raft" and EnhanceSettings(flow="raft-small").flow == "raft-small"
+    with pytest.raises(ValidationError):
+        EnhanceSettings(flow="raft-large")
+    raft = EnhanceSettings(flow="raft")
+    with pytest.raises(ValueError, match=r"^shot cu: flow 'raft' needs a local RAFT weights file .*raft_large.*"
+                                         r"set flow_weights"):
+        shot_flow_backend(raft, None, shot="cu")
+    missing = tmp_path / "missing.pth"
+    with pytest.raises(FileNotFoundError, match=rf"^shot cu: flow 'raft': no RAFT weights file at {missing}$"):
+        shot_flow_backend(raft, missing, shot="cu")
+    weights = tmp_path / "raft.pth"
+    weights.write_bytes(b"not a state dict")
+    pinned = directory_fingerprint(weights)
+    weights.write_bytes(b"other weights, longer")
+    with pytest.raises(ValueError, match=rf"^shot cu: flow 'raft': the RAFT weights file {weights} changed"):
+        shot_flow_backend(raft, weights, shot="cu", fingerprint=pinned)
+    _no_torchvision(monkeypatch)
+    with pytest.raises(FlowUnavailable, match=r"^shot cu: flow 'raft-small' needs torchvision, which is not "
+                                              r"installed here: install .*pip install torchvision.*raft\.pth"):
+        shot_flow_backend(EnhanceSettings(flow="raft-small"), weights, shot="cu",
+                          fingerprint=directory_fingerprint(weights))
+
+    read = []
+
+    def frames():
+        read.append(1)
+        yield "000000.exr", b""
+
+    shot_frames = enhance_shot_frames(None, frames(), raft, group="anna", model_digest="blake3:m", shot="cu")
+    with pytest.raises(ValueError, match="^shot cu: flow 'raft' needs a local RAFT weights file"):
+        next(shot_frames)
+    assert not read                                                       # refused before the first frame
+
+
+def test_raft_selection_hands_raft_flow_the_weights_and_is_used_for_every_frame(tmp_path, monkeypatch):
+    """The back-end selection builds RaftFlow from the weights file (large or small), wraps a file
+    that does not load, and enhance_shot_frames conditions every frame after the first through it
+    (even one carrying rendered flow), recorded as ``raft``. RAFT itself is not run here: it needs
+    torchvision (a stand-in records how it was built and returns zero flow)."""
+    import sys
+    import types
+
+    import volcap_core.enhance.temporal as temporal
+    from volcap_core.enhance.model import EnhancerConfig, build_enhancer
+    from volcap_core.enhance.production import shot_flow_backend
+
+    model = build_enhancer(EnhancerConfig.tiny(), seed=0)                # diffusers imported before the stand-in
+    for name in ("torchvision", "torchvision.models", "torchvision.models.optical_flow"):
+        monkeypatch.setitem(sys.modules, name, types.ModuleType(name))    # only the import check passes
+    built, calls = [], []
+
+    class RecordingRaft:
+        def __init__(self, weights_path, *, small=False, device="cpu", **kw):
+            if weights_path.name == "bad.pth":
+                raise RuntimeError("Error(s) in loading state_dict for RAFT")
+            built.append((weights_path, small, device))
+
+        def __call__(self, prev, cur):
+            calls.append(tuple(cur.shape))
+            return torch.zeros(2, *cur.shape[-2:])
+
+    monkeypatch.setattr(temporal, "RaftFlow", RecordingRaft)
+    weights = tmp_path / "raft.pth"
+    weights.write_bytes(b"weights")
+    assert isinstance(shot_flow_backend(EnhanceSettings(flow="raft"), str(weights), shot="cu"), RecordingRaft)
+    assert isinstance(shot_flow_backend(EnhanceSettings(flow="raft-small"), weights, shot="cu"), RecordingRaft)
+    assert built == [(weights, False, "cpu"), (weights, True, "cpu")]
+    assert isinstance(shot_flow_backend(EnhanceSettings(), None, shot="cu"), temporal.DisFlow)
+    assert isinstance(shot_flow_backend(EnhanceSettings(flow="dis"), None, shot="cu"), temporal.DisFlow)
+    assert shot_flow_backend(EnhanceSettings(flow="zero"), None, shot="cu") is None
+    bad = tmp_path / "bad.pth"
+    bad.write_bytes(b"weights")
+    with pytest.raises(temporal.FlowUnavailable, match=rf"^shot cu: flow 'raft': the RAFT weights file {bad} does "
+                                                       r"not load into torchvision's raft_large: Error\(s\) in loading"):
+        shot_flow_backend(EnhanceSettings(flow="raft"), bad, shot="cu")
+
+    frames = []
+    for t in range(3):
+        rgba = np.zeros((20, 24, 4), np.float32)
+        rgba[4 + t:14 + t, 5:15] = [0.4, 0.3, 0.2, 1.0]
+        flow = None if t == 0 else np.zeros((20, 24, 2), np.float32)
+        frames.append((f"{t:06d}.exr", _shot_frame(rgba, (3, 2, 18, 17), frame=t, flow=flow)))
+    settings = EnhanceSettings(steps=1, tile=None, vae_tiling=False, flow="raft")
+    backend = shot_flow_backend(settings, weights, shot="cu")
+    out = list(enhance_shot_frames(model, frames, settings, group="anna", model_digest="blake3:m",
+                                   flow_backend=backend))
+    assert [_exr(data)[0]["volcap.enhanceFlow"] for _, data in out] == ["none", "raft", "raft"]
+    assert calls == [(3, 20, 24)] * 2                                    # RGB of each later frame
+
+
+def test_the_enhance_shot_task_refuses_raft_before_anything_is_stored(prefect_api, tmp_path, monkeypatch):
+    from prefect import flow
+
+    from tasks.enhance import enhance_shot
+    from volcap_core.enhance.production import directory_fingerprint
+    from volcap_core.records import MEDIA_EXR
+
+    s = ArtifactStore(str(tmp_path / "store"))
+    rgba = np.zeros((12, 16, 4), np.float32)
+    tree = s.put_tree({f"{t:06d}.exr": s.put_bytes(_shot_frame(rgba, frame=t), MEDIA_EXR) for t in range(2)})
+    before = {d for d, _ in s.iter_objects()}
+    enhancer = ArtifactStore(str(tmp_path / "other")).put_bytes(b"no enhancer needed to refuse")
+
+    @flow
+    def one(**kw):
+        return enhance_shot(s.url, tree, enhancer, "anna", **kw)
+
+    raft = EnhanceSettings(flow="raft", steps=1, tile=None)
+    with pytest.raises(ValueError, match="^shot cu: flow 'raft' needs a local RAFT weights file"):
+        run_flow(one, settings=raft)
+    missing = tmp_path / "raft.pth"
+    with pytest.raises(FileNotFoundError, match=rf"^shot cu: flow 'raft': no RAFT weights file at {missing}$"):
+        run_flow(one, settings=raft, flow_weights=str(missing), flow_weights_fingerprint="blake3:0")
+    missing.write_bytes(b"weights")
+    with pytest.raises(ValueError, match="^shot cu: flow_weights .* without flow_weights_fingerprint"):
+        run_flow(one, settings=raft, flow_weights=str(missing))
+    with pytest.raises(ValueError, match="^shot cu: flow_weights .* given but settings.flow is 'rendered'"):
+        run_flow(one, settings=EnhanceSettings(), flow_weights=str(missing),
+                 flow_weights_fingerprint=directory_fingerprint(missing))
+    _no_torchvision(monkeypatch)
+    with pytest.raises(RuntimeError, match="^shot cu: flow 'raft' needs torchvision"):
+        run_flow(one, settings=raft, flow_weights=str(missing), flow_weights_fingerprint=directory_fingerprint(missing))
+    assert {d for d, _ in s.iter_objects()} == before                   # nothing enhanced, nothing stored
+
+
+# ---------------------------------------------------------------------------------------------
 # End to end
 
 
@@ -240,6 +385,43 @@ def test_volcap_plan_names_a_missing_flux_directory_in_one_line(static_capture, 
     assert lines[0] == (f"volcap: error: {spec}: quality.enhancer_weights {tmp_path / 'weights/FLUX.1-dev'}: no "
                         "such directory (a local FLUX.1 checkpoint directory with transformer/ and vae/; "
                         "docs/enhancer.md)")
+
+
+def test_a_raft_flow_in_a_spec_is_checked_before_anything_runs(static_capture, tmp_path, monkeypatch):
+    """``quality.enhancer_flow: raft`` needs ``enhancer_flow_weights`` (a file relative to the spec),
+    and torchvision, checked when the production opens; the step's fingerprint holds the file's."""
+    import sys
+    import types
+
+    from flows.production import step_fingerprint
+    from volcap_core.enhance.production import directory_fingerprint
+    from volcap_core.presets import named_preset
+
+    with pytest.raises(ValueError, match="enhancer_flow raft needs enhancer_flow_weights"):
+        named_preset("test").with_overrides(enhancer_flow="raft")
+    with pytest.raises(ValueError, match="enhancer_flow_weights is set but enhancer_flow is rendered"):
+        named_preset("test").with_overrides(enhancer_flow_weights="raft.pth")
+    store = ArtifactStore(str(tmp_path / "store")).url
+    spec = _spec(tmp_path / "spec.yaml", static_capture, store, enhancer_flow="raft",
+                 enhancer_flow_weights="weights/raft.pth")
+    weights = tmp_path / "weights" / "raft.pth"
+    with pytest.raises(ValueError, match=rf"^{spec}: quality.enhancer_flow raft: no RAFT weights file at {weights}$"):
+        open_production(spec)
+    weights.parent.mkdir()
+    weights.write_bytes(b"weights")
+    with monkeypatch.context() as m:
+        _no_torchvision(m)
+        with pytest.raises(ValueError, match=rf"^{spec}: quality.enhancer_flow raft needs torchvision"):
+            open_production(spec)
+    assert open_production(spec, shots=["wide"])          # without an enhanced shot RAFT does not matter
+    for name in ("torchvision", "torchvision.models", "torchvision.models.optical_flow"):
+        monkeypatch.setitem(sys.modules, name, types.ModuleType(name))    # the import check passes
+    prod = open_production(spec)
+    assert prod.enhancer_flow_weights() == weights and prod.spec.quality_preset().enhance_settings().flow == "raft"
+    step = next(st for st in prod.steps if st.kind == "enhance-shot")
+    assert step.parameters["enhancer_flow"] == "raft"
+    done = {i: {"out": ArtifactStore(store).put_bytes(i.encode())} for i in step.inputs}
+    assert step_fingerprint(prod, step, done)["flow_weights"] == directory_fingerprint(weights)
 
 
 @pytest.mark.slow

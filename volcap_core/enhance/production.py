@@ -41,6 +41,7 @@ __all__ = [
     "PairDegradation",
     "PairSequence",
     "check_flux_directory",
+    "check_raft_weights",
     "decode_pair_sequence",
     "directory_fingerprint",
     "encode_enhanced_frame",
@@ -51,6 +52,7 @@ __all__ = [
     "has_text_encoders",
     "load_pair_sets",
     "read_shot_frame",
+    "shot_flow_backend",
     "square_window",
 ]
 
@@ -127,8 +129,11 @@ class EnhanceSettings(BaseModel):
     small frames with the tiny model, whose VAE tile is 64 px); ``flow``: the flow between
     consecutive LQ frames: ``rendered`` (default: the exact flow the shot renderer wrote into the
     frame, channels ``flow.x``/``flow.y``, and OpenCV DIS for a frame without it: across a segment
-    boundary, or frames not rendered by render-shot v3+), ``dis`` (always DIS) or ``zero``;
-    ``temporal``/``lowfreq_swap``: the ablation switches of :func:`~volcap_core.enhance.inference.enhance_frame`."""
+    boundary, or frames not rendered by render-shot v3+), ``dis`` (always DIS), ``zero``, or
+    ``raft`` / ``raft-small`` (always torchvision's RAFT large / small, from a local weights file
+    that reaches the task as its ``flow_weights`` location and ``flow_weights_fingerprint``, never
+    in these settings; :func:`shot_flow_backend`); ``temporal``/``lowfreq_swap``: the ablation
+    switches of :func:`~volcap_core.enhance.inference.enhance_frame`."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
     steps: int = Field(28, ge=1)
@@ -137,7 +142,7 @@ class EnhanceSettings(BaseModel):
     tile: int | None = Field(1024, ge=16)
     overlap: int | None = Field(None, ge=0)
     vae_tiling: bool = True
-    flow: Literal["rendered", "dis", "zero"] = "rendered"
+    flow: Literal["rendered", "dis", "zero", "raft", "raft-small"] = "rendered"
     temporal: bool = True
     lowfreq_swap: bool = True
 
@@ -339,9 +344,72 @@ def encode_enhanced_frame(rgba: np.ndarray, header: Mapping[str, Any],
     return buf.getvalue()
 
 
+def shot_flow_backend(settings: EnhanceSettings, flow_weights=None, *, shot: str,
+                      fingerprint: str | None = None, device: str | torch.device = "cpu"):
+    """The flow back-end of a shot's frames that carry no exact flow (``settings.flow``), built and
+    checked before any frame is enhanced: ``rendered`` / ``dis``: OpenCV DIS
+    (:class:`~volcap_core.enhance.temporal.DisFlow`); ``zero``: None; ``raft`` / ``raft-small``:
+    :class:`~volcap_core.enhance.temporal.RaftFlow` (large / small) on ``device`` with the weights
+    file ``flow_weights`` (a torchvision ``raft_large`` / ``raft_small`` state dict on local disk;
+    never downloaded). ``fingerprint``: when given, the :func:`directory_fingerprint` the caller's
+    cache key holds for the file; a file changed since is refused (the key would not see it).
+
+    Each refusal names the shot (and the file): ``ValueError`` without ``flow_weights`` or with a
+    stale fingerprint, ``FileNotFoundError`` for a missing file,
+    :class:`~volcap_core.enhance.temporal.FlowUnavailable` without torchvision or when the file does
+    not load into the model."""
+    from volcap_core.enhance import temporal
+
+    if settings.flow in ("rendered", "dis"):
+        return temporal.DisFlow()
+    if settings.flow == "zero":
+        return None
+    what = f"shot {shot}: flow {settings.flow!r}"
+    path = check_raft_weights(settings.flow, flow_weights, what=what, fingerprint=fingerprint)
+    small = settings.flow == "raft-small"
+    try:
+        return temporal.RaftFlow(path, small=small, device=device)
+    except Exception as exc:
+        raise temporal.FlowUnavailable(f"{what}: the RAFT weights file {path} does not load into torchvision's "
+                                       f"{'raft_small' if small else 'raft_large'}: {exc}") from exc
+
+
+def check_raft_weights(flow: str, flow_weights, *, what: str, fingerprint: str | None = None,
+                       knob: str = "flow_weights"):
+    """What :func:`shot_flow_backend` checks before it loads RAFT (and a production before anything
+    runs): ``flow_weights`` given, an existing file (its ``fingerprint`` unchanged when given),
+    torchvision importable. Returns the file's path; each refusal starts with ``what``, and a missing
+    path names ``knob``, the setting that gives it."""
+    from pathlib import Path
+
+    from volcap_core.enhance.temporal import FlowUnavailable
+
+    small = flow == "raft-small"
+    arch = "raft_small" if small else "raft_large"
+    if flow_weights is None:
+        raise ValueError(f"{what} needs a local RAFT weights file (torchvision's {arch} state dict, e.g. "
+                         f"{'raft_small_C_T_V2-01064c6d.pth' if small else 'raft_large_C_T_SKHT_V2-ff5fadd5.pth'}; "
+                         f"never downloaded): set {knob} (docs/enhancer.md)")
+    path = Path(flow_weights).expanduser()
+    if not path.is_file():
+        raise FileNotFoundError(f"{what}: no RAFT weights file at {path}")
+    if fingerprint is not None and fingerprint != directory_fingerprint(path):
+        raise ValueError(f"{what}: the RAFT weights file {path} changed since it was fingerprinted "
+                         f"({fingerprint}); fingerprint it again")
+    try:
+        import torchvision.models.optical_flow  # noqa: F401
+    except ImportError as exc:
+        raise FlowUnavailable(
+            f"{what} needs torchvision, which is not installed here: install the torchvision release that "
+            f"matches torch {torch.__version__} (pip install torchvision), or use flow 'rendered' or 'dis' "
+            f"(RAFT weights {path})") from exc
+    return path
+
+
 def enhance_shot_frames(model, frames: Sequence[tuple[str, bytes]] | Iterable[tuple[str, bytes]],
                         settings: EnhanceSettings, *, group: str, model_digest: str,
-                        progress: Callable[[int, str], None] | None = None) -> Iterator[tuple[str, bytes]]:
+                        progress: Callable[[int, str], None] | None = None, flow_backend=None,
+                        shot: str = "?") -> Iterator[tuple[str, bytes]]:
     """Enhance a shot's render-shot frames **in order** (each frame is conditioned on the previous
     one's output): yields ``(name, EXR bytes)`` per input ``(name, EXR bytes)``.
 
@@ -350,16 +418,19 @@ def enhance_shot_frames(model, frames: Sequence[tuple[str, bytes]] | Iterable[tu
     (none for the first frame), noise seeded ``settings.seed + t``. The flow (``settings.flow``):
     ``rendered`` takes the exact flow the frame carries (``flow.x``/``flow.y``, written by
     render-shot) when it has one and its ``volcap.frame`` follows the previous frame's, OpenCV
-    DIS otherwise (across a segment boundary); ``dis`` always DIS; ``zero`` no motion. Which one
-    conditioned the frame is recorded as ``volcap.enhanceFlow`` (``rendered``, ``dis``, ``zero``,
+    DIS otherwise (across a segment boundary); ``dis`` always DIS; ``zero`` no motion; ``raft`` /
+    ``raft-small`` always RAFT. ``flow_backend``: :func:`shot_flow_backend` of ``settings`` (the
+    task builds it before loading anything; left None it is built here for ``shot``, before the
+    first frame, and RAFT then refuses for want of weights). Which one conditioned the frame is
+    recorded as ``volcap.enhanceFlow`` (``rendered``, ``dis``, ``zero``, ``raft``, ``raft-small``,
     or ``none``: first frame, after an empty frame, temporal conditioning off). Output RGB is
     clamped to >= 0 (it is premultiplied, as the render is), alpha is in [0, 1]. An empty frame
     (``volcap.empty``: nothing in view) stays empty and restarts the temporal chain.
     Only one frame and its predecessor are held in memory."""
     from volcap_core.enhance.inference import enhance_frame
-    from volcap_core.enhance.temporal import DisFlow
 
-    dis = None
+    backend = flow_backend if flow_backend is not None else shot_flow_backend(settings, shot=shot)
+    label = "dis" if settings.flow == "rendered" else settings.flow
     prev_out = prev_lq = prev_frame = None
     for t, (name, data) in enumerate(frames):
         header, lq_np, flow_np = read_shot_frame(data, with_flow=True)
@@ -378,8 +449,7 @@ def enhance_shot_frames(model, frames: Sequence[tuple[str, bytes]] | Iterable[tu
                 elif settings.flow == "rendered" and flow_np is not None and follows:
                     flow, used = torch.from_numpy(flow_np).permute(2, 0, 1).contiguous(), "rendered"
                 else:
-                    dis = dis or DisFlow()
-                    flow, used = dis, "dis"
+                    flow, used = backend, label
             out = enhance_frame(model, lq, prev_out, prev_lq if prev_out is not None else None, flow,
                                 steps=settings.steps, strength=settings.strength, seed=settings.seed + t,
                                 tile=settings.tile, overlap=settings.overlap, group=group, temporal=settings.temporal,
@@ -399,17 +469,21 @@ def enhance_shot_frames(model, frames: Sequence[tuple[str, bytes]] | Iterable[tu
 
 
 def directory_fingerprint(path) -> str:
-    """What pins a local weights directory's content in a cache key without reading its gigabytes:
-    the BLAKE3 of every file's relative path, size and mtime (ns), sorted (the stat fingerprint
-    ``fingerprint-camera`` uses for raw footage). Raises ``FileNotFoundError`` for a missing
-    directory."""
+    """What pins local weights' content in a cache key without reading their gigabytes: the
+    BLAKE3 of every file's relative path, size and mtime (ns), sorted (the stat fingerprint
+    ``fingerprint-camera`` uses for raw footage). ``path`` is a weights directory (a FLUX.1
+    checkpoint) or a single weights file (RAFT's; its one row has the relative path ``""``, so
+    neither its directory nor its name enters the key). Raises ``FileNotFoundError`` for neither."""
     from pathlib import Path
 
     from volcap_core.digest import digest_bytes
 
     root = Path(path)
+    if root.is_file():
+        st = root.stat()
+        return digest_bytes(json.dumps([["", st.st_size, st.st_mtime_ns]], separators=(",", ":")).encode())
     if not root.is_dir():
-        raise FileNotFoundError(f"{root}: no such directory")
+        raise FileNotFoundError(f"{root}: no such directory or file")
     rows = []
     for p in sorted(root.rglob("*")):
         if p.is_file():
