@@ -13,6 +13,7 @@ task runs count, cache and retry as that run's own.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 from prefect import flow, get_run_logger, unmapped
@@ -23,6 +24,7 @@ from tasks.calibrate import (assemble_calibration, calibrate_colour, calibrate_s
 from volcap_core.calibration.steps import CalibrationInputError, ChartView, ColourMatrixRecord
 from volcap_core.calibration.record import Calibration
 from volcap_core.calibration.scale import KnownPoints, KnownPointsError
+from volcap_core.calibration.sfm import StaticSfmOptions
 from volcap_core.calibration.static import StaticCalibrationOptions
 from volcap_core.capture import Capture
 from volcap_core.records import ArtifactRef
@@ -30,15 +32,22 @@ from volcap_core.store import ArtifactStore
 
 
 def static_calibration_options(allow_unregistered: bool = False, instants: int = 1,
-                               known_distance: tuple[str, str, float] | None = None
-                               ) -> StaticCalibrationOptions | None:
+                               known_distance: tuple[str, str, float] | None = None,
+                               min_pair_inliers: int | None = None) -> StaticCalibrationOptions | None:
     """The static calibration's settings from the options of ``volcap calibrate`` / ``volcap
     reconstruct``: only those given differ from the defaults; None when none is given (the
     defaults' cache key). The calibrate and reconstruct flows both build them here, so the same
-    options give the same (cached) calibration from either command."""
+    options give the same (cached) calibration from either command. ``min_pair_inliers``: the
+    verified matches a camera pair needs in the static SfM (``StaticSfmOptions.min_pair_inliers``;
+    None: its default, tuned on the 320x180 demo rig's close neighbours)."""
     given = {k: v for k, v in (("allow_unregistered", allow_unregistered), ("instants", instants),
                                ("known_distance", tuple(known_distance) if known_distance else None))
              if v != getattr(StaticCalibrationOptions, k)}
+    if min_pair_inliers is not None and min_pair_inliers != StaticSfmOptions.min_pair_inliers:
+        if min_pair_inliers < 8:
+            raise CalibrationInputError(f"min_pair_inliers must be at least 8 (a two-view geometry's own "
+                                        f"minimum), got {min_pair_inliers}")
+        given["sfm"] = replace(StaticSfmOptions(), min_pair_inliers=int(min_pair_inliers))
     return StaticCalibrationOptions(**given) if given else None
 
 
@@ -192,7 +201,7 @@ def calibrate_flow(store: str, capture: str, frames: tuple[int, int] | None = No
                    allow_unregistered: bool = False, colour_charts: dict | None = None,
                    colour_base_dir: str | None = None, instants: int = 1,
                    known_distance: tuple[str, str, float] | None = None,
-                   known_points: dict | None = None) -> dict:
+                   known_points: dict | None = None, min_pair_inliers: int | None = None) -> dict:
     """Calibrate ``capture`` (a ref name such as ``captures/demo`` or a digest) and compute dense
     points for ``frames`` [a, b) (all frames when None).
 
@@ -203,6 +212,10 @@ def calibrate_flow(store: str, capture: str, frames: tuple[int, int] | None = No
     lidar scan (``StaticCalibrationOptions.known_distance``; default: the rig's mounts). ``known_points``:
     the JSON of :class:`~volcap_core.calibration.scale.KnownPoints` (named scene points marked in two or
     more static cameras and the measured distance between them), the scale instead.
+    ``min_pair_inliers``: the verified matches a pair of static cameras needs to take part in the
+    static SfM (default 36, tuned on the 320x180 demo rig whose neighbours share 50-95; a sparse rig
+    of wide baselines, e.g. 40 views around one object, needs ~20, or its cameras fall apart into
+    weakly tied groups that the adjustment turns by degrees: docs/calibration.md).
 
     Returns JSON: ``calibration`` and ``points`` (ref dumps), ``errors`` (the error table of
     ``volcap_core.calibration.metrics`` when the capture carries ground truth, else None),
@@ -228,7 +241,8 @@ def calibrate_flow(store: str, capture: str, frames: tuple[int, int] | None = No
              len(cap.cameras) - len(trackers), len(trackers), a, b)
     # only the settings given differ from the task's defaults (none given: the defaults' cache key)
     calib_ref = calibrate_capture(store, capture_ref,
-                                  static_calibration_options(allow_unregistered, instants, known_distance), known)
+                                  static_calibration_options(allow_unregistered, instants, known_distance,
+                                                             min_pair_inliers), known)
     calib = s.get_record(calib_ref, Calibration)
     unregistered = calib.unregistered
     # without a lidar scan: the stage frame from the mounts (or a known distance) and their residual

@@ -179,6 +179,7 @@ def reconstruct(capture: Annotated[str, typer.Argument(help="capture ref name (c
                 allow_unregistered: Annotated[bool, typer.Option("--allow-unregistered", help="the calibration run here (no --calibration) leaves out (and lists) a static camera the adjustment cannot support instead of failing, as volcap calibrate --allow-unregistered; training leaves it out")] = False,
                 known_distance: Annotated[Optional[str], typer.Option(help="CAM_A,CAM_B,METRES for the calibration run here (no --calibration), as volcap calibrate --known-distance")] = None,
                 known_points: Annotated[Optional[Path], typer.Option(help="JSON of named scene points and their measured distance for the calibration run here (no --calibration), as volcap calibrate --known-points")] = None,
+                min_pair_inliers: Annotated[Optional[int], typer.Option(min=8, help="for the calibration run here (no --calibration), as volcap calibrate --min-pair-inliers")] = None,
                 seed: Annotated[int, typer.Option()] = 0,
                 out: Annotated[Path, typer.Option(help="folder for each segment's contact sheet PNG")] = Path("reconstruct"),
                 store: StoreOpt = DEFAULT_STORE, json_out: JsonOpt = False) -> None:
@@ -192,13 +193,13 @@ def reconstruct(capture: Annotated[str, typer.Argument(help="capture ref name (c
     held = [c for c in held_out.split(",") if c] if held_out is not None else None
     distance, marks = _scale_options(known_distance, known_points)
     given = [o for o, v in (("--allow-unregistered", allow_unregistered), ("--known-distance", distance),
-                            ("--known-points", marks)) if v]
+                            ("--known-points", marks), ("--min-pair-inliers", min_pair_inliers)) if v]
     if given and (calibration or ground_truth):
         raise typer.BadParameter(f"{', '.join(given)} set the calibration reconstruct runs itself; with "
                                  f"{'--calibration' if calibration else '--ground-truth'} it runs none "
                                  "(pass them to volcap calibrate instead)", param_hint=given[0])
     extra = {k: v for k, v in (("allow_unregistered", allow_unregistered), ("known_distance", distance),
-                               ("known_points", marks)) if v}
+                               ("known_points", marks), ("min_pair_inliers", min_pair_inliers)) if v}
     summary = _run(reconstruct_flow, store=_store_url(store), capture=capture, frames=span, preset=preset,
                    degrees=degrees, segment_frames=segment_frames, calibration=calibration, points=points,
                    held_out=held, seed=seed, ground_truth=ground_truth, steps=steps, max_gaussians=max_gaussians,
@@ -284,6 +285,7 @@ def calibrate(capture: Annotated[str, typer.Argument(help="capture ref name (cap
               instants: Annotated[int, typer.Option(min=1, help="take instants pooled into the static cameras' SfM, spread over the take (a sparse or dark background); 1: the middle frame alone")] = 1,
               known_distance: Annotated[Optional[str], typer.Option(help="CAM_A,CAM_B,METRES: measured distance between two static cameras' optical centres, the scale of a capture without a lidar scan (default: the rig's mounts)")] = None,
               known_points: Annotated[Optional[Path], typer.Option(help="JSON file: named scene points (marks on the floor, a scale bar's ends) by their pixels in two or more static cameras and the measured distance between them, the scale of a capture without a lidar scan (docs/calibration.md)")] = None,
+              min_pair_inliers: Annotated[Optional[int], typer.Option(min=8, help="verified matches a pair of static cameras needs in the static SfM (default 36, for close neighbours; a sparse rig of wide baselines needs ~20, docs/calibration.md)")] = None,
               store: StoreOpt = DEFAULT_STORE, json_out: JsonOpt = False) -> None:
     """Calibrate every camera of an ingested capture and compute per-frame dense points.
 
@@ -300,6 +302,7 @@ def calibrate(capture: Annotated[str, typer.Argument(help="capture ref name (cap
     summary = _run(calibrate_flow, store=_store_url(store), capture=capture, frames=_frame_span(frames),
                    allow_unregistered=allow_unregistered, colour_charts=charts, instants=instants,
                    known_distance=distance, known_points=marks,
+                   **({"min_pair_inliers": min_pair_inliers} if min_pair_inliers is not None else {}),
                    colour_base_dir=str(colour_charts.resolve().parent) if colour_charts is not None else None)
     out = summary.result
     lines = [f"calibration: {out['calibration']['digest']}", f"points: {out['points']['digest']}"]

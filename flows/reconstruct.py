@@ -58,7 +58,7 @@ def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = 
                      max_gaussians: int | None = None, seed: int = 0, ground_truth: bool = False,
                      steps: int | None = None, allow_unregistered: bool = False,
                      known_distance: tuple[str, str, float] | None = None,
-                     known_points: dict | None = None) -> dict:
+                     known_points: dict | None = None, min_pair_inliers: int | None = None) -> dict:
     """Train the segments of ``capture`` (a ref name such as ``captures/demo`` or a digest).
 
     ``calibration`` / ``points``: refs of a Calibration and a PointCloudSequence. When omitted, the
@@ -66,7 +66,7 @@ def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = 
     for the frames trained (at most ``points_per_frame`` each when given; training thins them to its
     own budget, so the default keeps every point for the static/moving split to see). ``ground_truth=True`` uses a synthetic
     capture's ground truth instead (true cameras, points from true depth): benchmarks, fast tests.
-    ``allow_unregistered``, ``known_distance``, ``known_points``: the calibration run here, as
+    ``allow_unregistered``, ``known_distance``, ``known_points``, ``min_pair_inliers``: the calibration run here, as
     ``calibrate_flow`` takes them (the same settings give the same cached calibration); refused
     with ``calibration`` or ``ground_truth``, which run none.
 
@@ -79,7 +79,7 @@ def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = 
     """
     log = get_run_logger()
     calibrating = {k: v for k, v in (("allow_unregistered", allow_unregistered), ("known_distance", known_distance),
-                                     ("known_points", known_points)) if v}
+                                     ("known_points", known_points), ("min_pair_inliers", min_pair_inliers)) if v}
     if calibrating and (calibration or ground_truth):
         raise ValueError(f"{', '.join(calibrating)}: settings of the calibration reconstruct runs itself, which it "
                          f"does not run with {'a given calibration' if calibration else 'the ground truth'}")
@@ -97,7 +97,8 @@ def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = 
         calib_ref = ground_truth_calibration(store, capture_ref)
     else:
         calib_ref = calibrate_capture(store, capture_ref,
-                                      static_calibration_options(allow_unregistered, known_distance=known_distance),
+                                      static_calibration_options(allow_unregistered, known_distance=known_distance,
+                                                                 min_pair_inliers=min_pair_inliers),
                                       known)
     held = (held_out if held_out is not None
             else reconstruction.default_held_out(cap, calibration=s.get_record(calib_ref, Calibration)))

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import logging
+from dataclasses import replace
 
 import pytest
 from typer.testing import CliRunner
@@ -21,6 +22,7 @@ from hardware.rig import load_rig
 from tasks.calibrate import calibrate_static
 from tasks.contract import task_cache_key
 from volcap_core.calibration.scale import KnownPoints
+from volcap_core.calibration.sfm import StaticSfmOptions
 from volcap_core.calibration.static import StaticCalibrationOptions
 from volcap_core.capture import Capture, CaptureCamera
 from volcap_core.store import ArtifactStore
@@ -73,6 +75,13 @@ def test_reconstruct_passes_the_calibration_options_to_its_flow(flow_calls, tmp_
     assert res.exit_code == 0, res.output
     assert flow_calls[-1]["flow"] == "calibrate" and flow_calls[-1]["known_points"] == MARKS
     assert flow_calls[-1]["known_distance"] is None
+    # a sparse rig's SfM pair threshold (docs/calibration.md): passed only when given
+    assert "min_pair_inliers" not in flow_calls[-1]
+    res = _invoke("calibrate", "captures/x", "--min-pair-inliers", "20")
+    assert res.exit_code == 0 and flow_calls[-1]["min_pair_inliers"] == 20, res.output
+    res = _invoke("reconstruct", "captures/x", "--min-pair-inliers", "20", "--out", str(tmp_path))
+    assert res.exit_code == 0 and flow_calls[-1]["min_pair_inliers"] == 20, res.output
+    assert _invoke("calibrate", "captures/x", "--min-pair-inliers", "3").exit_code == 2
 
 
 def test_conflicting_or_bad_options_are_refused_before_any_flow(flow_calls, tmp_path):
@@ -102,8 +111,8 @@ def test_conflicting_or_bad_options_are_refused_before_any_flow(flow_calls, tmp_
 
 
 def test_help_lists_the_options():
-    for cmd, opts in (("reconstruct", ("--allow-unregistered", "--known-distance", "--known-points")),
-                      ("calibrate", ("--allow-unregistered", "--known-distance", "--known-points"))):
+    for cmd, opts in (("reconstruct", ("--allow-unregistered", "--known-distance", "--known-points", "--min-pair-inliers")),
+                      ("calibrate", ("--allow-unregistered", "--known-distance", "--known-points", "--min-pair-inliers"))):
         res = CliRunner().invoke(cli.app, [cmd, "--help"], terminal_width=200)
         assert res.exit_code == 0 and all(o in res.output for o in opts), res.output
 
@@ -144,7 +153,8 @@ def calibrations(monkeypatch):
 
 @pytest.mark.parametrize("options", [{}, {"allow_unregistered": True},
                                      {"known_distance": ("S001", "S003", 4.0)}, {"known_points": MARKS},
-                                     {"allow_unregistered": True, "known_points": MARKS}])
+                                     {"allow_unregistered": True, "known_points": MARKS},
+                                     {"allow_unregistered": True, "min_pair_inliers": 20}])
 def test_calibrate_and_reconstruct_ask_for_the_same_calibration(capture_store, calibrations, options):
     store, ref = capture_store
     with pytest.raises(_Stop):
@@ -155,8 +165,11 @@ def test_calibrate_and_reconstruct_ask_for_the_same_calibration(capture_store, c
     assert static_c == static_r and known_c == known_r
     if not options:   # nothing given: the task's defaults, the key of `calibrate_static(store, capture)`
         assert static_r is None and known_r is None
-    if options.get("allow_unregistered"):
+    if options.get("allow_unregistered") and "min_pair_inliers" not in options:
         assert static_r == StaticCalibrationOptions(allow_unregistered=True)
+    if "min_pair_inliers" in options:
+        assert static_r == StaticCalibrationOptions(allow_unregistered=True,
+                                                    sfm=replace(StaticSfmOptions(), min_pair_inliers=20))
     if "known_points" in options:
         assert known_r == KnownPoints.model_validate(MARKS)
     keys = {task_cache_key(calibrate_static, store, capture=ref,
