@@ -1,7 +1,7 @@
 """The Detail Enhancer on a synthetic Face Rig capture: a tiny model trained on CPU, held-out quality
 beside its floors, the paper's Table 2 ablations, and time and memory per frame against resolution.
 
-    python bench/bench_enhance.py                 # the documented run (~10-15 min on 2 loaded cores)
+    python bench/bench_enhance.py                 # the documented run (~50 min on 2 shared cores)
     python bench/bench_enhance.py --quick         # smoke run (< 2 min): tiny, numbers meaningless
     python bench/bench_enhance.py --json out.json --sheets docs/img   # docs/img/enhance_*.png
 
@@ -14,8 +14,8 @@ after degrading equals degrading the cut away from the border). Cameras ``--held
 F002 and F006) are never trained on (neither the VAE nor the transformer sees them).
 
 Training (CPU, one thread, deterministic): the small CPU enhancer (:meth:`EnhancerConfig.small`:
-the tiny preset with a 128-wide transformer, see there why not :meth:`EnhancerConfig.tiny`; random
-weights) is trained by :func:`~volcap_core.enhance.training.train_enhancer`: ``vae_steps`` of VAE
+the tiny preset with a 256-wide transformer, see there why not :meth:`EnhancerConfig.tiny` or a
+128-wide one; random weights) is trained by :func:`~volcap_core.enhance.training.train_enhancer`: ``vae_steps`` of VAE
 pre-training (:func:`~volcap_core.enhance.training.train_vae`) on the training cameras' HQ and LQ
 frames, then full fine-tuning of the transformer by rectified flow. The ablations are trained
 separately, as in the paper: "w/o OFW" is an image model (``drop_temporal = 1``: it never sees the
@@ -84,7 +84,7 @@ if str(ROOT) not in sys.path:
 # ------------------------------------------------------------------------------------ settings
 
 FULL = {"frames": 24, "cameras": None, "heldout": ["F002", "F006"], "size": 128, "vae_steps": 3000,
-        "steps": 4000, "crop": 64, "batch": 4, "lr": 1e-3, "vae_lr": 3e-3, "vae_batch": 4,
+        "steps": 12000, "crop": 64, "batch": 4, "lr": 1e-3, "vae_lr": 3e-3, "vae_batch": 4,
         "sample_steps": 8, "strength": 0.4, "resolutions": [128, 256, 512, 1024], "sheet_frames": [12]}
 QUICK = {"frames": 6, "cameras": ["F000", "F001", "F002"], "heldout": ["F002"], "size": 64,
          "vae_steps": 20, "steps": 20, "crop": 64, "batch": 2, "lr": 1e-3, "vae_lr": 3e-3,
