@@ -699,6 +699,13 @@ def worker(pool: Annotated[str, typer.Option(help="work pool: gpu (segments) or 
         args += ["--limit", str(limit)]
     sys.stdout.flush()
     OUTPUT.native.stop()  # the worker gets the real stderr
+    # A Prefect worker stops on SIGTERM by sending itself SIGINT and restoring the SIGINT handler it
+    # found at start; started with SIGINT ignored (a background job of a non-interactive shell whose
+    # own SIGINT was ignored, a CI runner), that handler is "ignore" and it never stops. An ignored
+    # signal survives exec, a default one becomes Python's KeyboardInterrupt: reset it here.
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
     os.execv(sys.executable, args)  # the worker replaces this process: signals reach it directly
 
 
