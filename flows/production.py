@@ -126,28 +126,25 @@ class Production:
     steps: list[Step]
     facts: dict[str, CaptureInfo] = field(default_factory=dict)
 
+    def spec_path(self, path: str | None) -> Path | None:
+        """A path written in the spec: relative paths are relative to the spec file, ``~`` expanded;
+        None stays None."""
+        if path is None:
+            return None
+        p = Path(path).expanduser()
+        return p if p.is_absolute() else (self.spec_dir / p).resolve()
+
     def folder(self, capture: str) -> Path:
         """A folder capture's path (relative paths are relative to the spec file)."""
-        folder = Path(self.spec.captures[capture].folder)
-        return folder if folder.is_absolute() else (self.spec_dir / folder).resolve()
+        return self.spec_path(self.spec.captures[capture].folder)
 
     def enhancer_weights(self) -> Path | None:
-        """The quality preset's ``enhancer_weights`` (a local FLUX.1 directory; relative to the
-        spec file), None when not set."""
-        w = self.spec.quality_preset().enhancer_weights
-        if w is None:
-            return None
-        path = Path(w).expanduser()
-        return path if path.is_absolute() else (self.spec_dir / path).resolve()
+        """The quality preset's ``enhancer_weights`` (a local FLUX.1 directory), None when not set."""
+        return self.spec_path(self.spec.quality_preset().enhancer_weights)
 
     def enhancer_flow_weights(self) -> Path | None:
-        """The quality preset's ``enhancer_flow_weights`` (a local RAFT weights file; relative to the
-        spec file), None when not set."""
-        w = self.spec.quality_preset().enhancer_flow_weights
-        if w is None:
-            return None
-        path = Path(w).expanduser()
-        return path if path.is_absolute() else (self.spec_dir / path).resolve()
+        """The quality preset's ``enhancer_flow_weights`` (a local RAFT weights file), None when not set."""
+        return self.spec_path(self.spec.quality_preset().enhancer_flow_weights)
 
     def check_enhancer(self, where: str | Path | None = None) -> None:
         """Before anything runs: an enhanced shot with the FLUX.1 architecture needs its weights
