@@ -15,16 +15,23 @@ F_TRUE = np.array([303.0, 303.0, 303.0, 303.0, 297.0, 306.0])     # the group's 
 CENTRE = np.array([159.5, 89.5])
 
 
-def _problem(seed: int, noise_px: float = 0.5, n_points: int = 300, principal=None):
-    """Six cameras on an arc around a box of points, 320x180, observations with ``noise_px`` of noise;
-    starts: poses 0.2° / 2 cm off, points 5 cm off, focal at the nominal 300 px (1 % short)."""
-    rng = np.random.default_rng(seed)
+def _arc_scene(rng, n_points: int) -> tuple[np.ndarray, list[np.ndarray]]:
+    """``n_points`` points in a 6 x 5 x 3 m box [N, 3] (drawn from ``rng``) and six world-to-camera
+    poses [4, 4] on an arc 3.5 m around it, all aimed at its middle."""
     X = np.stack([rng.uniform(-3, 3, n_points), rng.uniform(1, 6, n_points), rng.uniform(0, 3, n_points)], 1)
     centres = [np.array([3.5 * np.cos(a), 3.5 * np.sin(a) - 2.0, 1.5]) for a in np.linspace(0.3, np.pi - 0.3, 6)]
     poses = []
     for c in centres:
         R = look_at_rotation(c, (0.0, 3.0, 1.2))
         poses.append(pose_matrix(R, -R @ c))
+    return X, poses
+
+
+def _problem(seed: int, noise_px: float = 0.5, n_points: int = 300, principal=None):
+    """Six cameras on an arc around a box of points, 320x180, observations with ``noise_px`` of noise;
+    starts: poses 0.2° / 2 cm off, points 5 cm off, focal at the nominal 300 px (1 % short)."""
+    rng = np.random.default_rng(seed)
+    X, poses = _arc_scene(rng, n_points)
     pp = np.tile(CENTRE, (6, 1)) if principal is None else principal
     oc, op, uv = [], [], []
     for i, W in enumerate(poses):
@@ -39,7 +46,7 @@ def _problem(seed: int, noise_px: float = 0.5, n_points: int = 300, principal=No
         R = so3_exp(rng.normal(0, 0.003, 3)) @ W[:3, :3]
         C = -W[:3, :3].T @ W[:3, 3] + rng.normal(0, 0.02, 3)
         start.append(pose_matrix(R, -R @ C))
-    mounts = np.stack(centres) + rng.normal(0, 0.02, (6, 3))
+    mounts = np.stack([-W[:3, :3].T @ W[:3, 3] for W in poses]) + rng.normal(0, 0.02, (6, 3))
     return (np.stack(start), X + rng.normal(0, 0.05, X.shape), *map(np.concatenate, (oc, op, uv))), mounts
 
 
@@ -115,12 +122,7 @@ def _rectified_views(rng, rig_k, true_k, focal=300.0, noise_px=0.05, n_points=60
     centre): (poses, X, oc, op, uv)."""
     from volcap_core.calibration.distortion import Distortion
 
-    X = np.stack([rng.uniform(-3, 3, n_points), rng.uniform(1, 6, n_points), rng.uniform(0, 3, n_points)], 1)
-    centres = [np.array([3.5 * np.cos(a), 3.5 * np.sin(a) - 2.0, 1.5]) for a in np.linspace(0.3, np.pi - 0.3, 6)]
-    poses = []
-    for c in centres:
-        R = look_at_rotation(c, (0.0, 3.0, 1.2))
-        poses.append(pose_matrix(R, -R @ c))
+    X, poses = _arc_scene(rng, n_points)
     oc, op, uv = [], [], []
     for i, W in enumerate(poses):
         p = X @ W[:3, :3].T + W[:3, 3]

@@ -28,6 +28,41 @@ T, W, H = 24, 320, 180
 CX, CY = (W - 1) / 2, (H - 1) / 2
 
 
+def tracking_observations(rng, proj, seen, wall, n3: int = 8, sigma3: float = 1.0) -> TrackingObservations:
+    """The tracking solve's matches of a camera that sees ``wall`` [N, 3] through ``proj(t, X) ->
+    (uv [N, 2], depth [N])`` where ``seen(t, X)`` [N] bool: per frame ``n3`` 2D-3D matches with
+    ``sigma3`` px of noise plus 30 outliers (wrong 3D points), and 2D-2D matches between frames 1,
+    2 and 4 apart: up to 150 wall points (0.3 px noise) and 40 points of a still 'actor' the camera
+    follows."""
+    f3, uv3, X3, vis = [], [], [], []
+    for t in range(T):
+        uv, _ = proj(t, wall)
+        vis.append(np.flatnonzero(seen(t, wall)))
+        pick = rng.choice(vis[-1], min(n3, len(vis[-1])), replace=False)
+        f3.append(np.full(len(pick), t))
+        uv3.append(uv[pick] + rng.normal(0, sigma3, (len(pick), 2)))
+        X3.append(wall[pick])
+        out = rng.choice(len(wall), 30)   # outliers: wrong 3D points
+        f3.append(np.full(30, t))
+        uv3.append(rng.uniform([0, 0], [W, H], (30, 2)))
+        X3.append(wall[out])
+    i2, j2, ui2, uj2 = [], [], [], []
+    for k in (1, 2, 4):
+        for i in range(T - k):
+            j = i + k
+            common = np.intersect1d(vis[i], vis[j])
+            pick = rng.choice(common, min(150, len(common)), replace=False)
+            a, _ = proj(i, wall[pick])
+            b, _ = proj(j, wall[pick])
+            actor = rng.uniform([120, 60], [200, 140], (40, 2))
+            i2.append(np.full(len(pick) + 40, i))
+            j2.append(np.full(len(pick) + 40, j))
+            ui2.append(np.r_[a + rng.normal(0, 0.3, a.shape), actor])
+            uj2.append(np.r_[b + rng.normal(0, 0.3, b.shape), actor + rng.normal(0, 0.3, actor.shape)])
+    return TrackingObservations(T, W, H, np.concatenate(f3), np.concatenate(uv3), np.concatenate(X3),
+                                np.concatenate(i2), np.concatenate(j2), np.concatenate(ui2), np.concatenate(uj2))
+
+
 def _scene(seed=0):
     rng = np.random.default_rng(seed)
     C = np.array([4.9, -2.3, 1.9])
@@ -40,37 +75,11 @@ def _scene(seed=0):
         p = (X - C) @ R[t].T
         return f[t] * p[:, :2] / p[:, 2:3] + [CX, CY], p[:, 2]
 
-    f3, uv3, X3 = [], [], []
-    vis = []
-    for t in range(T):
-        uv, z = proj(t, wall)
-        inside = (z > 0) & (uv[:, 0] > 0) & (uv[:, 0] < W - 1) & (uv[:, 1] > 0) & (uv[:, 1] < H - 1)
-        vis.append(np.flatnonzero(inside))
-        pick = rng.choice(vis[-1], min(8, len(vis[-1])), replace=False)
-        f3.append(np.full(len(pick), t))
-        uv3.append(uv[pick] + rng.normal(0, 1.0, (len(pick), 2)))
-        X3.append(wall[pick])
-        # outliers: wrong 3D points
-        out = rng.choice(len(wall), 30)
-        f3.append(np.full(30, t))
-        uv3.append(rng.uniform([0, 0], [W, H], (30, 2)))
-        X3.append(wall[out])
-    i2, j2, ui2, uj2 = [], [], [], []
-    for k in (1, 2, 4):
-        for i in range(T - k):
-            j = i + k
-            common = np.intersect1d(vis[i], vis[j])
-            pick = rng.choice(common, min(150, len(common)), replace=False)
-            a, _ = proj(i, wall[pick])
-            b, _ = proj(j, wall[pick])
-            # an actor that the camera follows: still in the image
-            actor = rng.uniform([120, 60], [200, 140], (40, 2))
-            i2.append(np.full(len(pick) + 40, i))
-            j2.append(np.full(len(pick) + 40, j))
-            ui2.append(np.r_[a + rng.normal(0, 0.3, a.shape), actor])
-            uj2.append(np.r_[b + rng.normal(0, 0.3, b.shape), actor + rng.normal(0, 0.3, actor.shape)])
-    obs = TrackingObservations(T, W, H, np.concatenate(f3), np.concatenate(uv3), np.concatenate(X3),
-                               np.concatenate(i2), np.concatenate(j2), np.concatenate(ui2), np.concatenate(uj2))
+    def seen(t, X):
+        uv, z = proj(t, X)
+        return (z > 0) & (uv[:, 0] > 0) & (uv[:, 0] < W - 1) & (uv[:, 1] > 0) & (uv[:, 1] < H - 1)
+
+    obs = tracking_observations(rng, proj, seen, wall)
     enc = f * 1.008 + 6.0 + rng.normal(0, 0.002 * f)            # encoder in px: gain, offset, noise
     mount = C + np.array([0.01, -0.012, 0.008])
     return obs, C, R, f, enc, mount

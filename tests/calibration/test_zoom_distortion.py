@@ -16,6 +16,7 @@ import pytest
 from safetensors.numpy import save as st_save
 
 from hardware.rig import ZoomIntrinsics, load_rig
+from tests.calibration.test_calib_tracking import tracking_observations
 from volcap_core.calibration.distortion import Distortion, rectified_valid, rectify_frame
 from volcap_core.calibration.geometry import look_at_rotation, rotation_angle_deg
 from volcap_core.calibration.record import (Calibration, CameraCalibration, TrackingFrames, camera_at,
@@ -120,34 +121,7 @@ def _scene(lens, seed=0, n3=8, sigma3=1.0):
         near = (np.abs(pin[:, 0] - CX) < 0.6 * W) & (np.abs(pin[:, 1] - CY) < 0.6 * H)
         return (z > 0) & near & (uv[:, 0] > 0) & (uv[:, 0] < W - 1) & (uv[:, 1] > 0) & (uv[:, 1] < H - 1)
 
-    f3, uv3, X3, vis = [], [], [], []
-    for t in range(T):
-        uv, z = proj(t, wall)
-        inside = seen(t, wall)
-        vis.append(np.flatnonzero(inside))
-        pick = rng.choice(vis[-1], min(n3, len(vis[-1])), replace=False)
-        f3.append(np.full(len(pick), t))
-        uv3.append(uv[pick] + rng.normal(0, sigma3, (len(pick), 2)))
-        X3.append(wall[pick])
-        out = rng.choice(len(wall), 30)
-        f3.append(np.full(30, t))
-        uv3.append(rng.uniform([0, 0], [W, H], (30, 2)))
-        X3.append(wall[out])
-    i2, j2, ui2, uj2 = [], [], [], []
-    for k in (1, 2, 4):
-        for i in range(T - k):
-            j = i + k
-            common = np.intersect1d(vis[i], vis[j])
-            pick = rng.choice(common, min(150, len(common)), replace=False)
-            a, _ = proj(i, wall[pick])
-            b, _ = proj(j, wall[pick])
-            actor = rng.uniform([120, 60], [200, 140], (40, 2))
-            i2.append(np.full(len(pick) + 40, i))
-            j2.append(np.full(len(pick) + 40, j))
-            ui2.append(np.r_[a + rng.normal(0, 0.3, a.shape), actor])
-            uj2.append(np.r_[b + rng.normal(0, 0.3, b.shape), actor + rng.normal(0, 0.3, actor.shape)])
-    obs = TrackingObservations(T, W, H, np.concatenate(f3), np.concatenate(uv3), np.concatenate(X3),
-                               np.concatenate(i2), np.concatenate(j2), np.concatenate(ui2), np.concatenate(uj2))
+    obs = tracking_observations(rng, proj, seen, wall, n3, sigma3)
     enc = f * 1.008 + 6.0 + rng.normal(0, 0.002 * f)            # encoder in px: gain, offset, noise
     mount = C + np.array([0.01, -0.012, 0.008])
     return obs, C, R, f, enc, mount, coeffs
