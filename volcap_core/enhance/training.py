@@ -58,6 +58,7 @@ resume on the same base model.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import time
@@ -281,6 +282,24 @@ def trainable_parameters(model: Enhancer, config: EnhancerTrainConfig) -> dict[s
 
 # ---------------------------------------------------------------------------------- objective
 
+def training_attention(device: torch.device):
+    """The attention kernels a training step may use: on CUDA every one of PyTorch's
+    scaled-dot-product back-ends but cuDNN's, elsewhere no restriction.
+
+    Measured on an H200 (torch 2.11 + CUDA 13.0, diffusers 0.42): with cuDNN's attention chosen
+    (PyTorch's default there for bf16), the backward pass of the FLUX.1-sized transformer under
+    bf16 autocast failed (``mha_graph.execute(...).is_good()``; without ``CUDA_LAUNCH_BLOCKING``
+    it surfaced later as ``CUBLAS_STATUS_EXECUTION_FAILED`` or an illegal memory access), and the
+    small model's loss went NaN by the third step; float32 training (no autocast) ran. Flash and
+    memory-efficient attention train it (``bench/bench_enhance_gpu.py``). Inference keeps the
+    default choice: only the backward failed."""
+    if torch.device(device).type != "cuda":
+        return contextlib.nullcontext()
+    from torch.nn.attention import SDPBackend, sdpa_kernel
+
+    return sdpa_kernel([SDPBackend.FLASH_ATTENTION, SDPBackend.EFFICIENT_ATTENTION, SDPBackend.MATH])
+
+
 def sample_sigmas(n: int, config: EnhancerTrainConfig, mu: float, generator: torch.Generator) -> torch.Tensor:
     """``[n]`` training noise levels: ``sigmoid(N(logit_mean, logit_std))``, then Flux's shift by
     ``mu`` when ``config.resolution_shift``. Float32, CPU."""
@@ -427,7 +446,7 @@ def train_vae(model: Enhancer, frames: torch.Tensor, config: EnhancerTrainConfig
     vae.train()
     t0 = time.perf_counter()
     try:
-        with deterministic_torch(device.type):
+        with deterministic_torch(device.type), training_attention(device):
             for step in range(1, config.vae_steps + 1):
                 crops = []
                 for _ in range(config.vae_batch):
@@ -597,7 +616,7 @@ def train_enhancer(model: Enhancer, pairs: Sequence, config: EnhancerTrainConfig
         _restore(resume_from, model, config, params, state)
     flows = _Flows(pairs, config.flow)
 
-    with deterministic_torch(device.type):
+    with deterministic_torch(device.type), training_attention(device):
         while state.step < config.steps:
             t_start = time.perf_counter()
             step = state.step + 1
