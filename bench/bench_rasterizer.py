@@ -1,20 +1,28 @@
-"""CPU cost of the pure-PyTorch Gaussian rasterizer: ns per (pixel, Gaussian) pair, fwd+bwd.
+"""Cost of the Gaussian rasterizer back-ends: ns per (pixel, Gaussian) pair, fwd+bwd.
 
-    python bench/bench_rasterizer.py                  # 10k/50k Gaussians x 128²/256², 1 thread
+    python bench/bench_rasterizer.py                  # 10k/50k Gaussians x 128²/256², 1 thread, CPU
     python bench/bench_rasterizer.py --threads 2 --tile-sizes 8 16 --repeats 5
+    python bench/bench_rasterizer.py --device cuda --backends gsplat torch \
+        --gaussians 100000 1000000 --sizes 256 1080 --tile-sizes 16   # a GPU: gsplat beside torch
 
 A pair is a pixel of a tile times a Gaussian binned to that tile (what the rasterizer evaluates
 before padding): the cost model that tile-based rasterizers share, so the figure compares with
 gsplat's and with the NOTES (60-120 ns per pair on one core). The scene is a random cloud of
 anisotropic Gaussians 4 m in front of a 50° camera, sized like a trained capture (σ 0.5-3 px).
 Timings are the minimum over repeats (the machine is shared). Prints a table; takes ~1-3 minutes.
+
+On CUDA (``--device cuda``) each back-end runs on the same scene (``torch.cuda.synchronize`` around
+the timed calls). gsplat bins Gaussians to 16-px tiles and reports no pair count, so its ns/pair
+divides by the pairs our binning counts at tile 16 (the same definition), whatever ``--tile-sizes``.
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import time
+from pathlib import Path
 
 import torch
 
@@ -34,9 +42,17 @@ def scene(n: int, seed: int = 0) -> Gaussians3D:
                        sh=0.3 * torch.randn(n, 16, 3, generator=g), ids=torch.arange(n))
 
 
-def bench(n: int, size: int, tile: int, repeats: int) -> dict:
-    cam = look_at((0, -4, 0), (0, 0, 0), fov_x_deg=50, width=size, height=size)
+def _sync(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def bench(n: int, size: int, tile: int, repeats: int, backend: str = "torch",
+          device: torch.device = torch.device("cpu")) -> dict:
+    cam = look_at((0, -4, 0), (0, 0, 0), fov_x_deg=50, width=size, height=size).to(device)
     g0 = scene(n)
+    g0 = Gaussians3D(*(t.to(device) for t in (g0.means, g0.quats, g0.scales, g0.opacities, g0.sh)),
+                     ids=g0.ids.to(device))
     fwd, tot = [], []
     stats = TileStats()
     for r in range(repeats + 1):  # first run warms up allocators and caches
@@ -44,16 +60,23 @@ def bench(n: int, size: int, tile: int, repeats: int) -> dict:
                   (g0.means, g0.quats, g0.scales, g0.opacities, g0.sh)]
         g = Gaussians3D(*leaves, ids=g0.ids)
         stats = TileStats()
+        _sync(device)
         t0 = time.perf_counter()
-        out = render(g, cam, backend="torch", tile_size=tile, stats=stats)
+        out = render(g, cam, backend=backend, tile_size=tile, stats=stats)
+        _sync(device)
         t1 = time.perf_counter()
         (out["rgb"].sum() + out["alpha"].sum()).backward()
+        _sync(device)
         t2 = time.perf_counter()
         if r:
             fwd.append(t1 - t0)
             tot.append(t2 - t0)
-    return {"n": n, "size": size, "tile": tile, "pairs": stats.pairs,
-            "padded": stats.padded_pairs, "fwd_s": min(fwd), "total_s": min(tot),
+    if backend == "gsplat":  # gsplat's own binning: 16-px tiles, counted by ours (no grad needed)
+        tile, stats = 16, TileStats()
+        with torch.no_grad():
+            render(g0, cam, backend="torch", tile_size=16, stats=stats)
+    return {"backend": backend, "device": str(device), "n": n, "size": size, "tile": tile,
+            "pairs": stats.pairs, "padded": stats.padded_pairs, "fwd_s": min(fwd), "total_s": min(tot),
             "ns_pair": min(tot) / stats.pairs * 1e9, "ns_pair_fwd": min(fwd) / stats.pairs * 1e9}
 
 
@@ -64,18 +87,28 @@ def main() -> None:
     ap.add_argument("--tile-sizes", type=int, nargs="+", default=[8])
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--backends", nargs="+", choices=["torch", "gsplat"], default=["torch"])
+    ap.add_argument("--json", type=Path, help="write the rows here")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
-    print(f"torch {torch.__version__}, {args.threads} thread(s), min of {args.repeats} runs")
-    print(f"{'gaussians':>9} {'image':>7} {'tile':>4} {'pairs':>10} {'padded':>10} "
+    device = torch.device(args.device)
+    where = torch.cuda.get_device_name(device) if device.type == "cuda" else f"{args.threads} thread(s)"
+    print(f"torch {torch.__version__}, {where}, min of {args.repeats} runs")
+    print(f"{'backend':>7} {'gaussians':>9} {'image':>7} {'tile':>4} {'pairs':>10} {'padded':>10} "
           f"{'fwd ms':>8} {'fwd+bwd ms':>10} {'ns/pair fwd':>11} {'ns/pair f+b':>11}")
+    rows = []
     for n in args.gaussians:
         for size in args.sizes:
-            for tile in args.tile_sizes:
-                r = bench(n, size, tile, args.repeats)
-                print(f"{r['n']:>9} {f'{size}²':>7} {tile:>4} {r['pairs']:>10} {r['padded']:>10} "
-                      f"{r['fwd_s'] * 1e3:>8.1f} {r['total_s'] * 1e3:>10.1f} "
-                      f"{r['ns_pair_fwd']:>11.1f} {r['ns_pair']:>11.1f}", flush=True)
+            for backend in args.backends:
+                for tile in args.tile_sizes if backend == "torch" else [16]:
+                    r = bench(n, size, tile, args.repeats, backend, device)
+                    rows.append(r)
+                    print(f"{backend:>7} {r['n']:>9} {f'{size}²':>7} {r['tile']:>4} {r['pairs']:>10} "
+                          f"{r['padded']:>10} {r['fwd_s'] * 1e3:>8.1f} {r['total_s'] * 1e3:>10.1f} "
+                          f"{r['ns_pair_fwd']:>11.3g} {r['ns_pair']:>11.3g}", flush=True)
+                    if args.json:
+                        args.json.write_text(json.dumps(rows, indent=1))
 
 
 if __name__ == "__main__":

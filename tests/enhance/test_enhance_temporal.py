@@ -161,3 +161,23 @@ def test_raft_refuses_without_torchvision_or_weights(tmp_path):
         RaftFlow(None)
     with pytest.raises(FlowUnavailable, match="no weights file"):
         RaftFlow(tmp_path / "missing.pth")
+
+
+@pytest.mark.gpu
+def test_raft_runs_from_a_local_state_dict(tmp_path):
+    """RaftFlow with torchvision (installed here only on the GPU machines, beside CUDA torch):
+    a state dict written to disk loads, the flow comes back ``[2, H, W]`` for a frame that is no
+    multiple of 8 (RAFT needs at least 128 px a side), on the device asked for and back on the
+    input's. The weights are random (none
+    ship): this checks the machinery, not RAFT's accuracy."""
+    tv = pytest.importorskip("torchvision.models.optical_flow", reason="needs torchvision")
+    path = tmp_path / "raft_small.pth"
+    torch.manual_seed(0)
+    torch.save(tv.raft_small(weights=None).state_dict(), path)
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    raft = RaftFlow(path, small=True, device=device, iters=4)
+    prev, cur = _texture(130, 150), _texture(130, 150, (2.0, -1.0))
+    flow = raft(prev, cur)
+    assert flow.shape == (2, 130, 150) and flow.device == cur.device and torch.isfinite(flow).all()
+    with pytest.raises(FlowUnavailable, match="weights"):
+        RaftFlow(None)

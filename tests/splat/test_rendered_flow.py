@@ -20,11 +20,12 @@ from _splat_scenes import single_thread  # noqa: E402, F401  (fixture)
 
 from volcap_core.enhance.temporal import in_frame, warp  # noqa: E402
 from volcap_core.splat.camera import Camera  # noqa: E402
-from volcap_core.splat.model import Poly4DGS, Poly4DGSConfig, evaluate  # noqa: E402
+from volcap_core.splat.model import Gaussians3D, Poly4DGS, Poly4DGSConfig, evaluate  # noqa: E402
 from volcap_core.splat.render import (  # noqa: E402
     _render_flow_gsplat,
     _render_flow_torch,
     gaussians_at,
+    gsplat_available,
     render,
     render_flow,
 )
@@ -253,3 +254,29 @@ def test_the_gsplat_path_composites_the_same_values(monkeypatch, single_thread):
     b = _render_flow_torch(g, prev, cam, prev_cam, 8)
     assert calls == [((len(g), 7), "RGB", "antialiased", EPS2D)]
     assert torch.allclose(a, b, atol=1e-5)
+
+
+def _on_cuda(g: Gaussians3D) -> Gaussians3D:
+    return Gaussians3D(**{f: getattr(g, f).cuda() for f in ("means", "quats", "scales", "opacities", "sh", "ids")},
+                       colour_space=g.colour_space)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not gsplat_available(), reason="needs CUDA and gsplat")
+def test_gsplat_flow_on_cuda_matches_the_torch_flow_and_the_truth():
+    """The gsplat back-end's flow, on a GPU: the same flow and alpha as the torch back-end on the
+    CPU, and the analytic flow of a translating wall seen by a moving camera."""
+    v, t = (0.3, -0.1, 0.0), 0.5
+    model = wall(v)
+    cam, prev_cam = camera((0.02, 0.01, -3.0)), camera((0.0, 0.0, -3.0))
+    g = evaluate(model, t)
+    prev = gaussians_at(model, t - 1 / FPS, g.ids)
+    cpu = render_flow(g, prev, cam, prev_cam, backend="torch")
+    gpu = render_flow(_on_cuda(g), _on_cuda(prev), cam, prev_cam, backend="gsplat")
+    assert gpu["flow"].is_cuda
+    torch.testing.assert_close(gpu["alpha"].cpu(), cpu["alpha"], atol=2e-4, rtol=1e-3)
+    inside = cpu["alpha"][..., 0] > 0.5
+    assert inside.float().mean() > 0.4
+    torch.testing.assert_close(gpu["flow"].cpu()[inside], cpu["flow"][inside], atol=2e-3, rtol=0)
+    truth = torch.from_numpy(analytic_flow(cam, prev_cam, v, 1 / FPS, t)).float()
+    assert (gpu["flow"].cpu()[inside] - truth[inside]).abs().max() < 1e-2

@@ -1,0 +1,51 @@
+#!/usr/bin/env bash
+# The checks that need a CUDA GPU, in one run (a lent GPU is a few minutes of machine time):
+#   1. gsplat's CUDA extension builds (JIT, sm_90 only) while
+#   2. bench/bench_enhance_gpu.py times the full-size enhancer (FLUX.1-dev architecture, random
+#      weights): denoising steps at 1024² and 4K, VAE, a whole 4K frame, bf16 LoRA training;
+#   3. the CUDA tests (pytest -m gpu): gsplat against the torch back-end (forward, gradients,
+#      rendered flow), Poly4DGS training through gsplat, RAFT with torchvision;
+#   4. bench/bench_rasterizer.py on CUDA, gsplat beside the torch back-end.
+# Results go to $OUT (default /tmp/volcap-gpu). Python packages the machine lacks can travel as
+# wheels in .whl/ (installed with --no-deps into /tmp/site).
+#
+#   OUT=/tmp/gpu bash bench/gpu_checks.sh
+set -u
+OUT=${OUT:-/tmp/volcap-gpu}
+mkdir -p "$OUT"
+export PYTHONUNBUFFERED=1
+if compgen -G ".whl/*.whl" > /dev/null; then
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
+        || { echo "wheel install failed"; exit 1; }
+    export PYTHONPATH=/tmp/site
+fi
+export PYTHONPATH=${PYTHONPATH:+$PYTHONPATH:}$PWD
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$OUT/gpu.txt"
+python3 -c "import torch, diffusers; print('torch', torch.__version__, 'cuda', torch.version.cuda, 'diffusers', diffusers.__version__)"
+
+# 1. gsplat's extension, in the background (CPU-bound: it overlaps the GPU-bound enhancer bench)
+(
+    export MAX_JOBS=${MAX_JOBS:-14} TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0}
+    timeout "${GSPLAT_BUILD_S:-400}" python3 -c "
+import time; t = time.time()
+from gsplat.cuda._backend import _C
+print('gsplat extension:', _C, f'{time.time() - t:.0f} s')"
+) > "$OUT/gsplat_build.log" 2>&1 &
+build=$!
+
+# 2. the enhancer at full size
+timeout "${ENHANCE_S:-330}" python3 bench/bench_enhance_gpu.py --json "$OUT/enhance_gpu.json" 2>&1 | tee "$OUT/enhance_gpu.log"
+
+wait $build
+tail -3 "$OUT/gsplat_build.log"
+
+# 3. the CUDA tests
+timeout "${TESTS_S:-200}" python3 -m pytest -q -p no:cacheprovider -m gpu -rA --continue-on-collection-errors tests/splat tests/enhance 2>&1 \
+    | tee "$OUT/gpu_tests.log" | tail -40
+
+# 4. the rasterizer on CUDA (the torch back-end only at the smaller size: its pairs are tensors)
+timeout "${RASTER_S:-120}" python3 bench/bench_rasterizer.py --device cuda --backends gsplat torch \
+    --gaussians 100000 --sizes 256 1024 --tile-sizes 16 --json "$OUT/raster_small.json" 2>&1 | tee "$OUT/raster.log"
+timeout "${RASTER_S:-120}" python3 bench/bench_rasterizer.py --device cuda --backends gsplat \
+    --gaussians 1000000 --sizes 1024 2048 --json "$OUT/raster_large.json" 2>&1 | tee -a "$OUT/raster.log"
+echo done
