@@ -7,7 +7,13 @@
 #      rendered flow), Poly4DGS training through gsplat, RAFT with torchvision;
 #   4. bench/bench_rasterizer.py on CUDA, gsplat beside the torch back-end.
 # Results go to $OUT (default /tmp/volcap-gpu). Python packages the machine lacks can travel as
-# wheels in .whl/ (installed with --no-deps into /tmp/site).
+# wheels in .whl/ (installed with --no-deps into /tmp/site). On 2026-11-26 an H200 image with torch
+# 2.11 (Python 3.12) lacked pydantic, pydantic_core, annotated_types, typing_inspection, diffusers
+# 0.42.1, gsplat 1.5.3 and importlib_metadata; fetch them for it with
+#   pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+#       --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 -d .whl NAME==VERSION
+# (the tests that need OpenEXR, pycolmap or Prefect are not collected there: the first is reported
+# as a collection error, the GPU tests run regardless).
 #
 #   OUT=/tmp/gpu bash bench/gpu_checks.sh
 set -u
