@@ -273,3 +273,25 @@ def test_bfloat16_frozen_weights_train_float32_adapters_and_resume_exactly():
         assert torch.equal(a, b), k
     out = enhance_frame(run.model, pairs[0].lq[0], steps=2)
     assert out.dtype == torch.float32 and torch.isfinite(out).all()
+
+
+def test_training_attention_keeps_cudnn_off_while_any_training_runs():
+    """cuDNN's attention failed in bf16 training on an H200 (training.training_attention): it is
+    off while any training runs, for the whole process (the flag is global, not per thread), so
+    one training ending while another still runs must not turn it back on; the last to end
+    restores the setting. On the CPU nothing changes."""
+    from contextlib import ExitStack
+
+    from volcap_core.enhance.training import training_attention
+
+    assert torch.backends.cuda.cudnn_sdp_enabled()
+    with training_attention("cpu"):
+        assert torch.backends.cuda.cudnn_sdp_enabled()
+    a, b = ExitStack(), ExitStack()
+    a.enter_context(training_attention("cuda"))
+    assert not torch.backends.cuda.cudnn_sdp_enabled()
+    b.enter_context(training_attention(torch.device("cuda", 0)))
+    a.close()                                                    # the first ends, the second runs on
+    assert not torch.backends.cuda.cudnn_sdp_enabled()
+    b.close()
+    assert torch.backends.cuda.cudnn_sdp_enabled()

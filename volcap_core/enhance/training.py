@@ -61,8 +61,9 @@ from __future__ import annotations
 import contextlib
 import json
 import math
+import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -282,9 +283,15 @@ def trainable_parameters(model: Enhancer, config: EnhancerTrainConfig) -> dict[s
 
 # ---------------------------------------------------------------------------------- objective
 
-def training_attention(device: torch.device):
-    """The attention kernels a training step may use: on CUDA every one of PyTorch's
-    scaled-dot-product back-ends but cuDNN's, elsewhere no restriction.
+_CUDNN_ATTENTION_LOCK = threading.Lock()
+_cudnn_attention_off = 0          # trainings running with cuDNN's attention off (this process)
+_cudnn_attention_before = True    # its setting before the first of them
+
+
+@contextlib.contextmanager
+def training_attention(device: torch.device | str) -> Iterator[None]:
+    """While training on CUDA, PyTorch's scaled-dot-product attention uses flash, memory-efficient
+    or math kernels, never cuDNN's; elsewhere nothing changes.
 
     Measured on an H200 (torch 2.11 + CUDA 13.0, diffusers 0.42): with cuDNN's attention chosen
     (PyTorch's default there for bf16), the backward pass of the FLUX.1-sized transformer under
@@ -292,12 +299,28 @@ def training_attention(device: torch.device):
     it surfaced later as ``CUBLAS_STATUS_EXECUTION_FAILED`` or an illegal memory access), and the
     small model's loss went NaN by the third step; float32 training (no autocast) ran. Flash and
     memory-efficient attention train it (``bench/bench_enhance_gpu.py``). Inference keeps the
-    default choice: only the backward failed."""
-    if torch.device(device).type != "cuda":
-        return contextlib.nullcontext()
-    from torch.nn.attention import SDPBackend, sdpa_kernel
+    default choice: only the backward failed.
 
-    return sdpa_kernel([SDPBackend.FLASH_ATTENTION, SDPBackend.EFFICIENT_ATTENTION, SDPBackend.MATH])
+    The switch (``torch.backends.cuda.enable_cudnn_sdp``) is one flag for the whole process, not
+    per thread, so trainings that overlap in one process (mapped tasks) share it: the first to
+    start turns cuDNN's attention off, the last to end restores what was set before.
+    """
+    global _cudnn_attention_off, _cudnn_attention_before
+    if torch.device(device).type != "cuda":
+        yield
+        return
+    with _CUDNN_ATTENTION_LOCK:
+        if _cudnn_attention_off == 0:
+            _cudnn_attention_before = torch.backends.cuda.cudnn_sdp_enabled()
+            torch.backends.cuda.enable_cudnn_sdp(False)
+        _cudnn_attention_off += 1
+    try:
+        yield
+    finally:
+        with _CUDNN_ATTENTION_LOCK:
+            _cudnn_attention_off -= 1
+            if _cudnn_attention_off == 0:
+                torch.backends.cuda.enable_cudnn_sdp(_cudnn_attention_before)
 
 
 def sample_sigmas(n: int, config: EnhancerTrainConfig, mu: float, generator: torch.Generator) -> torch.Tensor:
