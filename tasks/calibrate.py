@@ -184,7 +184,7 @@ def calibration_errors(store: str, capture: ArtifactRef, calibration: ArtifactRe
     return s.put_json(calibration_report(calib, gt, tracking, scan, frames), ERRORS_MEDIA)
 
 
-@volcap_task(name="calibrate-colour", version="2", libraries=("numpy", "OpenImageIO", "cv2"))
+@volcap_task(name="calibrate-colour", version="3", libraries=("numpy", "OpenImageIO", "cv2"))
 def calibrate_colour(store: str, source: ChartView, reference: ChartView,
                      options: ColourCalibrationOptions = ColourCalibrationOptions()) -> ArtifactRef:
     """The colour matrix between two rigs from a chart seen by each (``source``: the rig mapped,

@@ -38,7 +38,7 @@ def _ground_truth(s: ArtifactStore, cap: Capture) -> ground_truth.GroundTruthFil
     return ground_truth.GroundTruthFiles(cap.name, {p: e.digest for p, e in tree.items()}, s.get_bytes)
 
 
-@volcap_task(name="ground-truth-calibration", version="1")
+@volcap_task(name="ground-truth-calibration", version="2")
 def ground_truth_calibration(store: str, capture: ArtifactRef) -> ArtifactRef:
     """The synthetic capture's true cameras as a Calibration record (source ``ground_truth``)."""
     s = ArtifactStore(store)
@@ -51,7 +51,7 @@ def ground_truth_calibration(store: str, capture: ArtifactRef) -> ArtifactRef:
     return s.put_record(record)
 
 
-@volcap_task(name="ground-truth-points", version="3", libraries=("numpy", "OpenImageIO"))
+@volcap_task(name="ground-truth-points", version="4", libraries=("numpy", "OpenImageIO"))
 def ground_truth_points(store: str, capture: ArtifactRef, calibration: ArtifactRef, points_per_frame: int,
                         seed: int, exclude_cameras: list[str] | None = None) -> ArtifactRef:
     """Dense points per frame from the true depth maps of every camera but ``exclude_cameras``
@@ -81,7 +81,7 @@ def ground_truth_points(store: str, capture: ArtifactRef, calibration: ArtifactR
                                            method=f"ground-truth depth, {points_per_frame} per frame"))
 
 
-@volcap_task(name="train-segment", version="6", retries=1, libraries=RECONSTRUCTION_LIBRARIES)
+@volcap_task(name="train-segment", version="7", retries=1, libraries=RECONSTRUCTION_LIBRARIES)
 def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRef, points: ArtifactRef,
                        frames: list[int], config: TrainConfig, seed: int) -> ArtifactRef:
     """Train one Poly4DGS segment, score it against its floors and draw its contact sheet

@@ -171,25 +171,31 @@ def segment_data(capture: Capture, calibration: Calibration, tracking: dict[str,
         camera = splat_camera(*camera_at(calibration, cam, f, tracking))
         return camera if scale == 1 else camera.scaled(scale)
 
-    valid_cache: dict[tuple[str, int], torch.Tensor | None] = {}
+    # the valid pixels of each static camera (one lens for the take); a tracking camera's change
+    # with its zoom every frame and are recomputed with the frame (its maps are still cached then:
+    # distortion.rectify_frame), not kept: 90 zoom cameras x 48 frames of 4K masks would be 36 GB
+    valid_cache: dict[str, torch.Tensor | None] = {}
 
     def lens(cam: str, f: int):
         # the camera at that frame: a tracking camera's lens follows its zoom (record.frame_camera)
         return frame_camera(calibration, cam, f, tracking)
 
+    def valid_of(cam: str, f: int) -> torch.Tensor | None:
+        v = rectified_valid(lens(cam, f))
+        if v is None:
+            return None
+        v = torch.from_numpy(np.asarray(v, np.float32))
+        if scale != 1:
+            size = camera_for(cam, f)
+            v = torch.nn.functional.interpolate(v[None, None], size=(size.height, size.width), mode="area")[0, 0]
+        return v >= 0.999
+
     def valid_for(cam: str, f: int) -> torch.Tensor | None:
-        key = (cam, f if cam in tracking_ids else -1)
-        if key not in valid_cache:
-            v = rectified_valid(lens(cam, f))
-            if v is not None:
-                v = torch.from_numpy(np.asarray(v, np.float32))
-                if scale != 1:
-                    size = camera_for(cam, f)
-                    v = torch.nn.functional.interpolate(v[None, None], size=(size.height, size.width),
-                                                        mode="area")[0, 0]
-                v = v >= 0.999
-            valid_cache[key] = v
-        return valid_cache[key]
+        if cam in tracking_ids:
+            return valid_of(cam, f)
+        if cam not in valid_cache:
+            valid_cache[cam] = valid_of(cam, f)
+        return valid_cache[cam]
 
     def load_image(cam: str, f: int) -> torch.Tensor:
         image = rectify_frame(load_frame(capture.camera(cam).frames[f]), lens(cam, f))

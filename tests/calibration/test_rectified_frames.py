@@ -88,6 +88,33 @@ def test_a_pinhole_camera_is_left_alone():
         rectify_frame(img[:10], _camera())
 
 
+def test_per_frame_lenses_keep_out_of_the_static_cameras_map_cache():
+    """A tracking camera's lens changes with its zoom every frame: its maps must not evict the
+    static cameras' (training draws views at random, so a shared cache rebuilt maps on nearly
+    every load), and they are not all kept (4K maps are ~75 MB each). The same lens gives the same
+    frame through either cache."""
+    from volcap_core.calibration import distortion
+
+    static = _camera()
+    img = _texture()
+    reference = rectify_frame(img, static)
+    before = distortion._rectify_maps.cache_info().currsize
+    for k in range(40):                                          # 40 frames of a zoom: 40 lenses
+        frame_lens = CameraCalibration(id="T0", role="tracking-landscape", static=False, width=W, height=H,
+                                       intrinsics=(150.0 + k, 151.0 + k, 82.0, 43.5),
+                                       distortion=tuple(float(v) for v in D.opencv()[:5]))
+        out = rectify_frame(img, frame_lens)
+        assert np.array_equal(rectified_valid(frame_lens), rectified_valid(frame_lens.model_copy(
+            update={"static": True})))
+        assert np.array_equal(out, rectify_frame(img, frame_lens.model_copy(update={"static": True})))
+    assert distortion._frame_rectify_maps.cache_info().currsize <= 4
+    # the static camera's maps are still there (40 static lookups above added 40 entries at most)
+    hits = distortion._rectify_maps.cache_info().hits
+    assert np.array_equal(rectify_frame(img, static), reference)
+    assert distortion._rectify_maps.cache_info().hits == hits + 1
+    assert distortion._rectify_maps.cache_info().currsize <= before + 40
+
+
 def test_static_record_carries_raw_intrinsics_and_distortion_into_the_calibration():
     """The flow's static step stores what ``pipeline.build_record`` needs: the flow's Calibration
     equals the one-call pipeline's."""

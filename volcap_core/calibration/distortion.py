@@ -377,8 +377,7 @@ def needs_rectify(camera: Any) -> bool:
     return not record_distortion(camera).is_none
 
 
-@functools.lru_cache(maxsize=128)
-def _rectify_maps(intr: _Pinhole, coeffs: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _compute_rectify_maps(intr: _Pinhole, coeffs: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     d = Distortion.from_opencv(coeffs)
     mx, my = undistort_maps(intr, d, intr)
     # the whole bilinear footprint inside the source: [0, W - 1] x [0, H - 1]
@@ -388,12 +387,24 @@ def _rectify_maps(intr: _Pinhole, coeffs: tuple[float, ...]) -> tuple[np.ndarray
     return mx, my, valid
 
 
+# Two caches of maps (map_x, map_y, valid: ~75 MB at 3840x2160). A static camera has one lens for
+# the whole take: its maps are kept (up to 128 cameras). A tracking camera's lens follows its zoom,
+# so each of its frames has maps of its own (4 320 of them for 90 zoom cameras over a 48-frame
+# segment): sharing the static cache, training's random draws of views evicted every static
+# camera's maps and rebuilt maps on nearly every load (0.14-0.2 s at 4K), and the cache pinned
+# ~9.5 GB. Per-frame lenses therefore get a small cache of their own: the maps of the last few
+# frames, enough for a frame's image, mask and valid pixels loaded one after the other.
+_rectify_maps = functools.lru_cache(maxsize=128)(_compute_rectify_maps)
+_frame_rectify_maps = functools.lru_cache(maxsize=4)(_compute_rectify_maps)
+
+
 def _maps_of(camera: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     if camera.intrinsics is None:
         raise ValueError(f"camera {camera.id}: a distortion without intrinsics")
     fx, fy, cx, cy = (float(v) for v in camera.intrinsics)
     coeffs = tuple(float(v) for v in camera.distortion)
-    return _rectify_maps(_Pinhole(fx, fy, cx, cy, int(camera.width), int(camera.height)), coeffs)
+    cache = _rectify_maps if getattr(camera, "static", True) else _frame_rectify_maps
+    return cache(_Pinhole(fx, fy, cx, cy, int(camera.width), int(camera.height)), coeffs)
 
 
 def rectified_valid(camera: Any) -> np.ndarray | None:
@@ -411,7 +422,8 @@ def rectify_frame(pixels, camera: Any, *, interpolation: int | None = None):
     the pinhole with the record's fx, fy, cx, cy and no distortion. Bilinear (``interpolation``
     otherwise); pixels outside :func:`rectified_valid` are 0. A camera without distortion gets
     ``pixels`` back as they are (the same object). numpy arrays and torch tensors (CPU) both;
-    the maps are computed once per camera (cached)."""
+    the maps are computed once per static camera (cached); a tracking camera's (``static``
+    False: one frame's lens, ``record.frame_camera``) are kept only for the last few frames."""
     if not needs_rectify(camera):
         return pixels
     import cv2
