@@ -39,8 +39,15 @@ UI_SHEET_WIDTH = 720
 
 
 def tracking_frames(get_bytes: GetBytes, calib: Calibration) -> dict[str, TrackingFrames] | None:
-    """The calibration's per-frame tracking cameras, None when it has none."""
-    return decode_tracking_frames(get_bytes(calib.tracking_frames)) if calib.tracking_frames else None
+    """The calibration's per-frame tracking cameras, None when it has none. A blob that does not
+    decode is a ``ValueError`` naming the blob and the capture."""
+    if not calib.tracking_frames:
+        return None
+    try:
+        return decode_tracking_frames(get_bytes(calib.tracking_frames))
+    except ValueError as exc:
+        raise ValueError(f"calibration of capture {calib.capture!r}: tracking frames "
+                         f"{calib.tracking_frames.digest}: {exc}") from exc
 
 
 @dataclass

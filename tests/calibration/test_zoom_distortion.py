@@ -277,6 +277,13 @@ def test_tracking_blob_carries_each_frames_lens_and_is_versioned():
                      metadata={"format": "volcap-tracking-frames/9"})
     with pytest.raises(ValueError, match="format 'volcap-tracking-frames/9'"):
         decode_tracking_frames(future)
+    # read for a calibration (what training and rendering do): the error names the blob and capture
+    from volcap_core.segment import tracking_frames
+
+    rec = _record(future)
+    with pytest.raises(ValueError, match=rf"capture 'demo': tracking frames {rec.tracking_frames.digest}: "
+                                         r"tracking-frames blob of format 'volcap-tracking-frames/9'"):
+        tracking_frames(lambda ref: future, rec)
 
 
 def test_frame_camera_rectifies_each_tracking_frame_with_its_own_lens():
