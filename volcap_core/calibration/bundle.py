@@ -18,9 +18,10 @@ calibration needs (all robust, Cauchy, in units of their sigma):
   with a prior of that sigma around zero (the lens calibration's accuracy). To first order in the
   correction, a rectified observation of the true lens sits at ``u + (u - c) g(rho²)``, ``u`` the
   pinhole projection, ``c`` / ``f_r`` the rectification's principal point and focal, ``rho = |u - c| /
-  f_r`` and ``g = (dk1 rho² + dk2 rho⁴) / (1 + 3 k1 rho² + 5 k2 rho⁴)`` (the correction of the
-  distorted radius mapped back through the rectification's radial derivative; 0.0002 px from the
-  exact rectification for a 0.003 correction of k1 = 0.1 at the corners of a 320x180 view at f = 310 px).
+  f_r`` and ``g = (dk1 rho² + dk2 rho⁴) / (1 + 3 k1 rho² + 5 k2 rho⁴ + 7 k3 rho⁶)`` (the correction
+  of the distorted radius mapped back through the rectification's radial derivative, k3 that of a
+  FULL_OPENCV lens, 0 otherwise; 0.0002 px from the exact rectification for a 0.003 correction of
+  k1 = 0.1 at the corners of a 320x180 view at f = 310 px).
 
 Cameras of one lens group (``lens_group``: the rig's ``lens_group``, one body and lens model) can
 share ONE log focal (``BundleOptions.share_group_focal``), one principal point
@@ -232,7 +233,8 @@ def bundle_adjust(world_to_camera: np.ndarray, focal: np.ndarray, principal: np.
     (``options.share_group_focal``), started at and held around the mean of their focals and priors
     (one prior for the group), and with ``options.share_group_principal`` one principal point.
     ``lens`` [C]: per camera whose observations were rectified through a lens calibration, that
-    rectification's ``(f, cx, cy, k1, k2)`` (the pinhole it resampled into and its radial terms),
+    rectification's ``(f, cx, cy, k1, k2)`` or ``(f, cx, cy, k1, k2, k3)`` (the pinhole it resampled
+    into and its radial terms),
     None for the others; with ``options.distortion_sigma`` those cameras get radial corrections
     (module docstring), the others none. ``principal_sigma`` [C]: each camera's principal-point prior
     sigma (px) when ``options.principal_sigma_px`` refines them (default: that value for every camera;
@@ -275,8 +277,9 @@ def bundle_adjust(world_to_camera: np.ndarray, focal: np.ndarray, principal: np.
         if len(lens) != ncam:
             raise ValueError(f"lens has {len(lens)} entries for {ncam} cameras")
         has_lens = torch.as_tensor([v is not None for v in lens], device=dev)
-        lens_t = torch.as_tensor(np.array([v if v is not None else (1.0, 0.0, 0.0, 0.0, 0.0) for v in lens],
-                                          np.float64).reshape(ncam, 5), **f64)
+        lens_t = torch.as_tensor(np.array([(tuple(v) + (0.0,) * (6 - len(v))) if v is not None
+                                           else (1.0, 0.0, 0.0, 0.0, 0.0, 0.0) for v in lens],
+                                          np.float64).reshape(ncam, 6), **f64)
         dk = torch.zeros(ncam, NDIST, **f64)
     pps = None
     if options.principal_sigma_px is not None:
@@ -385,7 +388,7 @@ def _lens_terms(state: _State, prob: _Problem, oc, u: torch.Tensor):
     L = prob.lens[oc]
     d = u - L[:, 1:3]
     rho2 = (d ** 2).sum(1) / L[:, 0] ** 2
-    slope = 1.0 + 3.0 * L[:, 3] * rho2 + 5.0 * L[:, 4] * rho2 ** 2
+    slope = 1.0 + 3.0 * L[:, 3] * rho2 + 5.0 * L[:, 4] * rho2 ** 2 + 7.0 * L[:, 5] * rho2 ** 3
     on = prob.has_lens[oc].to(u.dtype)
     basis = torch.stack([rho2, rho2 ** 2], 1) * (on / slope)[:, None]                  # [M, 2]
     g = (basis * state.dk[oc]).sum(1)

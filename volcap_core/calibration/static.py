@@ -369,17 +369,18 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
                              raw_intrinsics={c: raw_from_rectified(K[c], raw_intr[c]) for c in reg if c in raw_intr})
 
 
-def _radial_lens(rect: Intrinsics, raw: Intrinsics | None) -> tuple[float, float, float, float, float] | None:
+def _radial_lens(rect: Intrinsics, raw: Intrinsics | None) -> tuple[float, ...] | None:
     """``bundle_adjust``'s ``lens`` of a camera: the square pinhole ``rect`` its views and
-    observations were rectified into and the radial k1, k2 of its lens ``raw``; None when it was not
-    rectified, or its lens has no k1 and k2 to correct (PINHOLE with non-square pixels), or is a
-    rational FULL_OPENCV (k4-k6: the correction's radial slope assumes a polynomial): held."""
+    observations were rectified into and the radial k1, k2, k3 of its lens ``raw`` (k3 enters the
+    correction's radial slope); None when it was not rectified, or its lens has no k1 and k2 to
+    correct (PINHOLE with non-square pixels), or is a rational FULL_OPENCV (k4-k6: the correction's
+    radial slope assumes a polynomial): held."""
     if raw is None or raw.distortion.model not in ("SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV"):
         return None
     full = [float(v) for v in raw.distortion.opencv_full()]
     if any(full[5:]):
         return None
-    return (rect.fx, rect.cx, rect.cy, full[0], full[1])
+    return (rect.fx, rect.cx, rect.cy, full[0], full[1], full[4])
 
 
 def _with_radial(d: Distortion, correction) -> Distortion:
