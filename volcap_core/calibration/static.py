@@ -40,8 +40,8 @@ import numpy as np
 from hardware.rig import Rig, RigCamera
 from volcap_core.calibration.bundle import BundleOptions, bundle_adjust
 from volcap_core.calibration.distortion import Distortion, undistort_valid_mask
-from volcap_core.calibration.geometry import (Similarity, look_at_rotation, pose_matrix, robust_umeyama,
-                                              triangulate_points)
+from volcap_core.calibration.geometry import (Similarity, camera_centre, look_at_rotation, pose_matrix,
+                                              robust_umeyama, triangulate_points)
 from volcap_core.calibration.guided import GuidedMatchOptions, guided_tracks
 from volcap_core.calibration.lidar import LidarScan, align_to_lidar
 from volcap_core.calibration.photometric import PhotometricOptions, refine_photometric
@@ -447,10 +447,6 @@ _DEPTH_PERCENTILES, _DEPTH_MARGIN = (1.0, 99.0), (0.7, 1.4)
 _MIN_PROBE_POINTS = 100
 
 
-def _camera_centre(world_to_camera: np.ndarray) -> np.ndarray:
-    return -world_to_camera[:3, :3].T @ world_to_camera[:3, 3]
-
-
 def _sweep_and_fuse(images: Mapping[str, np.ndarray], cameras: Mapping[str, tuple[np.ndarray, np.ndarray]],
                     scale: float, ranges: Mapping[str, tuple[float, float]], scene_depth: Mapping[str, float],
                     depth_tol: float | None = None) -> tuple[np.ndarray, dict]:
@@ -497,7 +493,7 @@ def _surface_depth_ranges(plates: Mapping[str, np.ndarray], cameras: Mapping[str
     t0 = time.perf_counter()
     ids = sorted(cameras)
     log = logging.getLogger("volcap.calibrate")
-    centres = np.stack([_camera_centre(cameras[c][1]) for c in ids])
+    centres = np.stack([camera_centre(cameras[c][1]) for c in ids])
     gaps = np.linalg.norm(centres[:, None] - centres[None], axis=-1) + np.diag(np.full(len(ids), np.inf))
     spacing = max(float(np.median(gaps.min(1))), 1e-6)
     near, far = _PROBE_NEAR * spacing, _PROBE_FAR * spacing
@@ -540,10 +536,6 @@ def _surface_depth_ranges(plates: Mapping[str, np.ndarray], cameras: Mapping[str
     return ranges, middle, stats
 
 
-def _centre(world_to_camera: np.ndarray) -> np.ndarray:
-    return -world_to_camera[:3, :3].T @ world_to_camera[:3, 3]
-
-
 class KnownDistanceError(ValueError):
     """``StaticCalibrationOptions.known_distance`` names a camera that is not calibrated, or a
     distance that is not positive."""
@@ -557,7 +549,7 @@ def _check_known_distance(world_to_camera: Mapping[str, np.ndarray], known: tupl
                                  f"({', '.join(sorted(world_to_camera))})")
     if not d > 0:
         raise KnownDistanceError(f"known_distance between {a} and {b} must be positive, got {d}")
-    measured = float(np.linalg.norm(_centre(world_to_camera[a]) - _centre(world_to_camera[b])))
+    measured = float(np.linalg.norm(camera_centre(world_to_camera[a]) - camera_centre(world_to_camera[b])))
     return {"known_distance_m": float(d), "known_distance_measured_m": measured,
             "known_distance_error_m": measured - float(d)}
 
@@ -582,7 +574,7 @@ def frame_without_lidar(world_to_camera: Mapping[str, np.ndarray], mounts: Mappi
     from volcap_core.calibration.geometry import rotation_angle_deg
 
     ids = sorted(world_to_camera)
-    src = np.stack([_centre(world_to_camera[c]) for c in ids])
+    src = np.stack([camera_centre(world_to_camera[c]) for c in ids])
     dst = np.stack([np.asarray(mounts[c], np.float64) for c in ids])
     if len(ids) >= 3:
         T, inl = robust_umeyama(src, dst, threshold=0.25)
