@@ -256,6 +256,21 @@ def test_vae_stages_continue_the_pretraining_at_their_rates():
         EnhancerTrainConfig(vae_steps=1, vae_stages=((10, 0.0),))
 
 
+def test_lr_decay_scales_the_rate_from_its_steps():
+    """``lr_decay``: after the warm-up, the rate is ``lr`` times the factor of the last pair
+    reached; none is left out of the JSON (existing configs keep their cache keys)."""
+    cfg = EnhancerTrainConfig(lr=1e-3, warmup_steps=10, lr_decay=((100, 0.2), (50, 0.5)))
+    assert cfg.rate(5) == pytest.approx(5e-4)
+    assert cfg.rate(10) == pytest.approx(1e-3) and cfg.rate(49) == pytest.approx(1e-3)
+    assert cfg.rate(50) == pytest.approx(5e-4) and cfg.rate(99) == pytest.approx(5e-4)
+    assert cfg.rate(100) == pytest.approx(2e-4) and cfg.rate(10_000) == pytest.approx(2e-4)
+    assert EnhancerTrainConfig(lr=1e-3).rate(7) == 1e-3
+    assert "lr_decay" not in EnhancerTrainConfig().model_dump_json()
+    assert EnhancerTrainConfig.model_validate_json(cfg.model_dump_json()) == cfg
+    with pytest.raises(ValueError, match="factor"):
+        EnhancerTrainConfig(lr_decay=((10, 0.0),))
+
+
 def test_resume_refuses_another_configuration():
     pairs = [_pairs(2)]
     cfg = EnhancerTrainConfig(steps=1, crop=32, finetune="lora", lora_rank=2, flow="zero")
