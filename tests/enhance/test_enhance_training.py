@@ -229,6 +229,48 @@ def test_vae_pretraining_learns_to_reconstruct_and_is_deterministic():
     assert not any(p.requires_grad for p in models[0].vae.parameters())
 
 
+def test_vae_stages_continue_the_pretraining_at_their_rates():
+    """``vae_stages`` are further :func:`train_vae` runs after the first ``vae_steps``, stage ``k``
+    with its rate and the crop stream of ``seed + k``; no stages is left out of the JSON (cache keys
+    of configs written before the field existed are unchanged)."""
+    from volcap_core.enhance.training import train_vae
+
+    pairs = [_pairs(3, seed=0)]
+    cfg = EnhancerTrainConfig(steps=1, crop=32, finetune="full", flow="zero", vae_steps=3, vae_batch=2,
+                              vae_crop=32, vae_lr=3e-3, seed=5, vae_stages=((2, 1e-3), (1, 3e-4)))
+    result = train_enhancer(build_enhancer(EnhancerConfig.tiny(), seed=0), pairs, cfg)
+    assert len(result.vae_losses) == 6
+    by_hand = build_enhancer(EnhancerConfig.tiny(), seed=0)
+    frames = torch.cat([p.hq.float() for p in pairs] + [p.lq.float() for p in pairs])
+    losses = train_vae(by_hand, frames, cfg)
+    losses += train_vae(by_hand, frames, cfg.model_copy(update={"vae_steps": 2, "vae_lr": 1e-3, "seed": 6}))
+    losses += train_vae(by_hand, frames, cfg.model_copy(update={"vae_steps": 1, "vae_lr": 3e-4, "seed": 7}))
+    assert losses == result.vae_losses
+    for k, v in by_hand.vae.state_dict().items():
+        assert torch.equal(v, result.model.vae.state_dict()[k]), k
+    assert "vae_stages" not in EnhancerTrainConfig().model_dump_json()
+    assert EnhancerTrainConfig.model_validate_json(cfg.model_dump_json()) == cfg
+    with pytest.raises(ValueError, match="vae_steps"):
+        EnhancerTrainConfig(vae_stages=((10, 1e-3),))
+    with pytest.raises(ValueError, match="rate"):
+        EnhancerTrainConfig(vae_steps=1, vae_stages=((10, 0.0),))
+
+
+def test_lr_decay_scales_the_rate_from_its_steps():
+    """``lr_decay``: after the warm-up, the rate is ``lr`` times the factor of the last pair
+    reached; none is left out of the JSON (existing configs keep their cache keys)."""
+    cfg = EnhancerTrainConfig(lr=1e-3, warmup_steps=10, lr_decay=((100, 0.2), (50, 0.5)))
+    assert cfg.rate(5) == pytest.approx(5e-4)
+    assert cfg.rate(10) == pytest.approx(1e-3) and cfg.rate(49) == pytest.approx(1e-3)
+    assert cfg.rate(50) == pytest.approx(5e-4) and cfg.rate(99) == pytest.approx(5e-4)
+    assert cfg.rate(100) == pytest.approx(2e-4) and cfg.rate(10_000) == pytest.approx(2e-4)
+    assert EnhancerTrainConfig(lr=1e-3).rate(7) == 1e-3
+    assert "lr_decay" not in EnhancerTrainConfig().model_dump_json()
+    assert EnhancerTrainConfig.model_validate_json(cfg.model_dump_json()) == cfg
+    with pytest.raises(ValueError, match="factor"):
+        EnhancerTrainConfig(lr_decay=((10, 0.0),))
+
+
 def test_resume_refuses_another_configuration():
     pairs = [_pairs(2)]
     cfg = EnhancerTrainConfig(steps=1, crop=32, finetune="lora", lora_rank=2, flow="zero")
