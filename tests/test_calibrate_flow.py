@@ -230,7 +230,7 @@ def test_reconstruct_trains_on_the_estimated_calibration(calibrated):
 
     store, capture, first = calibrated
     res = run_flow(reconstruct_flow, store=store, capture=capture.digest, frames=(2, 4), preset="test",
-                   points_per_frame=2000, held_out=["S003"])
+                   points_per_frame=2000, held_out=["S003"], steps=80)
     out = res.result
     # the calibration comes from the cache; the dense frames run again without the held-out camera
     # (its footage must not reach the model it tests), then a new budgeted sequence and the training
@@ -243,7 +243,9 @@ def test_reconstruct_trains_on_the_estimated_calibration(calibrated):
     assert rec.calibration.digest == out["calibration"]["digest"]
     # on the estimated calibration too the model beats the floors of the same views. Measured
     # (2026-11-23; the test preset's 20 steps on 2 frames of 2000 estimated points): held-out
-    # 15.84 dB, untrained 15.08, empty 14.88; training views 15.87. The demo (550 steps) is where
+    # 15.84 dB, untrained 15.08, empty 14.88; training views 15.87. In a venv installed on
+    # 2026-11-26 the same 20 steps gave 14.52 dB against an untrained 14.87, on this session's code
+    # and on d29e4a5's alike (a dependency resolved differently; not found which): 80 steps pass. The demo (550 steps) is where
     # the quality is measured; here a model that does not train, or renders nothing, fails.
     assert seg["held_out_psnr"] >= seg["floor_initial_psnr"] + 0.4
     assert seg["held_out_psnr"] >= seg["floor_empty_psnr"] + 0.6
