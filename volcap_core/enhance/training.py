@@ -192,20 +192,14 @@ class EnhancerTrainConfig(BaseModel):
     vae_stages: tuple[tuple[int, float], ...] = ()
     frozen_dtype: Literal["float32", "bfloat16"] = "float32"
 
-    @field_validator("lr_decay")
+    @field_validator("lr_decay", "vae_stages")
     @classmethod
-    def _positive_decay(cls, v: tuple[tuple[int, float], ...]) -> tuple[tuple[int, float], ...]:
-        for at, factor in v:
-            if at < 1 or not factor > 0:
-                raise ValueError(f"an lr_decay pair needs step >= 1 and a factor > 0, got ({at}, {factor})")
-        return v
-
-    @field_validator("vae_stages")
-    @classmethod
-    def _positive_stages(cls, v: tuple[tuple[int, float], ...]) -> tuple[tuple[int, float], ...]:
-        for steps, rate in v:
-            if steps < 1 or not rate > 0:
-                raise ValueError(f"a VAE stage needs steps >= 1 and a rate > 0, got ({steps}, {rate})")
+    def _positive_schedule(cls, v: tuple[tuple[int, float], ...], info) -> tuple[tuple[int, float], ...]:
+        count_name, value_name = {"lr_decay": ("step", "factor"), "vae_stages": ("steps", "rate")}[info.field_name]
+        for count, value in v:
+            if count < 1 or not value > 0:
+                raise ValueError(f"each {info.field_name} pair needs {count_name} >= 1 and a {value_name} > 0, "
+                                 f"got ({count}, {value})")
         return v
 
     @model_validator(mode="after")
@@ -215,14 +209,13 @@ class EnhancerTrainConfig(BaseModel):
         return self
 
     @model_serializer(mode="wrap")
-    def _omit_no_vae_stages(self, handler):
-        # no stages (the default) is left out of the JSON: a task's cache key and the checkpoints
-        # of configs written before the field existed stay byte-identical
+    def _omit_empty_schedules(self, handler):
+        # no lr_decay / no vae_stages (the defaults) are left out of the JSON: a task's cache key and
+        # the checkpoints of configs written before the fields existed stay byte-identical
         out = handler(self)
-        if not self.vae_stages:
-            out.pop("vae_stages", None)
-        if not self.lr_decay:
-            out.pop("lr_decay", None)
+        for name in ("lr_decay", "vae_stages"):
+            if not getattr(self, name):
+                out.pop(name, None)
         return out
 
     def rate(self, step: int) -> float:
@@ -656,8 +649,8 @@ def train_enhancer(model: Enhancer, pairs: Sequence, config: EnhancerTrainConfig
         merge: fold LoRA adapters into the weights at the end (the model then saves as a plain
             enhancer); False leaves them in place.
     With ``config.vae_steps`` > 0 the VAE is first pre-trained (:func:`train_vae`) on every pair
-    set's HQ and LQ frames (then through ``config.vae_stages``), then frozen; checkpoints then hold the VAE weights, and a resumed run
-    loads them instead of pre-training again (a run interrupted during VAE pre-training, which
+    set's HQ and LQ frames (then through ``config.vae_stages``), then frozen; checkpoints then hold
+    the VAE weights, and a resumed run loads them instead of pre-training again (a run interrupted during VAE pre-training, which
     writes no checkpoint, starts over).
     The crop actually used becomes ``model.config.train_crop`` at the end (inference takes its
     timestep shift from it).
