@@ -43,7 +43,7 @@ ERRORS_MEDIA = "application/vnd.volcap.calibration-errors+json"
 CALIBRATION_LIBRARIES = ("pycolmap", "cv2", "kornia", "torch", "numpy", "scipy")
 
 
-@volcap_task(name="calibrate-static", version="7", libraries=CALIBRATION_LIBRARIES)
+@volcap_task(name="calibrate-static", version="8", libraries=CALIBRATION_LIBRARIES)
 def calibrate_static(store: str, capture: ArtifactRef,
                      options: StaticCalibrationOptions = StaticCalibrationOptions(),
                      known_points: KnownPoints | None = None) -> ArtifactRef:
@@ -59,7 +59,9 @@ def calibrate_static(store: str, capture: ArtifactRef,
     a lidar scan placed by a robust similarity onto the mounts or scaled by ``options.known_distance``,
     its residual in the stats (``frame.*``). Version 6: without a scan the stand-in surface's sweep
     depths come from the scene (``static.surface_from_plates``); ``known_points`` (distances between
-    marked scene points, ``volcap_core.calibration.scale``) scale a capture without a scan."""
+    marked scene points, ``volcap_core.calibration.scale``) scale a capture without a scan.
+    Version 8: each camera's view of the static scene (``StaticCamera.scene_depth_m``, from the
+    sparse points), which the Calibration record carries on to where dense points sweep."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
     statics, trackers = split_cameras(cap)
@@ -116,7 +118,10 @@ def dense_points_frame(store: str, capture: ArtifactRef, calibration: ArtifactRe
     """One frame's dense points from the calibrated static cameras but ``exclude_cameras`` (a
     reconstruction's held-out cameras); ``scale`` < 1 matches downscaled images (previews, tests).
     Version 3: a distorted camera's frame is rectified into the pinhole of its record's K first
-    (``distortion.rectify_frame``), and pixels outside its source give no depth."""
+    (``distortion.rectify_frame``), and pixels outside its source give no depth. A calibration with
+    scene depths (calibrate-static 8) is swept around each camera's scene
+    (``CameraCalibration.scene_depth_m``); one without (a new digest either way) sweeps the fixed
+    ``DenseOptions`` range as before, so the version is unchanged."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
     out = steps.dense_points_step(cap, s.get_record(calibration, Calibration), frame,

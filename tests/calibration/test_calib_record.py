@@ -45,6 +45,24 @@ def test_record_round_trips_as_canonical_json():
     assert len(data) < 4000, "the record stays JSON-small: per-frame arrays live in the blob"
 
 
+def test_scene_depth_is_kept_and_a_record_without_it_is_unchanged():
+    """A static camera's view of the scene (``scene_depth_m``: where its dense points sweep) round
+    trips; a record made before it existed reads back with None and writes the same bytes (the
+    same digest), and depths out of order are refused, naming the field."""
+    rec = _record(None)
+    old = rec.to_canonical_json()
+    assert b"scene_depth_m" not in old
+    back = Calibration.from_json_bytes(old)
+    assert back.camera("S0").scene_depth_m is None and back.to_canonical_json() == old
+    cams = (rec.cameras[0].model_copy(update={"scene_depth_m": (2.5, 6.0, 11.0)}),) + rec.cameras[1:]
+    new = rec.model_copy(update={"cameras": cams})
+    again = Calibration.from_json_bytes(new.to_canonical_json())
+    assert again.camera("S0").scene_depth_m == (2.5, 6.0, 11.0)
+    assert again.to_canonical_json() == new.to_canonical_json()
+    with pytest.raises(ValueError, match="scene_depth_m"):
+        CameraCalibration(id="S1", role="static", static=True, width=320, height=180, scene_depth_m=(6.0, 2.5, 11.0))
+
+
 def test_tracking_blob_round_trip_and_ref_matches_store(tmp_path):
     frames = _tracking()
     blob = encode_tracking_frames(frames)

@@ -148,6 +148,48 @@ def test_dense_points_lie_on_the_true_surfaces(result, capture, gt):
     assert np.median(d) < 0.03, np.median(d)              # measured 0.013 m (4969 points); 2.3x margin
 
 
+def test_dense_points_sweep_the_scene_each_camera_saw(result, capture, gt):
+    """Each static camera's record carries its view of the static scene (the sparse points' 1st
+    percentile, median and 99th percentile depth), and its sweep range holds the true scene: the
+    lidar's points in its view. Dense points swept there find the same surface in the stage as it
+    is and in one 2.5 times larger (cameras and depths scaled), where the fixed 1-14 m range of
+    ``DenseOptions`` leaves most of it out."""
+    from volcap_core.calibration.dense import sweep_range
+    from volcap_core.calibration.geometry import Similarity
+    from volcap_core.calibration.static import _depths_in_view
+
+    mid = FRAMES // 2
+    scan = capture.lidar()
+    for cid in result.record.static_ids:
+        cam = result.record.camera(cid)
+        lo, middle, hi = sweep_range(cam.scene_depth_m)
+        K, W = result.static.K[cid], result.static.world_to_camera[cid]
+        z = _depths_in_view(scan.points, K, W, (cam.width, cam.height))
+        inside = float(np.mean((z > lo) & (z < hi)))
+        print(cid, np.round(cam.scene_depth_m, 2), f"lidar in view {np.percentile(z, [1, 50, 99]).round(2)}",
+              f"inside {inside:.3f}")
+        assert lo < middle < hi and inside > 0.97, (cid, cam.scene_depth_m, inside)
+    ids = ["S002", "S003", "S004", "S005"]
+    images = {c: capture.load(c, mid) for c in ids}
+    sweeps = {c: sweep_range(result.record.camera(c).scene_depth_m) for c in ids}
+    found = {}
+    for f in (1.0, 2.5):
+        cams = {c: (result.static.K[c], Similarity(f).apply_pose(result.static.world_to_camera[c])) for c in ids}
+        scaled = {c: tuple(f * v for v in s) for c, s in sweeps.items()}
+        found[f] = dense_points(images, cams, references=["S003", "S004"], options=DenseOptions(scale=2.0),
+                                sweeps=scaled)["positions"] / f
+        if f > 1:
+            fixed = dense_points(images, cams, references=["S003", "S004"], options=DenseOptions(scale=2.0))
+    p1, p2 = found[1.0], found[2.5]
+    print(len(p1), len(p2), len(fixed["positions"]))
+    assert len(p1) > 2000 and abs(len(p2) / len(p1) - 1) < 0.02
+    assert abs(np.median(p2[:, 2]) - np.median(p1[:, 2])) < 0.02
+    assert len(fixed["positions"]) < 0.5 * len(p2)
+    parts = [q for a in gt.parts for q in a[mid]]
+    d = np.minimum(scan.surface_distance(p1.astype(np.float64), 0.3), distance_to_parts(p1, parts))
+    assert np.median(d) < 0.03, np.median(d)
+
+
 def test_colour_calibration_from_the_chart(result, capture):
     chart = json.loads((capture.root / "ground_truth" / "scene.json").read_text())["chart"]
     centres = np.array([p["centre_m"] for p in chart["patches"]])

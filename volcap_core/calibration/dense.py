@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Mapping
 
 import numpy as np
@@ -284,9 +284,24 @@ def _valid_at(valid: np.ndarray, shape: tuple[int, int], window: int) -> np.ndar
     return ok.astype(bool)
 
 
+#: a camera's sweep around the static scene it sees: from this fraction of its 1st-percentile depth
+#: to this multiple of its 99th (:func:`sweep_range`): room for performers nearer than the set and
+#: for what the percentiles cut
+DEPTH_MARGIN = (0.7, 1.4)
+
+
+def sweep_range(scene_depth_m: tuple[float, float, float]) -> tuple[float, float, float]:
+    """A reference camera's sweep ``(nearest, neighbours', farthest)`` depth (metres; see
+    :func:`dense_points`) from its view of the scene ``(1st percentile, median, 99th percentile)``
+    depth: ``DEPTH_MARGIN`` times the outer two, its neighbours chosen at the median."""
+    return (DEPTH_MARGIN[0] * float(scene_depth_m[0]), float(scene_depth_m[1]),
+            DEPTH_MARGIN[1] * float(scene_depth_m[2]))
+
+
 def dense_points(images: Mapping[str, np.ndarray], cameras: Mapping[str, Camera], *,
                  references: list[str] | None = None, options: DenseOptions = DenseOptions(),
-                 valid: Mapping[str, np.ndarray | None] | None = None) -> dict:
+                 valid: Mapping[str, np.ndarray | None] | None = None,
+                 sweeps: Mapping[str, tuple[float, float, float]] | None = None) -> dict:
     """One frame's dense point cloud from calibrated views.
 
     ``images``: id -> linear RGB [H, W, 3]; ``cameras``: id -> (K [3, 3], world_to_camera [4, 4]);
@@ -294,7 +309,11 @@ def dense_points(images: Mapping[str, np.ndarray], cameras: Mapping[str, Camera]
     ``valid``: id -> [H, W] bool, the pixels that hold footage (a rectified distorted frame's
     :func:`~volcap_core.calibration.distortion.rectified_valid`; None or absent: all): a reference
     pixel whose NCC window reaches outside them gets no depth (the black border's edge is texture
-    that matches nothing real).
+    that matches nothing real);
+    ``sweeps``: id -> the reference's ``(nearest, neighbours', farthest)`` depth in metres: it sweeps
+    from the nearest to the farthest, its neighbours chosen for their triangulation angle at the
+    middle one (:func:`sweep_range` of a calibration's ``CameraCalibration.scene_depth_m``); a
+    reference without one sweeps ``options.depth_min``-``depth_max``, neighbours chosen at 5 m.
     Returns ``positions`` [N, 3] float32 (metres, stage frame), ``colours`` [N, 3] float32 (linear),
     ``views`` [N] consistent other views, ``depth_maps`` {id: DepthMap}, ``seconds``.
     """
@@ -303,11 +322,12 @@ def dense_points(images: Mapping[str, np.ndarray], cameras: Mapping[str, Camera]
     refs = references or ids
     maps = {}
     for r in refs:
+        lo, middle, hi = (sweeps or {}).get(r, (options.depth_min, 5.0, options.depth_max))
         nbs = choose_neighbours({c: cameras[c] for c in ids}, r, options.neighbours, options.min_angle_deg,
-                                options.max_angle_deg)
+                                options.max_angle_deg, scene_depth=float(middle))
         if not nbs:
             continue
-        dm = depth_map(images, cameras, r, nbs, options)
+        dm = depth_map(images, cameras, r, nbs, replace(options, depth_min=float(lo), depth_max=float(hi)))
         if valid is not None and valid.get(r) is not None:
             dm.depth[~_valid_at(valid[r], dm.depth.shape, options.window)] = 0.0
         maps[r] = dm

@@ -93,7 +93,7 @@ def build_record(capture_name: str, rig: Rig, static: StaticCalibration, trackin
     for cid in static.camera_ids:
         K = static.K[cid]
         w, h = static.size[cid]
-        extra = {}
+        extra = {"scene_depth_m": static.scene_depth.get(cid)}   # where its dense points sweep
         raw = getattr(static, "raw_intrinsics", {}).get(cid)
         if raw is not None:       # a distorted lens: its intrinsics on its own frames, and the distortion
             K = raw.K

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from typing import ClassVar, Mapping
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, SerializerFunctionWrapHandler, field_validator, model_serializer
 from safetensors.numpy import load as st_load
 from safetensors.numpy import save as st_save
 
@@ -53,6 +53,26 @@ class CameraCalibration(BaseModel):
     world_to_camera: Matrix4 | None = Field(default=None, description="4x4, OpenCV axes (static cameras)")
     quality: dict[str, float] = Field(default_factory=dict,
                                       description="per-camera fit statistics (reprojection px, inliers...)")
+    scene_depth_m: tuple[float, float, float] | None = Field(
+        default=None, description="a static camera's view of the static scene: the 1st percentile, median "
+                                  "and 99th percentile depth (metres along its axis) of the calibration's sparse "
+                                  "points it observes; where dense points sweep (steps.dense_points_step). "
+                                  "None: not measured (a calibration made before it was, or too few points)")
+
+    @model_serializer(mode="wrap")
+    def _omit_unmeasured(self, handler: SerializerFunctionWrapHandler):
+        # records of calibrations without scene depths serialise (and digest) as before it existed
+        data = handler(self)
+        if isinstance(data, dict) and data.get("scene_depth_m") is None:
+            data.pop("scene_depth_m", None)
+        return data
+
+    @field_validator("scene_depth_m")
+    @classmethod
+    def _ordered_depths(cls, v):
+        if v is not None and not 0 < v[0] <= v[1] <= v[2]:
+            raise ValueError(f"scene_depth_m must be positive depths (p1 <= median <= p99), got {v}")
+        return v
 
     @field_validator("distortion")
     @classmethod

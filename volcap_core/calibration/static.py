@@ -158,6 +158,9 @@ class StaticCalibration:
     #: per calibrated camera: :func:`camera_support` of the final sparse reconstruction, and
     #: ``guided_observations`` (step 5's inliers) when step 5 ran
     support: dict[str, dict] = field(default_factory=dict)
+    #: per calibrated camera, its view of the scene (:func:`scene_depths`): where its dense points
+    #: sweep; kept by the records when ``model`` is not
+    scene_depth: dict[str, tuple[float, float, float]] = field(default_factory=dict)
 
 
 class UnsupportedCameraError(RuntimeError):
@@ -441,9 +444,10 @@ def surface_from_plates(plates: Mapping[str, np.ndarray], K: Mapping[str, np.nda
 #: the stand-in surface's probe: from this fraction of the median distance between neighbouring
 #: cameras (a surface nearer than ~0.8 of it is seen by a neighbour at more than the sweep's 50°
 #: anyway) to ``_PROBE_FAR`` times it; each camera's range is its ``_DEPTH_PERCENTILES`` of the
-#: probe's points, times ``_DEPTH_MARGIN``; fewer than ``_MIN_PROBE_POINTS`` in view: the fallback
+#: probe's points, widened by ``dense.sweep_range``; fewer than ``_MIN_PROBE_POINTS`` in view: the
+#: fallback
 _PROBE_NEAR, _PROBE_FAR = 0.25, 1000.0
-_DEPTH_PERCENTILES, _DEPTH_MARGIN = (1.0, 99.0), (0.7, 1.4)
+_DEPTH_PERCENTILES = (1.0, 99.0)
 _MIN_PROBE_POINTS = 100
 
 
@@ -454,20 +458,56 @@ def _sweep_and_fuse(images: Mapping[str, np.ndarray], cameras: Mapping[str, tupl
     (``ranges``: id -> (min, max) metres) and its neighbours chosen for their angle at the scene
     ``scene_depth`` metres along its axis (not at a fixed 5 m). Returns the fused points [N, 3] and
     the depth maps."""
-    from volcap_core.calibration.dense import DenseOptions, choose_neighbours, depth_map, fuse_depth_maps
+    from volcap_core.calibration.dense import DenseOptions, dense_points
 
     base = DenseOptions(scale=scale)
     if depth_tol is not None:
         base = replace(base, depth_tol=depth_tol)
-    maps = {}
-    for r in sorted(cameras):
-        lo, hi = ranges[r]
-        nbs = choose_neighbours(cameras, r, base.neighbours, base.min_angle_deg, base.max_angle_deg,
-                                scene_depth=float(scene_depth[r]))
-        if nbs:
-            maps[r] = depth_map(images, cameras, r, nbs, replace(base, depth_min=lo, depth_max=hi))
-    pos, _, _ = fuse_depth_maps(maps, images, base)
-    return pos, maps
+    out = dense_points(images, cameras, options=base,
+                       sweeps={c: (ranges[c][0], scene_depth[c], ranges[c][1]) for c in cameras})
+    return out["positions"], out["depth_maps"]
+
+
+def scene_depths(static: StaticCalibration, stage_size_m: Sequence[float],
+                 min_points: int = 20) -> dict[str, tuple[float, float, float]]:
+    """Each static camera's view of the scene, ``(nearest, middle, farthest)`` depth in metres
+    along its axis: where its dense points sweep (:func:`~volcap_core.calibration.dense.sweep_range`),
+    so a stage of any size, or a miniature, is swept where its scene is.
+
+    Two parts make the scene: the set, as the sparse points the camera observes (``static.model``
+    under its final pose; their 1st and 99th percentile: SIFT finds the textured walls, rarely the
+    floor at the camera's feet), and the performance volume (``stage_volume(stage_size_m)``, sampled
+    on a grid: the points that project into its image), where the performers the dense points are
+    for stand. Nearest and farthest span both; the middle, where its neighbours are chosen for their
+    triangulation angle, is the volume's median depth (the sparse points' without the volume in
+    view). Cameras with fewer than ``min_points`` sparse points in front are left out (they sweep
+    the fixed range); none without a model. Kept in ``StaticCalibration.scene_depth``
+    (:func:`~volcap_core.calibration.steps.calibrate_static_step`) and the records after it."""
+    from volcap_core.production.performance import stage_volume
+
+    model = static.model
+    if model is None:
+        return {}
+    (x0, y0, z0), (x1, y1, z1) = stage_volume(stage_size_m, floor_clearance_m=0.0)
+    grid = np.stack(np.meshgrid(np.linspace(x0, x1, 25), np.linspace(y0, y1, 25), np.linspace(z0, z1, 11),
+                                indexing="ij"), -1).reshape(-1, 3)
+    out = {}
+    for i, c in enumerate(model.camera_ids):
+        if c not in static.world_to_camera:
+            continue
+        pts = model.points[np.unique(model.obs_point[model.obs_camera == i])]
+        pts = pts[np.isfinite(pts).all(1)]
+        W = np.asarray(static.world_to_camera[c], np.float64)
+        z = pts @ W[2, :3] + W[2, 3]
+        z = z[z > 1e-6]
+        if len(z) < min_points:
+            continue
+        lo, mid, hi = np.percentile(z, (_DEPTH_PERCENTILES[0], 50.0, _DEPTH_PERCENTILES[1]))
+        stage = _depths_in_view(grid, static.K[c], W, static.size[c])
+        if len(stage):
+            lo, mid, hi = min(lo, stage.min()), np.median(stage), max(hi, stage.max())
+        out[c] = (float(lo), float(mid), float(hi))
+    return out
 
 
 def _depths_in_view(points: np.ndarray, K: np.ndarray, world_to_camera: np.ndarray,
@@ -489,6 +529,8 @@ def _surface_depth_ranges(plates: Mapping[str, np.ndarray], cameras: Mapping[str
     found. The probe chooses neighbours at the median distance to the other cameras (a rig looks
     across its stage)."""
     import logging
+
+    from volcap_core.calibration.dense import sweep_range
 
     t0 = time.perf_counter()
     ids = sorted(cameras)
@@ -512,7 +554,8 @@ def _surface_depth_ranges(plates: Mapping[str, np.ndarray], cameras: Mapping[str
             continue
         lo, hi = np.percentile(z, _DEPTH_PERCENTILES)
         middle[c] = float(np.median(z))
-        found[c] = (max(near, _DEPTH_MARGIN[0] * float(lo)), min(far, _DEPTH_MARGIN[1] * float(hi)))
+        lo_m, _, hi_m = sweep_range((float(lo), middle[c], float(hi)))
+        found[c] = (max(near, lo_m), min(far, hi_m))
         if lo < 2 * near:
             close.append(f"{c} ({lo:.2f} m)")
     if found:

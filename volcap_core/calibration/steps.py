@@ -29,14 +29,15 @@ from safetensors.numpy import save as st_save
 from volcap_core import imageio
 from volcap_core.calibration import scale
 from volcap_core.calibration.colour import ColourCalibrationOptions
-from volcap_core.calibration.dense import DenseOptions, dense_points
+from volcap_core.calibration.dense import DenseOptions, dense_points, sweep_range
 from volcap_core.calibration.distortion import rectified_valid, rectify_frame
 from volcap_core.calibration.lidar import LidarScan
 from volcap_core.calibration.photometric import background_plate
 from volcap_core.calibration.record import (Calibration, TrackingFrames, camera_at, encode_tracking_frames,
                                             frame_camera)
 from volcap_core.calibration.static import (StaticCalibration, StaticCalibrationOptions, UnsupportedCameraError,
-                                            KnownDistanceError, calibrate_static_cameras, instant_frames)
+                                            KnownDistanceError, calibrate_static_cameras, instant_frames,
+                                            scene_depths)
 from volcap_core.calibration.tracking import (StaticReference, TrackingOptions, TrackingSolution,
                                               build_static_reference, calibrate_tracking_cameras, zoom_lens)
 from volcap_core.capture import Capture
@@ -74,6 +75,9 @@ class StaticCamera(BaseModel):
     height: int
     raw_intrinsics: tuple[float, float, float, float] | None = None
     distortion: dict[str, Any] | None = None
+    #: its view of the static scene (:func:`~volcap_core.calibration.static.scene_depths`): 1st
+    #: percentile, median, 99th percentile depth in metres; None: too few sparse points in front
+    scene_depth_m: tuple[float, float, float] | None = None
 
 
 class StaticCalibrationRecord(Record):
@@ -305,6 +309,8 @@ def calibrate_static_step(cap_name: str, rig, static_ids: Sequence[str], trackin
         # them is in the same frame (with a scan nothing moves; tracking without a scan is refused above)
         static = scale.apply_to_static_step(cap_name, rig, static, known_points, has_scan=scan is not None,
                                             mount_tolerance_m=options.mount_tolerance_m)
+    # in the final frame: where each camera's dense points will sweep
+    static = replace(static, scene_depth=scene_depths(static, rig.stage_size_m))
     reference = None
     if tracking_ids:
         # the plates are the cameras' own (distorted) images: resampled into the pinholes ``static.K``
@@ -376,7 +382,9 @@ def static_record(cap_name: str, step: StaticStep, reference: ArtifactRef | None
                 "distortion": r.distortion.to_json()}
 
     cams = tuple(StaticCamera(id=c, K=_matrix(static.K[c]), world_to_camera=_matrix(static.world_to_camera[c]),
-                              width=static.size[c][0], height=static.size[c][1], **raw_fields(c))
+                              width=static.size[c][0], height=static.size[c][1],
+                              scene_depth_m=static.scene_depth.get(c),
+                              **raw_fields(c))
                  for c in static.camera_ids)
     stats = _floats(static.stats)
     stats["sparse_points"] = float(len(static.model.points))
@@ -408,7 +416,8 @@ def static_calibration(rec: StaticCalibrationRecord) -> StaticCalibration:
                              size={c.id: (c.width, c.height) for c in rec.cameras}, model=None,
                              unregistered=list(rec.unregistered), stats=stats,
                              reasons={c: rec.unregistered_reasons.get(c, "not registered") for c in rec.unregistered},
-                             raw_intrinsics=raw)
+                             raw_intrinsics=raw,
+                             scene_depth={c.id: c.scene_depth_m for c in rec.cameras if c.scene_depth_m is not None})
 
 
 # ---------------------------------------------------------------------------------------------
@@ -546,7 +555,11 @@ def dense_points_step(cap: Capture, calib: Calibration, frame: int, load: FrameS
     cams = {c: camera_at(calib, c, frame)[:2] for c in ids}
     # DenseOptions.scale is the library's downscale *factor* (2 = half size), hence the division.
     valid = {c: rectified_valid(calib.camera(c)) for c in ids}
-    out = dense_points(images, cams, options=replace(options, scale=options.scale / scale), valid=valid)
+    # each camera sweeps around the static scene it saw at calibration (a stage of any size); a
+    # calibration recorded before scene depths were takes DenseOptions' fixed range
+    sweeps = {c: sweep_range(calib.camera(c).scene_depth_m) for c in ids if calib.camera(c).scene_depth_m}
+    out = dense_points(images, cams, options=replace(options, scale=options.scale / scale), valid=valid,
+                       sweeps=sweeps)
     if len(out["positions"]) == 0:
         log.warning("capture %s, frame %d: no dense point passed the consistency check", cap.name, frame)
     return DenseFrame(out["positions"], out["colours"], ids, float(out["seconds"]))
