@@ -337,3 +337,28 @@ def test_training_attention_keeps_cudnn_off_while_any_training_runs():
     assert not torch.backends.cuda.cudnn_sdp_enabled()
     b.close()
     assert torch.backends.cuda.cudnn_sdp_enabled()
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+def test_bfloat16_lora_training_runs_on_cuda():
+    """The failure ``training_attention`` exists for: bf16 LoRA training on CUDA (PyTorch's
+    default attention there is cuDNN's, whose backward failed on an H200 and turned the small
+    model's loss NaN by the third step). With the switch, every loss is finite, the loss falls,
+    cuDNN's attention is off while training runs and restored after, and the merged model
+    enhances a frame on the GPU."""
+    from volcap_core.enhance.inference import enhance_frame
+
+    pairs = [_pairs(3, seed=0)]
+    cfg = EnhancerTrainConfig(steps=60, batch=2, crop=48, lr=2e-3, finetune="lora", lora_rank=4,
+                              checkpoint_every=0, seed=3, frozen_dtype="bfloat16")
+    during = []
+    before = torch.backends.cuda.cudnn_sdp_enabled()
+    run = train_enhancer(build_enhancer(EnhancerConfig.small(), seed=0), pairs, cfg, device="cuda",
+                         progress=lambda k, n, i: during.append(torch.backends.cuda.cudnn_sdp_enabled()))
+    assert during and not any(during)
+    assert torch.backends.cuda.cudnn_sdp_enabled() == before
+    assert all(torch.isfinite(torch.tensor(run.losses))), run.losses[:5]
+    assert sum(run.losses[-15:]) < 0.8 * sum(run.losses[:15])
+    out = enhance_frame(run.model, pairs[0].lq[0].cuda(), steps=2)
+    assert out.is_cuda and torch.isfinite(out).all()
