@@ -5,13 +5,21 @@ beside its floors, the paper's Table 2 ablations, and time and memory per frame 
     python bench/bench_enhance.py --quick         # smoke run (< 2 min): tiny, numbers meaningless
     python bench/bench_enhance.py --json out.json --sheets docs/img   # docs/img/enhance_*.png
 
-Data: ``synthesize_face_capture(rig="demo_face", seed=0, frames=F, write_depth=True)`` (8 static
-320×180 cameras; alpha = the ground-truth performer coverage, RGB premultiplied). Pairs:
-:func:`~volcap_core.enhance.pairs.make_face_pair_sets` (×4 degradation: antialiased downsample, blur,
-frame-varying multiplicative colour blotches, bicubic upsample), then one fixed ``S×S`` window per
-camera around the head (the same window cut from LQ and HQ; the degradation is local, so cutting
-after degrading equals degrading the cut away from the border). Cameras ``--heldout`` (default
-F002 and F006) are never trained on (neither the VAE nor the transformer sees them).
+Data: ``synthesize_face_capture(rig=..., seed=0, frames=F, write_depth=True)`` of the ``demo_face``
+rig with every camera's pixel grid ``render_scale`` times finer (:func:`scaled_rig`; the documented
+run: 2, eight static 640×360 cameras with the demo's lenses and mounts; alpha = the ground-truth
+performer coverage, RGB premultiplied). Pairs: :func:`~volcap_core.enhance.pairs.make_face_pair_sets`
+(×4 degradation: antialiased downsample, blur, frame-varying multiplicative colour blotches, bicubic
+upsample), then one fixed ``S×S`` window per camera over the head (``size`` 256 from
+``window_below_top`` = 16 px above its top: head, face and collar; the same window cut from LQ and
+HQ; the degradation is local, so cutting after degrading equals degrading the cut away from the
+border). Why twice the demo's pixels: at 320×180 an eye is ~8 px, so the ×4 degradation leaves
+nothing of it in the LQ (a 2-px smudge) and it spans one latent pixel of the ×8 VAE, half a 2×2
+token; no run of the small model ever drew eyes, brows or a mouth there (``docs/enhancer.md``). At
+640×360 the LQ keeps them as blurred shapes, as the paper's LQ renders (fewer Gaussians) keep a
+face's features: the enhancer's task is to restore their detail, not to invent them from nothing.
+Cameras ``--heldout`` (default F002 and F006) are never trained on (neither the VAE nor the
+transformer sees them).
 
 Training (CPU, one thread, deterministic): the small CPU enhancer (:meth:`EnhancerConfig.small`:
 the tiny preset with a 256-wide transformer, see there why not :meth:`EnhancerConfig.tiny` or a
@@ -19,8 +27,8 @@ the tiny preset with a 256-wide transformer, see there why not :meth:`EnhancerCo
 pre-training (:func:`~volcap_core.enhance.training.train_vae`, 64-px crops) on the training cameras'
 HQ and LQ frames at 3e-3, continued through ``vae_stages`` (1500 steps at 1e-3, 1500 at 3e-4: the
 constant rate alone left a VAE that paints the green collar skin-coloured, ``docs/enhancer.md``),
-then full fine-tuning of the transformer by rectified flow on ``crop``-px crops (128: the whole head
-window, one crop a step) at ``lr``, the last third of the steps at ``lr_decay`` (0.2) times it (at a
+then full fine-tuning of the transformer by rectified flow on ``crop``-px crops (128: a quarter of
+the head window, one crop a step) at ``lr``, the last third of the steps at ``lr_decay`` (0.2) times it (at a
 constant 1e-3 the loss swings by 10x and the skin comes out in 16-px token blotches). The ablations are trained
 separately, as in the paper: "w/o OFW" is an image model (``drop_temporal = 1``: it never sees the
 warped previous output) sharing the full model's pre-trained VAE (the paper's variants share the
@@ -87,12 +95,14 @@ if str(ROOT) not in sys.path:
 
 # ------------------------------------------------------------------------------------ settings
 
-FULL = {"frames": 24, "cameras": None, "heldout": ["F002", "F006"], "size": 128, "vae_steps": 3000,
+FULL = {"frames": 24, "cameras": None, "heldout": ["F002", "F006"], "render_scale": 2, "window_below_top": -16,
+        "size": 256, "vae_steps": 3000,
         "vae_stages": [[1500, 1e-3], [1500, 3e-4]], "steps": 12000, "crop": 128, "batch": 1, "lr": 1e-3,
         "lr_decay_at": 2 / 3, "lr_decay": 0.2,
         "vae_lr": 3e-3, "vae_batch": 4, "vae_crop": 64, "sample_steps": 8, "strength": 0.4,
         "resolutions": [128, 256, 512, 1024], "sheet_frames": [12]}
-QUICK = {"frames": 6, "cameras": ["F000", "F001", "F002"], "heldout": ["F002"], "size": 64,
+QUICK = {"frames": 6, "cameras": ["F000", "F001", "F002"], "heldout": ["F002"], "render_scale": 1,
+         "window_below_top": -8, "size": 64,
          "vae_steps": 20, "vae_stages": [], "steps": 20, "crop": 64, "batch": 2, "lr": 1e-3, "vae_lr": 3e-3,
          "lr_decay_at": 2 / 3, "lr_decay": 0.2,
          "vae_batch": 2, "vae_crop": 64, "sample_steps": 4, "strength": 0.5, "resolutions": [64, 128],
@@ -105,20 +115,38 @@ def _log(msg: str) -> None:
 
 # ------------------------------------------------------------------------------------ data
 
-def head_window(alpha: torch.Tensor, size: int) -> tuple[int, int]:
-    """Top-left ``(y0, x0)`` of a ``size``-square window over the head: from 8 px above the highest
-    covered pixel (alpha >= 0.5 in any frame), centred on the covered columns of that window."""
+def head_window(alpha: torch.Tensor, size: int, below_top: int = -8) -> tuple[int, int]:
+    """Top-left ``(y0, x0)`` of a ``size``-square window over the head: its top ``below_top`` px below
+    the highest covered pixel (alpha >= 0.5 in any frame; negative: above it), centred on the
+    covered columns of that window."""
     h, w = alpha.shape[-2:]
     cov = (alpha >= 0.5).any(dim=0)
     if cov.ndim == 3:
         cov = cov[0]
     rows = torch.nonzero(cov.any(dim=1)).flatten()
-    y0 = int(rows.min()) - 8 if len(rows) else (h - size) // 2
+    y0 = int(rows.min()) + below_top if len(rows) else (h - size) // 2
     y0 = max(0, min(h - size, y0))
     cols = torch.nonzero(cov[y0:y0 + size].any(dim=0)).flatten().float()
     xc = float(cols.mean()) if len(cols) else w / 2
     x0 = max(0, min(w - size, int(round(xc - size / 2))))
     return y0, x0
+
+
+def scaled_rig(workdir: Path, rig: str, scale: int) -> str | Path:
+    """``rig`` with every camera's pixel grid ``scale`` times finer (same lens and sensor: the same
+    views, ``scale`` times the pixels), written to ``workdir``; ``rig`` itself when ``scale`` is 1."""
+    if scale == 1:
+        return rig
+    from hardware.rig import load_rig
+
+    r = load_rig(rig)
+    cams = [c.model_copy(update={"sensor": c.sensor.model_copy(update={
+        "width_px": c.sensor.width_px * scale, "height_px": c.sensor.height_px * scale})}) for c in r.cameras]
+    path = workdir / f"{rig}_x{scale}.json"
+    workdir.mkdir(parents=True, exist_ok=True)
+    scaled = r.model_copy(update={"name": f"{rig}_x{scale}", "cameras": tuple(cams)})
+    path.write_text(scaled.model_dump_json(indent=1))
+    return path
 
 
 def make_pairs(workdir: Path, s: dict) -> tuple[list, list, dict]:
@@ -128,18 +156,18 @@ def make_pairs(workdir: Path, s: dict) -> tuple[list, list, dict]:
 
     cap = workdir / "capture.json"
     stamp = workdir / "bench_stamp.json"
-    want = {"frames": s["frames"], "cameras": s["cameras"]}
+    want = {"frames": s["frames"], "cameras": s["cameras"], "render_scale": s["render_scale"]}
     if not (cap.exists() and stamp.exists() and json.loads(stamp.read_text()) == want):
         t0 = time.perf_counter()
-        synthesize_face_capture(workdir, rig="demo_face", seed=0, frames=s["frames"], cameras=s["cameras"],
-                                write_depth=True)
+        synthesize_face_capture(workdir, rig=scaled_rig(workdir, "demo_face", s["render_scale"]), seed=0,
+                                frames=s["frames"], cameras=s["cameras"], write_depth=True)
         stamp.write_text(json.dumps(want))
         _log(f"synthesized the face capture in {time.perf_counter() - t0:.1f} s")
     sets = make_face_pair_sets(cap, s["cameras"], s["frames"], scale=4, seed=0)
     size = s["size"]
     train, held, windows = [], [], {}
     for p in sets:
-        y0, x0 = head_window(p.hq[:, 3], size)
+        y0, x0 = head_window(p.hq[:, 3], size, s["window_below_top"])
         windows[p.name] = [y0, x0]
         win = (slice(None), slice(None), slice(y0, y0 + size), slice(x0, x0 + size))
         cut = PairSet(lq=p.lq[win].contiguous(), hq=p.hq[win].contiguous(), name=p.name)
@@ -252,8 +280,20 @@ def time_resolutions(resolutions: list[int], sample_steps: int, threads: int) ->
 
 # ------------------------------------------------------------------------------------ sheets
 
+def _png_256_colours(image: np.ndarray) -> bytes:
+    """uint8 RGB ``[H, W, 3]`` -> a palette PNG of at most 256 colours (median cut, no dither)."""
+    import io
+
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(image).quantize(colors=256, method=Image.Quantize.MEDIANCUT,
+                                    dither=Image.Dither.NONE).save(buf, format="PNG", optimize=True)
+    return buf.getvalue()
+
+
 def write_sheets(sheet_dir: Path, held: list, outputs: dict, scores_per: dict, frames: list[int]) -> list[str]:
-    from volcap_core.contact_sheet import SheetRow, contact_sheet, encode_png
+    from volcap_core.contact_sheet import SheetRow, contact_sheet
     from volcap_core.enhance.metrics import psnr
     from volcap_core.enhance.temporal import to_display
 
@@ -272,9 +312,12 @@ def write_sheets(sheet_dir: Path, held: list, outputs: dict, scores_per: dict, f
                 t = min(t, p.hq.shape[0] - 1)
                 # the untrained model's noise does not compress: shown for the first camera only
                 rows += [row(n, p.name, outputs[n][p.name], p.hq, t) for n in names if i == 0 or n != "untrained"]
-        for width in (780, 660, 560, 480, 400):  # the widest sheet under 300 KB (docs/img)
-            png = encode_png(contact_sheet(rows, title=f"Detail enhancer, held-out ({fname[8:-4]}); "
-                                           "footage = HQ", max_width=width, error_scale=0.25))
+        # the widest sheet under 300 KB (docs/img), quantized to 256 colours (Pillow, which
+        # diffusers requires): 256-px windows of smooth skin do not compress as 24-bit PNG
+        for width in (780, 660, 560, 480, 400):
+            sheet = contact_sheet(rows, title=f"Detail enhancer, held-out ({fname[8:-4]}); footage = HQ",
+                                  max_width=width, error_scale=0.25)
+            png = _png_256_colours(sheet)
             if len(png) < 300_000:
                 break
         sheet_dir.mkdir(parents=True, exist_ok=True)
@@ -295,13 +338,15 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--no-timing", action="store_true")
     ap.add_argument("--models", type=Path, help="folder to save the trained full and image models in "
                     "(enhancer_to_bytes: full.safetensors, image.safetensors) for later inspection")
-    for k in ("vae_steps", "steps", "sample_steps", "size", "frames", "batch", "crop"):
+    for k in ("vae_steps", "steps", "sample_steps", "size", "frames", "batch", "crop", "render_scale",
+              "window_below_top"):
         ap.add_argument(f"--{k.replace('_', '-')}", type=int)
     for k in ("lr", "vae_lr", "strength"):
         ap.add_argument(f"--{k.replace('_', '-')}", type=float)
     args = ap.parse_args(argv)
     s = dict(QUICK if args.quick else FULL)
-    for k in ("vae_steps", "steps", "sample_steps", "size", "frames", "batch", "crop", "lr", "vae_lr", "strength"):
+    for k in ("vae_steps", "steps", "sample_steps", "size", "frames", "batch", "crop", "render_scale",
+              "window_below_top", "lr", "vae_lr", "strength"):
         if getattr(args, k) is not None:
             s[k] = getattr(args, k)
     torch.set_num_threads(min(2, max(1, args.threads)))
