@@ -478,7 +478,9 @@ def scene_depths(static: StaticCalibration, stage_size_m: Sequence[float],
     under its final pose; their 1st and 99th percentile: SIFT finds the textured walls, rarely the
     floor at the camera's feet), and the performance volume (``stage_volume(stage_size_m)``, sampled
     on a grid: the points that project into its image), where the performers the dense points are
-    for stand. Nearest and farthest span both; the middle, where its neighbours are chosen for their
+    for stand (the part of it at least the rig's camera spacing away: nearer, no neighbour sees a
+    point within the sweep's angle). Nearest and farthest span both; the middle, where its
+    neighbours are chosen for their
     triangulation angle, is the volume's median depth (the sparse points' without the volume in
     view). Cameras with fewer than ``min_points`` sparse points in front are left out (they sweep
     the fixed range); none without a model. Kept in ``StaticCalibration.scene_depth``
@@ -491,6 +493,13 @@ def scene_depths(static: StaticCalibration, stage_size_m: Sequence[float],
     (x0, y0, z0), (x1, y1, z1) = stage_volume(stage_size_m, floor_clearance_m=0.0)
     grid = np.stack(np.meshgrid(np.linspace(x0, x1, 25), np.linspace(y0, y1, 25), np.linspace(z0, z1, 11),
                                 indexing="ij"), -1).reshape(-1, 3)
+    # nearer than the rig's camera spacing no neighbour sees a point within the sweep's 50° of
+    # triangulation angle (2 atan(1/2) = 53°): a camera inside the stage volume (a dome) would
+    # otherwise sweep from a few cm, eight times the planes for nothing
+    ids = sorted(static.world_to_camera)
+    centres = np.stack([camera_centre(np.asarray(static.world_to_camera[c], np.float64)) for c in ids])
+    gaps = np.linalg.norm(centres[:, None] - centres[None], axis=-1) + np.diag(np.full(len(ids), np.inf))
+    spacing = float(np.median(gaps.min(1))) if len(ids) > 1 else 0.0
     out = {}
     for i, c in enumerate(model.camera_ids):
         if c not in static.world_to_camera:
@@ -504,6 +513,7 @@ def scene_depths(static: StaticCalibration, stage_size_m: Sequence[float],
             continue
         lo, mid, hi = np.percentile(z, (_DEPTH_PERCENTILES[0], 50.0, _DEPTH_PERCENTILES[1]))
         stage = _depths_in_view(grid, static.K[c], W, static.size[c])
+        stage = stage[stage >= spacing]
         if len(stage):
             lo, mid, hi = min(lo, stage.min()), np.median(stage), max(hi, stage.max())
         out[c] = (float(lo), float(mid), float(hi))
