@@ -1,7 +1,7 @@
 """The Detail Enhancer on a synthetic Face Rig capture: a tiny model trained on CPU, held-out quality
 beside its floors, the paper's Table 2 ablations, and time and memory per frame against resolution.
 
-    python bench/bench_enhance.py                 # the documented run (~1 h on 2 shared cores)
+    python bench/bench_enhance.py                 # the documented run (~80 min on 2 shared cores)
     python bench/bench_enhance.py --quick         # smoke run (< 2 min): tiny, numbers meaningless
     python bench/bench_enhance.py --json out.json --sheets docs/img   # docs/img/enhance_*.png
 
