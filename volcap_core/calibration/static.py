@@ -480,9 +480,8 @@ def scene_depths(static: StaticCalibration, stage_size_m: Sequence[float],
     on a grid: the points that project into its image), where the performers the dense points are
     for stand (the part of it at least the rig's camera spacing away: nearer, no neighbour sees a
     point within the sweep's angle). Nearest and farthest span both; the middle, where its
-    neighbours are chosen for their
-    triangulation angle, is the volume's median depth (the sparse points' without the volume in
-    view). Cameras with fewer than ``min_points`` sparse points in front are left out (they sweep
+    neighbours are chosen for their triangulation angle, is the volume's median depth (the sparse
+    points' without the volume in view). Cameras with fewer than ``min_points`` sparse points in front are left out (they sweep
     the fixed range); none without a model. Kept in ``StaticCalibration.scene_depth``
     (:func:`~volcap_core.calibration.steps.calibrate_static_step`) and the records after it."""
     from volcap_core.production.performance import stage_volume
@@ -496,10 +495,7 @@ def scene_depths(static: StaticCalibration, stage_size_m: Sequence[float],
     # nearer than the rig's camera spacing no neighbour sees a point within the sweep's 50° of
     # triangulation angle (2 atan(1/2) = 53°): a camera inside the stage volume (a dome) would
     # otherwise sweep from a few cm, eight times the planes for nothing
-    ids = sorted(static.world_to_camera)
-    centres = np.stack([camera_centre(np.asarray(static.world_to_camera[c], np.float64)) for c in ids])
-    gaps = np.linalg.norm(centres[:, None] - centres[None], axis=-1) + np.diag(np.full(len(ids), np.inf))
-    spacing = float(np.median(gaps.min(1))) if len(ids) > 1 else 0.0
+    _, spacing = _camera_gaps([static.world_to_camera[c] for c in sorted(static.world_to_camera)])
     out = {}
     for i, c in enumerate(model.camera_ids):
         if c not in static.world_to_camera:
@@ -518,6 +514,15 @@ def scene_depths(static: StaticCalibration, stage_size_m: Sequence[float],
             lo, mid, hi = min(lo, stage.min()), np.median(stage), max(hi, stage.max())
         out[c] = (float(lo), float(mid), float(hi))
     return out
+
+
+def _camera_gaps(world_to_camera: Sequence[np.ndarray]) -> tuple[np.ndarray, float]:
+    """The distances between the cameras' centres, [N, N] metres (inf on the diagonal), and the
+    rig's camera spacing: the median distance from a camera to its nearest neighbour (0 for one
+    camera)."""
+    centres = np.stack([camera_centre(np.asarray(W, np.float64)) for W in world_to_camera])
+    gaps = np.linalg.norm(centres[:, None] - centres[None], axis=-1) + np.diag(np.full(len(centres), np.inf))
+    return gaps, float(np.median(gaps.min(1))) if len(centres) > 1 else 0.0
 
 
 def _depths_in_view(points: np.ndarray, K: np.ndarray, world_to_camera: np.ndarray,
@@ -545,9 +550,8 @@ def _surface_depth_ranges(plates: Mapping[str, np.ndarray], cameras: Mapping[str
     t0 = time.perf_counter()
     ids = sorted(cameras)
     log = logging.getLogger("volcap.calibrate")
-    centres = np.stack([camera_centre(cameras[c][1]) for c in ids])
-    gaps = np.linalg.norm(centres[:, None] - centres[None], axis=-1) + np.diag(np.full(len(ids), np.inf))
-    spacing = max(float(np.median(gaps.min(1))), 1e-6)
+    gaps, spacing = _camera_gaps([cameras[c][1] for c in ids])
+    spacing = max(spacing, 1e-6)
     near, far = _PROBE_NEAR * spacing, _PROBE_FAR * spacing
     across = {c: float(np.median(gaps[i][np.isfinite(gaps[i])])) for i, c in enumerate(ids)}
     probe, _ = _sweep_and_fuse(plates, cameras, 2 * scale, {c: (near, far) for c in ids}, across, depth_tol=0.02)
