@@ -28,6 +28,8 @@ from typing import Iterable, Literal
 from pydantic import (BaseModel, ConfigDict, Field, SerializerFunctionWrapHandler, ValidationError, model_serializer,
                       model_validator)
 
+from hardware.serialization import omit_unset
+
 
 class CameraRole(str, Enum):
     static = "static"
@@ -149,7 +151,7 @@ class ZoomSample(BaseModel):
 
     @model_serializer(mode="wrap")
     def _omit_unset(self, handler: SerializerFunctionWrapHandler):
-        return _drop_empty(handler(self), ("cx", "cy"))
+        return omit_unset(handler(self), ("cx", "cy"))
 
 
 class ZoomIntrinsics(BaseModel):
@@ -248,14 +250,6 @@ class ZoomIntrinsics(BaseModel):
         return out
 
 
-def _drop_empty(data, keys: tuple[str, ...]):
-    if isinstance(data, dict):
-        for k in keys:
-            if k in data and data[k] in (None, {}, ()):
-                del data[k]
-    return data
-
-
 class RigCamera(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
     id: str = Field(pattern=r"^[A-Za-z0-9_.-]+$")
@@ -278,7 +272,7 @@ class RigCamera(BaseModel):
     @model_serializer(mode="wrap")
     def _omit_unset(self, handler: SerializerFunctionWrapHandler):
         # rigs (and the Capture records holding them) without measured intrinsics serialise as before
-        return _drop_empty(handler(self), ("intrinsics", "lens_group", "zoom_intrinsics"))
+        return omit_unset(handler(self), ("intrinsics", "lens_group", "zoom_intrinsics"))
 
     @model_validator(mode="wrap")
     @classmethod
@@ -343,7 +337,7 @@ class Rig(BaseModel):
 
     @model_serializer(mode="wrap")
     def _omit_unset(self, handler: SerializerFunctionWrapHandler):
-        return _drop_empty(handler(self), ("lens_groups",))
+        return omit_unset(handler(self), ("lens_groups",))
 
     @model_validator(mode="after")
     def _unique_ids(self) -> "Rig":

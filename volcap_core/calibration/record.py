@@ -30,7 +30,7 @@ from pydantic import BaseModel, ConfigDict, Field, SerializerFunctionWrapHandler
 from safetensors.numpy import load as st_load
 from safetensors.numpy import save as st_save
 
-from volcap_core.records import MEDIA_SAFETENSORS, ArtifactRef, Record
+from volcap_core.records import MEDIA_SAFETENSORS, ArtifactRef, Record, omit_unset
 
 Matrix4 = tuple[tuple[float, float, float, float], ...]
 
@@ -62,10 +62,7 @@ class CameraCalibration(BaseModel):
     @model_serializer(mode="wrap")
     def _omit_unmeasured(self, handler: SerializerFunctionWrapHandler):
         # records of calibrations without scene depths serialise (and digest) as before it existed
-        data = handler(self)
-        if isinstance(data, dict) and data.get("scene_depth_m") is None:
-            data.pop("scene_depth_m", None)
-        return data
+        return omit_unset(handler(self), ("scene_depth_m",))
 
     @field_validator("scene_depth_m")
     @classmethod

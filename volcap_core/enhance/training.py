@@ -87,6 +87,7 @@ from volcap_core.enhance.model import (
     rgb_to_vae,
     shift_sigma,
 )
+from volcap_core.records import omit_unset
 from volcap_core.splat.optim import AdamState, adam_step
 
 __all__ = [
@@ -212,11 +213,7 @@ class EnhancerTrainConfig(BaseModel):
     def _omit_empty_schedules(self, handler):
         # no lr_decay / no vae_stages (the defaults) are left out of the JSON: a task's cache key and
         # the checkpoints of configs written before the fields existed stay byte-identical
-        out = handler(self)
-        for name in ("lr_decay", "vae_stages"):
-            if not getattr(self, name):
-                out.pop(name, None)
-        return out
+        return omit_unset(handler(self), ("lr_decay", "vae_stages"))
 
     def rate(self, step: int) -> float:
         """The transformer's learning rate at optimiser step ``step`` (1-based): the linear
