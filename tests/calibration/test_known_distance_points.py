@@ -8,6 +8,8 @@ The synthetic capture end to end (the flow, its ground truth): tests/test_captur
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
@@ -75,9 +77,12 @@ def _shrunk(factor: float) -> dict[str, np.ndarray]:
 def test_two_marked_points_recover_the_scale_exactly():
     d = float(np.linalg.norm(A - B))
     known = KnownPoints(points={"A": _marks(A, ["C0", "C1", "C7"]), "B": _marks(B, ["C2", "C3"])}, distance_m=d)
-    out = scale_to_known_points(_static(_shrunk(0.97)), known, MOUNTS, has_scan=False)
+    # a calibration read back from its record carries each camera's scene depths: metres, scaled too
+    shrunk = replace(_static(_shrunk(0.97)), scene_depth={"C0": (0.97 * 3.0, 0.97 * 5.0, 0.97 * 8.0)})
+    out = scale_to_known_points(shrunk, known, MOUNTS, has_scan=False)
     f = out.stats["frame"]
     assert f["scale_source"] == 2.0 and abs(f["known_points_scale"] - 1 / 0.97) < 1e-9
+    assert np.allclose(out.scene_depth["C0"], (3.0, 5.0, 8.0), atol=1e-9)
     assert abs(f["known_points_triangulated_m"] - 0.97 * d) < 1e-9 and f["known_points_residual_max_m"] < 1e-9
     for c in TRUE:   # the cameras are back where they are
         assert np.allclose(out.world_to_camera[c], TRUE[c], atol=1e-9)

@@ -326,6 +326,8 @@ def scale_to_known_points(static, known: KnownPoints, mounts: Mapping[str, np.nd
                     "known points: %s (check the rig's mount positions and the measured distance)",
                     mount_tolerance_m, ", ".join(far))
     stats["frame"], stats["known_points"] = frame, details
+    # scene depths are metres too: calibrate_static_step measures them after this scaling, but a
+    # calibration read back from its record (static_from_record) carries them
     return replace(static, world_to_camera=w2c, model=model, stats=stats,
                    scene_depth={c: tuple(k * v for v in d) for c, d in static.scene_depth.items()})
 
