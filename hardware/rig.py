@@ -333,11 +333,14 @@ class Rig(BaseModel):
     cameras: tuple[RigCamera, ...]
     lighting: Lighting
     lens_groups: dict[str, MeasuredIntrinsics] = Field(
-        default_factory=dict, description="measured intrinsics shared by the cameras naming the group")
+        default_factory=dict, description="measured intrinsics shared by the static cameras naming the group")
+    zoom_lens_groups: dict[str, ZoomIntrinsics] = Field(
+        default_factory=dict, description="a zoom lens table shared by the tracking cameras naming the group "
+                                          "(one lens model, calibrated once over its focal)")
 
     @model_serializer(mode="wrap")
     def _omit_unset(self, handler: SerializerFunctionWrapHandler):
-        return omit_unset(handler(self), ("lens_groups",))
+        return omit_unset(handler(self), ("lens_groups", "zoom_lens_groups"))
 
     @model_validator(mode="after")
     def _unique_ids(self) -> "Rig":
@@ -348,6 +351,10 @@ class Rig(BaseModel):
             seen.add(cam.id)
         if not self.cameras:
             raise ValueError(f"rig {self.name}: no cameras")
+        both = sorted(set(self.lens_groups) & set(self.zoom_lens_groups))
+        if both:
+            raise ValueError(f"rig {self.name}: lens group(s) {both} are given both measured intrinsics and a zoom "
+                             f"lens table: one group is one kind of lens")
         groups: dict[str, RigCamera] = {}
         for cam in self.cameras:
             if cam.lens_group is None:
@@ -364,21 +371,44 @@ class Rig(BaseModel):
                 if cam.role.tracks:
                     raise ValueError(f"rig {self.name}: camera {cam.id} is a {cam.role.value} camera in lens "
                                      f"group {cam.lens_group!r} with measured intrinsics: a zoom lens's "
-                                     f"intrinsics change with its focal: give the camera a table over its "
-                                     f"focal (zoom_intrinsics)")
+                                     f"intrinsics change with its focal: give the group a table over its "
+                                     f"focal (zoom_lens_groups) or the camera one (zoom_intrinsics)")
                 shared.check_against(cam.id, cam.sensor, cam.lens)
-        unused = sorted(set(self.lens_groups) - set(groups))
+            table = self.zoom_lens_groups.get(cam.lens_group)
+            if table is not None:
+                if not cam.role.tracks:
+                    raise ValueError(f"rig {self.name}: static camera {cam.id} is in lens group {cam.lens_group!r}, "
+                                     f"a zoom lens table: its focal does not change during a take; give the group "
+                                     f"measured intrinsics (lens_groups) instead")
+                if cam.zoom_intrinsics is not None:
+                    raise ValueError(f"rig {self.name}: camera {cam.id} has its own zoom lens table and lens group "
+                                     f"{cam.lens_group!r} has one too: give one of them")
+                try:
+                    table.check_against(cam.id, cam.sensor, cam.lens)
+                except ValueError as exc:
+                    raise ValueError(f"rig {self.name}: zoom lens group {cam.lens_group!r}: {exc}") from None
+        unused = sorted((set(self.lens_groups) | set(self.zoom_lens_groups)) - set(groups))
         if unused:
             raise ValueError(f"rig {self.name}: lens group(s) {unused} are used by no camera")
         return self
 
     def measured_intrinsics(self, camera_id: str) -> MeasuredIntrinsics | None:
-        """A camera's measured intrinsics: its own, else its lens group's, else None (nominal)."""
+        """A static camera's measured intrinsics: its own, else its lens group's, else None (nominal)."""
         cam = self.camera(camera_id)
         if cam.intrinsics is not None:
             return cam.intrinsics
         if cam.lens_group is not None:
             return self.lens_groups.get(cam.lens_group)
+        return None
+
+    def zoom_intrinsics(self, camera_id: str) -> ZoomIntrinsics | None:
+        """A tracking camera's zoom lens table: its own, else its lens group's, else None (a pinhole
+        with its principal point at the image centre)."""
+        cam = self.camera(camera_id)
+        if cam.zoom_intrinsics is not None:
+            return cam.zoom_intrinsics
+        if cam.lens_group is not None:
+            return self.zoom_lens_groups.get(cam.lens_group)
         return None
 
     def camera(self, camera_id: str) -> RigCamera:

@@ -302,3 +302,58 @@ def test_zoom_lens_table_only_on_tracking_cameras():
     with pytest.raises(ValidationError, match=r"camera S008: measured intrinsics on a tracking-landscape camera: "
                                               r".*\(zoom_intrinsics\)"):
         Rig.model_validate(bad)
+
+
+def _zoom_group(table: dict, members=("S008", "S009"), name: str = "zoom45-175") -> dict:
+    rig = _demo()
+    for c in rig["cameras"]:
+        if c["id"] in members:
+            c["lens_group"] = name
+    rig["zoom_lens_groups"] = {name: table}
+    return rig
+
+
+def test_zoom_lens_group_shares_one_table():
+    """Tracking cameras of one zoom lens model share the table calibrated once for it; each unit is
+    still drawn (synthetic capture) and solved as its own camera."""
+    from volcap_core.synth.synthesize import _plans
+
+    rig = Rig.model_validate(_zoom_group(_zoom()))
+    table = rig.zoom_lens_groups["zoom45-175"]
+    assert rig.zoom_intrinsics("S008") is table and rig.zoom_intrinsics("S009") is table
+    assert rig.zoom_intrinsics("S010") is None and rig.zoom_intrinsics("S000") is None
+    assert Rig.model_validate(rig.model_dump(mode="json")) == rig
+    assert "zoom_lens_groups" not in Rig.model_validate(_demo()).model_dump(mode="json")   # rigs without: as before
+    # the synthetic units render through the group's table plus each its own calibration error
+    plans = {p.cam.id: p for p in _plans(rig, 0, [(0.0, 0.0)], ["S008", "S009", "S010"])}
+    z8, z9 = plans["S008"].zoom, plans["S009"].zoom
+    assert z8 is not None and z9 is not None and plans["S010"].zoom is None
+    assert z8.focals_mm == z9.focals_mm == table.focals_mm and z8 != z9
+    # the same units as when each camera carries the table itself
+    own = _demo()
+    for c in own["cameras"]:
+        if c["id"] in ("S008", "S009"):
+            c["zoom_intrinsics"] = _zoom()
+    alone = {p.cam.id: p.zoom for p in _plans(Rig.model_validate(own), 0, [(0.0, 0.0)], ["S008", "S009", "S010"])}
+    assert (alone["S008"], alone["S009"]) == (z8, z9)
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda r: r["cameras"][0].update(lens_group="zoom45-175"),
+     "static camera S000 is in lens group 'zoom45-175', a zoom lens table"),
+    (lambda r: next(c for c in r["cameras"] if c["id"] == "S008").update(zoom_intrinsics=_zoom()),
+     "camera S008 has its own zoom lens table and lens group 'zoom45-175' has one too"),
+    (lambda r: r.update(lens_groups={"zoom45-175": _intrinsics()}),
+     r"lens group\(s\) \['zoom45-175'\] are given both measured intrinsics and a zoom lens table"),
+    (lambda r: r["zoom_lens_groups"].update(spare=_zoom()), r"lens group\(s\) \['spare'\] are used by no camera"),
+    (lambda r: r["zoom_lens_groups"].update({"zoom45-175": _zoom(samples=_samples((45.0, [-0.4, 0, 0, 0]),
+                                                                                  (140.0, [1.0, 0, 0, 0])))}),
+     "zoom lens group 'zoom45-175': camera S008: the zoom lens table covers 45.0-140.0 mm"),
+    (lambda r: next(c for c in r["cameras"] if c["id"] == "S010").update(lens_group="zoom45-175"),
+     "camera S010 is in lens group 'zoom45-175' with camera S008 but has another sensor or lens"),
+])
+def test_zoom_lens_group_validation(change, message):
+    rig = _zoom_group(_zoom())
+    change(rig)
+    with pytest.raises(ValidationError, match=message):
+        Rig.model_validate(rig)

@@ -75,7 +75,7 @@ def calibrate_capture(load: FrameSource, rig: Rig, camera_ids: list[str], frame_
         frames = {c: [load(c, t) for t in range(frame_count)] for c in trackers}
         ppm = {c: rig.camera(c).sensor.width_px / rig.camera(c).sensor.width_mm for c in trackers}
         mounts = {c: np.asarray(rig.camera(c).mount.position_m, np.float64) for c in trackers}
-        lenses = {c: zoom_lens(rig.camera(c).zoom_intrinsics) for c in trackers}   # zoom lens tables
+        lenses = {c: zoom_lens(rig.zoom_intrinsics(c)) for c in trackers}   # zoom lens tables (own or group's)
         tracking = calibrate_tracking_cameras(frames, encoder, ppm, mounts, reference, options.tracking, lenses)
         blob = tracking_blob(tracking)
     else:

@@ -454,7 +454,7 @@ def calibrate_tracking_step(cap: Capture, camera: str, reference: StaticReferenc
         # a zoom lens table in the rig: each frame is undistorted with the lens at its focal
         sols = calibrate_tracking_cameras({camera: frames}, {camera: encoder}, {camera: ppm},
                                           {camera: np.asarray(rig_cam.mount.position_m, np.float64)}, reference,
-                                          options, lenses={camera: zoom_lens(rig_cam.zoom_intrinsics)})
+                                          options, lenses={camera: zoom_lens(cap.rig.zoom_intrinsics(camera))})
     except RuntimeError as exc:  # e.g. too few 2D-3D matches over the take
         raise CalibrationInputError(f"capture {cap.name}, tracking camera {camera}: {exc}") from exc
     return sols[camera]

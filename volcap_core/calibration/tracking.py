@@ -34,13 +34,13 @@ The refinement is run from several starts along the zoom/dolly valley (:func:`do
 also drops the 2D-2D terms: every frame alone, the classic per-frame registration.
 
 Zoom lenses (:func:`zoom_lens`, ``lenses`` of :func:`prepare_tracking`): a tracking camera whose rig
-carries a zoom lens table (``RigCamera.zoom_intrinsics``: distortion, optionally principal point,
-over the focal) has each frame's keypoints undistorted, right after SIFT and before any matching,
-with the lens at that frame's focal as the smoothed encoder gives it (the prior ``s(t)``, known before
-the solve), into the pinhole of ``K_t = (s(t), s(t), c_t)``; everything after (2D-3D and 2D-2D
-matching, the background homographies, the solve) works on pinholes, and the solution's ``K`` is
-the pinhole of that frame's rectified image (the same fx, fy, cx, cy as the raw frame, no
-distortion). The lens each frame was undistorted with is :attr:`TrackingSolution.distortion`.
+carries a zoom lens table (``Rig.zoom_intrinsics``: its own or its lens group's; distortion,
+optionally principal point, over the focal) has each frame's keypoints undistorted, right after
+SIFT and before any matching, with the lens at that frame's focal as the smoothed encoder gives it
+(the prior ``s(t)``, known before the solve), into the pinhole of ``K_t = (s(t), s(t), c_t)``;
+everything after (2D-3D and 2D-2D matching, the background homographies, the solve) works on
+pinholes, and the solution's ``K`` is the pinhole of that frame's rectified image (the same fx,
+fy, cx, cy as the raw frame, no distortion). The lens each frame was undistorted with is :attr:`TrackingSolution.distortion`.
 """
 
 from __future__ import annotations

@@ -71,7 +71,8 @@ class CameraPlan:
     zoom_period_s: float = 3.0
     zoom_phase: float = 0.0
     wobble: tuple[float, float, float, float] = (0.0, 0.0, 0.0, 0.0)
-    #: a tracking camera's true zoom lens (the rig's ``zoom_intrinsics`` plus a calibration's error)
+    #: a tracking camera's true zoom lens (its table in the rig, ``Rig.zoom_intrinsics``: its own or
+    #: its lens group's, plus a calibration's error)
     zoom: ZoomIntrinsics | None = None
 
     @property
@@ -176,8 +177,9 @@ def _plans(rig: Rig, seed: int, actor_centres: list[tuple[float, float]], camera
             plan.zoom_phase = float(r.uniform(0, 2 * math.pi))
             plan.wobble = (float(r.uniform(0.3, 0.8)), float(r.uniform(0.3, 0.8)),
                            float(r.uniform(0, 6.3)), float(r.uniform(0, 6.3)))
-            if cam.zoom_intrinsics is not None:
-                plan.zoom = _true_zoom(cam.zoom_intrinsics, s, _rng(seed, "lens", cam.id))
+            table = rig.zoom_intrinsics(cam.id)      # its own or its lens group's: each unit errs on its own
+            if table is not None:
+                plan.zoom = _true_zoom(table, s, _rng(seed, "lens", cam.id))
         plans.append(plan)
     return plans
 
