@@ -43,6 +43,7 @@ bench: $(STAMP)
 	$(BIN)/python bench/bench_ingest.py
 	$(BIN)/python bench/bench_rasterizer.py
 	$(BIN)/python bench/bench_calibration.py
+	$(BIN)/python bench/bench_static_resolution.py
 	$(BIN)/python bench/bench_poly4dgs.py
 	$(BIN)/python bench/bench_production.py
 	$(BIN)/python bench/bench_enhance.py

@@ -133,18 +133,15 @@ def head_window(alpha: torch.Tensor, size: int, below_top: int = -8) -> tuple[in
 
 
 def scaled_rig(workdir: Path, rig: str, scale: int) -> str | Path:
-    """``rig`` with every camera's pixel grid ``scale`` times finer (same lens and sensor: the same
-    views, ``scale`` times the pixels), written to ``workdir``; ``rig`` itself when ``scale`` is 1."""
+    """``rig`` with every camera's pixel grid ``scale`` times finer (``Rig.with_finer_pixels``: the
+    same views, ``scale`` times the pixels), written to ``workdir``; ``rig`` itself when ``scale`` is 1."""
     if scale == 1:
         return rig
     from hardware.rig import load_rig
 
-    r = load_rig(rig)
-    cams = [c.model_copy(update={"sensor": c.sensor.model_copy(update={
-        "width_px": c.sensor.width_px * scale, "height_px": c.sensor.height_px * scale})}) for c in r.cameras]
-    path = workdir / f"{rig}_x{scale}.json"
+    scaled = load_rig(rig).with_finer_pixels(scale)
+    path = workdir / f"{scaled.name}.json"
     workdir.mkdir(parents=True, exist_ok=True)
-    scaled = r.model_copy(update={"name": f"{rig}_x{scale}", "cameras": tuple(cams)})
     path.write_text(scaled.model_dump_json(indent=1))
     return path
 

@@ -401,6 +401,45 @@ class Rig(BaseModel):
             return self.lens_groups.get(cam.lens_group)
         return None
 
+    def with_finer_pixels(self, scale: int) -> "Rig":
+        """This rig with every camera's pixel grid ``scale`` times finer: the same sensors and
+        lenses, so the same views, with ``scale``² the pixels (a synthetic capture at higher
+        resolution; benchmarks). Measured intrinsics (own and lens groups') and zoom tables'
+        principal points move into the finer pixels (focal x ``scale``; OpenCV's pixel centres:
+        ``c' = (c + 0.5) scale - 0.5``); distortion acts on normalized coordinates and is kept.
+        Named ``<name>_x<scale>``; ``scale`` 1 is the rig itself."""
+        if not isinstance(scale, int) or scale < 1:
+            raise ValueError(f"rig {self.name}: the pixel scale must be a positive integer, got {scale!r}")
+        if scale == 1:
+            return self
+
+        def centre(c: float) -> float:
+            return (c + 0.5) * scale - 0.5
+
+        def intrinsics(m: MeasuredIntrinsics) -> MeasuredIntrinsics:
+            return m.model_copy(update={"fx": m.fx * scale, "fy": m.fy * scale, "cx": centre(m.cx),
+                                        "cy": centre(m.cy)})
+
+        def table(z: ZoomIntrinsics) -> ZoomIntrinsics:
+            return z.model_copy(update={"samples": tuple(
+                s if s.cx is None else s.model_copy(update={"cx": centre(s.cx), "cy": centre(s.cy)})
+                for s in z.samples)})
+
+        cams = []
+        for c in self.cameras:
+            update: dict = {"sensor": c.sensor.model_copy(update={"width_px": c.sensor.width_px * scale,
+                                                                  "height_px": c.sensor.height_px * scale})}
+            if c.intrinsics is not None:
+                update["intrinsics"] = intrinsics(c.intrinsics)
+            if c.zoom_intrinsics is not None:
+                update["zoom_intrinsics"] = table(c.zoom_intrinsics)
+            cams.append(c.model_copy(update=update))
+        # validated again: a scaled rig is checked as any other
+        return Rig.model_validate(self.model_copy(update={
+            "name": f"{self.name}_x{scale}", "cameras": tuple(cams),
+            "lens_groups": {k: intrinsics(v) for k, v in self.lens_groups.items()},
+            "zoom_lens_groups": {k: table(v) for k, v in self.zoom_lens_groups.items()}}).model_dump())
+
     def zoom_intrinsics(self, camera_id: str) -> ZoomIntrinsics | None:
         """A tracking camera's zoom lens table: its own, else its lens group's, else None (a pinhole
         with its principal point at the image centre)."""

@@ -357,3 +357,32 @@ def test_zoom_lens_group_validation(change, message):
     change(rig)
     with pytest.raises(ValidationError, match=message):
         Rig.model_validate(rig)
+
+
+def test_finer_pixels_see_the_same_views():
+    """A rig with pixel grids twice as fine: a point lands on the same spot of the image (OpenCV
+    pixel centres: u' = (u + 0.5) 2 - 0.5) through the measured intrinsics of a camera and of a lens
+    group, and through a zoom table's principal point; distortion (normalized) is unchanged."""
+    with_pp = _zoom()
+    for s, c in zip(with_pp["samples"], (160.1, 159.6, 158.9)):
+        s.update(cx=c, cy=89.5)
+    data = load_rig("demo_scene_distorted").model_dump(mode="json")
+    for c in data["cameras"]:
+        if c["id"] in ("S008", "S009"):
+            c.pop("zoom_intrinsics", None)
+            c["lens_group"] = "zoom45-175"
+    rig = Rig.model_validate(dict(data, zoom_lens_groups={"zoom45-175": with_pp}))
+    fine = rig.with_finer_pixels(2)
+    assert fine.name == f"{rig.name}_x2" and rig.with_finer_pixels(1) is rig
+    x, y = 0.21, -0.13                                           # a normalized (undistorted) direction
+    for cam in ("S001", "S006"):                                 # its own intrinsics; lens group zoom14-b
+        a, b = rig.measured_intrinsics(cam), fine.measured_intrinsics(cam)
+        assert (a.model, a.params) == (b.model, b.params)
+        assert fine.camera(cam).sensor.width_px == 2 * rig.camera(cam).sensor.width_px
+        assert b.fx * x + b.cx == pytest.approx((a.fx * x + a.cx + 0.5) * 2 - 0.5)
+        assert b.fy * y + b.cy == pytest.approx((a.fy * y + a.cy + 0.5) * 2 - 0.5)
+    za, zb = rig.zoom_intrinsics("S008").at(100.0), fine.zoom_intrinsics("S008").at(100.0)
+    assert za.params == zb.params and zb.cx == pytest.approx((za.cx + 0.5) * 2 - 0.5)
+    assert fine.zoom_intrinsics("S008") is fine.zoom_lens_groups["zoom45-175"]
+    with pytest.raises(ValueError, match="pixel scale must be a positive integer, got 0"):
+        rig.with_finer_pixels(0)
