@@ -29,7 +29,7 @@ demo: $(STAMP)
 	$(BIN)/volcap demo
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -ra $(PYTEST_XDIST)
+	$(BIN)/python -m pytest -q -ra --durations=15 $(PYTEST_XDIST)
 
 # The quick subset: everything but the slow end-to-end tests.
 test-quick: $(STAMP)
