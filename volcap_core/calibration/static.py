@@ -481,8 +481,8 @@ def scene_depths(static: StaticCalibration, stage_size_m: Sequence[float],
     for stand (the part of it at least the rig's camera spacing away: nearer, no neighbour sees a
     point within the sweep's angle). Nearest and farthest span both; the middle, where its
     neighbours are chosen for their triangulation angle, is the volume's median depth (the sparse
-    points' without the volume in view). Cameras with fewer than ``min_points`` sparse points in front are left out (they sweep
-    the fixed range); none without a model. Kept in ``StaticCalibration.scene_depth``
+    points' without the volume in view). Cameras with fewer than ``min_points`` sparse points in
+    front are left out (they sweep the fixed range); none without a model. Kept in ``StaticCalibration.scene_depth``
     (:func:`~volcap_core.calibration.steps.calibrate_static_step`) and the records after it."""
     from volcap_core.production.performance import stage_volume
 
