@@ -11,7 +11,8 @@ footage can: the same rig with every pixel grid ``scale`` times finer (``Rig.wit
 the same lenses, sensors and views) and the same lens-calibration errors in physical size (the
 same random draws, the principal point's 0.3 px σ of
 :data:`volcap_core.synth.synthesize.LENS_CALIBRATION_ERROR` in the finer pixels times ``scale``,
-so that the finer rig is not handed a better calibration).
+so that the finer rig is not handed a better calibration: ``synthesize_capture``'s
+``lens_calibration_error``).
 
 Each render: ``synthesize_capture(rig, seed, frames=6, cameras=<the 8 static>)`` (with the lidar
 scan), then the ``calibrate-static`` task's step (``steps.calibrate_static_step``, default
@@ -56,12 +57,9 @@ def render(workdir: Path, seed: int, scale: int) -> Path:
     rig_path.write_text(rig.model_dump_json(indent=1))
     statics = [c.id for c in rig.cameras if not c.role.tracks]
     # the lens calibration's principal-point error, the same angle at every scale
-    base = dict(synthesize.LENS_CALIBRATION_ERROR)
-    synthesize.LENS_CALIBRATION_ERROR = dict(base, centre_px=base["centre_px"] * scale)
-    try:
-        synthesize.synthesize_capture(out, rig=str(rig_path), seed=seed, frames=FRAMES, cameras=statics)
-    finally:
-        synthesize.LENS_CALIBRATION_ERROR = base
+    centre_px = synthesize.LENS_CALIBRATION_ERROR["centre_px"] * scale
+    synthesize.synthesize_capture(out, rig=str(rig_path), seed=seed, frames=FRAMES, cameras=statics,
+                                  lens_calibration_error={"centre_px": centre_px})
     return out
 
 
@@ -96,9 +94,13 @@ def main() -> None:
         print("|---|---|---|---|---|---|")
         for seed in args.seeds:
             for scale in args.scales:
-                r = calibrate(render(work, seed, scale))
-                rows.append({"seed": seed, "scale": scale, **r})
-                w, h = 320 * scale, 180 * scale
+                capture = render(work, seed, scale)
+                r = calibrate(capture)
+                # the footage's size as rendered (the static cameras share a sensor)
+                rig = FolderCapture.open(capture).rig
+                size = next(c for c in rig.cameras if not c.role.tracks).sensor
+                w, h = size.width_px, size.height_px
+                rows.append({"seed": seed, "scale": scale, "pixels": [w, h], **r})
                 print(f"| {seed} | {w}×{h} | {r['rotation_deg_mean']:.3f}° / {r['rotation_deg_max']:.3f}° "
                       f"({r['worst_camera']}) | {r['centre_pct_max']:.2f} % | {r['focal_pct_max_abs']:.2f} % "
                       f"| {r['seconds']:.0f} s |", flush=True)

@@ -328,6 +328,30 @@ def test_bad_arguments(tmp_path):
         synthesize_capture(tmp_path / "z", rig="demo_face", frames=1)
 
 
+def test_lens_calibration_error_sets_how_far_the_true_lens_is_from_the_rigs(tmp_path):
+    """A rig with measured intrinsics renders each unit through them plus the lens calibration's
+    error (``lens_calibration_error``): none of it renders the measured lens itself, a larger
+    principal-point error moves the true principal point by the same draw scaled."""
+    rig = load_rig("demo_scene_distorted")
+    measured = rig.measured_intrinsics("S003")
+
+    def truth(name: str, error: dict | None) -> dict:
+        synthesize_capture(tmp_path / name, rig="demo_scene_distorted", frames=1, cameras=["S003"], supersample=1,
+                           lens_calibration_error=error)
+        return json.loads((tmp_path / name / "ground_truth/cameras.json").read_text())["cameras"]["S003"]["frames"][0]
+
+    exact = truth("exact", {"focal_rel": 0.0, "centre_px": 0.0, "k": 0.0, "p": 0.0})
+    assert (exact["fx"], exact["fy"], exact["cx"], exact["cy"]) == pytest.approx(
+        (measured.fx, measured.fy, measured.cx, measured.cy), abs=1e-9)
+    assert exact["distortion"]["params"] == pytest.approx(list(measured.params), abs=1e-12)
+    base, double = truth("base", None), truth("double", {"centre_px": 0.6})
+    off = np.array([base["cx"] - measured.cx, base["cy"] - measured.cy])
+    assert 0 < np.abs(off).max() < 1.5                                   # 0.3 px sigma
+    assert [double["cx"] - measured.cx, double["cy"] - measured.cy] == pytest.approx(2 * off, abs=1e-9)
+    with pytest.raises(ValueError, match="unknown keys"):
+        synthesize_capture(tmp_path / "bad", rig="demo_scene_distorted", frames=1, lens_calibration_error={"cx": 1})
+
+
 @pytest.mark.slow
 def test_demo_capture_renders_within_a_minute(tmp_path):
     t0 = time.perf_counter()

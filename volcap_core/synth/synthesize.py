@@ -7,7 +7,7 @@ import shutil
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
+from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -118,8 +118,8 @@ def camera_at(plan: CameraPlan, world: World, t: float) -> tuple[PinholeCamera, 
     return cam, f_mm, float(np.linalg.norm(target - plan.position))
 
 
-def _plans(rig: Rig, seed: int, actor_centres: list[tuple[float, float]], cameras: Sequence[str] | None
-           ) -> list[CameraPlan]:
+def _plans(rig: Rig, seed: int, actor_centres: list[tuple[float, float]], cameras: Sequence[str] | None,
+           lens_error: Mapping[str, float] = LENS_CALIBRATION_ERROR) -> list[CameraPlan]:
     n_actors = len(actor_centres)
     chosen = [c for c in rig.cameras if cameras is None or c.id in cameras]
     if cameras is not None and len(chosen) != len(set(cameras)):
@@ -153,7 +153,7 @@ def _plans(rig: Rig, seed: int, actor_centres: list[tuple[float, float]], camera
             roll = cam.mount.roll_deg + r.normal(0, 0.3)
             measured = rig.measured_intrinsics(cam.id)
             if measured is not None:
-                f_px, fy_px, cx, cy, dist = _true_lens(measured, _rng(seed, "lens", cam.id))
+                f_px, fy_px, cx, cy, dist = _true_lens(measured, _rng(seed, "lens", cam.id), lens_error)
                 plan.cx, plan.cy = cx, cy
                 f_mm = f_px * s.width_mm / s.width_px
             plan.static = PinholeCamera.looking_at(s.width_px, s.height_px, f_px, fy_px, cx, cy, pos, look,
@@ -184,10 +184,10 @@ def _plans(rig: Rig, seed: int, actor_centres: list[tuple[float, float]], camera
     return plans
 
 
-def _true_lens(m, r: np.random.Generator) -> tuple[float, float, float, float, Distortion]:
+def _true_lens(m, r: np.random.Generator, e: Mapping[str, float] = LENS_CALIBRATION_ERROR
+               ) -> tuple[float, float, float, float, Distortion]:
     """The true lens of a camera whose rig carries measured intrinsics ``m``: the measured values
-    plus :data:`LENS_CALIBRATION_ERROR`."""
-    e = LENS_CALIBRATION_ERROR
+    plus the lens calibration's error ``e`` (1 sigma, the keys of :data:`LENS_CALIBRATION_ERROR`)."""
     scale = 1 + r.normal(0, e["focal_rel"])
     cx = m.cx + r.normal(0, e["centre_px"])
     cy = m.cy + r.normal(0, e["centre_px"])
@@ -289,7 +289,8 @@ def _render_camera(plan: CameraPlan, world: World, fps: float, frames: int, seed
 
 def _synthesize(out_dir: Path, rig_name: str | Path, seed: int, frames: int, kind: str, n_actors: int,
                 ss: int, cameras: Sequence[str] | None, write_depth: bool, lidar_spacing_m: float,
-                progress: Progress | None, name: str | None, lidar: bool = True) -> Path:
+                progress: Progress | None, name: str | None, lidar: bool = True,
+                lens_error: Mapping[str, float] = LENS_CALIBRATION_ERROR) -> Path:
     if frames < 1:
         raise ValueError("frames must be >= 1")
     if ss < 1:
@@ -317,7 +318,7 @@ def _synthesize(out_dir: Path, rig_name: str | Path, seed: int, frames: int, kin
         stage = build_room_stage(rig, _rng(seed, "stage"))
         actors = _scene_actors(rig, seed, n_actors)
     world = World(stage, actors)
-    plans = _plans(rig, seed, [a.path_centre for a in actors], cameras)
+    plans = _plans(rig, seed, [a.path_centre for a in actors], cameras, lens_error)
     fps = rig.fps
     total = sum(p.pre_roll + frames for p in plans)
     done = 0
@@ -409,7 +410,8 @@ def _synthesize(out_dir: Path, rig_name: str | Path, seed: int, frames: int, kin
 def synthesize_capture(out_dir: Path, rig: str = "demo_scene", seed: int = 0, frames: int = 24, *,
                        progress: Progress | None = None, actors: int = 2, supersample: int = 2,
                        cameras: Sequence[str] | None = None, write_depth: bool = False,
-                       lidar_spacing_m: float = 0.05, name: str | None = None, lidar: bool = True) -> Path:
+                       lidar_spacing_m: float = 0.05, name: str | None = None, lidar: bool = True,
+                       lens_calibration_error: Mapping[str, float] | None = None) -> Path:
     """Render a Scene Rig capture of ``actors`` walking, talking actors; returns capture.json's path.
 
     ``rig``: a built-in rig name or a rig JSON file (copied into the capture). ``cameras`` renders a
@@ -417,13 +419,21 @@ def synthesize_capture(out_dir: Path, rig: str = "demo_scene", seed: int = 0, fr
     ``supersample``: ss x ss samples per pixel. ``write_depth``: also write
     ground-truth depth maps and performer masks per camera and take frame (``ground_truth/depth/``,
     ``ground_truth/masks/``). ``lidar=False``: a capture without a lidar scan (no ``lidar.ply`` input,
-    none in capture.json; ``ground_truth/lidar.ply`` is still written, for evaluation). Same
-    arguments, same bytes.
+    none in capture.json; ``ground_truth/lidar.ply`` is still written, for evaluation).
+    ``lens_calibration_error``: for a rig whose static cameras carry measured intrinsics, how far
+    (1 sigma) each unit's true lens is from them, in the keys of :data:`LENS_CALIBRATION_ERROR`
+    (the default; ``centre_px`` in the rig's pixels). Same arguments, same bytes.
     """
     if not 1 <= actors <= 3:
         raise ValueError("actors must be 1, 2 or 3")
+    error = dict(LENS_CALIBRATION_ERROR)
+    if lens_calibration_error is not None:
+        unknown = set(lens_calibration_error) - set(error)
+        if unknown:
+            raise ValueError(f"lens_calibration_error: unknown keys {sorted(unknown)}; known: {sorted(error)}")
+        error.update(lens_calibration_error)
     return _synthesize(Path(out_dir), rig, seed, frames, "scene", actors, supersample, cameras, write_depth,
-                       lidar_spacing_m, progress, name, lidar)
+                       lidar_spacing_m, progress, name, lidar, error)
 
 
 def synthesize_face_capture(out_dir: Path, rig: str = "demo_face", seed: int = 0, frames: int = 48, *,
