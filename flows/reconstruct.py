@@ -63,8 +63,10 @@ def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = 
 
     ``calibration`` / ``points``: refs of a Calibration and a PointCloudSequence. When omitted, the
     capture is calibrated here (the calibrate flow's tasks, cached) and dense points are computed
-    for the frames trained (at most ``points_per_frame`` each when given; training thins them to its
-    own budget, so the default keeps every point for the static/moving split to see). ``ground_truth=True`` uses a synthetic
+    for the frames trained, matched at the preset's ``dense_scale`` of the footage's resolution as a
+    production matches them (at most ``points_per_frame`` each when given; training thins them to
+    its own budget, so the default keeps every point for the static/moving split to see).
+    ``ground_truth=True`` uses a synthetic
     capture's ground truth instead (true cameras, points from true depth): benchmarks, fast tests.
     ``allow_unregistered``, ``known_distance``, ``known_points``, ``min_pair_inliers``: the calibration run here, as
     ``calibrate_flow`` takes them (the same settings give the same cached calibration); refused
@@ -110,8 +112,10 @@ def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = 
         points_ref = ground_truth_points(store, capture_ref, calib_ref, points_per_frame or 150_000, seed,
                                          exclude_cameras=held)
     else:
+        # matched at the preset's dense_scale, as a production's dense-points step matches them (the
+        # same preset, the same cached frames)
         points_ref = point_cloud_for_frames(store, capture_ref, calib_ref, list(range(a, b)), points_per_frame, seed,
-                                            exclude_cameras=held)
+                                            scale=named_preset(preset).dense_scale, exclude_cameras=held)
     log.info("capture %s: %s calibration %s, points %s", cap.name,
              "given" if calibration else "ground-truth" if ground_truth else "estimated", calib_ref.digest,
              points_ref.digest)
