@@ -230,7 +230,7 @@ def test_reconstruct_trains_on_the_estimated_calibration(calibrated):
 
     store, capture, first = calibrated
     res = run_flow(reconstruct_flow, store=store, capture=capture.digest, frames=(2, 4), preset="test",
-                   points_per_frame=2000, held_out=["S003"], steps=80)
+                   points_per_frame=2000, held_out=["S003"], steps=80, max_gaussians=30_000)
     out = res.result
     # the calibration comes from the cache; the dense frames run again without the held-out camera
     # (its footage must not reach the model it tests), then a new budgeted sequence and the training
@@ -239,13 +239,18 @@ def test_reconstruct_trains_on_the_estimated_calibration(calibrated):
     seq = s.get_record(out["points"]["digest"], PointCloudSequence)
     assert [f.count for f in seq.frames] == [2000, 2000]
     seg = out["segments"][0]
+    print("estimated-calibration reconstruct", {k: seg[k] for k in ("held_out_psnr", "floor_initial_psnr",
+                                                                   "floor_empty_psnr", "training_psnr", "gaussians")})
     rec = s.get_record(seg["model"]["digest"], SegmentModel)
     assert rec.calibration.digest == out["calibration"]["digest"]
     # on the estimated calibration too the model beats the floors of the same views. Measured
-    # (2026-11-23; the test preset's 20 steps on 2 frames of 2000 estimated points): held-out
-    # 15.84 dB, untrained 15.08, empty 14.88; training views 15.87. In a venv installed on
-    # 2026-11-26 the same 20 steps gave 14.52 dB against an untrained 14.87, on this session's code
-    # and on d29e4a5's alike (a dependency resolved differently; not found which): 80 steps pass. The demo (550 steps) is where
-    # the quality is measured; here a model that does not train, or renders nothing, fails.
-    assert seg["held_out_psnr"] >= seg["floor_initial_psnr"] + 0.4
-    assert seg["held_out_psnr"] >= seg["floor_empty_psnr"] + 0.6
+    # (2026-11-26; 80 steps of the test preset on 2 frames of 2000 estimated points matched at the
+    # preset's dense_scale 0.5, a budget of 30 000 Gaussians, the scan's points among them): held-out
+    # 16.71 dB, untrained 14.88, empty 14.88; training views 20.47; 46 s. Without the budget (the
+    # scan's 104 000 points kept): 17.87 dB in 111 s; 40 steps and 30 000: 15.22 dB. Before the
+    # dense points followed the preset's scale (full resolution, no budget), 20 steps gave 15.84 dB
+    # on 2026-11-23 and 14.52 in a venv of 2026-11-26. The demo (550 steps) is where
+    # the quality is measured; here a model that does not train, or renders nothing, fails. Bounds:
+    # half the margins
+    assert seg["held_out_psnr"] >= seg["floor_initial_psnr"] + 0.9
+    assert seg["held_out_psnr"] >= seg["floor_empty_psnr"] + 0.9

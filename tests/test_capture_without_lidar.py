@@ -144,8 +144,9 @@ def test_reconstruct_without_lidar_beats_the_empty_model(calibrated, capture_dir
     print("no lidar reconstruct", {k: seg[k] for k in ("held_out_psnr", "floor_initial_psnr", "floor_empty_psnr",
                                                        "train_wall_s")})
     # measured (2026-11-26, on the calibration whose dense points sweep each camera's scene; 40
-    # steps of the test preset on 2 frames of 6000 estimated points, 5 static training views):
-    # held-out 15.40 dB, untrained 14.90, empty 14.88. The preset's own 20 steps gave 15.12, +0.23
+    # steps of the test preset on 2 frames of 6000 estimated points matched at the preset's
+    # dense_scale 0.5, 5 static training views): held-out 15.38 dB, untrained 15.00, empty 14.88, 26 s
+    # (matched at full resolution: 15.40, 14.90, 14.88, 74 s). The preset's own 20 steps gave 15.12, +0.23
     # over the empty model, too near any bound (15.23 on the calibration before); 80 steps 15.75.
     # With 2000 points a frame the untrained model is all but empty (sparse dots). A model that
     # does not train, or renders nothing, fails

@@ -30,9 +30,11 @@ from 10.75 to 14.7 min.
 The calibration is compared with the exact poses in the stage frame the calibration itself chose
 (from the mounts: no re-alignment to the truth); the similarity-aligned figures are printed for
 reference. Skips with a message when ``../shared/data`` is absent. Both tests are slow and share one
-reconstruct run (measured with a separate calibrate run first: calibrate 5.5-6.4 min, half of it
-the frame's dense points for all cameras, reconstruct 4.2-4.4 min with ~50 s of training, on the
-shared 2-core machine at one torch thread). The contact sheet is written to
+reconstruct run, which calibrates the capture (~5 min: guided matching over all 39 x 38 camera
+pairs, the bundle adjustment, the stand-in surface's sweep), matches the frame's dense points at
+the test preset's half resolution and trains (~80 s): 8 min in all under load on the 2-core
+machine at one torch thread (10 min 45 s when the dense points were matched at full resolution).
+The contact sheet is written to
 ``/tmp/h27/lego_contact_sheet.png``.
 """
 
@@ -212,10 +214,13 @@ def test_lego_capture_reconstructs_without_a_scan(reconstructed):
     SHEET_DIR.mkdir(parents=True, exist_ok=True)
     ArtifactStore(store).get_file(seg["contact_sheet"]["digest"], SHEET_DIR / "lego_contact_sheet.png")
     # measured (2026-11-26; the test preset stretched to 150 steps, 20 000 Gaussians, 37 training
-    # views at 300x300, the one frame's estimated points): held-out 23.48 dB (L06 23.2, L28 23.8),
-    # untrained 17.27, empty 8.18 (the black background: the empty model is black); training views
-    # 24.8 dB; 82 s of training (2026-11-24, the fixed 1-14 m sweep: 23.05, 16.67, 24.2 dB). The render is the lego, in place and soft (the studs smoothed, the
-    # bucket's inside blotchy), with faint low-opacity haze in the background. Bounds: half the margins
+    # views at 300x300, the one frame's estimated points matched at the preset's dense_scale 0.5,
+    # 150x150): held-out 20.93 dB (L06 20.4), untrained 14.03, empty 8.18 (the black background: the
+    # empty model is black); training views 23.0 dB; 82 s of training, the file 8 min under load.
+    # The render is the lego, in place and soft, with dark holes in the base plate (its low texture
+    # finds no match at half resolution, so no point starts there) and blotches in the bucket.
+    # Matched at full resolution (before reconstruct followed the preset's dense_scale; the file
+    # 10 min 45 s): 23.48 dB, untrained 17.27. Bounds: about half the margins
     assert seg["held_out_psnr"] >= seg["floor_initial_psnr"] + 3.0
-    assert seg["held_out_psnr"] >= seg["floor_empty_psnr"] + 7.0
-    assert seg["held_out_psnr"] > 20.0
+    assert seg["held_out_psnr"] >= seg["floor_empty_psnr"] + 6.0
+    assert seg["held_out_psnr"] > 18.5

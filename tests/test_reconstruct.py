@@ -37,6 +37,16 @@ def ingested(prefect_api, tiny_capture, tmp_path) -> tuple[str, str]:
     return store, capture.digest
 
 
+@pytest.fixture(scope="module")
+def reconstructed(prefect_api, tiny_capture, tmp_path_factory):
+    """One training of the tiny capture (seed 0) that the tests below read: (store, capture digest,
+    the flow's summary). Each training here costs ~40 s of the suite; the tests that only need a
+    trained segment share this one."""
+    store = ArtifactStore(str(tmp_path_factory.mktemp("recon-store") / "store")).url
+    capture = run_flow(ingest_flow, store=store, capture_dir=tiny_capture).result.digest
+    return store, capture, _reconstruct(store, capture)
+
+
 def _reconstruct(store: str, capture: str, **kw):
     # ground truth (true cameras, depth points): fast and independent of the calibration's error;
     # tests/test_calibrate_flow.py trains on the estimated calibration
@@ -80,9 +90,8 @@ def test_reconstruct_plans_the_segments_a_production_plans():
 
 
 @pytest.mark.slow
-def test_reconstruct_trains_reports_and_caches(ingested):
-    store, capture = ingested
-    first = _reconstruct(store, capture)
+def test_reconstruct_trains_reports_and_caches(reconstructed):
+    store, capture, first = reconstructed
     seg = first.result["segments"][0]
     assert seg["frames"] == [0, 2] and seg["core"] == [0, 2] and seg["gaussians"] > 0
     # Measured (2026-11-23, test preset, 20 steps, true cameras): held-out 20.96 dB, untrained
@@ -125,12 +134,12 @@ def test_reconstruct_trains_reports_and_caches(ingested):
 
 
 @pytest.mark.slow
-def test_killed_training_resumes_from_its_checkpoint(ingested, tiny_capture, monkeypatch, tmp_path):
+def test_killed_training_resumes_from_its_checkpoint(reconstructed, tiny_capture, monkeypatch, tmp_path):
     """A segment whose training dies is retried (same process, another Prefect worker thread) and
-    resumes from its last stored checkpoint, ending with the same model and grids bytes.
+    resumes from its last stored checkpoint, ending with the same model and grids bytes as the
+    uninterrupted training of the same inputs (the module's).
     (A kill and a resume in a fresh process: tests/test_resume_bit_identical.py.)"""
-    store, capture = ingested
-    clean = _reconstruct(store, capture, seed=7)
+    store, capture, clean = reconstructed
 
     # Same inputs in a fresh store; the first attempt dies right after its first checkpoint.
     store2 = ArtifactStore(str(tmp_path / "store2")).url
@@ -149,7 +158,7 @@ def test_killed_training_resumes_from_its_checkpoint(ingested, tiny_capture, mon
         return real(*args, checkpoint=checkpoint, resume_from=resume_from, **kw)
 
     monkeypatch.setattr(segment_lib, "train_segment", dying)
-    resumed = _reconstruct(store2, capture2, seed=7)
+    resumed = _reconstruct(store2, capture2)
     assert attempts == [False, True]  # the retry found the checkpoint
     rec2 = ArtifactStore(store2).get_record(resumed.result["segments"][0]["model"]["digest"], SegmentModel)
     rec1 = ArtifactStore(store).get_record(clean.result["segments"][0]["model"]["digest"], SegmentModel)
@@ -162,9 +171,8 @@ def test_killed_training_resumes_from_its_checkpoint(ingested, tiny_capture, mon
 
 
 @pytest.mark.slow
-def test_render_view_and_ply_export(ingested):
-    store, capture = ingested
-    out = _reconstruct(store, capture)
+def test_render_view_and_ply_export(reconstructed):
+    store, capture, out = reconstructed
     s = ArtifactStore(store)
     seg_ref = s.resolve(out.result["segments"][0]["model"]["digest"])
     seg = s.get_record(seg_ref, SegmentModel)

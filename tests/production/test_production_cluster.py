@@ -65,8 +65,9 @@ def _spec(tmp: Path, capture: Path, store: str) -> Path:
     spec = {"format": "volcap-production/1", "name": "cluster-test", "store": store,
             # three segments over 7 frames; enough steps that a segment is still training when the
             # worker is killed after its first checkpoint (every 10 steps in the test preset): at a
-            # quarter of the resolution, SH degree 0, a step takes ~0.1 s on a quiet core
-            "quality": {"preset": "test", "max_segment_frames": 3, "overlap": 1, "train_steps": 300,
+            # quarter of the resolution, SH degree 0, a step takes ~0.1 s on a quiet core, so the
+            # test polls the worker's log (every 0.5 s) through a ~19 s window
+            "quality": {"preset": "test", "max_segment_frames": 3, "overlap": 1, "train_steps": 200,
                         "train_scale": 0.25, "sh_degree": 0},
             "captures": {"demo": {"folder": str(capture)}}, "shots": [shot]}
     path = tmp / "spec.yaml"
@@ -77,7 +78,10 @@ def _spec(tmp: Path, capture: Path, store: str) -> Path:
 def test_production_over_two_workers_survives_a_killed_worker_and_reruns_cached(cluster, tmp_path, s3_endpoint):  # noqa: F811
     from volcap_core.synth import synthesize_capture
 
-    capture = synthesize_capture(tmp_path / "demo", rig="demo_scene", seed=0, frames=7, supersample=1).parent
+    # the 8 static cameras and one tracking camera (the production's calibrate-tracking step runs; the
+    # other three trackers would add their tasks and nothing this test checks)
+    capture = synthesize_capture(tmp_path / "demo", rig="demo_scene", seed=0, frames=7, supersample=1,
+                                 cameras=[f"S{i:03d}" for i in range(8)] + ["S010"]).parent
     store = s3_endpoint.store_url()
     spec = _spec(tmp_path, capture, store)
 
