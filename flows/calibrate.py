@@ -26,6 +26,7 @@ from volcap_core.calibration.record import Calibration
 from volcap_core.calibration.scale import KnownPoints, KnownPointsError
 from volcap_core.calibration.sfm import StaticSfmOptions
 from volcap_core.calibration.static import StaticCalibrationOptions
+from volcap_core.calibration.tracking import TrackingOptions
 from volcap_core.capture import Capture
 from volcap_core.records import ArtifactRef
 from volcap_core.store import ArtifactStore
@@ -51,6 +52,13 @@ def static_calibration_options(allow_unregistered: bool = False, instants: int =
     return StaticCalibrationOptions(**given) if given else None
 
 
+def tracking_calibration_options(allow_unregistered: bool = False) -> TrackingOptions | None:
+    """The tracking cameras' settings a calibrate or reconstruct run asks for: None for the
+    defaults (their cache key), else a camera the solve cannot support is left out
+    (``TrackingOptions.allow_unsupported``) as ``allow_unregistered`` leaves out a static one."""
+    return TrackingOptions(allow_unsupported=True) if allow_unregistered else None
+
+
 def known_points_spec(doc: dict | KnownPoints | None, known_distance=None) -> KnownPoints | None:
     """Known scene points (``volcap calibrate --known-points``'s JSON, :mod:`volcap_core.calibration.scale`)
     validated; a :class:`CalibrationInputError` naming the field, or when a known distance between
@@ -68,12 +76,14 @@ def known_points_spec(doc: dict | KnownPoints | None, known_distance=None) -> Kn
 
 def calibrate_capture(store: str, capture: ArtifactRef,
                       static_options: StaticCalibrationOptions | None = None,
-                      known_points: KnownPoints | None = None) -> ArtifactRef:
+                      known_points: KnownPoints | None = None,
+                      tracking_options: TrackingOptions | None = None) -> ArtifactRef:
     """The capture's Calibration ref: static cameras once, each tracking camera in its own task,
     then the record. Call it inside a flow run (any). Every step is cached by its inputs' digests.
-    ``static_options``: the static calibration's settings (None: the task's defaults, the same key
-    as the defaults spelled out); ``known_points``: distances between marked scene points, the scale
-    of a capture without a lidar scan (:mod:`volcap_core.calibration.scale`)."""
+    ``static_options`` / ``tracking_options``: the static and tracking calibrations' settings (None:
+    the tasks' defaults, the same key as the defaults spelled out); ``known_points``: distances
+    between marked scene points, the scale of a capture without a lidar scan
+    (:mod:`volcap_core.calibration.scale`)."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
     trackers = tracking_camera_ids(cap)
@@ -82,7 +92,9 @@ def calibrate_capture(store: str, capture: ArtifactRef,
         store, capture, static_options, **extra)
     tracking: list[ArtifactRef] = []
     if trackers:
-        futures = calibrate_tracking_camera.map(unmapped(store), unmapped(capture), unmapped(static), trackers)
+        extra_t = {} if tracking_options is None else {"options": unmapped(tracking_options)}
+        futures = calibrate_tracking_camera.map(unmapped(store), unmapped(capture), unmapped(static), trackers,
+                                                **extra_t)
         tracking = [f.result() for f in futures]
     return assemble_calibration(store, capture, static, tracking)
 
@@ -205,8 +217,8 @@ def calibrate_flow(store: str, capture: str, frames: tuple[int, int] | None = No
     """Calibrate ``capture`` (a ref name such as ``captures/demo`` or a digest) and compute dense
     points for ``frames`` [a, b) (all frames when None).
 
-    ``allow_unregistered``: a static camera the adjustment cannot support is left out (listed in
-    ``unregistered`` with the reason) instead of failing the run. ``instants``: take instants pooled
+    ``allow_unregistered``: a static or tracking camera the adjustment cannot support is left out
+    (listed in ``unregistered`` with the reason) instead of failing the run. ``instants``: take instants pooled
     into the static SfM (``StaticCalibrationOptions.instants``: a sparse background). ``known_distance``:
     (camera, camera, metres) between two static cameras' centres, the scale of a capture without a
     lidar scan (``StaticCalibrationOptions.known_distance``; default: the rig's mounts). ``known_points``:
@@ -242,7 +254,8 @@ def calibrate_flow(store: str, capture: str, frames: tuple[int, int] | None = No
     # only the settings given differ from the task's defaults (none given: the defaults' cache key)
     calib_ref = calibrate_capture(store, capture_ref,
                                   static_calibration_options(allow_unregistered, instants, known_distance,
-                                                             min_pair_inliers), known)
+                                                             min_pair_inliers), known,
+                                  tracking_calibration_options(allow_unregistered))
     calib = s.get_record(calib_ref, Calibration)
     unregistered = calib.unregistered
     # without a lidar scan: the stage frame from the mounts (or a known distance) and their residual

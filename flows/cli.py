@@ -176,7 +176,7 @@ def reconstruct(capture: Annotated[str, typer.Argument(help="capture ref name (c
                 points: Annotated[Optional[str], typer.Option(help="PointCloudSequence ref; dense points of the frames when omitted")] = None,
                 ground_truth: Annotated[bool, typer.Option("--ground-truth", help="use a synthetic capture's true cameras and depth points instead of estimating them")] = False,
                 held_out: Annotated[Optional[str], typer.Option(help="comma-separated cameras never trained on")] = None,
-                allow_unregistered: Annotated[bool, typer.Option("--allow-unregistered", help="the calibration run here (no --calibration) leaves out (and lists) a static camera the adjustment cannot support instead of failing, as volcap calibrate --allow-unregistered; training leaves it out")] = False,
+                allow_unregistered: Annotated[bool, typer.Option("--allow-unregistered", help="the calibration run here (no --calibration) leaves out (and lists) a static or tracking camera the adjustment cannot support instead of failing, as volcap calibrate --allow-unregistered; training leaves it out")] = False,
                 known_distance: Annotated[Optional[str], typer.Option(help="CAM_A,CAM_B,METRES for the calibration run here (no --calibration), as volcap calibrate --known-distance")] = None,
                 known_points: Annotated[Optional[Path], typer.Option(help="JSON of named scene points and their measured distance for the calibration run here (no --calibration), as volcap calibrate --known-points")] = None,
                 min_pair_inliers: Annotated[Optional[int], typer.Option(min=8, help="for the calibration run here (no --calibration), as volcap calibrate --min-pair-inliers")] = None,
@@ -280,7 +280,7 @@ def _frame_span(frames: str | None) -> tuple[int, int] | None:
 @app.command()
 def calibrate(capture: Annotated[str, typer.Argument(help="capture ref name (captures/NAME) or digest")],
               frames: Annotated[Optional[str], typer.Option(help="dense points for take frames A:B (B exclusive); all when omitted")] = None,
-              allow_unregistered: Annotated[bool, typer.Option("--allow-unregistered", help="leave out (and list) a static camera the adjustment cannot support instead of failing; training leaves it out")] = False,
+              allow_unregistered: Annotated[bool, typer.Option("--allow-unregistered", help="leave out (and list) a static or tracking camera the adjustment cannot support instead of failing; training leaves it out")] = False,
               colour_charts: Annotated[Optional[Path], typer.Option(help="also calibrate colour between the rigs: the JSON file of volcap calibrate-colour (Face Rig onto Scene Rig)")] = None,
               instants: Annotated[int, typer.Option(min=1, help="take instants pooled into the static cameras' SfM, spread over the take (a sparse or dark background); 1: the middle frame alone")] = 1,
               known_distance: Annotated[Optional[str], typer.Option(help="CAM_A,CAM_B,METRES: measured distance between two static cameras' optical centres, the scale of a capture without a lidar scan (default: the rig's mounts)")] = None,

@@ -9,7 +9,8 @@ from __future__ import annotations
 
 from prefect import flow, get_run_logger, unmapped
 
-from flows.calibrate import calibrate_capture, known_points_spec, point_cloud_for_frames, static_calibration_options
+from flows.calibrate import (calibrate_capture, known_points_spec, point_cloud_for_frames, static_calibration_options,
+                             tracking_calibration_options)
 from tasks.reconstruct import ground_truth_calibration, ground_truth_points, train_segment_task
 from volcap_core import reconstruction
 from volcap_core.calibration.record import Calibration
@@ -101,7 +102,7 @@ def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = 
         calib_ref = calibrate_capture(store, capture_ref,
                                       static_calibration_options(allow_unregistered, known_distance=known_distance,
                                                                  min_pair_inliers=min_pair_inliers),
-                                      known)
+                                      known, tracking_calibration_options(allow_unregistered))
     held = (held_out if held_out is not None
             else reconstruction.default_held_out(cap, calibration=s.get_record(calib_ref, Calibration)))
     # held-out cameras take no part in the initial points: their footage must not reach the model

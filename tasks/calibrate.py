@@ -74,13 +74,17 @@ def calibrate_static(store: str, capture: ArtifactRef,
     return s.put_record(steps.static_record(cap.name, step, reference))
 
 
-@volcap_task(name="calibrate-tracking-camera", version="3", libraries=CALIBRATION_LIBRARIES)
+@volcap_task(name="calibrate-tracking-camera", version="4", libraries=CALIBRATION_LIBRARIES)
 def calibrate_tracking_camera(store: str, capture: ArtifactRef, static: ArtifactRef, camera: str,
                               options: TrackingOptions = TrackingOptions()) -> ArtifactRef:
     """One tracking camera at every frame of the take, against the fixed static reference.
     Version 3: a camera whose rig carries a zoom lens table (``zoom_intrinsics``) has each frame's
     keypoints undistorted with the lens at that frame's smoothed encoder focal before matching
-    (``options.zoom_distortion``), and its frames blob carries each frame's lens (``distortion``)."""
+    (``options.zoom_distortion``), and its frames blob carries each frame's lens (``distortion``).
+    Version 4: a 2D-3D match behind the camera no longer freezes the solve where it starts (its
+    Jacobian is zero), one start along the zoom/dolly valley instead of seven, the frame-to-frame
+    background homography at 1.5 px instead of 3 (``options.homography_px``), and the record's
+    stats carry the covariance's ``focal_sigma_pct``, ``rotation_sigma_deg``, ``centre_sigma_m``."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
     st = s.get_record(static, StaticCalibrationRecord)

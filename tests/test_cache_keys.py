@@ -189,7 +189,8 @@ def test_calibration_keys():
     assert_key_behaviour(
         calibrate_tasks.calibrate_tracking_camera, dict(capture=ref("a"), static=ref("b"), camera="T001"),
         misses={"camera": {"camera": "T002"}, "static result": {"static": ref("c")},
-                "matching ratio": {"options": replace(tracking, ratio_3d=0.8)}},
+                "matching ratio": {"options": replace(tracking, ratio_3d=0.8)},
+                "unsupported trackers allowed": {"options": replace(tracking, allow_unsupported=True)}},
         hits={"the default, spelled out": {"options": TrackingOptions()}})
     dense = DenseOptions()
     assert_key_behaviour(

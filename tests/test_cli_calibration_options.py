@@ -24,6 +24,7 @@ from tasks.contract import task_cache_key
 from volcap_core.calibration.scale import KnownPoints
 from volcap_core.calibration.sfm import StaticSfmOptions
 from volcap_core.calibration.static import StaticCalibrationOptions
+from volcap_core.calibration.tracking import TrackingOptions
 from volcap_core.capture import Capture, CaptureCamera
 from volcap_core.store import ArtifactStore
 
@@ -141,8 +142,8 @@ def calibrations(monkeypatch):
     """(static options, known points) each flow asks ``calibrate_capture`` for; the flow stops there."""
     asked: list[tuple] = []
 
-    def fake(store, capture, static_options=None, known_points=None):
-        asked.append((static_options, known_points))
+    def fake(store, capture, static_options=None, known_points=None, tracking_options=None):
+        asked.append((static_options, known_points, tracking_options))
         raise _Stop
 
     for module in (calibrate_flows, reconstruct_flows):
@@ -161,10 +162,12 @@ def test_calibrate_and_reconstruct_ask_for_the_same_calibration(capture_store, c
         calibrate_flows.calibrate_flow.fn(store=store, capture="captures/opts", **options)
     with pytest.raises(_Stop):
         reconstruct_flows.reconstruct_flow.fn(store=store, capture="captures/opts", preset="test", **options)
-    (static_c, known_c), (static_r, known_r) = calibrations
-    assert static_c == static_r and known_c == known_r
+    (static_c, known_c, tracking_c), (static_r, known_r, tracking_r) = calibrations
+    assert static_c == static_r and known_c == known_r and tracking_c == tracking_r
     if not options:   # nothing given: the task's defaults, the key of `calibrate_static(store, capture)`
         assert static_r is None and known_r is None
+    # the tracking cameras: their defaults' key, or an unsupported one left out as a static one is
+    assert tracking_r == (TrackingOptions(allow_unsupported=True) if options.get("allow_unregistered") else None)
     if options.get("allow_unregistered") and "min_pair_inliers" not in options:
         assert static_r == StaticCalibrationOptions(allow_unregistered=True)
     if "min_pair_inliers" in options:
@@ -174,7 +177,7 @@ def test_calibrate_and_reconstruct_ask_for_the_same_calibration(capture_store, c
         assert known_r == KnownPoints.model_validate(MARKS)
     keys = {task_cache_key(calibrate_static, store, capture=ref,
                            **({} if s is None else {"options": s}), **({} if k is None else {"known_points": k}))
-            for s, k in calibrations}
+            for s, k, _ in calibrations}
     assert len(keys) == 1
 
 

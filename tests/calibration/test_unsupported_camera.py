@@ -79,6 +79,23 @@ def test_allowed_it_is_left_out_and_the_rest_calibrated(capture):
                          rec.reference_frame, None)
     assert list(calib.unregistered) == [DARK] and DARK not in calib.static_ids
 
+    # a tracking camera the solve could not support (allowed) is left out and listed the same way
+    from volcap_core.calibration.steps import tracking_blob
+    from volcap_core.calibration.tracking import TrackingSolution
+
+    def solved(unsupported=None):
+        K = np.tile(np.diag([900.0, 900.0, 1.0]), (FRAMES, 1, 1))
+        return TrackingSolution(K, np.tile(np.eye(4), (FRAMES, 1, 1)), 1.0, 0.0, np.zeros(3), {"cost": 1.0},
+                                unsupported=unsupported)
+
+    tracking = {"S008": solved(), "S009": solved("3 2D-3D inliers against the static reference over the take")}
+    calib = build_record(cap.name, cap.rig, static_calibration(rec), tracking, cap.frame_count, cap.fps,
+                         rec.reference_frame, tracking_blob({"S008": tracking["S008"]}))
+    assert calib.tracking_ids == ["S008"] and "S009" not in [c.id for c in calib.cameras]
+    assert calib.unregistered == {DARK: calib.unregistered[DARK],
+                                  "S009": "tracking camera: 3 2D-3D inliers against the static reference over the take"}
+    assert calib.stats["tracking_cameras"] == 1
+
     # training leaves it out: the views of a segment and the default held-out camera
     from volcap_core.calibration.record import Calibration
     from volcap_core.reconstruction import default_held_out, segment_data

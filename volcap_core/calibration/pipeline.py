@@ -20,7 +20,7 @@ from volcap_core.calibration.lidar import LidarScan
 from volcap_core.calibration.record import Calibration, CameraCalibration, matrix4, tracking_frames_ref
 from volcap_core.calibration.scale import KnownPoints
 from volcap_core.calibration.static import StaticCalibration, StaticCalibrationOptions
-from volcap_core.calibration.steps import calibrate_static_step, tracking_blob
+from volcap_core.calibration.steps import calibrate_static_step, check_tracking_support, tracking_blob
 from volcap_core.calibration.tracking import (StaticReference, TrackingOptions, TrackingSolution,
                                               calibrate_tracking_cameras, zoom_lens)
 
@@ -77,7 +77,10 @@ def calibrate_capture(load: FrameSource, rig: Rig, camera_ids: list[str], frame_
         mounts = {c: np.asarray(rig.camera(c).mount.position_m, np.float64) for c in trackers}
         lenses = {c: zoom_lens(rig.zoom_intrinsics(c)) for c in trackers}   # zoom lens tables (own or group's)
         tracking = calibrate_tracking_cameras(frames, encoder, ppm, mounts, reference, options.tracking, lenses)
-        blob = tracking_blob(tracking)
+        # the tasks' check: an unsupported camera is an error, or left out and listed
+        tracking = {c: check_tracking_support(capture_name, c, v, options.tracking) for c, v in tracking.items()}
+        supported = {c: v for c, v in tracking.items() if v.unsupported is None}
+        blob = tracking_blob(supported) if supported else None
     else:
         stats["tracking"] = "skipped: the capture has no tracking cameras"
     stats["time_tracking_s"] = time.perf_counter() - t2
@@ -88,7 +91,9 @@ def calibrate_capture(load: FrameSource, rig: Rig, camera_ids: list[str], frame_
 
 def build_record(capture_name: str, rig: Rig, static: StaticCalibration, tracking: Mapping[str, TrackingSolution],
                  frame_count: int, fps: float, reference_frame: int, blob: bytes | None) -> Calibration:
-    """The JSON-small record; ``blob`` (from :func:`volcap_core.calibration.steps.tracking_blob`) gives the tracking ref."""
+    """The JSON-small record; ``blob`` (from :func:`volcap_core.calibration.steps.tracking_blob` of the
+    supported cameras) gives the tracking ref. A tracking camera marked ``unsupported`` is left out
+    and listed in ``unregistered`` with its reason, as a static camera the adjustment left out."""
     cams = []
     for cid in static.camera_ids:
         K = static.K[cid]
@@ -101,6 +106,8 @@ def build_record(capture_name: str, rig: Rig, static: StaticCalibration, trackin
         cams.append(CameraCalibration(id=cid, role=rig.camera(cid).role.value, static=True, width=w, height=h,
                                       intrinsics=(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])),
                                       world_to_camera=matrix4(static.world_to_camera[cid]), **extra))
+    left_out = {c: f"tracking camera: {v.unsupported}" for c, v in tracking.items() if v.unsupported is not None}
+    tracking = {c: v for c, v in tracking.items() if c not in left_out}
     for cid in sorted(tracking):
         s = rig.camera(cid).sensor
         st = tracking[cid].stats
@@ -121,7 +128,8 @@ def build_record(capture_name: str, rig: Rig, static: StaticCalibration, trackin
     return Calibration(capture=capture_name, frame_count=frame_count, fps=fps, reference_frame=reference_frame,
                        stage_size_m=tuple(rig.stage_size_m), cameras=tuple(cams),
                        tracking_frames=tracking_frames_ref(blob) if blob is not None else None, stats=rec_stats,
-                       unregistered={c: static.reasons.get(c, "not registered") for c in static.unregistered})
+                       unregistered={**{c: static.reasons.get(c, "not registered") for c in static.unregistered},
+                                     **left_out})
 
 
 # --------------------------------------------------------------------------- capture folders

@@ -39,7 +39,8 @@ from volcap_core.calibration.static import (StaticCalibration, StaticCalibration
                                             KnownDistanceError, calibrate_static_cameras, instant_frames,
                                             scene_depths)
 from volcap_core.calibration.tracking import (StaticReference, TrackingOptions, TrackingSolution,
-                                              build_static_reference, calibrate_tracking_cameras, zoom_lens)
+                                              build_static_reference, calibrate_tracking_cameras, tracking_support,
+                                              zoom_lens)
 from volcap_core.capture import Capture
 from volcap_core.records import ArtifactRef, Record
 
@@ -110,6 +111,9 @@ class TrackingCameraRecord(Record):
     offset: float
     centre: tuple[float, float, float]
     stats: dict[str, float] = Field(default_factory=dict)
+    #: why the camera is left out of the calibration (``TrackingOptions.allow_unsupported``), None
+    #: when it is calibrated
+    unsupported: str | None = None
 
 
 class DensePointsFrame(Record):
@@ -457,7 +461,25 @@ def calibrate_tracking_step(cap: Capture, camera: str, reference: StaticReferenc
                                           options, lenses={camera: zoom_lens(cap.rig.zoom_intrinsics(camera))})
     except RuntimeError as exc:  # e.g. too few 2D-3D matches over the take
         raise CalibrationInputError(f"capture {cap.name}, tracking camera {camera}: {exc}") from exc
-    return sols[camera]
+    return check_tracking_support(cap.name, camera, sols[camera], options)
+
+
+def check_tracking_support(capture_name: str, camera: str, sol: TrackingSolution,
+                           options: TrackingOptions = TrackingOptions()) -> TrackingSolution:
+    """``sol`` when the camera is supported (:func:`~volcap_core.calibration.tracking.tracking_support`);
+    otherwise an error naming the capture, the camera and the reason, or, with
+    ``options.allow_unsupported``, ``sol`` marked ``unsupported`` (the calibration leaves it out and
+    lists it). The one check of the flow's tasks and of ``pipeline.calibrate_capture``."""
+    why = tracking_support(sol, options)
+    if why is None:
+        return sol
+    if not options.allow_unsupported:
+        raise CalibrationInputError(
+            f"capture {capture_name}: tracking camera {camera} cannot be calibrated: {why}; check its footage, "
+            "encoder and mount, or allow it to be left out with --allow-unregistered "
+            "(TrackingOptions.allow_unsupported)")
+    sol.unsupported = why
+    return sol
 
 
 def encode_tracking_solution(sol: TrackingSolution) -> bytes:
@@ -474,14 +496,15 @@ def tracking_record(cap_name: str, camera: str, sol: TrackingSolution, frames: A
     """The record of one tracking camera; ``frames``: the stored :func:`encode_tracking_solution`."""
     return TrackingCameraRecord(capture=cap_name, camera=camera, frames=frames, gain=float(sol.gain),
                                 offset=float(sol.offset), centre=tuple(float(v) for v in sol.centre),
-                                stats=_floats(sol.stats))
+                                stats=_floats(sol.stats), unsupported=sol.unsupported)
 
 
 def tracking_solution(rec: TrackingCameraRecord, frames: bytes) -> TrackingSolution:
     """The library's TrackingSolution from a stored record and its frames blob."""
     arr = st_load(frames)
     return TrackingSolution(arr["K"], arr["world_to_camera"], rec.gain, rec.offset,
-                            np.asarray(rec.centre, np.float64), dict(rec.stats), arr.get("distortion"))
+                            np.asarray(rec.centre, np.float64), dict(rec.stats), arr.get("distortion"),
+                            rec.unsupported)
 
 
 def assemble_calibration_record(cap: Capture, static: StaticCalibrationRecord,
@@ -500,7 +523,8 @@ def assemble_calibration_record(cap: Capture, static: StaticCalibrationRecord,
     missing = sorted(set(tracking_camera_ids(cap)) - set(sols))
     if missing:
         raise CalibrationInputError(f"capture {cap.name}: no tracking result for camera(s) {', '.join(missing)}")
-    blob = tracking_blob(sols) if sols else None
+    supported = {c: v for c, v in sols.items() if v.unsupported is None}
+    blob = tracking_blob(supported) if supported else None
     record = build_record(cap.name, cap.rig, static_calibration(static), sols, cap.frame_count, cap.fps,
                           static.reference_frame, blob)
     return record, blob
@@ -736,6 +760,7 @@ __all__ = ["CalibrationInputError", "StaticCamera", "StaticCalibrationRecord", "
            "DensePointsFrame", "frame_loader", "LazyFrames", "load_lidar", "split_cameras", "tracking_camera_ids",
            "reference_frame", "plate_frames", "StaticStep", "calibrate_static_step", "encode_reference",
            "decode_reference", "static_record", "static_calibration", "calibrate_tracking_step",
+           "check_tracking_support",
            "encode_tracking_solution", "tracking_record", "tracking_solution", "assemble_calibration_record",
            "tracking_blob", "DenseFrame", "dense_points_step", "thin_points", "ChartView", "ColourMatrixRecord",
            "chart_view_colours", "colour_step"]

@@ -70,7 +70,12 @@ class TrackingOptions:
     ratio_3d: float = 0.85
     ratio_2d: float = 0.8
     pair_offsets: tuple[int, ...] = (1, 2, 4)
-    homography_px: float = 3.0
+    #: RANSAC threshold of the frame-to-frame background homography. Between neighbouring frames
+    #: the background of a tracker that follows an actor moves 3-6 px at 320x180, about what the
+    #: actor moves: at 3 px the background's model took in half the actor's matches and seed 3's
+    #: S011 (upper body, 15 2D-3D inliers) ended 2° off; at 1.5 px (SIFT's error is ~0.3-0.5 px)
+    #: 0.3°, the other trackers of four renders unchanged (docs/calibration.md)
+    homography_px: float = 1.5
     min_pair_matches: int = 12
     pixel_sigma_3d: float = 2.0
     pixel_sigma_2d: float = 1.0
@@ -83,11 +88,12 @@ class TrackingOptions:
     iterations: int = 30
     #: starts along the zoom/dolly valley: the refinement is run from the initial focal scaled by
     #: each factor (and the centre moved along the view axis so the scene keeps its image size)
-    #: and each camera keeps its lowest-cost solution. Along that valley the cost is bumpy (the
-    #: robust 2D-3D term's inliers change) and LM stays near where it starts: from the encoder's
-    #: focal, 1.7 % off on S010 of the demo, it stopped at +1.07 % although the truth costs less.
-    #: The factors cover encoder errors of ±3 %; (1.0,) turns the scan off
-    focal_scale_starts: tuple[float, ...] = (0.97, 0.98, 0.99, 1.0, 1.01, 1.02, 1.03)
+    #: and each camera keeps its lowest-cost solution. One start (the encoder's focal) is enough:
+    #: LM slides along the valley to its lowest point from starts 3 % either side (the seven starts
+    #: 0.97 ... 1.03 once looked needed because a 2D-3D match behind the camera froze the focal
+    #: where it started: docs/calibration.md, "Tracking (zoom) cameras"). More starts are for a
+    #: take whose cost along the valley has more than one dip
+    focal_scale_starts: tuple[float, ...] = (1.0,)
     mode: str = "priors"            # priors | free | independent
     #: undistort each frame with its zoom lens at its focal (the ``lenses`` given to
     #: :func:`prepare_tracking`, from the rig's ``zoom_intrinsics``); False reads the raw frames as
@@ -96,6 +102,14 @@ class TrackingOptions:
     zoom_distortion: bool = True
     ransac_iterations: int = 2000
     ransac_px: float = 12.0
+    #: support a camera needs to be returned as calibrated (:func:`tracking_support`): 2D-3D inliers
+    #: over the take (the demo's trackers have 13-900) and the covariance's bound on any frame's
+    #: orientation (0.06-0.75° on the demo renders; None: no bound)
+    min_inliers_3d: int = 8
+    max_rotation_sigma_deg: float | None = 2.0
+    #: an unsupported camera is left out of the calibration (listed with the reason) instead of an
+    #: error (``volcap calibrate --allow-unregistered``)
+    allow_unsupported: bool = False
     device: str = "cpu"
     seed: int = 0
 
@@ -400,6 +414,8 @@ class TrackingSolution:
     centre: np.ndarray
     stats: dict
     distortion: np.ndarray | None = None
+    #: why the camera is left out of the calibration (:func:`tracking_support`), None when supported
+    unsupported: str | None = None
 
 
 def _skew(v: torch.Tensor) -> torch.Tensor:
@@ -494,7 +510,9 @@ def _terms(st: _State, bt: _Batch, o: TrackingOptions, jac: bool):
             Jw = d @ (-_skew(w))
             JC = d @ (-R)
             Jf = (ft[:, None] * w[:, :2] / z[:, None])[..., None]
-            J = torch.cat([Jw, JC, Jf], 2) / o.pixel_sigma_3d
+            # a point behind the camera has the constant residual above: no slope (its 1/z Jacobian
+            # at the clamped depth would be ~1e6 x f, freezing its frame and the focal of the take)
+            J = torch.cat([Jw, JC, Jf], 2) / o.pixel_sigma_3d * (~behind).to(w.dtype)[:, None, None]
             idx = (NF * t)[:, None] + torch.arange(NF, device=t.device)[None]
         out.append((b, r, J, idx))
     # 2D-2D (frame i -> frame j, same camera)
@@ -668,6 +686,7 @@ def refine_tracking(obs: list[TrackingObservations], init: list[tuple[np.ndarray
         del sel
     sols = []
     f = torch.exp(st.logf)
+    spread = _spread(st, bt, options)
     for b in range(B):
         Tb = obs[b].frame_count
         K = np.zeros((Tb, 3, 3))
@@ -683,10 +702,60 @@ def refine_tracking(obs: list[TrackingObservations], init: list[tuple[np.ndarray
         res = _per_frame_residuals(st, bt, options, b, Tb)
         sols.append(TrackingSolution(K, W, float(torch.exp(st.a[b])), float(st.off[b]),
                                      st.Cm[b].cpu().numpy(),
-                                     {"cost": float(cost[b]), "iterations": it + 1, **res}))
+                                     {"cost": float(cost[b]), "iterations": it + 1, **res,
+                                      **{k: float(v[b]) for k, v in spread.items()}}))
     for s in sols:
         s.stats["seconds"] = time.perf_counter() - t0
     return sols
+
+
+def _spread(st: _State, bt: _Batch, o: TrackingOptions) -> dict[str, torch.Tensor]:
+    """How well each camera's solution is determined, from the Gauss-Newton covariance ``H^-1`` at
+    the solution (the residuals are in units of their sigma, so ``H^-1`` is a covariance; the
+    Cauchy weights of the last step count the outliers out). Per camera [B]:
+
+    - ``focal_sigma_pct``: standard deviation of the take's mean focal, % (along the zoom/dolly
+      valley the data barely tell a zoom from a dolly, so this is what the mount and encoder priors
+      leave open where the 2D-3D matches are few);
+    - ``rotation_sigma_deg``: the largest standard deviation of a frame's orientation (degrees);
+    - ``centre_sigma_m``: the largest standard deviation of a frame's centre (metres).
+
+    A lower bound on the true spread: the valley is bumpy where the robust term's inliers change,
+    which no quadratic model sees.
+    """
+    H, _ = _normal_equations(st, bt, o)
+    cov = torch.linalg.inv(H)                                                  # [B, n, n]
+    B, T = bt.B, bt.T
+    blocks = cov[:, :NF * T, :NF * T].reshape(B, T, NF, T, NF)
+    per_frame = torch.diagonal(blocks, dim1=1, dim2=3).permute(0, 3, 1, 2)     # [B, T, NF, NF]
+    valid = bt.valid_frame
+    n_valid = valid.sum(1).to(cov.dtype)
+    # mean log focal over a camera's frames: v = 1/T_b on its frames' log-focal entries
+    v = torch.zeros(B, bt.n, dtype=cov.dtype, device=cov.device)
+    v[:, 6:NF * T:NF] = valid.to(cov.dtype) / n_valid[:, None]
+    var_f = torch.einsum("bi,bij,bj->b", v, cov, v)
+    rot = torch.linalg.eigvalsh(per_frame[..., :3, :3]).amax(-1).clamp(min=0)  # [B, T]
+    cen = torch.linalg.eigvalsh(per_frame[..., 3:6, 3:6]).amax(-1).clamp(min=0)
+    zero = torch.zeros_like(rot)
+    return {"focal_sigma_pct": 100 * var_f.clamp(min=0).sqrt(),
+            "rotation_sigma_deg": torch.rad2deg(torch.where(valid, rot, zero).amax(1).sqrt()),
+            "centre_sigma_m": torch.where(valid, cen, zero).amax(1).sqrt()}
+
+
+def tracking_support(sol: TrackingSolution, options: TrackingOptions = TrackingOptions()) -> str | None:
+    """Why a solved tracking camera cannot be returned as calibrated, or None: fewer 2D-3D inliers
+    over the take than ``options.min_inliers_3d`` (the priors alone would place it), or a frame's
+    orientation determined to worse than ``options.max_rotation_sigma_deg`` (``stats``'
+    ``rotation_sigma_deg``, from the solve's covariance)."""
+    inliers = int(sol.stats.get("reprojection_3d_px_inliers", 0))
+    if inliers < options.min_inliers_3d:
+        return (f"{inliers} 2D-3D inliers against the static reference over the take (needs at least "
+                f"{options.min_inliers_3d})")
+    sigma = float(sol.stats.get("rotation_sigma_deg", float("inf")))
+    if options.max_rotation_sigma_deg is not None and not sigma <= options.max_rotation_sigma_deg:
+        return (f"its orientation is determined to {sigma:.3g}° only (bound {options.max_rotation_sigma_deg}°, "
+                f"from {inliers} 2D-3D inliers)")
+    return None
 
 
 def _bc(mask: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
