@@ -92,6 +92,12 @@ def test_calibrate_flow_refs_error_table_and_cached_rerun(calibrated):
     tr = e["tracking"]["priors"]
     assert set(tr["per_camera"]) == {"S008", "S010"}
     assert tr["focal_pct_max_abs"] < 2.0 and tr["pose_jitter_px_mean"] < 2.0
+    # each tracker's record says how well its solve determines it (the covariance's sigma), and its
+    # error is within what it says (3 sigma)
+    for cam in ("S008", "S010"):
+        q = calib.camera(cam).quality
+        assert q["focal_sigma_pct"] > 0 and 0 < q["rotation_sigma_deg"] < 2.0 and q["centre_sigma_m"] > 0, q
+        assert tr["per_camera"][cam]["focal_pct_mean_abs"] < 3 * q["focal_sigma_pct"], (cam, q)
     assert set(e["points"]["per_frame"]) == {"2", "3"} and e["points"]["median_distance_m"] < 0.06
     assert set(e["targets"]) >= {"static_rotation", "static_centre", "tracking_focal", "tracking_jitter"}
 
