@@ -83,7 +83,9 @@ def calibrate_tracking_camera(store: str, capture: ArtifactRef, static: Artifact
     (``options.zoom_distortion``), and its frames blob carries each frame's lens (``distortion``).
     Version 4: a 2D-3D match behind the camera no longer freezes the solve where it starts (its
     Jacobian is zero), one start along the zoom/dolly valley instead of seven, the frame-to-frame
-    background homography at 1.5 px instead of 3 (``options.homography_px``), and the record's
+    background homography at 1.5 px instead of 3 (``options.homography_px``), a guided 2D-3D
+    matching and refinement after the first solve (``options.guided_radius_px``), a camera the solve
+    cannot support refused or left out (``options.allow_unsupported``), and the record's
     stats carry the covariance's ``focal_sigma_pct``, ``rotation_sigma_deg``, ``centre_sigma_m``."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)

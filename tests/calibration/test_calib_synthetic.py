@@ -99,10 +99,13 @@ def test_tracking_cameras_every_frame(result, gt):
     for cid, sol in result.tracking.items():
         assert sol.K.shape == (FRAMES, 3, 3) and sol.world_to_camera.shape == (FRAMES, 4, 4)
         e = tracking_errors(sol.K, sol.world_to_camera, gt, cid)
-        # measured (S008, S010): focal 0.036 %, 0.048 %; rotation 0.20 deg, 0.16 deg; jitter
-        # 0.24 px, 0.13 px. Margins on the worse camera: 2.9x, 2.5x, 2.5x (the old 2 %, 1.5 deg and
-        # 2 px were 42x, 7.5x and 8x)
-        assert e["focal_pct_max_abs"] < 0.14, (cid, e)
+        # measured 2026-11-27 (S008, S010), with the guided 2D-3D matching (TrackingOptions.
+        # guided_radius_px): focal max 0.16 %, 0.20 %; rotation max 0.17°, 0.12°; jitter 0.20 px,
+        # 0.16 px; the solve's own focal sigma 0.61 %, 0.30 %. Without it 0.04 %, 0.08 % / 0.21°,
+        # 0.15° / 0.25, 0.13 px: both are well inside the sigma here, and over four distorted
+        # renders the guided matching brought the worst tracker from 1.32 % to 0.52 %
+        # (docs/calibration.md). Margins on the worse camera: 2.5x, 2.9x, 3x
+        assert e["focal_pct_max_abs"] < 0.5, (cid, e)
         assert e["rotation_deg_max"] < 0.5, (cid, e)
         assert e["pose_jitter_px_mean"] < 0.6, (cid, e)
 

@@ -27,8 +27,12 @@ an offset, minimising (Cauchy-robust) 2D-3D and 2D-2D reprojection errors plus
   offset (the encoder's calibration error);
 - a centre prior: ``C_t = C_mean ± centre_sigma_m`` (the head barely translates).
 
-The refinement is run from several starts along the zoom/dolly valley (:func:`dolly_zoom_start`,
-``focal_scale_starts``) and each camera keeps its lowest-cost result (:func:`solve_tracking`).
+The refinement can run from several starts along the zoom/dolly valley (:func:`dolly_zoom_start`,
+``focal_scale_starts``; one by default), each camera keeping its lowest-cost result
+(:func:`solve_tracking`); then the 2D-3D matches are found again guided by that solution
+(:func:`guided_observations`) and the solve is refined once more on them. The solution's stats
+carry its covariance's spread (``focal_sigma_pct``, ``rotation_sigma_deg``, ``centre_sigma_m``) and
+:func:`tracking_support` says whether it can be returned as calibrated.
 
 ``mode="free"`` drops both priors (per-frame focal and centre free, still joint); ``"independent"``
 also drops the 2D-2D terms: every frame alone, the classic per-frame registration.
@@ -46,13 +50,14 @@ fy, cx, cy as the raw frame, no distortion). The lens each frame was undistorted
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Callable, Mapping, Sequence
 
 import cv2
 import numpy as np
 import torch
 from kornia.geometry.conversions import axis_angle_to_rotation_matrix
+from scipy.spatial import cKDTree
 
 from volcap_core.calibration.distortion import Distortion
 from volcap_core.calibration.features import SiftOptions, extract_sift, match_descriptors
@@ -94,6 +99,14 @@ class TrackingOptions:
     #: where it started: docs/calibration.md, "Tracking (zoom) cameras"). More starts are for a
     #: take whose cost along the valley has more than one dip
     focal_scale_starts: tuple[float, ...] = (1.0,)
+    #: guided 2D-3D matching after the first solve (:func:`guided_observations`): each frame's
+    #: keypoints matched only to the reference points its solved camera projects within this radius
+    #: (None: off), ratio test among those candidates, and a ceiling on the SIFT distance; then the
+    #: solve is refined from its solution. On four distorted demo renders the trackers' 2D-3D
+    #: inliers rose 1.2-2.7x and the worst focal error fell from 1.32 % to 0.52 %
+    guided_radius_px: float | None = 6.0
+    guided_ratio: float = 0.9
+    guided_max_distance: float = 250.0
     mode: str = "priors"            # priors | free | independent
     #: undistort each frame with its zoom lens at its focal (the ``lenses`` given to
     #: :func:`prepare_tracking`, from the rig's ``zoom_intrinsics``); False reads the raw frames as
@@ -205,6 +218,10 @@ class TrackingObservations:
     m2_uj: np.ndarray
     H: dict = field(default_factory=dict)
     seconds: float = 0.0
+    #: each frame's SIFT keypoints [K_t, 2] (in the frame's pinhole when undistorted) and
+    #: descriptors [K_t, 128] uint8, for the guided 2D-3D matching after the first solve
+    keypoints: list = field(default_factory=list)
+    descriptors: list = field(default_factory=list)
 
 
 #: ``undistort(take index, raw pixels [N, 2]) -> (pinhole pixels [N, 2], converged [N] bool)``
@@ -263,7 +280,8 @@ def observe_tracking_camera(frames: Sequence[np.ndarray], reference: StaticRefer
 
     return TrackingObservations(T, w, h, cat(f3, (0,)).astype(np.int64), cat(uv3, (0, 2)), cat(X3, (0, 3)),
                                 cat(i2, (0,)).astype(np.int64), cat(j2, (0,)).astype(np.int64),
-                                cat(ui2, (0, 2)), cat(uj2, (0, 2)), Hs, time.perf_counter() - t0)
+                                cat(ui2, (0, 2)), cat(uj2, (0, 2)), Hs, time.perf_counter() - t0,
+                                [np.asarray(kp[:, :2], np.float64) for kp, _ in feats], [de for _, de in feats])
 
 
 def _background_homography(a: np.ndarray, b: np.ndarray, o: "TrackingOptions"):
@@ -862,6 +880,8 @@ class TrackingProblem:
     mounts: list[np.ndarray]
     info: dict
     distortion: list[np.ndarray | None] | None = None
+    #: the static model the observations were matched to (for the guided matching; None: none)
+    reference: StaticReference | None = None
 
 
 def prepare_tracking(frames: Mapping[str, Sequence[np.ndarray]],
@@ -908,7 +928,7 @@ def prepare_tracking(frames: Mapping[str, Sequence[np.ndarray]],
         dists.append(coeffs)
         info[cid] = {**st, "observe_s": ob.seconds, **extra}
     return TrackingProblem(ids, obs, inits, priors, pps, [np.asarray(mounts[c], np.float64) for c in ids], info,
-                           dists)
+                           dists, reference)
 
 
 def dolly_zoom_start(init: tuple[np.ndarray, np.ndarray, np.ndarray], obs: TrackingObservations,
@@ -938,12 +958,78 @@ def solve_tracking(problem: TrackingProblem, options: TrackingOptions = Tracking
             s.stats["focal_scale_start"] = scale
             if best[k] is None or s.stats["cost"] < best[k].stats["cost"]:
                 best[k] = s
+    if options.guided_radius_px is not None and problem.reference is not None:
+        best = _guided_round(problem, best, options)
     out = {}
     for k, (cid, s) in enumerate(zip(problem.ids, best)):
         s.stats.update(problem.info[cid])
         if problem.distortion is not None and problem.distortion[k] is not None:
             s.distortion = np.asarray(problem.distortion[k], np.float64).copy()
         out[cid] = s
+    return out
+
+
+def guided_observations(obs: TrackingObservations, reference: StaticReference, K: np.ndarray,
+                        world_to_camera: np.ndarray, options: TrackingOptions = TrackingOptions()
+                        ) -> TrackingObservations:
+    """``obs`` with its 2D-3D matches found again, guided by a solution (``K`` [T, 3, 3],
+    ``world_to_camera`` [T, 4, 4]): each frame's keypoints (``obs.keypoints``) against only the
+    reference points that frame's camera projects within ``options.guided_radius_px`` of them,
+    the nearest descriptor kept when it passes the ratio test among those candidates and is within
+    ``options.guided_max_distance``. Matching the whole reference (the first solve) has to pass a
+    ratio test against every point of the stage, which a zoomed view's few background features
+    mostly fail; near its projection a point has few rivals."""
+    f3, uv3, X3 = [], [], []
+    r = float(options.guided_radius_px)
+    for t, (kp, de) in enumerate(zip(obs.keypoints, obs.descriptors)):
+        if len(kp) == 0:
+            continue
+        W = world_to_camera[t]
+        q = reference.points @ W[:3, :3].T + W[:3, 3]
+        front = np.flatnonzero(q[:, 2] > 1e-3)
+        p = q[front, :2] / q[front, 2:] * np.diag(K[t])[:2] + K[t][:2, 2]
+        near = (p[:, 0] > -r) & (p[:, 0] < obs.width + r) & (p[:, 1] > -r) & (p[:, 1] < obs.height + r)
+        if not near.any():
+            continue
+        idx = front[near]
+        tree = cKDTree(p[near])
+        des = reference.descriptors[idx].astype(np.float32)
+        for k, cand in enumerate(tree.query_ball_point(kp, r)):
+            if not cand:
+                continue
+            d = np.linalg.norm(des[cand] - de[k].astype(np.float32), axis=1)
+            order = np.argsort(d)
+            if d[order[0]] > options.guided_max_distance or (
+                    len(cand) > 1 and d[order[0]] > options.guided_ratio * d[order[1]]):
+                continue
+            f3.append(t)
+            uv3.append(kp[k])
+            X3.append(reference.points[idx[cand[order[0]]]])
+    if not f3:
+        return replace(obs, m3_frame=np.zeros(0, np.int64), m3_uv=np.zeros((0, 2)), m3_X=np.zeros((0, 3)))
+    return replace(obs, m3_frame=np.asarray(f3, np.int64), m3_uv=np.asarray(uv3, np.float64),
+                   m3_X=np.asarray(X3, np.float64))
+
+
+def _guided_round(problem: TrackingProblem, best: list[TrackingSolution], options: TrackingOptions
+                  ) -> list[TrackingSolution]:
+    """Each camera's solution refined once more on its guided 2D-3D matches, kept where they are at
+    least as many as the first solve's inliers (a solve too far off finds fewer)."""
+    guided = [guided_observations(ob, problem.reference, s.K, s.world_to_camera, options)
+              for ob, s in zip(problem.obs, best)]
+    inits = [(s.world_to_camera[:, :3, :3], -np.einsum("tji,tj->ti", s.world_to_camera[:, :3, :3],
+                                                       s.world_to_camera[:, :3, 3]), s.K[:, 0, 0]) for s in best]
+    sols = refine_tracking(guided, inits, problem.priors_px, problem.principal, problem.mounts, options)
+    out = []
+    for s0, s1, g in zip(best, sols, guided):
+        if len(g.m3_frame) >= s0.stats["reprojection_3d_px_inliers"]:
+            s1.stats["focal_scale_start"] = s0.stats.get("focal_scale_start", 1.0)
+            s1.stats["guided_matches_3d"] = len(g.m3_frame)
+            s1.stats["first_solve_inliers_3d"] = s0.stats["reprojection_3d_px_inliers"]
+            out.append(s1)
+        else:
+            s0.stats["guided_matches_3d"] = len(g.m3_frame)
+            out.append(s0)
     return out
 
 
