@@ -90,11 +90,12 @@ def test_allowed_it_is_left_out_and_the_rest_calibrated(capture):
 
     tracking = {"S008": solved(), "S009": solved("3 2D-3D inliers against the static reference over the take")}
     calib = build_record(cap.name, cap.rig, static_calibration(rec), tracking, cap.frame_count, cap.fps,
-                         rec.reference_frame, tracking_blob({"S008": tracking["S008"]}))
+                         rec.reference_frame, tracking_blob(tracking))
     assert calib.tracking_ids == ["S008"] and "S009" not in [c.id for c in calib.cameras]
     assert calib.unregistered == {DARK: calib.unregistered[DARK],
                                   "S009": "tracking camera: 3 2D-3D inliers against the static reference over the take"}
     assert calib.stats["tracking_cameras"] == 1
+    assert tracking_blob({"S009": tracking["S009"]}) is None          # no frames of a camera left out
 
     # training leaves it out: the views of a segment and the default held-out camera
     from volcap_core.calibration.record import Calibration

@@ -79,8 +79,7 @@ def calibrate_capture(load: FrameSource, rig: Rig, camera_ids: list[str], frame_
         tracking = calibrate_tracking_cameras(frames, encoder, ppm, mounts, reference, options.tracking, lenses)
         # the tasks' check: an unsupported camera is an error, or left out and listed
         tracking = {c: check_tracking_support(capture_name, c, v, options.tracking) for c, v in tracking.items()}
-        supported = {c: v for c, v in tracking.items() if v.unsupported is None}
-        blob = tracking_blob(supported) if supported else None
+        blob = tracking_blob(tracking)
     else:
         stats["tracking"] = "skipped: the capture has no tracking cameras"
     stats["time_tracking_s"] = time.perf_counter() - t2

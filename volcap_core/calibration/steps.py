@@ -523,19 +523,22 @@ def assemble_calibration_record(cap: Capture, static: StaticCalibrationRecord,
     missing = sorted(set(tracking_camera_ids(cap)) - set(sols))
     if missing:
         raise CalibrationInputError(f"capture {cap.name}: no tracking result for camera(s) {', '.join(missing)}")
-    supported = {c: v for c, v in sols.items() if v.unsupported is None}
-    blob = tracking_blob(supported) if supported else None
+    blob = tracking_blob(sols)
     record = build_record(cap.name, cap.rig, static_calibration(static), sols, cap.frame_count, cap.fps,
                           static.reference_frame, blob)
     return record, blob
 
 
-def tracking_blob(sols: Mapping[str, TrackingSolution]) -> bytes:
+def tracking_blob(sols: Mapping[str, TrackingSolution]) -> bytes | None:
     """The Calibration record's tracking-frames blob: per camera fx, fy, cx, cy and world_to_camera,
-    and each frame's lens (``distortion``) for a camera whose frames were undistorted."""
+    and each frame's lens (``distortion``) for a camera whose frames were undistorted. A camera
+    marked ``unsupported`` is left out (the record lists it instead); None when none is left."""
+    kept = {c: v for c, v in sols.items() if v.unsupported is None}
+    if not kept:
+        return None
     return encode_tracking_frames({c: TrackingFrames(np.stack([v.K[:, 0, 0], v.K[:, 1, 1], v.K[:, 0, 2],
                                                                v.K[:, 1, 2]], 1), v.world_to_camera, v.distortion)
-                                   for c, v in sols.items()})
+                                   for c, v in kept.items()})
 
 
 # ---------------------------------------------------------------------------------------------

@@ -61,6 +61,7 @@ from scipy.spatial import cKDTree
 
 from volcap_core.calibration.distortion import Distortion
 from volcap_core.calibration.features import SiftOptions, extract_sift, match_descriptors
+from volcap_core.calibration.geometry import camera_centre, project
 from volcap_core.calibration.images import to_uint8_gray
 from volcap_core.calibration.lidar import LidarScan, lift_to_lidar
 
@@ -79,7 +80,8 @@ class TrackingOptions:
     #: the background of a tracker that follows an actor moves 3-6 px at 320x180, about what the
     #: actor moves: at 3 px the background's model took in half the actor's matches and seed 3's
     #: S011 (upper body, 15 2D-3D inliers) ended 2° off; at 1.5 px (SIFT's error is ~0.3-0.5 px)
-    #: 0.3°, the other trackers of four renders unchanged (docs/calibration.md)
+    #: 0.3° (0.19° with the guided matching), the other trackers of four renders unchanged
+    #: (docs/calibration.md)
     homography_px: float = 1.5
     min_pair_matches: int = 12
     pixel_sigma_3d: float = 2.0
@@ -116,8 +118,8 @@ class TrackingOptions:
     ransac_iterations: int = 2000
     ransac_px: float = 12.0
     #: support a camera needs to be returned as calibrated (:func:`tracking_support`): 2D-3D inliers
-    #: over the take (the demo's trackers have 13-900) and the covariance's bound on any frame's
-    #: orientation (0.06-0.75° on the demo renders; None: no bound)
+    #: over the take (the trackers of the demo renders have 30-1270) and the covariance's bound on
+    #: any frame's orientation (0.06-0.50° on them; None: no bound)
     min_inliers_3d: int = 8
     max_rotation_sigma_deg: float | None = 2.0
     #: an unsupported camera is left out of the calibration (listed with the reason) instead of an
@@ -738,8 +740,8 @@ def _spread(st: _State, bt: _Batch, o: TrackingOptions) -> dict[str, torch.Tenso
     - ``rotation_sigma_deg``: the largest standard deviation of a frame's orientation (degrees);
     - ``centre_sigma_m``: the largest standard deviation of a frame's centre (metres).
 
-    A lower bound on the true spread: the valley is bumpy where the robust term's inliers change,
-    which no quadratic model sees.
+    A lower bound on the true spread: where the robust term's inliers would change, no quadratic
+    model sees it.
     """
     H, _ = _normal_equations(st, bt, o)
     cov = torch.linalg.inv(H)                                                  # [B, n, n]
@@ -984,14 +986,11 @@ def guided_observations(obs: TrackingObservations, reference: StaticReference, K
     for t, (kp, de) in enumerate(zip(obs.keypoints, obs.descriptors)):
         if len(kp) == 0:
             continue
-        W = world_to_camera[t]
-        q = reference.points @ W[:3, :3].T + W[:3, 3]
-        front = np.flatnonzero(q[:, 2] > 1e-3)
-        p = q[front, :2] / q[front, 2:] * np.diag(K[t])[:2] + K[t][:2, 2]
-        near = (p[:, 0] > -r) & (p[:, 0] < obs.width + r) & (p[:, 1] > -r) & (p[:, 1] < obs.height + r)
+        p, z = project(K[t], world_to_camera[t], reference.points)
+        near = (z > 1e-3) & (p[:, 0] > -r) & (p[:, 0] < obs.width + r) & (p[:, 1] > -r) & (p[:, 1] < obs.height + r)
         if not near.any():
             continue
-        idx = front[near]
+        idx = np.flatnonzero(near)
         tree = cKDTree(p[near])
         des = reference.descriptors[idx].astype(np.float32)
         for k, cand in enumerate(tree.query_ball_point(kp, r)):
@@ -1017,8 +1016,7 @@ def _guided_round(problem: TrackingProblem, best: list[TrackingSolution], option
     least as many as the first solve's inliers (a solve too far off finds fewer)."""
     guided = [guided_observations(ob, problem.reference, s.K, s.world_to_camera, options)
               for ob, s in zip(problem.obs, best)]
-    inits = [(s.world_to_camera[:, :3, :3], -np.einsum("tji,tj->ti", s.world_to_camera[:, :3, :3],
-                                                       s.world_to_camera[:, :3, 3]), s.K[:, 0, 0]) for s in best]
+    inits = [(s.world_to_camera[:, :3, :3], camera_centre(s.world_to_camera), s.K[:, 0, 0]) for s in best]
     sols = refine_tracking(guided, inits, problem.priors_px, problem.principal, problem.mounts, options)
     out = []
     for s0, s1, g in zip(best, sols, guided):
