@@ -43,7 +43,7 @@ ERRORS_MEDIA = "application/vnd.volcap.calibration-errors+json"
 CALIBRATION_LIBRARIES = ("pycolmap", "cv2", "kornia", "torch", "numpy", "scipy")
 
 
-@volcap_task(name="calibrate-static", version="8", libraries=CALIBRATION_LIBRARIES)
+@volcap_task(name="calibrate-static", version="9", libraries=CALIBRATION_LIBRARIES)
 def calibrate_static(store: str, capture: ArtifactRef,
                      options: StaticCalibrationOptions = StaticCalibrationOptions(),
                      known_points: KnownPoints | None = None) -> ArtifactRef:
@@ -61,7 +61,11 @@ def calibrate_static(store: str, capture: ArtifactRef,
     depths come from the scene (``static.surface_from_plates``); ``known_points`` (distances between
     marked scene points, ``volcap_core.calibration.scale``) scale a capture without a scan.
     Version 8: each camera's view of the static scene (``StaticCamera.scene_depth_m``, from the
-    sparse points), which the Calibration record carries on to where dense points sweep."""
+    sparse points), which the Calibration record carries on to where dense points sweep.
+    Version 9: after step 5 each camera's support (``support.<id>.*``) gives its rotation, centre,
+    principal-point and focal sigma from step 5's covariance, the principal point and focal unknown
+    under their priors (``bundle_adjust(...)["sigma"]``; before: a pose-only bound on the SfM's
+    observations)."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
     statics, trackers = split_cameras(cap)
@@ -96,7 +100,7 @@ def calibrate_tracking_camera(store: str, capture: ArtifactRef, static: Artifact
     return s.put_record(steps.tracking_record(cap.name, camera, sol, frames))
 
 
-@volcap_task(name="assemble-calibration", version="5")
+@volcap_task(name="assemble-calibration", version="6")
 def assemble_calibration(store: str, capture: ArtifactRef, static: ArtifactRef,
                          tracking: list[ArtifactRef]) -> ArtifactRef:
     """The Calibration record (and its tracking-frames blob) from the static and per-camera results,
@@ -105,7 +109,9 @@ def assemble_calibration(store: str, capture: ArtifactRef, static: ArtifactRef,
     Version 3: a distorted camera is recorded with its intrinsics on its own frames and its
     distortion, as ``calibrate_capture`` records it (before: the rectified pinhole, no distortion).
     Version 5: a tracking camera with a zoom lens has each frame's lens in the tracking-frames blob
-    (``<id>/distortion`` [T, 5|8], blob format ``volcap-tracking-frames/2``)."""
+    (``<id>/distortion`` [T, 5|8], blob format ``volcap-tracking-frames/2``). Version 6: a static
+    camera's ``quality`` carries its support (observations, residual, rotation / centre /
+    principal-point sigma), as a tracking camera's carries its solve's."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
     record, blob = steps.assemble_calibration_record(

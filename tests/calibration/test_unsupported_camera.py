@@ -78,6 +78,16 @@ def test_allowed_it_is_left_out_and_the_rest_calibrated(capture):
     calib = build_record(cap.name, cap.rig, static_calibration(rec), {}, cap.frame_count, cap.fps,
                          rec.reference_frame, None)
     assert list(calib.unregistered) == [DARK] and DARK not in calib.static_ids
+    # each calibrated camera's record says how well the adjustment holds and knows it: its support
+    # and step 5's sigma, which counts what the principal point (a prior of 2 px on this nominal
+    # rig) leaves open; its error is within what it says (measured here: 0.3-1.1 sigma)
+    for c in static.camera_ids:
+        q = calib.camera(c).quality
+        print(c, f"rotation {err[c]['rotation_deg']:.3f}°", {k: round(v, 4) for k, v in q.items()})
+        assert q["observations"] == static.support[c]["observations"] >= 25 and q["guided_observations"] > 500, q
+        assert 0 < q["principal_sigma_px"] < 2.0 and 0 < q["rotation_sigma_deg"] < 1.0, q
+        assert q["centre_sigma_m"] > 0 and q["focal_sigma_pct"] > 0, q
+        assert err[c]["rotation_deg"] < 3 * q["rotation_sigma_deg"], (c, err[c], q)
 
     # a tracking camera the solve could not support (allowed) is left out and listed the same way
     from volcap_core.calibration.steps import tracking_blob

@@ -178,11 +178,16 @@ def solve_shared(S: torch.Tensor, rhs: torch.Tensor, params: CameraParameters) -
     if not params.shared:
         return torch.linalg.solve(S, rhs)
     idx = torch.as_tensor(params.index, dtype=torch.long, device=S.device)
+    rr = torch.zeros(params.count, dtype=rhs.dtype, device=rhs.device).index_add_(0, idx, rhs)
+    return torch.linalg.solve(_on_unknowns(S, params), rr)[idx]
+
+
+def _on_unknowns(S: torch.Tensor, params: CameraParameters) -> torch.Tensor:
+    """``Tᵀ S T`` [N, N]: the per-camera system ``S`` [Cn, Cn] summed onto the unknowns."""
+    idx = torch.as_tensor(params.index, dtype=torch.long, device=S.device)
     n = params.count
     St = torch.zeros(n, len(idx), dtype=S.dtype, device=S.device).index_add_(0, idx, S)
-    Sr = torch.zeros(n, n, dtype=S.dtype, device=S.device).index_add_(1, idx, St)
-    rr = torch.zeros(n, dtype=rhs.dtype, device=rhs.device).index_add_(0, idx, rhs)
-    return torch.linalg.solve(Sr, rr)[idx]
+    return torch.zeros(n, n, dtype=S.dtype, device=S.device).index_add_(1, idx, St)
 
 
 class _State:
@@ -242,8 +247,10 @@ def bundle_adjust(world_to_camera: np.ndarray, focal: np.ndarray, principal: np.
 
     Returns a dict: ``world_to_camera`` [C, 4, 4], ``focal`` [C], ``principal`` [C, 2], ``points`` [P, 3],
     ``on_lidar`` [P] bool (points that carried a lidar term in the last round), ``reprojection_px``
-    [M], ``inlier`` [M] bool (observations kept in the last round), ``stats``, and with lens
-    corrections ``distortion`` [C, 2] (dk1, dk2: zero for the cameras without a lens).
+    [M], ``inlier`` [M] bool (observations kept in the last round), ``sigma`` (each camera's
+    standard deviations from the solution's covariance, :func:`_camera_sigma`: ``rotation_deg``,
+    ``centre_m``, ``focal_rel``, ``principal_px``, each [C]), ``stats``, and with lens corrections
+    ``distortion`` [C, 2] (dk1, dk2: zero for the cameras without a lens).
     """
     t0 = time.perf_counter()
     dev = torch.device(options.device)
@@ -324,6 +331,7 @@ def bundle_adjust(world_to_camera: np.ndarray, focal: np.ndarray, principal: np.
                 if lam > 1e8:
                     break
         history.append(float(cost))
+    sigma = _camera_sigma(state, prob, oc, op, uv, plane_n, plane_d, on_lidar, pairs, ncam, npt)
     Rn, Cn = state.R, state.C
     out_w2c = torch.eye(4, **f64).repeat(ncam, 1, 1)
     out_w2c[:, :3, :3] = Rn
@@ -332,7 +340,7 @@ def bundle_adjust(world_to_camera: np.ndarray, focal: np.ndarray, principal: np.
     out = {"world_to_camera": out_w2c.cpu().numpy(), "focal": torch.exp(state.logf).cpu().numpy(),
            "principal": state.pp.cpu().numpy(),
            "points": state.X.cpu().numpy(), "on_lidar": on_lidar.cpu().numpy(),
-           "reprojection_px": res.norm(dim=1).cpu().numpy(), "inlier": keep.cpu().numpy(),
+           "reprojection_px": res.norm(dim=1).cpu().numpy(), "inlier": keep.cpu().numpy(), "sigma": sigma,
            "stats": {"cost_per_round": history, "seconds": time.perf_counter() - t0,
                      "lidar_points": int(on_lidar.sum()), "focals": int(params.focal_of.max(initial=-1)) + 1,
                      "principal_points": int(params.principal_of.max(initial=-1)) + 1}}
@@ -422,6 +430,52 @@ def _cost(state, prob: _Problem, oc, op, uv, plane_n, plane_d, on_lidar):
 
 
 def _lm_step(state, prob: _Problem, oc, op, uv, plane_n, plane_d, on_lidar, pairs, lam, ncam, npt):
+    """One Levenberg-Marquardt step (damping ``lam``): the cameras' update [C, n] and the points' [P, 3]."""
+    S, rhs, Hpp_inv, Hcp, gp = _reduced_system(state, prob, oc, op, uv, plane_n, plane_d, on_lidar, pairs, lam,
+                                               ncam, npt)
+    n = prob.params.per_camera
+    # a lens group's shared focal (principal point): its cameras' rows and columns summed onto one
+    # unknown; the damping is then the summed diagonal, as for any other parameter
+    dc = solve_shared(S, rhs, prob.params).view(ncam, n)
+    # back-substitute the points
+    t = gp.clone()
+    t.index_add_(0, op, (Hcp.transpose(1, 2) @ dc[oc][..., None])[..., 0])
+    dp = -(Hpp_inv @ t[..., None])[..., 0]
+    return dc, dp
+
+
+def _camera_sigma(state, prob: _Problem, oc, op, uv, plane_n, plane_d, on_lidar, pairs, ncam, npt) -> dict:
+    """How well the adjustment determines each camera at ``state``: the Gauss-Newton covariance of
+    the camera parameters with the points eliminated (the inverse of the undamped reduced camera
+    system, priors and lidar terms included; residuals in units of ``pixel_sigma``, the last
+    Cauchy weights counting the outliers out), per camera [C]: ``rotation_deg`` and ``centre_m``
+    (the largest standard deviation over the axes), ``focal_rel`` (of the log focal) and
+    ``principal_px`` (largest over x, y); NaN for an intrinsic the adjustment holds. A principal
+    point and a rotation trade along a direction only the second order of the projection tells
+    apart, so a refined principal point widens its camera's rotation here."""
+    S, *_ = _reduced_system(state, prob, oc, op, uv, plane_n, plane_d, on_lidar, pairs, 0.0, ncam, npt)
+    n = prob.params.per_camera
+    if prob.params.shared:   # on the shared unknowns, mapped back to each camera's parameters
+        idx = torch.as_tensor(prob.params.index, dtype=torch.long, device=S.device)
+        cov = torch.linalg.inv(_on_unknowns(S, prob.params))[idx][:, idx]
+    else:
+        cov = torch.linalg.inv(S)
+    ar = torch.arange(ncam, device=S.device)
+    blocks = cov.view(ncam, n, ncam, n)[ar, :, ar, :]                               # [C, n, n]
+
+    def largest(b):
+        return torch.linalg.eigvalsh(b).amax(-1).clamp(min=0).sqrt().cpu().numpy()
+
+    nan = np.full(ncam, np.nan)
+    return {"rotation_deg": np.degrees(largest(blocks[:, :3, :3])), "centre_m": largest(blocks[:, 3:6, 3:6]),
+            "focal_rel": nan if prob.fix_focal else blocks[:, 6, 6].clamp(min=0).sqrt().cpu().numpy(),
+            "principal_px": nan if prob.options.principal_sigma_px is None else largest(blocks[:, 7:9, 7:9])}
+
+
+def _reduced_system(state, prob: _Problem, oc, op, uv, plane_n, plane_d, on_lidar, pairs, lam, ncam, npt):
+    """The normal equations with the points eliminated (Schur complement), damped by ``lam``:
+    the reduced camera system ``S`` [Cn, Cn] and its right-hand side [Cn], and what the points'
+    back-substitution needs (``Hpp_inv`` [P, 3, 3], ``Hcp`` [M, n, 3], ``gp`` [P, 3])."""
     o, fix_focal = prob.options, prob.fix_focal
     wf, wpp = prob.wf, prob.wpp
     n = prob.params.per_camera
@@ -505,11 +559,4 @@ def _lm_step(state, prob: _Problem, oc, op, uv, plane_n, plane_d, on_lidar, pair
     v = Hpp_inv @ gp[..., None]                                             # [P, 3, 1]
     rhs = -gc
     rhs = rhs.index_add(0, oc, (Hcp @ v[op])[..., 0])
-    # a lens group's shared focal (principal point): its cameras' rows and columns summed onto one
-    # unknown; the damping above is then the summed diagonal, as for any other parameter
-    dc = solve_shared(S, rhs.reshape(-1), prob.params).view(ncam, n)
-    # back-substitute the points
-    t = gp.clone()
-    t.index_add_(0, op, (Hcp.transpose(1, 2) @ dc[oc][..., None])[..., 0])
-    dp = -(Hpp_inv @ t[..., None])[..., 0]
-    return dc, dp
+    return S, rhs.reshape(-1), Hpp_inv, Hcp, gp

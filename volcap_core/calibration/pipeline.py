@@ -102,9 +102,13 @@ def build_record(capture_name: str, rig: Rig, static: StaticCalibration, trackin
         if raw is not None:       # a distorted lens: its intrinsics on its own frames, and the distortion
             K = raw.K
             extra["distortion"] = tuple(float(v) for v in raw.distortion.opencv())  # 5, or 8 (rational)
+        # how well the adjustment holds and knows it (static.camera_support): observations, residual,
+        # rotation / centre / principal-point sigma
+        q = {k: float(v) for k, v in static.support.get(cid, {}).items()
+             if isinstance(v, (int, float)) and np.isfinite(v)}
         cams.append(CameraCalibration(id=cid, role=rig.camera(cid).role.value, static=True, width=w, height=h,
                                       intrinsics=(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])),
-                                      world_to_camera=matrix4(static.world_to_camera[cid]), **extra))
+                                      world_to_camera=matrix4(static.world_to_camera[cid]), quality=q, **extra))
     left_out = {c: f"tracking camera: {v.unsupported}" for c, v in tracking.items() if v.unsupported is not None}
     tracking = {c: v for c, v in tracking.items() if c not in left_out}
     for cid in sorted(tracking):

@@ -23,7 +23,8 @@ Pipeline (each step a pure function of the previous one's output):
 
 Every camera's support is measured twice, on the SfM's observations and on the inliers of step 4's
 adjustment (:func:`camera_support`: observation count, and the pose's standard deviation with the
-points held fixed, a lower bound). A camera below ``options.min_observations`` or above the
+points held fixed, a lower bound); after step 5 the standard deviations reported are step 5's
+covariance, which counts what the principal point leaves open (``bundle_adjust(...)["sigma"]``). A camera below ``options.min_observations`` or above the
 uncertainty bounds is unsupported: with ``options.allow_unregistered`` it is left out (listed in
 ``unregistered`` with the reason), otherwise :class:`UnsupportedCameraError` names it. A seeded
 camera without observations is never returned as calibrated (it would sit at its mount).
@@ -329,6 +330,7 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
                            "median_reprojection_px": float(np.median(g["reprojection_px"][g["inlier"]])),
                            "through": "lidar scan" if scan is not None else "plane-sweep surface"}
         guided_counts = np.bincount(tracks.obs_camera[g["inlier"]], minlength=len(reg))
+        guided_sigma = g["sigma"]
         if "distortion" in g:   # the lens as refined: what the record and the frames rectified after use
             for i, c in enumerate(reg):
                 if _radial_lens(intr[c], raw_intr.get(c)) is not None:
@@ -360,8 +362,16 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
     support = camera_support(K, w2c, reg, model.points, model.obs_camera[inl], model.obs_point[inl],
                              model.obs_xy[inl])
     if guided_counts is not None:
+        # how well step 5 knows each camera: its adjustment's covariance, the points eliminated and
+        # the principal point, focal and lens corrections unknown under their priors (a
+        # principal-point error is a rotation, bundle._camera_sigma), in place of the pose-only
+        # bound on the SfM's observations
         for i, c in enumerate(reg):
-            support[c]["guided_observations"] = int(guided_counts[i])
+            support[c].update(guided_observations=int(guided_counts[i]),
+                              rotation_sigma_deg=float(guided_sigma["rotation_deg"][i]),
+                              centre_sigma_m=float(guided_sigma["centre_m"][i]),
+                              principal_sigma_px=float(guided_sigma["principal_px"][i]),
+                              focal_sigma_pct=100 * float(guided_sigma["focal_rel"][i]))
     stats["support"] = support
     stats["time_s"] = {"sfm": t1 - t0, "bundle": t2 - t1, "guided": t_guided - t2, "photometric": t3 - t_guided,
                        "total": time.perf_counter() - t0}

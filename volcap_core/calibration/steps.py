@@ -410,6 +410,12 @@ def static_calibration(rec: StaticCalibrationRecord) -> StaticCalibration:
     frame = {k[6:]: v for k, v in rec.stats.items() if k.startswith("frame.") and "." not in k[6:]}
     if frame:
         stats["frame"] = frame
+    # each camera's final support (static.camera_support), as calibrate_static_cameras returned it
+    support: dict[str, dict[str, float]] = {c: {} for c in ids}
+    for k, v in rec.stats.items():
+        parts = k.split(".")
+        if len(parts) == 3 and parts[0] == "support" and parts[1] in support:
+            support[parts[1]][parts[2]] = v
     from volcap_core.calibration.distortion import Distortion
     from volcap_core.calibration.sfm import Intrinsics
 
@@ -421,7 +427,8 @@ def static_calibration(rec: StaticCalibrationRecord) -> StaticCalibration:
                              unregistered=list(rec.unregistered), stats=stats,
                              reasons={c: rec.unregistered_reasons.get(c, "not registered") for c in rec.unregistered},
                              raw_intrinsics=raw,
-                             scene_depth={c.id: c.scene_depth_m for c in rec.cameras if c.scene_depth_m is not None})
+                             scene_depth={c.id: c.scene_depth_m for c in rec.cameras if c.scene_depth_m is not None},
+                             support={c: v for c, v in support.items() if v})
 
 
 # ---------------------------------------------------------------------------------------------
