@@ -43,7 +43,7 @@ ERRORS_MEDIA = "application/vnd.volcap.calibration-errors+json"
 CALIBRATION_LIBRARIES = ("pycolmap", "cv2", "kornia", "torch", "numpy", "scipy")
 
 
-@volcap_task(name="calibrate-static", version="9", libraries=CALIBRATION_LIBRARIES)
+@volcap_task(name="calibrate-static", version="10", libraries=CALIBRATION_LIBRARIES)
 def calibrate_static(store: str, capture: ArtifactRef,
                      options: StaticCalibrationOptions = StaticCalibrationOptions(),
                      known_points: KnownPoints | None = None) -> ArtifactRef:
@@ -65,7 +65,8 @@ def calibrate_static(store: str, capture: ArtifactRef,
     Version 9: after step 5 each camera's support (``support.<id>.*``) gives its rotation, centre,
     principal-point and focal sigma from step 5's covariance, the principal point and focal unknown
     under their priors (``bundle_adjust(...)["sigma"]``; before: a pose-only bound on the SfM's
-    observations)."""
+    observations). Version 10: a distorted camera's frames and plates are rectified with Lanczos
+    instead of bilinear (``sfm.undistort_views``), which moves its calibration."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
     statics, trackers = split_cameras(cap)

@@ -162,3 +162,37 @@ def test_a_lens_group_is_one_colmap_camera(tmp_path):
     with pytest.raises(ValueError, match="share lens group 'body-1' but not their intrinsics"):
         _build_database([images], {**intr, "B": Intrinsics.nominal(60.0, 64, 48)}, sorted(images),
                         StaticSfmOptions(), tmp_path / "h", lens_groups={"A": "body-1", "B": "body-1"})
+
+
+def test_the_calibration_rectifies_fine_texture_without_blurring_it_by_phase():
+    """The calibration's rectified views (``sfm.undistort_views``) keep fine texture: bilinear
+    resampling blurs each pixel by an amount that depends on its sub-pixel phase (a texture of a
+    4-pixel period loses up to 30 % of its contrast where the source position falls between
+    pixels), which moves NCC peaks; Lanczos does not. Measured: error to the exact pinhole image
+    several times smaller than bilinear's."""
+    import cv2
+
+    from volcap_core.calibration.sfm import rectified_intrinsics, undistort_views
+
+    w, h = 320, 180
+    intr = Intrinsics(300.0, 300.4, 163.4, 87.2, w, h, Distortion("OPENCV", (-0.1, 0.02, 0.0008, -0.0005)))
+    rect = rectified_intrinsics(intr)
+
+    def texture(x, y):            # 4-5 px periods at this focal: the scale of the guided templates
+        return 1.0 + 0.5 * np.sin(2 * np.pi * 300 * x / 4.3) * np.cos(2 * np.pi * 300 * y / 5.1)
+
+    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
+    uv = np.stack([u.ravel(), v.ravel()], 1)
+    xy_rect = (uv - [rect.cx, rect.cy]) / [rect.fx, rect.fy]
+    pinhole = texture(xy_rect[:, 0], xy_rect[:, 1]).reshape(h, w)
+    xy_raw = intr.distortion.undistort((uv - [intr.cx, intr.cy]) / [intr.fx, intr.fy])
+    frame = texture(xy_raw[:, 0], xy_raw[:, 1]).reshape(h, w).astype(np.float32)
+    calibration = undistort_views({"A": frame}, {"A": intr})["A"]
+    bilinear = undistort_image(frame, intr, intr.distortion, rect, interpolation=cv2.INTER_LINEAR)
+    valid = undistort_valid_mask(intr, intr.distortion, rect, margin_px=6.0)
+    assert valid.mean() > 0.8
+    err = np.sqrt(np.mean((calibration - pinhole)[valid] ** 2))
+    err_bilinear = np.sqrt(np.mean((bilinear - pinhole)[valid] ** 2))
+    print(f"rms error to the pinhole image: undistort_views {err:.4f}, bilinear {err_bilinear:.4f}")
+    assert err < err_bilinear / 3
+    assert calibration.min() >= 0                   # linear light: Lanczos's ringing clipped

@@ -46,8 +46,8 @@ from volcap_core.calibration.geometry import (Similarity, camera_centre, look_at
 from volcap_core.calibration.guided import GuidedMatchOptions, guided_tracks
 from volcap_core.calibration.lidar import LidarScan, align_to_lidar
 from volcap_core.calibration.photometric import PhotometricOptions, refine_photometric
-from volcap_core.calibration.sfm import (Intrinsics, SparseModel, StaticSfmOptions, raw_from_rectified,
-                                         reconstruct_static, rectify_static_inputs)
+from volcap_core.calibration.sfm import (RECTIFY_MARGIN_PX, Intrinsics, SparseModel, StaticSfmOptions,
+                                         raw_from_rectified, reconstruct_static, rectify_static_inputs)
 
 
 #: the prior (1σ) of the step-5 adjustment's corrections to a lens calibration's radial k1 and k2
@@ -310,8 +310,8 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
     if guide is not None and options.guided is not None:
         # the tracks' cameras come in ``reg`` order, the order of the dict passed; a rectified view's
         # pixels without footage (a pincushion lens's black corners) take no part in the matching
-        valid = {c: undistort_valid_mask(raw_intr[c], raw_intr[c].distortion, intr[c], margin_px=1.0)
-                 for c in reg if c in raw_intr}
+        valid = {c: undistort_valid_mask(raw_intr[c], raw_intr[c].distortion, intr[c],
+                                         margin_px=RECTIFY_MARGIN_PX) for c in reg if c in raw_intr}
         tracks = guided_tracks({c: background[c] for c in reg}, K, w2c, guide, options.guided, valid=valid)
         P = np.stack([K[c] @ w2c[c][:3] for c in reg])
         start = triangulate_points(P, tracks.obs_point, tracks.obs_camera, tracks.obs_xy, len(tracks.points))
