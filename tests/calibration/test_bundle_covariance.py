@@ -97,3 +97,13 @@ def _turns(out, poses):
     """Each camera's rotation error [6, 3] (axis-angle, rad)."""
     return [Rotation.from_matrix(out["world_to_camera"][i, :3, :3] @ poses[i, :3, :3].T).as_rotvec()
             for i in range(len(poses))]
+
+
+def test_an_adjustment_without_rounds_states_its_start():
+    # no outlier rounds and no scan: nothing is refined, and the sigma is that of the start
+    X, poses = _scene()
+    oc, op, uv = _capture(X, poses, np.random.default_rng(2), np.tile(CENTRE, (6, 1)))
+    out = bundle_adjust(poses, np.full(6, F), np.tile(CENTRE, (6, 1)), X, oc, op, uv,
+                        options=BundleOptions(pixel_sigma=NOISE, outlier_px=()))
+    np.testing.assert_allclose(out["world_to_camera"], poses, atol=1e-12)
+    assert np.all(np.isfinite(out["sigma"]["rotation_deg"])) and np.all(out["sigma"]["rotation_deg"] > 0)

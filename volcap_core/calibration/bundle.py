@@ -298,6 +298,7 @@ def bundle_adjust(world_to_camera: np.ndarray, focal: np.ndarray, principal: np.
 
     state = _State(R, C, logf, pp0.clone(), X, dk)
     on_lidar = torch.zeros(npt, dtype=torch.bool, device=dev)
+    plane_n = plane_d = None
     history = []
     gates = options.lidar_gates_m if scan is not None else (None,) * len(options.outlier_px)
     keep = torch.ones(len(oc), dtype=torch.bool, device=dev)
@@ -452,7 +453,17 @@ def _camera_sigma(state, prob: _Problem, oc, op, uv, plane_n, plane_d, on_lidar,
     (the largest standard deviation over the axes), ``focal_rel`` (of the log focal) and
     ``principal_px`` (largest over x, y); NaN for an intrinsic the adjustment holds. A principal
     point and a rotation trade along a direction only the second order of the projection tells
-    apart, so a refined principal point widens its camera's rotation here."""
+    apart, so a refined principal point widens its camera's rotation here. The observations count
+    at ``pixel_sigma``, not at their residual's spread (step 5's 0.1 px is about twice it): what the
+    observations pin down is stated with that allowance for their systematic errors."""
+    # a point seen once and held by no lidar term is undetermined along its ray (its block is
+    # singular at lam = 0, and eliminating it would only spread rounding): it says nothing of the
+    # cameras, so it is left out
+    seen = torch.bincount(op, minlength=npt)
+    told = (seen[op] >= 2) | on_lidar[op]
+    if not bool(told.all()):
+        oc, op, uv = oc[told], op[told], uv[told]
+        pairs = _observation_pairs(op, npt)
     S, *_ = _reduced_system(state, prob, oc, op, uv, plane_n, plane_d, on_lidar, pairs, 0.0, ncam, npt)
     n = prob.params.per_camera
     if prob.params.shared:   # on the shared unknowns, mapped back to each camera's parameters
@@ -463,12 +474,13 @@ def _camera_sigma(state, prob: _Problem, oc, op, uv, plane_n, plane_d, on_lidar,
     ar = torch.arange(ncam, device=S.device)
     blocks = cov.view(ncam, n, ncam, n)[ar, :, ar, :]                               # [C, n, n]
 
-    def largest(b):
-        return torch.linalg.eigvalsh(b).amax(-1).clamp(min=0).sqrt().cpu().numpy()
+    def largest(b):     # a block that is not positive (rounding of an undetermined camera): inf
+        top = torch.linalg.eigvalsh(b).amax(-1)
+        return torch.where(top >= 0, top.clamp(min=0).sqrt(), torch.full_like(top, float("inf"))).cpu().numpy()
 
     nan = np.full(ncam, np.nan)
     return {"rotation_deg": np.degrees(largest(blocks[:, :3, :3])), "centre_m": largest(blocks[:, 3:6, 3:6]),
-            "focal_rel": nan if prob.fix_focal else blocks[:, 6, 6].clamp(min=0).sqrt().cpu().numpy(),
+            "focal_rel": nan if prob.fix_focal else largest(blocks[:, 6:7, 6:7]),
             "principal_px": nan if prob.options.principal_sigma_px is None else largest(blocks[:, 7:9, 7:9])}
 
 

@@ -367,11 +367,13 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
         # principal-point error is a rotation, bundle._camera_sigma), in place of the pose-only
         # bound on the SfM's observations
         for i, c in enumerate(reg):
+            # a camera step 5 matched nothing for: its covariance is its priors and a regulariser
+            known = 1.0 if guided_counts[i] > 0 else float("inf")
             support[c].update(guided_observations=int(guided_counts[i]),
-                              rotation_sigma_deg=float(guided_sigma["rotation_deg"][i]),
-                              centre_sigma_m=float(guided_sigma["centre_m"][i]),
-                              principal_sigma_px=float(guided_sigma["principal_px"][i]),
-                              focal_sigma_pct=100 * float(guided_sigma["focal_rel"][i]))
+                              rotation_sigma_deg=known * float(guided_sigma["rotation_deg"][i]),
+                              centre_sigma_m=known * float(guided_sigma["centre_m"][i]),
+                              principal_sigma_px=known * float(guided_sigma["principal_px"][i]),
+                              focal_sigma_pct=known * 100 * float(guided_sigma["focal_rel"][i]))
     stats["support"] = support
     stats["time_s"] = {"sfm": t1 - t0, "bundle": t2 - t1, "guided": t_guided - t2, "photometric": t3 - t_guided,
                        "total": time.perf_counter() - t0}

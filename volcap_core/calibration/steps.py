@@ -413,9 +413,10 @@ def static_calibration(rec: StaticCalibrationRecord) -> StaticCalibration:
     # each camera's final support (static.camera_support), as calibrate_static_cameras returned it
     support: dict[str, dict[str, float]] = {c: {} for c in ids}
     for k, v in rec.stats.items():
-        parts = k.split(".")
-        if len(parts) == 3 and parts[0] == "support" and parts[1] in support:
-            support[parts[1]][parts[2]] = v
+        if k.startswith("support."):       # support.<camera id, which may hold dots>.<figure>
+            cid, _, figure = k[len("support."):].rpartition(".")
+            if cid in support:
+                support[cid][figure] = v
     from volcap_core.calibration.distortion import Distortion
     from volcap_core.calibration.sfm import Intrinsics
 
