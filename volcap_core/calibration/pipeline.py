@@ -88,6 +88,11 @@ def calibrate_capture(load: FrameSource, rig: Rig, camera_ids: list[str], frame_
     return CalibrationResult(record, blob, static, tracking, reference, stats)
 
 
+def _quality(stats: Mapping) -> dict[str, float]:
+    """A camera's fit statistics as its record's ``quality``: the finite numbers, as floats."""
+    return {k: float(v) for k, v in stats.items() if isinstance(v, (int, float)) and np.isfinite(v)}
+
+
 def build_record(capture_name: str, rig: Rig, static: StaticCalibration, tracking: Mapping[str, TrackingSolution],
                  frame_count: int, fps: float, reference_frame: int, blob: bytes | None) -> Calibration:
     """The JSON-small record; ``blob`` (from :func:`volcap_core.calibration.steps.tracking_blob` of the
@@ -104,8 +109,7 @@ def build_record(capture_name: str, rig: Rig, static: StaticCalibration, trackin
             extra["distortion"] = tuple(float(v) for v in raw.distortion.opencv())  # 5, or 8 (rational)
         # how well the adjustment holds and knows it (static.camera_support): observations, residual,
         # rotation / centre / principal-point sigma
-        q = {k: float(v) for k, v in static.support.get(cid, {}).items()
-             if isinstance(v, (int, float)) and np.isfinite(v)}
+        q = _quality(static.support.get(cid, {}))
         cams.append(CameraCalibration(id=cid, role=rig.camera(cid).role.value, static=True, width=w, height=h,
                                       intrinsics=(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])),
                                       world_to_camera=matrix4(static.world_to_camera[cid]), quality=q, **extra))
@@ -113,8 +117,7 @@ def build_record(capture_name: str, rig: Rig, static: StaticCalibration, trackin
     tracking = {c: v for c, v in tracking.items() if c not in left_out}
     for cid in sorted(tracking):
         s = rig.camera(cid).sensor
-        st = tracking[cid].stats
-        q = {k: float(v) for k, v in st.items() if isinstance(v, (int, float)) and np.isfinite(v)}
+        q = _quality(tracking[cid].stats)
         q["focal_gain"] = tracking[cid].gain
         q["focal_offset_px"] = tracking[cid].offset
         cams.append(CameraCalibration(id=cid, role=rig.camera(cid).role.value, static=False,
