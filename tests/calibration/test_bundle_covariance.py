@@ -7,22 +7,18 @@ from __future__ import annotations
 
 import numpy as np
 
-from volcap_core.calibration.bundle import BundleOptions, bundle_adjust
-from volcap_core.calibration.geometry import look_at_rotation, pose_matrix
 from scipy.spatial.transform import Rotation
+
+from tests.calibration.test_bundle_lens_groups import _arc_scene
+from volcap_core.calibration.bundle import BundleOptions, bundle_adjust
 
 F, CENTRE, NOISE, PRIOR_PX, MOUNT_M = 300.0, np.array([159.5, 89.5]), 0.1, 0.5, 0.002
 
 
 def _scene():
-    """200 points in a 6 x 5 x 3 m box and six cameras on an arc 3.5 m around it (320x180, f 300)."""
-    rng = np.random.default_rng(0)
-    X = np.stack([rng.uniform(-3, 3, 200), rng.uniform(1, 6, 200), rng.uniform(0, 3, 200)], 1)
-    poses = []
-    for a in np.linspace(0.3, np.pi - 0.3, 6):
-        c = np.array([3.5 * np.cos(a), 3.5 * np.sin(a) - 2.0, 1.5])
-        R = look_at_rotation(c, (0.0, 3.0, 1.2))
-        poses.append(pose_matrix(R, -R @ c))
+    """200 points in a 6 x 5 x 3 m box and six cameras [6, 4, 4] on an arc 3.5 m around it (320x180,
+    f 300): the lens-group tests' scene."""
+    X, poses = _arc_scene(np.random.default_rng(0), 200)
     return X, np.stack(poses)
 
 
