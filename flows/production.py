@@ -610,9 +610,7 @@ def _check_rig(prod: Production, capture: str, record: Capture, log) -> None:
     name = prod.spec.captures[capture].rig
     if name is None:
         return
-    source = prod.spec.rigs[name]
-    path = prod.spec_dir / source
-    rig = load_rig(path if path.suffix == ".json" and path.exists() else source)
+    rig = load_rig(prod.spec.rigs[name], prod.spec_dir)
     if rig.name != record.rig.name:
         log.warning("captures.%s.rig is %s (%s) but the capture was recorded with rig %s: calibrating with %s",
                     capture, name, rig.name, record.rig.name, record.rig.name)

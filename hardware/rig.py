@@ -473,20 +473,36 @@ def builtin_rig_names() -> list[str]:
     return sorted(p.name[:-5] for p in files.iterdir() if p.name.endswith(".json"))
 
 
-def load_rig(name_or_path: str | Path) -> Rig:
-    """Load a built-in rig by name (``scene_rig``, ``face_rig``, ``demo_scene``...) or a JSON file.
+def rig_file(reference: str | Path, base: str | Path = ".") -> Path | None:
+    """The rig file a rig reference names, or None when it names a built-in rig.
 
-    Raises ``ValueError`` naming the rig and the problem when the file is invalid.
+    The one rule for every rig reference (a capture's ``rig``, a production spec's ``rigs``,
+    ``volcap synth --rig``): a reference ending in ``.json`` is a rig file, relative to ``base`` (the
+    folder of the document that names it; an absolute path stays as it is); any other is the name
+    of a built-in rig (:func:`builtin_rig_names`). A ``.json`` reference never falls back to a
+    built-in rig or to a file beside the working directory: a missing file is an error naming it.
     """
-    path = Path(name_or_path)
-    if path.suffix == ".json" and path.exists():
+    return Path(base) / reference if str(reference).endswith(".json") else None
+
+
+def load_rig(reference: str | Path, base: str | Path = ".") -> Rig:
+    """Load a built-in rig by name (``scene_rig``, ``face_rig``, ``demo_scene``...) or a JSON file
+    (relative to ``base``): :func:`rig_file` says which.
+
+    Raises ``ValueError`` naming the rig and the problem when the file is missing or invalid, or the
+    name unknown.
+    """
+    path = rig_file(reference, base)
+    if path is not None:
+        if not path.is_file():
+            raise ValueError(f"rig file {path} does not exist")
         text, where = path.read_text(), str(path)
     else:
-        res = resources.files("hardware") / "rigs" / f"{name_or_path}.json"
+        res = resources.files("hardware") / "rigs" / f"{reference}.json"
         if not res.is_file():
-            raise ValueError(f"unknown rig {str(name_or_path)!r}: not a file and not one of "
-                             f"{', '.join(builtin_rig_names())}")
-        text, where = res.read_text(), f"built-in rig {name_or_path}"
+            raise ValueError(f"unknown rig {str(reference)!r}: not one of {', '.join(builtin_rig_names())} "
+                             "(a rig file's name ends in .json)")
+        text, where = res.read_text(), f"built-in rig {reference}"
     try:
         return Rig.model_validate(json.loads(text))
     except ValueError as exc:

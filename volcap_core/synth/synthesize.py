@@ -11,7 +11,7 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
-from hardware.rig import CameraRole, Rig, RigCamera, ZoomIntrinsics, load_rig
+from hardware.rig import CameraRole, Rig, RigCamera, ZoomIntrinsics, load_rig, rig_file
 from volcap_core.calibration.distortion import MODELS, Distortion
 from volcap_core.calibration.geometry import look_at_rotation
 from volcap_core.capture import (CameraSource, CaptureDescription, Encoding, LensSample, Take,
@@ -308,8 +308,9 @@ def _synthesize(out_dir: Path, rig_name: str | Path, seed: int, frames: int, kin
         if old.is_dir():
             shutil.rmtree(old)
     rig_ref = rig.name
-    if str(rig_name).endswith(".json") and Path(rig_name).exists():
-        shutil.copyfile(rig_name, out_dir / "rig.json")
+    source_file = rig_file(rig_name)
+    if source_file is not None:
+        shutil.copyfile(source_file, out_dir / "rig.json")
         rig_ref = "rig.json"
     if kind == "face":
         stage = build_face_stage(rig, _rng(seed, "stage"))
