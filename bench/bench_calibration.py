@@ -23,20 +23,21 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from volcap_core.calibration.lidar import LidarScan  # noqa: E402
 from volcap_core.calibration.metrics import (calibration_table, count_multiview_points, distance_to_parts,  # noqa: E402
                                              load_ground_truth, static_errors, tracking_errors)
 from volcap_core.calibration.photometric import PhotometricOptions, background_plate  # noqa: E402
-from volcap_core.calibration.pipeline import FolderCapture  # noqa: E402
 from volcap_core.calibration.static import StaticCalibrationOptions, calibrate_static_cameras  # noqa: E402
 from volcap_core.calibration.tracking import (TrackingOptions, build_static_reference, prepare_tracking,  # noqa: E402
                                               solve_tracking)
+from volcap_core.capture import CaptureFolder  # noqa: E402
 
 
 def run(capture_dir: Path, point_frames: int = 3, variants=("priors", "free", "independent")) -> dict:
     times: dict[str, float] = {}
-    cap = FolderCapture.open(capture_dir)
+    cap = CaptureFolder.open(capture_dir)
     gt = load_ground_truth(capture_dir / "ground_truth")
-    scan = cap.lidar()
+    scan = LidarScan.from_ply_bytes(cap.lidar_path.read_bytes())
     T = cap.frame_count
     mid = T // 2
     statics = [c for c in cap.camera_ids if not cap.rig.camera(c).role.tracks]

@@ -136,11 +136,11 @@ def frame_files(capture: Path) -> list[Path]:
     """The files ingest converts: every camera's frames of the take (not the frames some cameras
     recorded before it, which ingest leaves out and the baseline must not count)."""
     from volcap_core import ingest
+    from volcap_core.capture import CaptureFolder
 
-    folder = capture.resolve()
-    desc = ingest.load_description(folder)
-    recorded = {c.id: ingest.list_camera_files(folder, desc, c) for c in desc.cameras}
-    return [f.path for c in desc.cameras for f in ingest.select_take(desc, c, recorded[c.id])[0]]
+    folder = CaptureFolder.open(capture.resolve())
+    desc = folder.description
+    return [f.path for c in desc.cameras for f in ingest.select_take(desc, c, folder.frame_files(c.id))[0]]
 
 
 def warm(files: list[Path]) -> None:
@@ -249,20 +249,20 @@ def _cumulative(stats: dict, caller: str | None, name: str) -> float:
 def per_frame_breakdown(capture: Path, store_dir: Path, cameras: int = 2) -> dict:
     """cProfile of ingest's per-frame work on ``cameras`` cameras, in one thread; seconds a frame."""
     from volcap_core import ingest
+    from volcap_core.capture import CaptureFolder
     from volcap_core.records import MEDIA_EXR
     from volcap_core.store import ArtifactStore
 
     if store_dir.exists():
         shutil.rmtree(store_dir)
     store = ArtifactStore(str(store_dir))
-    folder = capture.resolve()
-    desc = ingest.load_description(folder)
-    rig = ingest.load_capture_rig(folder, desc)
-    rig_cams, _ = ingest.match_rig(desc, rig)
+    folder = CaptureFolder.open(capture.resolve())
+    desc = folder.description
+    rig_cams, _ = ingest.match_rig(desc, folder.rig)
     prof = cProfile.Profile()
     n, wall = 0, 0.0
     for cam in desc.cameras[:cameras]:
-        scan, _ = ingest.select_take(desc, cam, ingest.list_camera_files(folder, desc, cam))
+        scan, _ = ingest.select_take(desc, cam, folder.frame_files(cam.id))
         t0 = time.perf_counter()
         prof.enable()
         ingest.check_headers(cam, rig_cams[cam.id], scan)

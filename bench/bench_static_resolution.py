@@ -42,10 +42,11 @@ import cv2  # noqa: E402,F401  (before pycolmap)
 
 import volcap_core.synth.synthesize as synthesize  # noqa: E402
 from hardware.rig import load_rig  # noqa: E402
+from volcap_core.calibration.lidar import LidarScan  # noqa: E402
 from volcap_core.calibration.metrics import load_ground_truth, static_errors  # noqa: E402
-from volcap_core.calibration.pipeline import FolderCapture  # noqa: E402
 from volcap_core.calibration.static import StaticCalibrationOptions  # noqa: E402
 from volcap_core.calibration.steps import calibrate_static_step, reference_frame  # noqa: E402
+from volcap_core.capture import CaptureFolder  # noqa: E402
 
 RIG = "demo_scene_distorted"
 FRAMES = 6
@@ -71,11 +72,12 @@ def render(workdir: Path, seed: int, scale: int, exact_lenses: bool = False) -> 
 
 
 def calibrate(capture_dir: Path) -> dict:
-    cap = FolderCapture.open(capture_dir)
+    cap = CaptureFolder.open(capture_dir)
     statics = [c for c in cap.camera_ids if not cap.rig.camera(c).role.tracks]
     t0 = time.perf_counter()
+    scan = LidarScan.from_ply_bytes(cap.lidar_path.read_bytes())
     static = calibrate_static_step(capture_dir.name, cap.rig, statics, [], cap.frame_count, cap.load,
-                                   cap.lidar()).calibration
+                                   scan).calibration
     seconds = time.perf_counter() - t0
     err = static_errors(static.K, static.world_to_camera, load_ground_truth(capture_dir / "ground_truth"),
                         reference_frame(cap.frame_count, StaticCalibrationOptions()))
@@ -108,7 +110,7 @@ def main() -> None:
                 capture = render(work, seed, scale, args.exact_lenses)
                 r = calibrate(capture)
                 # the footage's size as rendered (the static cameras share a sensor)
-                rig = FolderCapture.open(capture).rig
+                rig = CaptureFolder.open(capture).rig
                 size = next(c for c in rig.cameras if not c.role.tracks).sensor
                 w, h = size.width_px, size.height_px
                 rows.append({"seed": seed, "scale": scale, "pixels": [w, h], **r})

@@ -9,6 +9,7 @@ from prefect import flow, get_run_logger, unmapped
 
 from tasks.ingest import fingerprint_camera, ingest_camera, record_capture
 from volcap_core import ingest
+from volcap_core.capture import CaptureFolder, IngestError
 from volcap_core.records import ArtifactRef
 from volcap_core.store import ArtifactStore
 
@@ -21,16 +22,15 @@ def ingest_flow(store: str, capture_dir: str, nan_policy: str = "error", set_ref
     named by ``capture.json`` is checked with the other inputs and stored with the record.
     """
     log = get_run_logger()
-    folder = Path(capture_dir).resolve()
+    capture = CaptureFolder.open(Path(capture_dir).resolve())
+    folder, desc, rig = capture.root, capture.description, capture.rig
     s = ArtifactStore(store)
 
     # 1. Everything that can be checked without decoding pixels, for all cameras, first.
-    desc = ingest.load_description(folder)
-    rig = ingest.load_capture_rig(folder, desc)
     rig_cams, absent = ingest.match_rig(desc, rig)
     if absent:
         log.warning("rig %s cameras not in this capture: %s", rig.name, ", ".join(absent))
-    recorded = {c.id: ingest.list_camera_files(folder, desc, c) for c in desc.cameras}
+    recorded = {c.id: capture.frame_files(c.id) for c in desc.cameras}
     common = ingest.common_range(recorded)
     scans = {}
     for c in desc.cameras:
@@ -40,12 +40,12 @@ def ingest_flow(store: str, capture_dir: str, nan_policy: str = "error", set_ref
     lenses = {c.id: ingest.lens_for_take(desc, c, rig_cams[c.id]) for c in desc.cameras}
     for c in desc.cameras:
         ingest.check_headers(c, rig_cams[c.id], scans[c.id])
-    lidar_file = ingest.check_lidar(folder, desc)
+    lidar_file = ingest.check_lidar(capture)
     ocio_ref = None
     if desc.ocio_config:
         ocio_file = folder / desc.ocio_config
         if not ocio_file.is_file():
-            raise ingest.IngestError(f"{folder / 'capture.json'}: ocio_config {ocio_file} does not exist")
+            raise IngestError(f"{capture.description_path}: ocio_config {ocio_file} does not exist")
         ocio_ref = s.put_file(ocio_file, "application/x-ocio", check_first=True)
 
     # 2. Fingerprint and convert, one task per camera.
@@ -62,10 +62,10 @@ def ingest_flow(store: str, capture_dir: str, nan_policy: str = "error", set_ref
         unmapped(ocio_ref), unmapped(nan_policy), [lenses[c.id] for c in desc.cameras])
 
     ground_truth = None
-    if desc.ground_truth:
-        gt = folder / desc.ground_truth
+    gt = capture.ground_truth_path
+    if gt is not None:
         if not gt.is_dir():
-            raise ingest.IngestError(f"{folder / 'capture.json'}: ground_truth folder {gt} does not exist")
+            raise IngestError(f"{capture.description_path}: ground_truth folder {gt} does not exist")
         ground_truth = s.put_directory(gt)
     lidar = s.put_file(lidar_file, ingest.MEDIA_PLY, check_first=True) if lidar_file is not None else None
 

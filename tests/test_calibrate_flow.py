@@ -25,8 +25,7 @@ from flows.runtime import run_flow
 from tasks.calibrate import CalibrationInputError, StaticCalibrationRecord, calibrate_static, calibrate_tracking_camera
 from tasks.contract import cached_output
 from volcap_core.calibration.record import Calibration, camera_at, decode_tracking_frames
-from volcap_core.capture import Capture
-from volcap_core.ingest import IngestError
+from volcap_core.capture import Capture, IngestError
 from volcap_core.pointcloud import PointCloudSequence, decode_points
 from volcap_core.records import ArtifactRef
 from volcap_core.store import ArtifactStore

@@ -225,10 +225,10 @@ def test_the_stand_in_surface_sweeps_the_scene_wherever_it_is(capture_dir, caplo
     beyond the 1-14 m the sweep had fixed, which left nothing) give the same surface, scaled. A
     camera that sees none of it (turned away) takes the others' widest range, named in a warning."""
     from volcap_core.calibration.photometric import background_plate
-    from volcap_core.calibration.pipeline import FolderCapture
     from volcap_core.calibration.static import surface_from_plates
+    from volcap_core.capture import CaptureFolder
 
-    cap = FolderCapture.open(capture_dir)
+    cap = CaptureFolder.open(capture_dir)
     gt = load_ground_truth(capture_dir / "ground_truth")
     ids = STATIC[:4]
     plates = {c: background_plate([cap.load(c, k) for k in range(0, FRAMES, 2)]) for c in ids}

@@ -14,9 +14,8 @@ from flows.ingest import ingest_flow
 from flows.runtime import run_flow
 from hardware.rig import load_rig
 from volcap_core import imageio
-from volcap_core.capture import Capture
+from volcap_core.capture import Capture, IngestError
 from volcap_core.colour import srgb_encode
-from volcap_core.ingest import IngestError
 from volcap_core.store import ArtifactStore, MissingRefError
 
 W, H, FRAMES = 16, 12, 4

@@ -15,10 +15,10 @@ import pytest
 
 from hardware.rig import RigCamera
 from volcap_core import imageio
-from volcap_core.capture import CameraSource, CaptureCamera, Encoding
+from volcap_core.capture import CameraSource, CaptureCamera, Encoding, IngestError
 from volcap_core.chromaticities import REC709_D65, Chromaticities
 from volcap_core.digest import digest_file
-from volcap_core.ingest import IngestError, RawFrame, check_headers, convert_frame
+from volcap_core.ingest import RawFrame, check_headers, convert_frame
 
 REPO = Path(__file__).resolve().parents[1]
 EXR = REPO.parent / "shared" / "data" / "exr"

@@ -30,10 +30,10 @@ CHILD = textwrap.dedent(r"""
     import OpenEXR
     sys.path.insert(0, sys.argv[2])
     from volcap_core import imageio
-    from volcap_core.capture import CameraSource
+    from volcap_core.capture import CameraSource, IngestError
     from volcap_core.chromaticities import Chromaticities, REC709_D65, to_working_matrix
     from volcap_core.digest import digest_file
-    from volcap_core.ingest import IngestError, RawFrame, convert_frame
+    from volcap_core.ingest import RawFrame, convert_frame
 
     def expected_frame(p):
         src, _ = imageio.read_image(p)  # data window, values as stored, default view of part 0

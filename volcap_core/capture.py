@@ -14,23 +14,36 @@ On-disk layout (documented for users in ``docs/capture-layout.md``)::
 
 A frame's *take index* is its position in the take: ``timecode(frame) - take.start_timecode`` in
 frames. Every camera must provide each take index in ``[0, take.frame_count)`` exactly once.
+
+:class:`CaptureFolder` is the one reader of this layout: ingest, productions (before ingest), the
+Face Rig pairs, tests and benchmarks open a folder with it. A folder it cannot read raises
+:class:`IngestError`, whose message names the file, camera and frame.
 """
 
 from __future__ import annotations
 
 import re
+from dataclasses import dataclass, field
 from enum import Enum
+from functools import cached_property
+from pathlib import Path
 from typing import ClassVar
 
+import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from hardware.rig import Rig
+from hardware.rig import Rig, load_rig
+from volcap_core.imageio import read_image
 from volcap_core.records import ArtifactRef, Record
 
 CAPTURE_FORMAT = "volcap-capture/1"
 IMAGE_EXTENSIONS = (".exr", ".dpx", ".tif", ".tiff", ".png")
 FRAME_FILE_RE = re.compile(r"^(?P<number>\d+)\.(?P<ext>exr|dpx|tif|tiff|png)$", re.IGNORECASE)
 TIMECODE_RE = re.compile(r"^(\d{2}):(\d{2}):(\d{2})[:;](\d{2})$")
+
+
+class IngestError(ValueError):
+    """A capture folder problem; the message names file, camera and frame."""
 
 
 def timecode_to_frames(timecode: str, fps: float) -> int:
@@ -193,3 +206,134 @@ class Capture(Record):
     def frame_time(self, index: int) -> float:
         """Seconds since the take start for take index ``index``."""
         return index / self.fps
+
+
+@dataclass(frozen=True)
+class CaptureFolder:
+    """A capture folder (the layout above) opened: its ``capture.json`` parsed and its rig loaded
+    (:func:`hardware.rig.load_rig`, a rig file relative to the folder); each camera's frame files
+    listed when first asked for. Nothing is decoded until :meth:`load`.
+    """
+
+    root: Path
+    description: CaptureDescription
+    rig: Rig
+    _files: dict[str, dict[int, Path]] = field(default_factory=dict, repr=False, compare=False)
+
+    @classmethod
+    def open(cls, root: str | Path) -> "CaptureFolder":
+        """Read ``root/capture.json`` and its rig; :class:`IngestError` when either is missing or
+        invalid."""
+        root = Path(root)
+        path = root / "capture.json"
+        if not path.is_file():
+            raise IngestError(f"{path}: no capture description (capture.json) in {root}")
+        try:
+            desc = CaptureDescription.model_validate_json(path.read_bytes())
+        except ValueError as exc:
+            raise IngestError(f"{path}: invalid capture description: {exc}") from exc
+        try:
+            rig = load_rig(desc.rig, root)
+        except ValueError as exc:
+            raise IngestError(f"{path}: {exc}") from exc
+        return cls(root, desc, rig)
+
+    @property
+    def description_path(self) -> Path:
+        return self.root / "capture.json"
+
+    @property
+    def name(self) -> str:
+        return self.description.name
+
+    @property
+    def fps(self) -> float:
+        return self.description.fps
+
+    @property
+    def frame_count(self) -> int:
+        """Frames in the take."""
+        return self.description.take.frame_count
+
+    @property
+    def camera_ids(self) -> list[str]:
+        """The cameras ``capture.json`` lists, in its order (a subset of the rig's)."""
+        return [c.id for c in self.description.cameras]
+
+    def camera(self, camera_id: str) -> CameraSource:
+        for cam in self.description.cameras:
+            if cam.id == camera_id:
+                return cam
+        raise KeyError(f"capture {self.name} has no camera {camera_id!r} (it has {', '.join(self.camera_ids)})")
+
+    @cached_property
+    def offsets(self) -> dict[str, int]:
+        """Camera id → take index of its frame number 0 (:meth:`CaptureDescription.take_offset`)."""
+        return {c.id: self.description.take_offset(c) for c in self.description.cameras}
+
+    @cached_property
+    def encoder(self) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+        """Lens-encoder readings of the cameras that have them: camera id → (take indices ``[S]``
+        int64, focal ``[S]`` float64 mm), every reading as listed, re-indexed to take indices."""
+        out = {}
+        for c in self.description.cameras:
+            if c.lens_encoder:
+                out[c.id] = (np.array([s.frame + self.offsets[c.id] for s in c.lens_encoder], np.int64),
+                             np.array([s.focal_mm for s in c.lens_encoder], np.float64))
+        return out
+
+    @property
+    def lidar_path(self) -> Path | None:
+        """The lidar scan file ``capture.json`` names (PLY bytes; not checked here), None without one."""
+        return self.root / self.description.lidar if self.description.lidar is not None else None
+
+    @property
+    def ground_truth_path(self) -> Path | None:
+        """The ground-truth folder ``capture.json`` names (synthetic captures), None without one."""
+        gt = self.description.ground_truth
+        return self.root / gt if gt else None
+
+    def frame_files(self, camera_id: str) -> dict[int, Path]:
+        """Every frame file of a camera by take index (some may lie outside the take), resolved.
+
+        Refuses a missing or empty camera folder, a file not named as a frame and two files of one
+        frame number (``000012.exr`` and ``12.exr``)."""
+        if camera_id in self._files:
+            return self._files[camera_id]
+        cam = self.camera(camera_id)
+        folder = self.root / cam.path
+        if not folder.is_dir():
+            raise IngestError(f"camera {cam.id}: folder {folder} does not exist")
+        offset = self.offsets[cam.id]
+        by_index: dict[int, Path] = {}
+        for p in sorted(folder.iterdir()):
+            if p.name.startswith(".") or p.is_dir():
+                continue
+            m = FRAME_FILE_RE.match(p.name)
+            if not m:
+                raise IngestError(f"camera {cam.id}: unexpected file {p} (frames are named NNNNNN.exr|dpx|tif|tiff|png)")
+            number = int(m["number"])
+            take_index = number + offset
+            if take_index in by_index:
+                raise IngestError(f"camera {cam.id}: frame {number} is duplicated: {by_index[take_index]} and {p}")
+            by_index[take_index] = p.resolve()
+        if not by_index:
+            raise IngestError(f"camera {cam.id}: no frames in {folder}")
+        self._files[camera_id] = by_index
+        return by_index
+
+    def frame_path(self, camera_id: str, take_index: int) -> Path:
+        """The file of a camera's frame at ``take_index``; ``FileNotFoundError`` when it has none."""
+        path = self.frame_files(camera_id).get(take_index)
+        if path is None:
+            folder = self.root / self.camera(camera_id).path
+            raise FileNotFoundError(f"{folder}: no frame {take_index - self.offsets[camera_id]:06d} "
+                                    f"(take index {take_index})")
+        return path
+
+    def load(self, camera_id: str, take_index: int) -> np.ndarray:
+        """A camera's frame at ``take_index`` as stored, not converted: float32 ``[H, W, 3]`` R,G,B
+        of the file's first part (:func:`volcap_core.imageio.read_image`). Scene-linear for linear
+        footage, as synthetic captures are; ingest converts every other encoding."""
+        img, _ = read_image(self.frame_path(camera_id, take_index))
+        return np.asarray(img[..., :3], np.float32)

@@ -1,12 +1,13 @@
 """Ingest: check a capture folder, then convert each camera's frames to scene-linear half EXR.
 
-Pure functions; the Prefect tasks in ``tasks/ingest.py`` call them and store what they return.
-Every error is an :class:`IngestError` whose message names the file, camera and frame concerned.
+Pure functions on a :class:`~volcap_core.capture.CaptureFolder`; the Prefect tasks in
+``tasks/ingest.py`` call them and store what they return. Every error is an
+:class:`~volcap_core.capture.IngestError` whose message names the file, camera and frame concerned.
 
 Checks, in the order a coordinator meets them (all run before any pixel is converted, so a bad
 folder fails in seconds, and nothing is recorded unless every camera converts):
 
-1. ``capture.json`` parses and is valid; the rig loads.
+1. ``capture.json`` parses and is valid; the rig loads (:meth:`CaptureFolder.open`).
 2. Every camera of ``capture.json`` exists in the rig (rig cameras absent from the capture are
    allowed: a dead camera is left out of ``capture.json`` and reported).
 3. Each camera folder holds one file per frame number (``000012.exr`` and ``000012.png``, or
@@ -43,16 +44,17 @@ from typing import Literal
 
 import numpy as np
 
-from hardware.rig import Rig, RigCamera, load_rig
+from hardware.rig import Rig, RigCamera
 from volcap_core import imageio
 from volcap_core.capture import (
-    FRAME_FILE_RE,
     frames_to_timecode,
     timecode_to_frames,
     CameraSource,
     CaptureCamera,
     CaptureDescription,
+    CaptureFolder,
     Encoding,
+    IngestError,
     LensSample,
 )
 from volcap_core.chromaticities import (
@@ -68,33 +70,11 @@ NanPolicy = Literal["error", "repair"]
 HALF_MAX = 65504.0
 
 
-class IngestError(ValueError):
-    """A capture folder problem; the message names file, camera and frame."""
-
-
 @dataclass(frozen=True)
 class RawFrame:
     take_index: int
     camera_frame: int   # the number in the file name
     path: Path          # absolute
-
-
-def load_description(capture_dir: Path) -> CaptureDescription:
-    path = Path(capture_dir) / "capture.json"
-    if not path.is_file():
-        raise IngestError(f"{path}: no capture description (capture.json) in {capture_dir}")
-    try:
-        return CaptureDescription.model_validate_json(path.read_bytes())
-    except ValueError as exc:
-        raise IngestError(f"{path}: invalid capture description: {exc}") from exc
-
-
-def load_capture_rig(capture_dir: Path, desc: CaptureDescription) -> Rig:
-    rig_file = Path(capture_dir) / desc.rig
-    try:
-        return load_rig(rig_file if desc.rig.endswith(".json") else desc.rig)
-    except ValueError as exc:
-        raise IngestError(f"{Path(capture_dir) / 'capture.json'}: {exc}") from exc
 
 
 def match_rig(desc: CaptureDescription, rig: Rig) -> tuple[dict[str, RigCamera], list[str]]:
@@ -107,39 +87,18 @@ def match_rig(desc: CaptureDescription, rig: Rig) -> tuple[dict[str, RigCamera],
     return {c.id: known[c.id] for c in desc.cameras}, [i for i in known if i not in listed]
 
 
-def list_camera_files(capture_dir: Path, desc: CaptureDescription, cam: CameraSource) -> dict[int, RawFrame]:
-    """Every frame file of a camera by take index (may lie outside the take); refuses duplicates."""
-    folder = Path(capture_dir) / cam.path
-    if not folder.is_dir():
-        raise IngestError(f"camera {cam.id}: folder {folder} does not exist")
-    offset = desc.take_offset(cam)
-    by_index: dict[int, RawFrame] = {}
-    for p in sorted(folder.iterdir()):
-        if p.name.startswith(".") or p.is_dir():
-            continue
-        m = FRAME_FILE_RE.match(p.name)
-        if not m:
-            raise IngestError(f"camera {cam.id}: unexpected file {p} (frames are named NNNNNN.exr|dpx|tif|tiff|png)")
-        number = int(m["number"])
-        take_index = number + offset
-        if take_index in by_index:
-            raise IngestError(f"camera {cam.id}: frame {number} is duplicated: {by_index[take_index].path} and {p}")
-        by_index[take_index] = RawFrame(take_index, number, p.resolve())
-    if not by_index:
-        raise IngestError(f"camera {cam.id}: no frames in {folder}")
-    return by_index
-
-
-def common_range(files: dict[str, dict[int, RawFrame]]) -> tuple[int, int]:
+def common_range(files: dict[str, dict[int, Path]]) -> tuple[int, int]:
     """[first, last] take indices every camera recorded (the intersection of their spans)."""
     first = max(min(f) for f in files.values())
     last = min(max(f) for f in files.values())
     return first, last
 
 
-def select_take(desc: CaptureDescription, cam: CameraSource, files: dict[int, RawFrame],
+def select_take(desc: CaptureDescription, cam: CameraSource, files: dict[int, Path],
                 common: tuple[int, int] | None = None) -> tuple[list[RawFrame], int]:
     """The camera's frames in take order, and how many recorded frames fall outside the take.
+
+    ``files``: the camera's frame files by take index (:meth:`CaptureFolder.frame_files`).
 
     Frames recorded before or after the take are normal (cameras start and stop at different
     times) and are left out. A take reaching outside what the camera recorded, or a hole inside it,
@@ -162,9 +121,9 @@ def select_take(desc: CaptureDescription, cam: CameraSource, files: dict[int, Ra
     if missing:
         shown = ", ".join(str(i - offset) for i in missing[:10]) + (" ..." if len(missing) > 10 else "")
         raise IngestError(f"camera {cam.id}: {len(missing)} frame(s) missing in "
-                          f"{Path(files[lo].path).parent}: camera frame number(s) {shown}")
+                          f"{files[lo].parent}: camera frame number(s) {shown}")
     outside = sum(1 for i in files if not 0 <= i < n)
-    return [files[i] for i in range(n)], outside
+    return [RawFrame(i, i - offset, files[i]) for i in range(n)], outside
 
 
 #: the camera model's pixels are square (``Sensor.focal_px``); a pixel aspect ratio further than this
@@ -263,14 +222,14 @@ MEDIA_PLY = "application/x-ply"
 MIN_LIDAR_POINTS = 100
 
 
-def check_lidar(capture_dir: Path, desc: CaptureDescription) -> Path | None:
+def check_lidar(folder: CaptureFolder) -> Path | None:
     """The capture's lidar scan file, checked to be a PLY with at least ``MIN_LIDAR_POINTS`` finite
     points (and finite normals when it has them); None when the capture names no scan."""
-    if desc.lidar is None:
+    path = folder.lidar_path
+    if path is None:
         return None
-    path = Path(capture_dir) / desc.lidar
     if not path.is_file():
-        raise IngestError(f"{Path(capture_dir) / 'capture.json'}: lidar scan {path} does not exist")
+        raise IngestError(f"{folder.description_path}: lidar scan {path} does not exist")
     from volcap_core.calibration.lidar import decode_ply_points
 
     try:

@@ -17,10 +17,12 @@ import pytest
 
 from hardware.rig import load_rig
 from volcap_core.calibration.distortion import Distortion, undistort_image, undistort_valid_mask
+from volcap_core.calibration.lidar import LidarScan
 from volcap_core.calibration.metrics import calibration_table, load_ground_truth, static_errors
-from volcap_core.calibration.pipeline import CalibrationOptions, FolderCapture, calibrate_capture
+from volcap_core.calibration.pipeline import CalibrationOptions, calibrate_capture
 from volcap_core.calibration.sfm import Intrinsics
 from volcap_core.calibration.static import StaticCalibrationOptions
+from volcap_core.capture import CaptureFolder
 from volcap_core.synth.geometry import PinholeCamera
 
 synth = pytest.importorskip("volcap_core.synth.synthesize", reason="the synthetic capture renderer is absent")
@@ -74,7 +76,7 @@ def test_distorted_render_undistorts_to_the_pinhole_render(tmp_path):
         gt = json.loads((root / "ground_truth/cameras.json").read_text())["cameras"]["S000"]["frames"][0]
         intr = Intrinsics(gt["fx"], gt["fy"], gt["cx"], gt["cy"], 320, 180)
         d = Distortion.from_json(gt["distortion"])
-        img = FolderCapture.open(root).load("S000", 0)
+        img = CaptureFolder.open(root).load("S000", 0)
         out.append((img, undistort_image(img, intr, d), undistort_valid_mask(intr, d, margin_px=1.5), d))
     (raw_a, und_a, va, da), (raw_b, und_b, vb, db) = out
     assert abs(da.params[0] + 0.1) < 0.01 and abs(db.params[0]) < 0.01     # the lens errors are small
@@ -94,7 +96,7 @@ def test_distorted_render_undistorts_to_the_pinhole_render(tmp_path):
 def capture(tmp_path_factory):
     root = tmp_path_factory.mktemp("distcap") / "cap"
     synth.synthesize_capture(root, rig="demo_scene_distorted", frames=FRAMES, cameras=STATIC)
-    return FolderCapture.open(root)
+    return CaptureFolder.open(root)
 
 
 def _calibrate(capture, rig):
@@ -102,8 +104,9 @@ def _calibrate(capture, rig):
     fields = {f.name for f in dataclasses.fields(so)}
     if "max_rotation_sigma_deg" in fields:       # measure the errors; the support check is tested elsewhere
         so = dataclasses.replace(so, max_rotation_sigma_deg=None, max_centre_sigma_m=None)
+    scan = LidarScan.from_ply_bytes(capture.lidar_path.read_bytes())
     return calibrate_capture(capture.load, rig, capture.camera_ids, capture.frame_count, capture.fps,
-                             capture_name=capture.name, encoder=capture.encoder, scan=capture.lidar(),
+                             capture_name=capture.name, encoder=capture.encoder, scan=scan,
                              options=CalibrationOptions(static=so))
 
 

@@ -24,12 +24,14 @@ from volcap_core.calibration.colour import calibrate_colour, chart_patches_in_vi
 from volcap_core.calibration.dense import DenseOptions, dense_points
 from volcap_core.calibration.geometry import triangulate_points
 from volcap_core.calibration.guided import guided_tracks
+from volcap_core.calibration.lidar import LidarScan
 from volcap_core.calibration.metrics import (calibration_table, distance_to_parts, load_ground_truth, static_errors,
                                              tracking_errors)
 from volcap_core.calibration.photometric import PhotometricOptions, background_plate
-from volcap_core.calibration.pipeline import CalibrationOptions, FolderCapture, calibrate_capture
+from volcap_core.calibration.pipeline import CalibrationOptions, calibrate_capture
 from volcap_core.calibration.record import Calibration, camera_at, decode_tracking_frames
 from volcap_core.calibration.static import StaticCalibrationOptions
+from volcap_core.capture import CaptureFolder
 
 synth = pytest.importorskip("volcap_core.synth.synthesize", reason="the synthetic capture renderer is absent")
 
@@ -41,14 +43,15 @@ CAMERAS = ["S001", "S002", "S003", "S004", "S005", "S006", "S008", "S010"]
 def capture(tmp_path_factory):
     root = tmp_path_factory.mktemp("synthcap") / "cap"
     synth.synthesize_capture(root, rig="demo_scene", frames=FRAMES, cameras=CAMERAS)
-    return FolderCapture.open(root)
+    return CaptureFolder.open(root)
 
 
 @pytest.fixture(scope="module")
 def result(capture):
     opts = CalibrationOptions()
+    scan = LidarScan.from_ply_bytes(capture.lidar_path.read_bytes())
     return calibrate_capture(capture.load, capture.rig, capture.camera_ids, capture.frame_count, capture.fps,
-                             capture_name=capture.name, encoder=capture.encoder, scan=capture.lidar(), options=opts)
+                             capture_name=capture.name, encoder=capture.encoder, scan=scan, options=opts)
 
 
 @pytest.fixture(scope="module")
@@ -79,7 +82,8 @@ def test_guided_tracks_are_accurate_and_reach_the_near_floor(capture, gt):
     plates = {c: background_plate([capture.load(c, k) for k in range(FRAMES)]) for c in statics}
     K = {c: gt.cameras[c][mid][0] for c in statics}
     W = {c: gt.cameras[c][mid][1] for c in statics}
-    tracks = guided_tracks(plates, K, W, capture.lidar())
+    scan = LidarScan.from_ply_bytes(capture.lidar_path.read_bytes())
+    tracks = guided_tracks(plates, K, W, scan)
     assert tracks.camera_ids == sorted(statics)
     # measured 5685 tracks; half of it
     assert tracks.stats["tracks"] > 2800 and np.bincount(tracks.obs_point).min() >= 2
@@ -145,7 +149,7 @@ def test_dense_points_lie_on_the_true_surfaces(result, capture, gt):
     out = dense_points(images, cams, references=["S003", "S004"], options=DenseOptions(scale=2.0))
     P = out["positions"]
     assert P.dtype == np.float32 and out["colours"].shape == P.shape and len(P) > 2000
-    scan = capture.lidar()
+    scan = LidarScan.from_ply_bytes(capture.lidar_path.read_bytes())
     parts = [p for a in gt.parts for p in a[mid]]
     d = np.minimum(scan.surface_distance(P, 0.3), distance_to_parts(P, parts))
     assert np.median(d) < 0.03, np.median(d)              # measured 0.013 m (4969 points); 2.3x margin
@@ -162,7 +166,7 @@ def test_dense_points_sweep_the_scene_each_camera_saw(result, capture, gt):
     from volcap_core.calibration.static import _depths_in_view
 
     mid = FRAMES // 2
-    scan = capture.lidar()
+    scan = LidarScan.from_ply_bytes(capture.lidar_path.read_bytes())
     for cid in result.record.static_ids:
         cam = result.record.camera(cid)
         lo, middle, hi = sweep_range(cam.scene_depth_m)
@@ -222,7 +226,8 @@ def test_photometric_refinement_keeps_true_cameras(result, capture, gt):
     K = {c: gt.cameras[c][mid][0] for c in ids}
     W = {c: gt.cameras[c][mid][1] for c in ids}
     centres = {c: -W[c][:3, :3].T @ W[c][:3, 3] for c in ids}
-    out = refine_photometric({c: capture.load(c, mid) for c in ids}, K, W, capture.lidar(), centre_prior=centres,
+    scan = LidarScan.from_ply_bytes(capture.lidar_path.read_bytes())
+    out = refine_photometric({c: capture.load(c, mid) for c in ids}, K, W, scan, centre_prior=centres,
                              options=PhotometricOptions(max_points=4000, iterations=4, centre_sigma_m=0.002,
                                                         blur_px=(1.5, 0.75)))
     err = static_errors(out["K"], out["world_to_camera"], gt, mid)
@@ -233,8 +238,9 @@ def test_photometric_refinement_keeps_true_cameras(result, capture, gt):
 def test_a_capture_without_tracking_cameras_skips_that_stage(capture):
     statics = [c for c in capture.camera_ids if not capture.rig.camera(c).role.tracks]
     opts = CalibrationOptions(static=StaticCalibrationOptions(photometric=None))
+    scan = LidarScan.from_ply_bytes(capture.lidar_path.read_bytes())
     res = calibrate_capture(capture.load, capture.rig, statics, capture.frame_count, capture.fps,
-                            capture_name=capture.name, encoder={}, scan=capture.lidar(), options=opts)
+                            capture_name=capture.name, encoder={}, scan=scan, options=opts)
     assert res.tracking == {} and res.tracking_bytes is None and res.record.tracking_frames is None
     assert "skipped" in res.stats["tracking"]
     K, W, _, _ = camera_at(res.record, statics[0], 0)

@@ -14,10 +14,11 @@ import cv2  # noqa: F401  (before pycolmap)
 import numpy as np
 import pytest
 
+from volcap_core.calibration.lidar import LidarScan
 from volcap_core.calibration.metrics import calibration_table, load_ground_truth, static_errors
-from volcap_core.calibration.pipeline import FolderCapture
 from volcap_core.calibration.static import StaticCalibrationOptions, instant_frames
 from volcap_core.calibration.steps import CalibrationInputError, calibrate_static_step
+from volcap_core.capture import CaptureFolder
 
 synth = pytest.importorskip("volcap_core.synth.synthesize", reason="the synthetic capture renderer is absent")
 
@@ -36,7 +37,7 @@ def swept(tmp_path_factory):
     root = tmp_path_factory.mktemp("instants") / "cap"
     synth.synthesize_capture(root, rig="demo_scene", frames=FRAMES, cameras=STATIC, write_depth=True, supersample=1,
                              actors=1)
-    cap = FolderCapture.open(root)
+    cap = CaptureFolder.open(root)
     gt = load_ground_truth(root / "ground_truth")
     cache: dict = {}
 
@@ -71,14 +72,16 @@ def test_instant_frames_are_spread_over_the_take_with_the_reference_first():
 def test_one_instant_of_a_swept_dark_stage_is_not_enough(swept):
     cap, _, load = swept
     # measured (2026-11-24): S006 and S007 see nothing lit at frame 4 (0 observations), the others 43-99
+    scan = LidarScan.from_ply_bytes(cap.lidar_path.read_bytes())
     with pytest.raises(CalibrationInputError, match=r"frame 4: static cameras S006, S007 .*0 observations"):
-        calibrate_static_step(cap.name, cap.rig, STATIC, [], FRAMES, load, cap.lidar(), OPTIONS)
+        calibrate_static_step(cap.name, cap.rig, STATIC, [], FRAMES, load, scan, OPTIONS)
 
 
 def test_four_instants_pooled_calibrate_every_camera(swept):
     cap, gt, load = swept
     opts = StaticCalibrationOptions(guided=None, instants=4)
-    step = calibrate_static_step(cap.name, cap.rig, STATIC, [], FRAMES, load, cap.lidar(), opts)
+    scan = LidarScan.from_ply_bytes(cap.lidar_path.read_bytes())
+    step = calibrate_static_step(cap.name, cap.rig, STATIC, [], FRAMES, load, scan, opts)
     st = step.calibration
     assert st.camera_ids == STATIC and st.unregistered == []
     assert st.stats["sfm"]["instants"] == 4

@@ -13,11 +13,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from volcap_core.calibration.lidar import LidarScan
 from volcap_core.calibration.metrics import load_ground_truth, static_errors
-from volcap_core.calibration.pipeline import FolderCapture, build_record
+from volcap_core.calibration.pipeline import build_record
 from volcap_core.calibration.static import StaticCalibrationOptions, camera_support
 from volcap_core.calibration.steps import (CalibrationInputError, StaticCalibrationRecord, calibrate_static_step,
                                            static_calibration, static_record)
+from volcap_core.capture import CaptureFolder
 from volcap_core.synth import synthesize_capture
 
 CAMERAS = ["S001", "S002", "S003", "S004", "S005", "S006"]
@@ -29,7 +31,7 @@ FRAMES = 3
 def capture(tmp_path_factory):
     root = tmp_path_factory.mktemp("unsupported") / "cap"
     synthesize_capture(root, rig="demo_scene", frames=FRAMES, cameras=CAMERAS, actors=1, name="one-dark")
-    cap = FolderCapture.open(root)
+    cap = CaptureFolder.open(root)
 
     def load(camera: str, k: int) -> np.ndarray:
         img = cap.load(camera, k)
@@ -42,7 +44,8 @@ def capture(tmp_path_factory):
 
 def _step(capture, options):
     cap, load = capture
-    return calibrate_static_step(cap.name, cap.rig, CAMERAS, [], cap.frame_count, load, cap.lidar(), options)
+    scan = LidarScan.from_ply_bytes(cap.lidar_path.read_bytes())
+    return calibrate_static_step(cap.name, cap.rig, CAMERAS, [], cap.frame_count, load, scan, options)
 
 
 def test_an_unsupported_camera_is_an_error_naming_it(capture):

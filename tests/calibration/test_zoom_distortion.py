@@ -363,8 +363,8 @@ def test_a_tracking_frame_is_rendered_through_its_lens_at_its_focal(tmp_path):
     import cv2
 
     from volcap_core.calibration.distortion import undistort_image, undistort_valid_mask
-    from volcap_core.calibration.pipeline import FolderCapture
     from volcap_core.calibration.sfm import Intrinsics
+    from volcap_core.capture import CaptureFolder
     from volcap_core.synth import synthesize_capture
 
     rig = json.loads(json.dumps(load_rig("demo_scene_distorted").model_dump(mode="json")))
@@ -381,7 +381,7 @@ def test_a_tracking_frame_is_rendered_through_its_lens_at_its_focal(tmp_path):
         fr = gt["frames"][1]
         intr = Intrinsics(fr["fx"], fr["fy"], fr["cx"], fr["cy"], gt["width"], gt["height"])
         d = Distortion.from_json(fr["distortion"])
-        img = FolderCapture.open(root).load("S010", 1)
+        img = CaptureFolder.open(root).load("S010", 1)
         out.append((img, undistort_image(img, intr, d), undistort_valid_mask(intr, d, margin_px=1.5), d, gt))
     (raw_a, und_a, va, da, gta), (raw_b, und_b, vb, db, _) = out
     # the lens differs from frame to frame (it follows the focal) and is the table's at that focal

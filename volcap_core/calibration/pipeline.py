@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Callable, Mapping
 
 import numpy as np
@@ -137,59 +136,3 @@ def build_record(capture_name: str, rig: Rig, static: StaticCalibration, trackin
                        unregistered={**{c: static.reasons.get(c, "not registered") for c in static.unregistered},
                                      **left_out})
 
-
-# --------------------------------------------------------------------------- capture folders
-
-@dataclass
-class FolderCapture:
-    """A capture folder (``volcap_core.capture`` layout) read directly: for tests, benchmarks and
-    the demo. ``load(camera_id, take_index)`` decodes one frame (linear RGB float32 [H, W, 3])."""
-
-    root: Path
-    rig: Rig
-    name: str
-    fps: float
-    frame_count: int
-    camera_ids: list[str]
-    offsets: dict[str, int]
-    paths: dict[str, str]
-    encoder: dict[str, tuple[np.ndarray, np.ndarray]]
-    lidar_path: str | None = None
-
-    @staticmethod
-    def open(root: str | Path) -> "FolderCapture":
-        import json
-
-        from hardware.rig import load_rig
-        from volcap_core.capture import CaptureDescription
-
-        root = Path(root)
-        desc = CaptureDescription.model_validate(json.loads((root / "capture.json").read_text()))
-        rig_path = root / desc.rig
-        rig = load_rig(rig_path if rig_path.suffix == ".json" and rig_path.exists() else desc.rig)
-        offsets = {c.id: desc.take_offset(c) for c in desc.cameras}
-        enc = {}
-        for c in desc.cameras:
-            if c.lens_encoder:
-                enc[c.id] = (np.array([s.frame + offsets[c.id] for s in c.lens_encoder], np.int64),
-                             np.array([s.focal_mm for s in c.lens_encoder], np.float64))
-        return FolderCapture(root, rig, desc.name, desc.fps, desc.take.frame_count, [c.id for c in desc.cameras],
-                             offsets, {c.id: c.path for c in desc.cameras}, enc, desc.lidar)
-
-    def load(self, camera_id: str, take_index: int) -> np.ndarray:
-        from volcap_core.imageio import read_image
-
-        folder = self.root / self.paths[camera_id]
-        n = take_index - self.offsets[camera_id]
-        for ext in ("exr", "png", "tif", "tiff", "dpx"):
-            p = folder / f"{n:06d}.{ext}"
-            if p.exists():
-                img, _ = read_image(p)
-                return np.asarray(img[..., :3], np.float32)
-        raise FileNotFoundError(f"{folder}: no frame {n:06d} (take index {take_index})")
-
-    def lidar(self) -> LidarScan | None:
-        """The scan ``capture.json`` names (``lidar``): an input of the capture, not ground truth."""
-        if self.lidar_path is None:
-            return None
-        return LidarScan.from_ply_bytes((self.root / self.lidar_path).read_bytes())

@@ -136,13 +136,6 @@ def bicubic_unsharp(lq: torch.Tensor, size: tuple[int, int] | None = None, *, am
 
 # --------------------------------------------------------------------------- the synthetic capture
 
-def _read_rgb(path: Path) -> np.ndarray:
-    from volcap_core.imageio import read_image
-
-    pixels, _ = read_image(path)
-    return pixels[..., :3]
-
-
 def _read_mask(path: Path) -> np.ndarray:
     from volcap_core.imageio import read_exr_native
 
@@ -163,22 +156,21 @@ def load_face_capture_sequences(capture_json: str | Path, cameras: Sequence[str]
         size: ``(H, W)`` to resize to (bilinear, antialiased), None = native.
         premultiply: multiply RGB by alpha (a performer render over black, as a Gaussian-splat render
             of the performer is, in the EXR premultiplied convention).
-    Frames are read with :func:`volcap_core.imageio.read_image` (scene-linear Rec.709). Alpha is the
+    Frames are read with :meth:`volcap_core.capture.CaptureFolder.load` (scene-linear Rec.709). Alpha is the
     capture's ground-truth performer coverage (``ground_truth/masks/<camera>/<take index>.exr``,
     written by ``synthesize_face_capture(write_depth=True)``); where the capture has no masks,
     alpha = 1 (and premultiplying changes nothing).
     """
-    from volcap_core.capture import CaptureDescription
+    from volcap_core.capture import CaptureFolder
 
     capture_json = Path(capture_json)
-    root = capture_json.parent
-    desc = CaptureDescription.model_validate_json(capture_json.read_text())
-    by_id = {c.id: c for c in desc.cameras}
-    ids = list(by_id) if cameras is None else list(cameras)
-    missing = [c for c in ids if c not in by_id]
+    capture = CaptureFolder.open(capture_json.parent)
+    has = capture.camera_ids
+    ids = has if cameras is None else list(cameras)
+    missing = [c for c in ids if c not in has]
     if missing:
-        raise ValueError(f"{capture_json}: no camera {', '.join(missing)} (it has {', '.join(by_id)})")
-    n_take = desc.take.frame_count
+        raise ValueError(f"{capture_json}: no camera {', '.join(missing)} (it has {', '.join(has)})")
+    n_take = capture.frame_count
     if frames is None:
         take = list(range(n_take))
     elif isinstance(frames, int):
@@ -190,14 +182,12 @@ def load_face_capture_sequences(capture_json: str | Path, cameras: Sequence[str]
     bad = [k for k in take if not 0 <= k < n_take]
     if bad:
         raise ValueError(f"take indices {bad} outside the take's {n_take} frames")
-    gt = root / desc.ground_truth if desc.ground_truth else None
+    gt = capture.ground_truth_path
     out: dict[str, torch.Tensor] = {}
     for cid in ids:
-        cam = by_id[cid]
-        offset = desc.take_offset(cam)
         seq = []
         for k in take:
-            rgb = _read_rgb(root / cam.path / f"{k - offset:06d}.exr")
+            rgb = capture.load(cid, k)
             mask_path = gt / "masks" / cid / f"{k:06d}.exr" if gt is not None else None
             if mask_path is not None and mask_path.is_file():
                 alpha = np.clip(_read_mask(mask_path), 0.0, 1.0)

@@ -19,7 +19,6 @@ task and marks which steps are already cached (``volcap plan``).
 
 from __future__ import annotations
 
-import json
 import re
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
@@ -372,21 +371,14 @@ def largest_image(sizes: Iterable[tuple[int, int]]) -> tuple[int, int]:
 
 def capture_info_from_folder(folder: str | Path) -> CaptureInfo:
     """From a capture folder's ``capture.json`` and its rig (nothing is ingested or decoded)."""
-    from hardware.rig import load_rig
-    from volcap_core.capture import CaptureDescription
+    from volcap_core.capture import CaptureFolder
 
-    folder = Path(folder)
-    try:
-        desc = CaptureDescription.model_validate(json.loads((folder / "capture.json").read_text()))
-    except FileNotFoundError:
-        raise ValueError(f"{folder}: no capture.json") from None
-    rig_file = folder / desc.rig
-    rig = load_rig(rig_file if rig_file.suffix == ".json" and rig_file.exists() else desc.rig)
-    listed = {c.id for c in desc.cameras}
-    cams = [c for c in rig.cameras if c.id in listed] or list(rig.cameras)
+    capture = CaptureFolder.open(folder)
+    listed = set(capture.camera_ids)
+    cams = [c for c in capture.rig.cameras if c.id in listed] or list(capture.rig.cameras)
     width, height = largest_image((c.sensor.width_px, c.sensor.height_px) for c in cams)
-    return CaptureInfo(has_tracking_cameras=any(c.role.tracks for c in cams), fps=desc.fps,
-                       frame_count=desc.take.frame_count, width=width, height=height)
+    return CaptureInfo(has_tracking_cameras=any(c.role.tracks for c in cams), fps=capture.fps,
+                       frame_count=capture.frame_count, width=width, height=height)
 
 
 def segment_plan_for(spec: ProductionSpec, capture: str, info: CaptureInfo) -> SegmentPlan:
