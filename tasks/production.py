@@ -5,9 +5,10 @@ from __future__ import annotations
 from tasks.contract import volcap_task
 from volcap_core import reconstruction
 from volcap_core.capture import Capture
-from volcap_core.production.performance import Performance, PerformanceSegment, stage_volume
+from volcap_core.production.performance import Performance, PerformanceSegment
 from volcap_core.production.shot import load_shot, render_shot_frames
 from volcap_core.records import MEDIA_EXR, ArtifactRef
+from volcap_core.stage import stage_volume
 from volcap_core.store import ArtifactStore
 
 

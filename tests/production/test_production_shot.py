@@ -12,7 +12,7 @@ import pytest
 import torch
 
 from volcap_core.imageio import decode_exr
-from volcap_core.production.performance import Performance, PerformanceSegment, stage_volume
+from volcap_core.production.performance import Performance, PerformanceSegment
 from volcap_core.production.shot import (
     ShotError,
     alpha_crop_window,
@@ -23,6 +23,7 @@ from volcap_core.production.shot import (
 )
 from volcap_core.records import ArtifactRef
 from volcap_core.splat.model import Poly4DGS, Poly4DGSConfig
+from volcap_core.stage import stage_volume
 
 
 def shot_dict(**overrides):

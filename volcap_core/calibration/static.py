@@ -496,7 +496,7 @@ def scene_depths(static: StaticCalibration, stage_size_m: Sequence[float],
     points' without the volume in view). Cameras with fewer than ``min_points`` sparse points in
     front are left out (they sweep the fixed range); none without a model. Kept in ``StaticCalibration.scene_depth``
     (:func:`~volcap_core.calibration.steps.calibrate_static_step`) and the records after it."""
-    from volcap_core.production.performance import stage_volume
+    from volcap_core.stage import stage_volume
 
     model = static.model
     if model is None:

@@ -28,11 +28,12 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from volcap_core.production.segments import SegmentPlan, blend_weights, check_layout
 from volcap_core.records import ArtifactRef, Record
+from volcap_core.stage import Box
 from volcap_core.splat.camera import Camera
 from volcap_core.splat.model import Poly4DGS, evaluate
 from volcap_core.splat.render import Backend, render
 
-__all__ = ["Box", "Performance", "PerformanceSegment", "gaussians_in_volume", "render_performance", "segments_at", "stage_volume"]
+__all__ = ["Performance", "PerformanceSegment", "gaussians_in_volume", "render_performance", "segments_at"]
 
 
 class PerformanceSegment(BaseModel):
@@ -105,18 +106,6 @@ def segments_at(performance: Performance, t: float, *,
     return [(performance.segments[i], w) for i, w in weights]
 
 
-Box = tuple[tuple[float, float, float], tuple[float, float, float]]
-
-
-def stage_volume(stage_size_m: Sequence[float], floor_clearance_m: float = 0.03) -> Box:
-    """The performance volume of a rig's stage (centred on the origin, floor at z = 0): the box
-    ``[-x/2, x/2] × [-y/2, y/2] × [floor_clearance, height]``. Gaussians of the set (walls, the
-    floor itself, rigging beyond the stage) fall outside it; the performers and what stands on the
-    stage fall inside."""
-    sx, sy, sz = (float(v) for v in stage_size_m)
-    return (-sx / 2, -sy / 2, floor_clearance_m), (sx / 2, sy / 2, sz)
-
-
 def gaussians_in_volume(gaussians, volume: Box | None):
     """The :class:`~volcap_core.splat.Gaussians3D` whose centre is inside ``volume`` (all of them
     when None): the selection :func:`render_performance` renders and the shot's flow follows."""
@@ -141,7 +130,7 @@ def render_performance(performance: Performance, load_model: Callable[[ArtifactR
         background: ``[3]`` linear colour composited under the blend (default: none, so ``rgb``
             is premultiplied by ``alpha``).
         volume: ``((x0, y0, z0), (x1, y1, z1))``: render only the Gaussians whose centre at ``t``
-            is inside this box (:func:`stage_volume`: the performers without the set); None: all.
+            is inside this box (:func:`~volcap_core.stage.stage_volume`: the performers without the set); None: all.
     Returns:
         ``{"rgb": [H,W,3], "alpha": [H,W,1], "depth": [H,W,1]}``: ``rgb`` and ``alpha`` are the
         weighted sums of the segments' premultiplied renders; ``depth`` the alpha-weighted mean of

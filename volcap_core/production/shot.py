@@ -53,12 +53,12 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 from volcap_core.calibration.geometry import look_at_rotation
 from volcap_core.chromaticities import WORKING_CHROMATICITIES
 from volcap_core.production._errors import format_validation_error
-from volcap_core.production.performance import (Box, Performance, gaussians_in_volume, render_performance,
-                                               segments_at)
+from volcap_core.production.performance import Performance, gaussians_in_volume, render_performance, segments_at
 from volcap_core.records import ArtifactRef
 from volcap_core.splat.camera import Camera
 from volcap_core.splat.model import Poly4DGS, evaluate
 from volcap_core.splat.render import FLOW_MIN_ALPHA, Backend, gaussians_at, render_flow
+from volcap_core.stage import Box
 
 __all__ = [
     "FLOW_CHANNELS",
