@@ -86,14 +86,6 @@ def _reject_non_finite(obj: Any) -> None:
             _reject_non_finite(v)
 
 
-def is_canonical_json(data: bytes) -> bool:
-    """True when ``data`` is exactly the canonical encoding of what it decodes to."""
-    try:
-        return canonical_json(json.loads(data.decode("utf-8"))) == data
-    except (ValueError, UnicodeDecodeError):
-        return False
-
-
 R = TypeVar("R", bound="Record")
 
 
