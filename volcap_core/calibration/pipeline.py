@@ -177,7 +177,7 @@ class FolderCapture:
                              offsets, {c.id: c.path for c in desc.cameras}, enc, desc.lidar)
 
     def load(self, camera_id: str, take_index: int) -> np.ndarray:
-        from volcap_core.imageio import read_image
+        from volcap_core.imageio.read import read_image
 
         folder = self.root / self.paths[camera_id]
         n = take_index - self.offsets[camera_id]

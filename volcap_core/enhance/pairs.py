@@ -137,14 +137,14 @@ def bicubic_unsharp(lq: torch.Tensor, size: tuple[int, int] | None = None, *, am
 # --------------------------------------------------------------------------- the synthetic capture
 
 def _read_rgb(path: Path) -> np.ndarray:
-    from volcap_core.imageio import read_image
+    from volcap_core.imageio.read import read_image
 
     pixels, _ = read_image(path)
     return pixels[..., :3]
 
 
 def _read_mask(path: Path) -> np.ndarray:
-    from volcap_core.imageio import read_exr_native
+    from volcap_core.imageio.read import read_exr_native
 
     pixels, _ = read_exr_native(path)  # one channel "Z": coverage in [0, 1]
     return np.asarray(pixels, np.float32).reshape(pixels.shape[0], pixels.shape[1], -1)[..., 0]
@@ -163,7 +163,7 @@ def load_face_capture_sequences(capture_json: str | Path, cameras: Sequence[str]
         size: ``(H, W)`` to resize to (bilinear, antialiased), None = native.
         premultiply: multiply RGB by alpha (a performer render over black, as a Gaussian-splat render
             of the performer is, in the EXR premultiplied convention).
-    Frames are read with :func:`volcap_core.imageio.read_image` (scene-linear Rec.709). Alpha is the
+    Frames are read with :func:`volcap_core.imageio.read.read_image` (scene-linear Rec.709). Alpha is the
     capture's ground-truth performer coverage (``ground_truth/masks/<camera>/<take index>.exr``,
     written by ``synthesize_face_capture(write_depth=True)``); where the capture has no masks,
     alpha = 1 (and premultiplying changes nothing).
