@@ -66,7 +66,6 @@ COMPRESSION_NAMES = (
     "none", "rle", "zips", "zip", "piz", "pxr24", "b44", "b44a", "dwaa", "dwab",
     "htj2k256", "htj2k32", "lj2k", "zstd",
 )
-_PIXEL_TYPE_NAMES = ("uint", "half", "float")
 _PIXEL_TYPE_BYTES = (4, 2, 4)
 _STORAGE_TYPES = ("scanlineimage", "tiledimage", "deepscanline", "deeptile")
 
