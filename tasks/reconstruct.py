@@ -13,10 +13,11 @@ from prefect import get_run_logger
 
 from tasks.artifacts import ProgressArtifact, artifact_key, publish_image, publish_table
 from tasks.contract import current_run_key, volcap_task
-from volcap_core import imageio, reconstruction
+from volcap_core import reconstruction
 from volcap_core.calibration.distortion import record_distortion
 from volcap_core.calibration.record import Calibration, camera_at, frame_camera
 from volcap_core.capture import Capture
+from volcap_core.imageio.read import decode_exr
 from volcap_core.pointcloud import POINTS_MEDIA, PointCloudFrame, PointCloudSequence, encode_points
 from volcap_core.records import MEDIA_EXR, MEDIA_SAFETENSORS, ArtifactRef
 from volcap_core.segment import ViewSpec, fit_segment, render_segment_exr, tracking_frames
@@ -65,7 +66,7 @@ def ground_truth_points(store: str, capture: ArtifactRef, calibration: ArtifactR
     ids = [c.id for c in cap.cameras if c.id not in set(exclude_cameras or ())]
 
     def load_image(cam: str, f: int) -> np.ndarray:
-        return imageio.decode_exr(s.get_bytes(cap.camera(cam).frames[f]))[0]
+        return decode_exr(s.get_bytes(cap.camera(cam).frames[f]))[0]
 
     def camera_at_frame(cam: str, f: int):
         return camera_at(calib, cam, f, tracking)[:2]

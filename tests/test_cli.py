@@ -138,8 +138,8 @@ def test_reconstruct_render_and_export_ply_commands(api_env, tmp_path):
     exr = tmp_path / "view.exr"
     r = volcap("render", model, "--camera", "S002", "--time", "0.04", "--out", str(exr), "--store", store)
     assert r.returncode == 0, r.stderr
-    from volcap_core import imageio
-    px, ch = imageio.read_image(exr)
+    from volcap_core.imageio.read import read_image
+    px, ch = read_image(exr)
     assert ch == ("R", "G", "B", "A") and px.shape[:2] == (180, 320)
     ply = tmp_path / "g.ply"
     p = volcap("export-ply", model, "--time", "0", "--out", str(ply), "--store", store)

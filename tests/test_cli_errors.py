@@ -57,9 +57,9 @@ def one_error_line(res: subprocess.CompletedProcess) -> str:
 def damaged_capture(root: Path) -> Path:
     """One camera, one frame: a copy of the chatty damaged EXR, the rig sized to its header so that
     ingest refuses it only when decoding its pixels (the native library's diagnostics)."""
-    from volcap_core import imageio
+    from volcap_core.imageio.read import probe_image
 
-    info = imageio.probe_image(CHATTY)
+    info = probe_image(CHATTY)
     x0, y0, x1, y1 = getattr(info, "display_window", None) or (0, 0, info.width - 1, info.height - 1)
     (root / "C0").mkdir(parents=True)
     shutil.copyfile(CHATTY, root / "C0" / "000000.exr")

@@ -22,23 +22,26 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from volcap_core import imageio
-from volcap_core.imageio import (
+from volcap_core.imageio.check import read_header
+from volcap_core.imageio.errors import ImageReadError, SourceChoiceError
+from volcap_core.imageio.parts import PartHeader, window_overlap
+from volcap_core.imageio.plain_frame import (
+    decode_half_exr,
+    half_nonfinite_pixels,
+    plain_frame_header,
+    restamp_exr,
+)
+from volcap_core.imageio.read import (
     ImageInfo,
-    ImageReadError,
-    PartHeader,
-    SourceChoiceError,
     decode_exr,
-    encode_exr,
     probe_footage,
     probe_image,
     read_exr_header,
     read_exr_native,
     read_footage,
     read_image,
-    window_overlap,
-    write_exr,
 )
+from volcap_core.imageio.write import _compression_enum, encode_exr, write_exr
 
 REPO = Path(__file__).resolve().parents[1]
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -220,7 +223,8 @@ _CHILD = textwrap.dedent(
     import json, resource, sys, time
     # a decoder that tries to allocate absurd memory fails here instead of swapping the machine
     resource.setrlimit(resource.RLIMIT_AS, (6 << 30, 6 << 30))
-    from volcap_core.imageio import ImageReadError, probe_image, read_image
+    from volcap_core.imageio.errors import ImageReadError
+    from volcap_core.imageio.read import probe_image, read_image
     for path in json.load(sys.stdin):
         for fn in (probe_image, read_image):
             t = time.perf_counter()
@@ -291,7 +295,7 @@ def test_structurally_damaged_exrs_never_reach_the_decoder(tmp_path):
     a huge data window, a chunk leader pointing elsewhere, an inconsistent uncompressed size."""
     pixels = np.random.default_rng(1).random((40, 24, 3), dtype=np.float32)
     good = encode_exr(pixels, ("R", "G", "B"), compression="none")
-    table = imageio._read_header(good, 8, len(good))[1]  # end of the header = start of the offset table
+    table = read_header(good, 8, len(good))[1]  # end of the header = start of the offset table
     for cut in range(len(good)):  # every truncation
         with pytest.raises(ImageReadError, match="damaged EXR"):
             decode_exr(good[:cut], name=f"cut{cut}")
@@ -485,7 +489,7 @@ def test_write_is_atomic(tmp_path, monkeypatch):
     def broken_replace(src, dst):
         raise OSError("disk vanished")
 
-    monkeypatch.setattr(imageio.os, "replace", broken_replace)
+    monkeypatch.setattr(os, "replace", broken_replace)
     with pytest.raises(OSError, match="disk vanished"):
         write_exr(path, np.zeros((4, 4, 3), np.float32), ("R", "G", "B"))
     assert path.read_bytes() == before  # old content intact, temporary file removed
@@ -660,27 +664,27 @@ def _noisy_rgba(h: int = 40, w: int = 56, seed: int = 0) -> np.ndarray:
 
 @pytest.mark.parametrize("compression", ["zip", "piz", "none", "rle", "zips", "pxr24", "b44", "dwaa"])
 def test_a_restamped_frame_keeps_the_source_bits_and_carries_the_new_header(tmp_path, compression):
-    src = imageio.encode_exr(_noisy_rgba(), "RGBA", compression=compression,
-                             attributes={"owner": "a camera vendor", "volcap.camera": "old"})
-    assert imageio.plain_frame_header(src) is not None
-    out = imageio.restamp_exr(src, attributes={"volcap.camera": "C07", "volcap.take_index": "12",
-                                                "volcap.a_very_long_attribute_name_beyond_31": 2.5, "n": 3})
+    src = encode_exr(_noisy_rgba(), "RGBA", compression=compression,
+                     attributes={"owner": "a camera vendor", "volcap.camera": "old"})
+    assert plain_frame_header(src) is not None
+    out = restamp_exr(src, attributes={"volcap.camera": "C07", "volcap.take_index": "12",
+                                        "volcap.a_very_long_attribute_name_beyond_31": 2.5, "n": 3})
     # the stored pixels are the source's, bit for bit, through both decoders
-    want = imageio.decode_half_exr(src)
-    got = imageio.decode_half_exr(out)
+    want = decode_half_exr(src)
+    got = decode_half_exr(out)
     assert np.array_equal(got.view(np.uint16), want.view(np.uint16))
     path = tmp_path / "stamped.exr"
     path.write_bytes(out)
-    oiio_pixels, channels = imageio.read_image(path)
+    oiio_pixels, channels = read_image(path)
     assert channels == ("R", "G", "B", "A") and np.array_equal(oiio_pixels, want.astype(np.float32))
-    header = imageio.read_exr_header(path)
+    header = read_exr_header(path)
     assert header["volcap.camera"] == "C07" and header["volcap.take_index"] == "12"
     assert header["volcap.a_very_long_attribute_name_beyond_31"] == 2.5 and header["n"] == 3
     assert "owner" not in header  # what encode_exr would not have written is dropped
-    assert header["compression"] == imageio._compression_enum(compression)  # the source's, kept
+    assert header["compression"] == _compression_enum(compression)  # the source's, kept
     from volcap_core.chromaticities import WORKING_CHROMATICITIES, same_chromaticities
 
-    assert same_chromaticities(imageio.probe_image(path).part_headers[0].chromaticities, WORKING_CHROMATICITIES)
+    assert same_chromaticities(probe_image(path).part_headers[0].chromaticities, WORKING_CHROMATICITIES)
 
 
 def test_a_decreasing_y_frame_restamps_and_decodes(tmp_path):
@@ -692,8 +696,8 @@ def test_a_decreasing_y_frame_restamps_and_decodes(tmp_path):
     buf = io.BytesIO()
     OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
                   "lineOrder": OpenEXR.DECREASING_Y}, {"RGBA": pixels}).write(buf)
-    out = imageio.restamp_exr(buf.getvalue(), attributes={"volcap.camera": "C1"})
-    assert np.array_equal(imageio.decode_half_exr(out).view(np.uint16), pixels.view(np.uint16))
+    out = restamp_exr(buf.getvalue(), attributes={"volcap.camera": "C1"})
+    assert np.array_equal(decode_half_exr(out).view(np.uint16), pixels.view(np.uint16))
 
 
 @pytest.mark.parametrize("what", ["float pixels", "offset data window", "extra channel", "two parts", "rgb only"])
@@ -704,14 +708,14 @@ def test_only_plain_frames_are_restamped(what):
 
     px = _noisy_rgba(8, 8)
     if what == "float pixels":
-        data = imageio.encode_exr(px, "RGBA", pixel_type="float")
+        data = encode_exr(px, "RGBA", pixel_type="float")
     elif what == "offset data window":
         buf = io.BytesIO()
         OpenEXR.File({"type": OpenEXR.scanlineimage, "dataWindow": ((2, 2), (9, 9)),
                       "displayWindow": ((0, 0), (11, 11))}, {"RGBA": px.astype(np.float16)}).write(buf)
         data = buf.getvalue()
     elif what == "extra channel":
-        data = imageio.encode_exr(np.concatenate([px, px[..., :1]], -1), ("R", "G", "B", "A", "Z"))
+        data = encode_exr(np.concatenate([px, px[..., :1]], -1), ("R", "G", "B", "A", "Z"))
     elif what == "two parts":
         buf = io.BytesIO()
         parts = [OpenEXR.Part({"type": OpenEXR.scanlineimage}, {"RGBA": px.astype(np.float16)}, name=n)
@@ -719,40 +723,40 @@ def test_only_plain_frames_are_restamped(what):
         OpenEXR.File(parts).write(buf)
         data = buf.getvalue()
     else:
-        data = imageio.encode_exr(px[..., :3], "RGB")
-        assert imageio.plain_frame_header(data) is not None  # RGB without alpha is plain too
+        data = encode_exr(px[..., :3], "RGB")
+        assert plain_frame_header(data) is not None  # RGB without alpha is plain too
         return
-    assert imageio.plain_frame_header(data) is None
+    assert plain_frame_header(data) is None
     with pytest.raises(ValueError, match="not a plain frame"):
-        imageio.restamp_exr(data)
+        restamp_exr(data)
 
 
 def test_a_plain_frame_with_a_corrupt_payload_is_refused_and_prints_nothing(capsys):
-    data = bytearray(imageio.encode_exr(_noisy_rgba(), "RGBA", compression="zip"))
+    data = bytearray(encode_exr(_noisy_rgba(), "RGBA", compression="zip"))
     for i in range(len(data) - 40, len(data) - 20):
         data[i] ^= 0xFF
-    with pytest.raises(imageio.ImageReadError, match=r"frame\.exr: damaged EXR: pixel data does not decode"):
-        imageio.decode_half_exr(bytes(data), "frame.exr")
+    with pytest.raises(ImageReadError, match=r"frame\.exr: damaged EXR: pixel data does not decode"):
+        decode_half_exr(bytes(data), "frame.exr")
     assert capsys.readouterr().out == ""  # the bindings' printed warning went into the message
-    with pytest.raises(imageio.ImageReadError, match="does not decode"):
-        imageio.decode_exr(bytes(data), "frame.exr")
+    with pytest.raises(ImageReadError, match="does not decode"):
+        decode_exr(bytes(data), "frame.exr")
 
 
 def test_decode_exr_gives_the_same_values_for_plain_and_converted_paths(tmp_path):
     px = _noisy_rgba()
-    plain = imageio.encode_exr(px, "RGBA")
-    pixels, channels = imageio.decode_exr(plain)
+    plain = encode_exr(px, "RGBA")
+    pixels, channels = decode_exr(plain)
     path = tmp_path / "f.exr"
     path.write_bytes(plain)
     assert channels == ("R", "G", "B", "A") and pixels.dtype == np.float32
-    assert np.array_equal(pixels, imageio.read_image(path)[0])
+    assert np.array_equal(pixels, read_image(path)[0])
 
 
 def test_half_nonfinite_pixels_counts_pixels_not_samples():
     px = np.zeros((3, 4, 4), np.float16)
-    assert imageio.half_nonfinite_pixels(px) == 0
+    assert half_nonfinite_pixels(px) == 0
     px[0, 0, :2] = np.inf  # one pixel, two samples
     px[2, 3, 3] = np.nan
     px[1, 1, 0] = -np.inf
     px[1, 2, 0] = 65504.0  # the largest finite half is finite
-    assert imageio.half_nonfinite_pixels(px) == 3
+    assert half_nonfinite_pixels(px) == 3

@@ -13,9 +13,10 @@ import pytest
 from flows.ingest import ingest_flow
 from flows.runtime import run_flow
 from hardware.rig import load_rig
-from volcap_core import imageio
 from volcap_core.capture import Capture, IngestError
 from volcap_core.colour import srgb_encode
+from volcap_core.imageio.read import decode_exr, read_exr_header
+from volcap_core.imageio.write import write_exr
 from volcap_core.store import ArtifactStore, MissingRefError
 
 W, H, FRAMES = 16, 12, 4
@@ -57,7 +58,7 @@ def make_capture(root: Path) -> Path:
                 code = np.round(srgb_encode(np.clip(px / 4.0, 0, 1)) * 65535).astype(np.uint16)
                 _write_png16(folder / f"{f:06d}.png", code)
             else:
-                imageio.write_exr(folder / f"{f + early:06d}.exr", px, ("R", "G", "B"), pixel_type="float")
+                write_exr(folder / f"{f + early:06d}.exr", px, ("R", "G", "B"), pixel_type="float")
         src = {"id": f"C{cam}", "path": f"C{cam}", "start_timecode": "01:00:00:00" if cam != 2 else "00:59:59:22",
                "encoding": "srgb" if cam == 1 else "linear"}
         if cam == 2:
@@ -98,14 +99,14 @@ def test_ingest_converts_every_camera_to_linear_half_exr(prefect_api, capture_di
     assert (summary.tasks_run, summary.tasks_cached, summary.tasks_failed) == (7, 0, 0)
 
     # Linear EXR stored as half: equal to the source within half precision.
-    px, ch = imageio.decode_exr(s.get_bytes(capture.camera("C0").frames[2]))
+    px, ch = decode_exr(s.get_bytes(capture.camera("C0").frames[2]))
     assert ch == ("R", "G", "B")
     np.testing.assert_allclose(px, _pixels(0, 2), rtol=1e-3)
     # sRGB PNG linearised (16-bit quantisation of the encoded value).
-    px, _ = imageio.decode_exr(s.get_bytes(capture.camera("C1").frames[1]))
+    px, _ = decode_exr(s.get_bytes(capture.camera("C1").frames[1]))
     np.testing.assert_allclose(px, np.clip(_pixels(1, 1) / 4.0, 0, 1), atol=2e-3)
     # The camera that started 2 frames early: take index 0 is its file 000002.
-    px, _ = imageio.decode_exr(s.get_bytes(capture.camera("C2").frames[0]))
+    px, _ = decode_exr(s.get_bytes(capture.camera("C2").frames[0]))
     np.testing.assert_allclose(px, _pixels(2, 0), rtol=1e-3)
     lens = capture.camera("C2").lens_encoder
     assert [l.frame for l in lens] == list(range(FRAMES)) and lens[0].focal_mm == 62.0
@@ -128,7 +129,7 @@ def test_rerun_is_all_cached_and_one_replaced_camera_reingests_alone(prefect_api
     assert touched.result == first.result
 
     # New content for one camera: that camera and the record only.
-    imageio.write_exr(f, _pixels(0, 1) * 2, ("R", "G", "B"), pixel_type="float")
+    write_exr(f, _pixels(0, 1) * 2, ("R", "G", "B"), pixel_type="float")
     changed = run_flow(ingest_flow, store=store_url, capture_dir=str(capture_dir))
     assert (changed.tasks_run, changed.tasks_cached) == (3, 4)
     assert changed.result != first.result
@@ -166,12 +167,12 @@ def _break(capture_dir: Path, how: str) -> str:
         desc_path.write_text(json.dumps(desc))
         return "X9 are not in rig tiny"
     if how == "resolution":
-        imageio.write_exr(capture_dir / "C1" / "000003.png".replace(".png", ".exr"),
-                          np.zeros((H + 1, W, 3), np.float32), ("R", "G", "B"))
+        write_exr(capture_dir / "C1" / "000003.png".replace(".png", ".exr"),
+                  np.zeros((H + 1, W, 3), np.float32), ("R", "G", "B"))
         (capture_dir / "C1" / "000003.png").unlink()
         return "camera C1, frame 3"
     if how == "channels":
-        imageio.write_exr(capture_dir / "C0" / "000000.exr", np.zeros((H, W, 4), np.float32), ("R", "G", "B", "A"))
+        write_exr(capture_dir / "C0" / "000000.exr", np.zeros((H, W, 4), np.float32), ("R", "G", "B", "A"))
         return "camera C0, frame 1"
     if how == "damaged":
         f = capture_dir / "C0" / "000003.exr"
@@ -181,7 +182,7 @@ def _break(capture_dir: Path, how: str) -> str:
         px = _pixels(0, 2)
         px[1, 1, 0] = np.nan
         px[2, 2, 1] = np.inf
-        imageio.write_exr(capture_dir / "C0" / "000002.exr", px, ("R", "G", "B"), pixel_type="float")
+        write_exr(capture_dir / "C0" / "000002.exr", px, ("R", "G", "B"), pixel_type="float")
         return "camera C0, frame 2"
     if how == "no-lens":
         del desc["cameras"][2]["lens_encoder"]
@@ -239,10 +240,10 @@ def test_a_stereo_pair_shares_a_folder_of_two_view_files(prefect_api, capture_di
         record = capture.camera(cam)
         assert (record.source_view, record.source_part) == (view, None)
         data = s.get_bytes(record.frames[2])
-        px, _ = imageio.decode_exr(data)
+        px, _ = decode_exr(data)
         np.testing.assert_allclose(px, _pixels(0 if view == "left" else 1, 2), rtol=1e-3)
         (capture_dir / "stored.exr").write_bytes(data)
-        assert imageio.read_exr_header(capture_dir / "stored.exr")["volcap.source_view"] == view
+        assert read_exr_header(capture_dir / "stored.exr")["volcap.source_view"] == view
 
 
 def test_frames_recorded_outside_the_take_are_left_out(prefect_api, capture_dir, store_url):
@@ -256,7 +257,7 @@ def test_nan_repair_policy(prefect_api, capture_dir, store_url):
     _break(capture_dir, "nan")
     summary = run_flow(ingest_flow, store=store_url, capture_dir=str(capture_dir), nan_policy="repair")
     s = ArtifactStore(store_url)
-    px, _ = imageio.decode_exr(s.get_bytes(s.get_record(summary.result, Capture).camera("C0").frames[2]))
+    px, _ = decode_exr(s.get_bytes(s.get_record(summary.result, Capture).camera("C0").frames[2]))
     assert np.isfinite(px).all() and px[1, 1, 0] == 0.0 and px[2, 2, 1] == 65504.0
 
 
@@ -277,7 +278,7 @@ def test_camera_log_footage_is_linearised_through_an_ocio_config(prefect_api, ca
     for f in range(FRAMES):
         px = _pixels(0, f).copy()
         to_log.applyRGB(px)
-        imageio.write_exr(capture_dir / "C0" / f"{f:06d}.exr", px, ("R", "G", "B"), pixel_type="float")
+        write_exr(capture_dir / "C0" / f"{f:06d}.exr", px, ("R", "G", "B"), pixel_type="float")
     desc = json.loads((capture_dir / "capture.json").read_text())
     desc["ocio_config"] = "studio.ocio"
     desc["cameras"][0].update(encoding="ocio", ocio_colorspace="ARRI LogC3 (EI800)")
@@ -285,5 +286,5 @@ def test_camera_log_footage_is_linearised_through_an_ocio_config(prefect_api, ca
 
     summary = run_flow(ingest_flow, store=store_url, capture_dir=str(capture_dir))
     s = ArtifactStore(store_url)
-    px, _ = imageio.decode_exr(s.get_bytes(s.get_record(summary.result, Capture).camera("C0").frames[1]))
+    px, _ = decode_exr(s.get_bytes(s.get_record(summary.result, Capture).camera("C0").frames[1]))
     np.testing.assert_allclose(px, _pixels(0, 1), rtol=3e-3, atol=1e-4)

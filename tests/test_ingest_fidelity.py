@@ -14,10 +14,12 @@ import numpy as np
 import pytest
 
 from hardware.rig import RigCamera
-from volcap_core import imageio
 from volcap_core.capture import CameraSource, CaptureCamera, Encoding, IngestError
 from volcap_core.chromaticities import REC709_D65, Chromaticities
 from volcap_core.digest import digest_file
+from volcap_core.imageio.plain_frame import decode_half_exr
+from volcap_core.imageio.read import decode_exr, probe_image, read_exr_header, read_exr_native, read_image
+from volcap_core.imageio.write import HALF_MAX, _compression_enum, encode_exr, write_exr
 from volcap_core.ingest import RawFrame, check_headers, convert_frame
 
 REPO = Path(__file__).resolve().parents[1]
@@ -48,7 +50,7 @@ def _ingest(path: Path, cam: CameraSource | None = None, *, nan_policy: str = "e
     """convert_frame → (stored pixels [H, W, C] float32, stored header)."""
     data, _ = convert_frame(_frame(path), digest_file(path)[0], cam or _camera(), ocio_config=ocio_config,
                             nan_policy=nan_policy, want_alpha=want_alpha)
-    pixels, _ = imageio.decode_exr(data)
+    pixels, _ = decode_exr(data)
     import OpenEXR
     import io
 
@@ -83,7 +85,7 @@ def test_a_chosen_part_is_stored_in_its_display_window_and_says_where_it_came_fr
     check_headers(cam, _rig_camera(2048, 1556), [_frame(path)])
     stored, header = _ingest(path, cam)
     assert stored.shape == (1556, 2048, 4)
-    source, _ = imageio.read_image(path, part=4)  # rgba_left: data window (688, 245)-(1564, 1120)
+    source, _ = read_image(path, part=4)  # rgba_left: data window (688, 245)-(1564, 1120)
     np.testing.assert_array_equal(stored[245:1121, 688:1565], source)
     outside = np.ones(stored.shape[:2], bool)
     outside[245:1121, 688:1565] = False
@@ -99,7 +101,7 @@ def test_a_view_of_a_single_part_stereo_file_is_chosen_by_name():
     with pytest.raises(IngestError, match=r"holds 2 views \(right, left\) and no part or view was chosen"):
         check_headers(_camera(), _rig_camera(2048, 1556), [_frame(path)])
     stored, header = _ingest(path, _camera(exr_view="left"))
-    native, names = imageio.read_exr_native(path)
+    native, names = read_exr_native(path)
     left = native[..., [names.index(c) for c in ("left.R", "left.G", "left.B", "left.A")]].astype(np.float32)
     np.testing.assert_array_equal(stored[245:1121, 654:1565], left)
     assert header["volcap.source_view"] == "left" and header["volcap.source_part"] == "rgba"
@@ -124,7 +126,7 @@ def test_capture_json_names_parts_and_views_and_old_records_still_load():
 def test_xyz_footage_is_stored_as_the_rec709_it_was_made_from():
     folder = EXR / "Chromaticities"
     rec709, header = _ingest(folder / "Rec709.exr")
-    np.testing.assert_array_equal(rec709, imageio.read_image(folder / "Rec709.exr")[0])  # nothing to convert
+    np.testing.assert_array_equal(rec709, read_image(folder / "Rec709.exr")[0])  # nothing to convert
     np.testing.assert_allclose(header["chromaticities"], REC709_D65, atol=1e-7)
     assert "volcap.source_chromaticities" not in header
     xyz, header = _ingest(folder / "XYZ.exr")
@@ -149,7 +151,7 @@ def test_wide_gamut_footage_is_converted_as_opencolorio_converts_it(tmp_path):
 
     p3 = np.random.default_rng(8).uniform(0.0, 4.0, (6, 7, 3)).astype(np.float32)
     path = tmp_path / "p3.exr"
-    imageio.write_exr(path, p3, ("R", "G", "B"), pixel_type="float", chromaticities=P3_D65)
+    write_exr(path, p3, ("R", "G", "B"), pixel_type="float", chromaticities=P3_D65)
     stored, header = _ingest(path)
     config = ocio.Config.CreateFromBuiltinConfig("studio-config-latest")
     expected = p3.copy()
@@ -167,7 +169,7 @@ def test_ocio_footage_takes_its_primaries_from_its_colourspace_not_twice(tmp_pat
     (tmp_path / "studio.ocio").write_text(config.serialize())
     p3 = np.random.default_rng(9).uniform(0.0, 4.0, (6, 7, 3)).astype(np.float32)
     path = tmp_path / "p3.exr"
-    imageio.write_exr(path, p3, ("R", "G", "B"), pixel_type="float", chromaticities=P3_D65)
+    write_exr(path, p3, ("R", "G", "B"), pixel_type="float", chromaticities=P3_D65)
     cam = _camera(encoding=Encoding.ocio, ocio_colorspace="Linear P3-D65")
     stored, _ = _ingest(path, cam, ocio_config=tmp_path / "studio.ocio")
     expected = p3.copy()
@@ -178,7 +180,7 @@ def test_ocio_footage_takes_its_primaries_from_its_colourspace_not_twice(tmp_pat
 def test_chromaticities_that_define_no_conversion_are_refused(tmp_path):
     path = tmp_path / "000001.exr"
     collinear = Chromaticities(0.2, 0.2, 0.4, 0.4, 0.6, 0.6, 0.3127, 0.3290)
-    imageio.write_exr(path, np.ones((3, 4, 3), np.float32), ("R", "G", "B"), chromaticities=collinear)
+    write_exr(path, np.ones((3, 4, 3), np.float32), ("R", "G", "B"), chromaticities=collinear)
     with pytest.raises(IngestError) as err:
         check_headers(_camera(), _rig_camera(4, 3), [_frame(path)])
     assert str(err.value).startswith(f"camera CAM3, frame 1: {path}: its colour cannot be converted to the "
@@ -190,8 +192,8 @@ def test_chromaticities_that_define_no_conversion_are_refused(tmp_path):
 
 def test_a_camera_whose_frames_disagree_on_their_primaries_is_refused(tmp_path):
     a, b = tmp_path / "000001.exr", tmp_path / "000002.exr"
-    imageio.write_exr(a, np.ones((3, 4, 3), np.float32), ("R", "G", "B"))
-    imageio.write_exr(b, np.ones((3, 4, 3), np.float32), ("R", "G", "B"), chromaticities=P3_D65)
+    write_exr(a, np.ones((3, 4, 3), np.float32), ("R", "G", "B"))
+    write_exr(b, np.ones((3, 4, 3), np.float32), ("R", "G", "B"), chromaticities=P3_D65)
     with pytest.raises(IngestError, match=r"camera CAM3, frame 2: .*000002.exr declares chromaticities \(red \(0.68"):
         check_headers(_camera(), _rig_camera(4, 3), [_frame(a, 1), _frame(b, 2)])
 
@@ -213,8 +215,8 @@ def test_the_rig_resolution_is_the_display_window():
 def test_display_window_set(n):
     """Every t01..t16 stored at its display window's size, the 400x300 picture at its offset."""
     path = EXR / "DisplayWindow" / f"t{n:02d}.exr"
-    picture, _ = imageio.read_image(EXR / "DisplayWindow" / "t01.exr")  # all 16 hold these pixels
-    info = imageio.probe_image(path)
+    picture, _ = read_image(EXR / "DisplayWindow" / "t01.exr")  # all 16 hold these pixels
+    info = probe_image(path)
     (dx0, dy0, _, _), (px0, py0, px1, py1) = info.data_window, info.display_window
     rig = _rig_camera(px1 - px0 + 1, py1 - py0 + 1)
     if n in (15, 16):  # pixel aspect ratio 1.5 and 0.667: the camera model's pixels are square
@@ -277,7 +279,7 @@ def test_overscan_is_left_out_and_not_policed(tmp_path):
 
 def _plain_source(tmp_path: Path, pixels: np.ndarray, **kw) -> Path:
     path = tmp_path / "000001.exr"
-    path.write_bytes(imageio.encode_exr(pixels, "RGBA", **kw))
+    path.write_bytes(encode_exr(pixels, "RGBA", **kw))
     return path
 
 
@@ -286,13 +288,13 @@ def test_a_plain_linear_frame_is_stored_bit_exact_in_its_own_compression(tmp_pat
     path = _plain_source(tmp_path, px, compression="piz", attributes={"owner": "vendor"})
     data, repaired = convert_frame(_frame(path), digest_file(path)[0], _camera(), ocio_config=None,
                                    nan_policy="error", want_alpha=True)
-    source = imageio.decode_half_exr(path.read_bytes())
+    source = decode_half_exr(path.read_bytes())
     assert repaired == 0
-    assert np.array_equal(imageio.decode_half_exr(data).view(np.uint16), source.view(np.uint16))
+    assert np.array_equal(decode_half_exr(data).view(np.uint16), source.view(np.uint16))
     stored = tmp_path / "stored.exr"
     stored.write_bytes(data)
-    header = imageio.read_exr_header(stored)
-    assert header["compression"] == imageio._compression_enum("piz")
+    header = read_exr_header(stored)
+    assert header["compression"] == _compression_enum("piz")
     assert header["volcap.camera"] == "CAM3" and header["volcap.take_index"] == "1"
     assert header["volcap.source_display_window"] == "0 0 31 23" and "owner" not in header
     assert "chromaticities" in header
@@ -309,7 +311,7 @@ def test_nan_in_a_plain_frame_still_meets_the_policy(tmp_path, policy):
             _ingest(path, want_alpha=True)
         return
     stored, _ = _ingest(path, nan_policy="repair", want_alpha=True)
-    assert np.isfinite(stored).all() and stored[2, 3, 1] == 0.0 and stored[5, 5, 0] == imageio.HALF_MAX
+    assert np.isfinite(stored).all() and stored[2, 3, 1] == 0.0 and stored[5, 5, 0] == HALF_MAX
 
 
 def test_a_plain_frame_with_a_damaged_payload_is_refused_naming_camera_and_frame(tmp_path):

@@ -29,14 +29,14 @@ CHILD = textwrap.dedent(r"""
     import numpy as np
     import OpenEXR
     sys.path.insert(0, sys.argv[2])
-    from volcap_core import imageio
     from volcap_core.capture import CameraSource, IngestError
     from volcap_core.chromaticities import Chromaticities, REC709_D65, to_working_matrix
     from volcap_core.digest import digest_file
+    from volcap_core.imageio.read import decode_exr, read_image
     from volcap_core.ingest import RawFrame, convert_frame
 
     def expected_frame(p):
-        src, _ = imageio.read_image(p)  # data window, values as stored, default view of part 0
+        src, _ = read_image(p)  # data window, values as stored, default view of part 0
         src = np.nan_to_num(src, nan=0.0, posinf=65504.0, neginf=-65504.0)
         header = OpenEXR.File(str(p), header_only=True).header(0)
         (dx0, dy0), (dx1, dy1) = (tuple(int(v) for v in a) for a in header["dataWindow"])
@@ -75,7 +75,7 @@ CHILD = textwrap.dedent(r"""
         try:
             data, repaired = convert_frame(frame, digest_file(p)[0], cam, ocio_config=None,
                                            nan_policy="repair", want_alpha=False)
-            px, ch = imageio.decode_exr(data)
+            px, ch = decode_exr(data)
             expected, converted = expected_frame(p)
             same = px.shape == expected.shape and bool(np.array_equal(px, expected))
             # converted files: OpenColorIO's float32 matrix against numpy's float64, then half rounding

@@ -11,7 +11,7 @@ import volcap_core.segment as segment_lib
 from flows.ingest import ingest_flow
 from flows.reconstruct import plan_reconstruction, reconstruct_flow
 from flows.runtime import run_flow
-from volcap_core import imageio
+from volcap_core.imageio.read import decode_exr
 from volcap_core.presets import PRESETS, named_preset
 from volcap_core.production.spec import CaptureInfo, needed_steps, parse_spec
 from volcap_core.reconstruction import SegmentModel
@@ -185,7 +185,7 @@ def test_render_view_and_ply_export(reconstructed):
     refs = reconstruct_tasks.render_views.fn(store, seg_ref, views)
     assert len(refs) == 2 and refs[0] != refs[1]  # the actors moved between the two instants
     exr = s.get_bytes(refs[1])
-    px, ch = imageio.decode_exr(exr)
+    px, ch = decode_exr(exr)
     assert ch == ("R", "G", "B", "A") and px.shape == (h, w, 4)
     assert torch.isfinite(torch.from_numpy(px)).all() and px[..., 3].max() > 0.5
 

@@ -33,7 +33,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from hardware.rig import Rig, load_rig
-from volcap_core.imageio import read_image
+from volcap_core.imageio.read import read_image
 from volcap_core.records import ArtifactRef, Record
 
 CAPTURE_FORMAT = "volcap-capture/1"

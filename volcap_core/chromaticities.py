@@ -7,7 +7,7 @@ Scene-linear with ITU-R BT.709 / IEC 61966-2-1 (sRGB) primaries and a D65 white
 (:data:`WORKING_CHROMATICITIES`): what ``srgb`` footage decodes to, what an OCIO config's
 ``scene_linear`` role must name (``docs/capture-layout.md``), what calibration and reconstruction
 treat as linear Rec.709, and what every EXR volcap writes declares in its ``chromaticities``
-attribute (:func:`volcap_core.imageio.encode_exr` writes it by default). An EXR without the
+attribute (:func:`volcap_core.imageio.write.encode_exr` writes it by default). An EXR without the
 attribute is Rec.709/D65 by the OpenEXR specification, so it needs no conversion.
 
 Conversion

@@ -29,7 +29,7 @@ placed at their offset, everything outside the data window 0 (alpha 0 too), data
 window (overscan) left out; its colour is scene-linear in the working space
 (:mod:`volcap_core.chromaticities`: linear Rec.709/D65), converted from the file's
 ``chromaticities`` when they differ. Its header says where it came from (``volcap.source_*``).
-A source that already is such a frame (:func:`imageio.plain_frame_header`, scene-linear, working
+A source that already is such a frame (:func:`plain_frame_header`, scene-linear, working
 primaries, no NaN/Inf) is restamped rather than converted: new header, the camera's compressed
 chunks copied, its pixels decoded once to prove they decode. Re-compressing costs ~3x a decode, so
 this is what keeps ingest near the cost of reading the footage (``bench/bench_ingest.py``).
@@ -45,7 +45,6 @@ from typing import Literal
 import numpy as np
 
 from hardware.rig import Rig, RigCamera
-from volcap_core import imageio
 from volcap_core.capture import (
     frames_to_timecode,
     timecode_to_frames,
@@ -65,6 +64,16 @@ from volcap_core.chromaticities import (
 )
 from volcap_core.colour import srgb_decode
 from volcap_core.digest import digest_bytes, digest_file
+from volcap_core.imageio.errors import ImageReadError, SourceChoiceError
+from volcap_core.imageio.parts import ColourSource, PartHeader, window_overlap
+from volcap_core.imageio.plain_frame import (
+    decode_half_exr,
+    half_nonfinite_pixels,
+    plain_frame_header,
+    restamp_exr,
+)
+from volcap_core.imageio.read import ImageInfo, probe_footage, read_footage
+from volcap_core.imageio.write import encode_exr
 
 NanPolicy = Literal["error", "repair"]
 HALF_MAX = 65504.0
@@ -131,36 +140,36 @@ def select_take(desc: CaptureDescription, cam: CameraSource, files: dict[int, Pa
 PIXEL_ASPECT_TOLERANCE = 1e-3
 
 
-def probe_source(cam: CameraSource, frame: RawFrame) -> tuple[imageio.ImageInfo, imageio.ColourSource]:
+def probe_source(cam: CameraSource, frame: RawFrame) -> tuple[ImageInfo, ColourSource]:
     """The header of the picture ``cam`` chooses in ``frame``'s file; errors name camera and frame."""
     try:
-        return imageio.probe_footage(frame.path, cam.exr_part, cam.exr_view)
-    except imageio.ImageReadError as exc:
+        return probe_footage(frame.path, cam.exr_part, cam.exr_view)
+    except ImageReadError as exc:
         raise _read_error(cam, frame, exc) from exc
 
 
-def _read_error(cam: CameraSource, frame: RawFrame, exc: imageio.ImageReadError) -> IngestError:
+def _read_error(cam: CameraSource, frame: RawFrame, exc: ImageReadError) -> IngestError:
     """An imageio error as an IngestError naming camera and frame (its message names the file);
     an ambiguous file also says where the choice goes."""
     msg = f"camera {cam.id}, frame {frame.camera_frame}: {exc}"
-    if isinstance(exc, imageio.SourceChoiceError):
+    if isinstance(exc, SourceChoiceError):
         msg += (f". Say which picture is camera {cam.id}'s footage with \"exr_part\" (a part name) and/or "
                 f"\"exr_view\" (a view name) in its capture.json entry")
     return IngestError(msg)
 
 
-def _applies_primaries(cam: CameraSource, source: imageio.ColourSource) -> bool:
+def _applies_primaries(cam: CameraSource, source: ColourSource) -> bool:
     """Whether the file's chromaticities are this camera's primaries: not for ``ocio`` footage (its
     colourspace names the primaries; applying both would convert twice), not for luminance-only
     pictures (Y is CIE luminance: R = G = B = Y is the same grey in any space)."""
     return cam.encoding is not Encoding.ocio and source.kind != "luminance"
 
 
-def check_headers(cam: CameraSource, rig_cam: RigCamera, frames: list[RawFrame]) -> imageio.ImageInfo:
+def check_headers(cam: CameraSource, rig_cam: RigCamera, frames: list[RawFrame]) -> ImageInfo:
     """Every file readable, its chosen picture at the rig sensor's resolution (display window),
     with square pixels, RGB channels and convertible primaries, all frames alike; returns the
     first frame's header."""
-    first: tuple[imageio.ImageInfo, imageio.ColourSource, imageio.PartHeader] | None = None
+    first: tuple[ImageInfo, ColourSource, PartHeader] | None = None
     want = (rig_cam.sensor.width_px, rig_cam.sensor.height_px)
     for f in frames:
         info, source = probe_source(cam, f)
@@ -192,7 +201,7 @@ def check_headers(cam: CameraSource, rig_cam: RigCamera, frames: list[RawFrame])
     return first[0]
 
 
-def _chroma_text(header: imageio.PartHeader) -> str:
+def _chroma_text(header: PartHeader) -> str:
     text = f"({header.chromaticities})" if header.chromaticities is not None else "(none: Rec.709/D65)"
     return text + (f" with adoptedNeutral {header.adopted_neutral}" if header.adopted_neutral else "")
 
@@ -293,7 +302,7 @@ def apply_nan_policy(pixels: np.ndarray, policy: NanPolicy, where: str) -> tuple
     return np.nan_to_num(pixels, nan=0.0, posinf=HALF_MAX, neginf=-HALF_MAX), n
 
 
-def to_working_primaries(rgb: np.ndarray, header: imageio.PartHeader, where: str) -> np.ndarray:
+def to_working_primaries(rgb: np.ndarray, header: PartHeader, where: str) -> np.ndarray:
     """Scene-linear ``[h, w, 3|4]`` float32 in the primaries ``header`` declares → the working space
     (alpha passes through); the array itself when they are the working space already.
 
@@ -317,7 +326,7 @@ def in_display_window(pixels: np.ndarray, data_window: tuple[int, int, int, int]
     (alpha included: outside the data window there is nothing)."""
     x0, y0, x1, y1 = display_window
     shape = (y1 - y0 + 1, x1 - x0 + 1, pixels.shape[-1])
-    overlap = imageio.window_overlap(data_window, display_window)
+    overlap = window_overlap(data_window, display_window)
     if overlap is not None and pixels.shape == shape:
         return pixels  # the data window covers the display window exactly: nothing to place
     out = np.zeros(shape, dtype=np.float32)
@@ -330,7 +339,7 @@ def visible_pixels(pixels: np.ndarray, data_window: tuple[int, int, int, int],
                    display_window: tuple[int, int, int, int]) -> np.ndarray:
     """The part of the data window's pixels ``[Hd, Wd, C]`` inside the display window (a view; zero
     rows when they do not overlap): only these are converted and stored."""
-    overlap = imageio.window_overlap(data_window, display_window)
+    overlap = window_overlap(data_window, display_window)
     return pixels[overlap[0]] if overlap is not None else pixels[:0, :0]
 
 
@@ -338,8 +347,8 @@ def _window_text(window: tuple[int, int, int, int]) -> str:
     return " ".join(str(v) for v in window)
 
 
-def source_attributes(cam: CameraSource, take_index: int, header: imageio.PartHeader,
-                      source: imageio.ColourSource | None) -> dict[str, str]:
+def source_attributes(cam: CameraSource, take_index: int, header: PartHeader,
+                      source: ColourSource | None) -> dict[str, str]:
     """The stored frame's ``volcap.*`` header: camera, take index, and what the source was (encoding,
     part, view, chromaticities as declared, windows as inclusive ``xmin ymin xmax ymax``).
     ``source`` None: the file's only picture, without part name or view."""
@@ -360,7 +369,7 @@ def source_attributes(cam: CameraSource, take_index: int, header: imageio.PartHe
 
 def _restamped(raw: bytes, frame: RawFrame, cam: CameraSource, *, want_alpha: bool) -> bytes | None:
     """The stored frame without converting its pixels, when the source already is one: a plain
-    half EXR (:func:`imageio.restamp_exr`), scene-linear (``encoding`` linear), in the working
+    half EXR (:func:`restamp_exr`), scene-linear (``encoding`` linear), in the working
     primaries, without NaN/Inf, with alpha exactly when the camera's frames have it. Its pixels are
     decoded once, from the restamped bytes, to prove they decode (a damaged payload is refused as
     the converting path would) and to check NaN/Inf. None: convert it (also for NaN/Inf, so the
@@ -368,17 +377,17 @@ def _restamped(raw: bytes, frame: RawFrame, cam: CameraSource, *, want_alpha: bo
     if cam.encoding is not Encoding.linear or cam.exr_part is not None or cam.exr_view is not None:
         return None
     try:
-        header = imageio.plain_frame_header(raw, path=str(frame.path))
+        header = plain_frame_header(raw, path=str(frame.path))
         if header is None or ("A" in header.channels) != want_alpha:
             return None
         if needs_conversion(header.chromaticities, header.adopted_neutral):
             return None
-        stored = imageio.restamp_exr(raw, attributes=source_attributes(cam, frame.take_index, header, None),
-                                     path=str(frame.path))
-        pixels = imageio.decode_half_exr(stored, path=str(frame.path))
-    except imageio.ImageReadError as exc:
+        stored = restamp_exr(raw, attributes=source_attributes(cam, frame.take_index, header, None),
+                             path=str(frame.path))
+        pixels = decode_half_exr(stored, path=str(frame.path))
+    except ImageReadError as exc:
         raise _read_error(cam, frame, exc) from exc
-    if imageio.half_nonfinite_pixels(pixels):
+    if half_nonfinite_pixels(pixels):
         return None
     return stored
 
@@ -402,8 +411,8 @@ def convert_frame(frame: RawFrame, expected_digest: str, cam: CameraSource, *, o
         return stored, 0
     del raw
     try:
-        footage = imageio.read_footage(frame.path, cam.exr_part, cam.exr_view)
-    except imageio.ImageReadError as exc:  # its message already names the file
+        footage = read_footage(frame.path, cam.exr_part, cam.exr_view)
+    except ImageReadError as exc:  # its message already names the file
         raise _read_error(cam, frame, exc) from exc
     header = footage.header
     # overscan (data outside the display window) is not stored, so it is neither converted nor
@@ -423,7 +432,7 @@ def convert_frame(frame: RawFrame, expected_digest: str, cam: CameraSource, *, o
     lin = in_display_window(lin, header.data_window, header.display_window)
     channels_out = ("R", "G", "B", "A") if lin.shape[-1] == 4 else ("R", "G", "B")
     attrs = source_attributes(cam, frame.take_index, header, footage.source)
-    return imageio.encode_exr(lin, channels_out, pixel_type="half", compression="zip", attributes=attrs), repaired
+    return encode_exr(lin, channels_out, pixel_type="half", compression="zip", attributes=attrs), repaired
 
 
 def raw_manifest_json(camera_id: str, entries: list[dict]) -> dict:

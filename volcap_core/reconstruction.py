@@ -19,10 +19,10 @@ import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict
 
-from volcap_core import imageio
 from volcap_core.calibration.distortion import needs_rectify, rectified_valid, rectify_frame
 from volcap_core.calibration.record import Calibration, TrackingFrames, camera_at, frame_camera
 from volcap_core.capture import Capture
+from volcap_core.imageio.read import decode_exr
 from volcap_core.pointcloud import PointCloudSequence
 from volcap_core.records import ArtifactRef, Record
 from volcap_core.splat import Camera, PointsAtTime, SegmentData
@@ -127,7 +127,7 @@ class FrameCache:
             if hit is not None:
                 self._frames.move_to_end(ref.digest)
                 return hit
-        pixels, _ = imageio.decode_exr(self._load(ref), name=ref.digest)
+        pixels, _ = decode_exr(self._load(ref), name=ref.digest)
         img = torch.from_numpy(np.ascontiguousarray(pixels[..., :3], dtype=np.float32))
         with self._lock:
             self._frames[ref.digest] = img

@@ -19,10 +19,11 @@ import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict
 
-from volcap_core import imageio, reconstruction
+from volcap_core import reconstruction
 from volcap_core.calibration.record import Calibration, TrackingFrames, decode_tracking_frames
 from volcap_core.capture import Capture
 from volcap_core.contact_sheet import contact_sheet, encode_jpeg, encode_png
+from volcap_core.imageio.write import encode_exr
 from volcap_core.pointcloud import PointCloudSequence
 from volcap_core.records import MEDIA_BYTES, MEDIA_PNG, ArtifactRef
 from volcap_core.splat import evaluate, load_model, render, save_model, train_segment
@@ -143,7 +144,7 @@ def render_segment_exr(get_bytes: GetBytes, seg: reconstruction.SegmentModel, K:
     attrs = {"volcap.time_s": float(time_s), "volcap.segment_frames": f"{seg.frames[0]}:{seg.frames[1]}",
              "volcap.K": json.dumps(np.asarray(K).tolist()),
              "volcap.world_to_camera": json.dumps(np.asarray(w2c).tolist())}
-    return imageio.encode_exr(rgba, ("R", "G", "B", "A"), pixel_type="half", attributes=attrs)
+    return encode_exr(rgba, ("R", "G", "B", "A"), pixel_type="half", attributes=attrs)
 
 
 __all__ = ["FittedSegment", "fit_segment", "ViewSpec", "render_segment_exr", "tracking_frames", "UI_SHEET_WIDTH"]

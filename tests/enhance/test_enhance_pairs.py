@@ -35,7 +35,7 @@ def face_capture_no_masks(tmp_path_factory):
 
 def test_load_sequences(face_capture):
     from volcap_core.capture import CaptureDescription
-    from volcap_core.imageio import read_image
+    from volcap_core.imageio.read import read_image
 
     seqs = load_face_capture_sequences(face_capture, CAMS, FRAMES)
     assert list(seqs) == CAMS

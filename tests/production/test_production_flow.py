@@ -12,7 +12,7 @@ import yaml
 
 from flows.production import open_production, plan_production, production_flow
 from flows.runtime import run_flow
-from volcap_core import imageio
+from volcap_core.imageio.read import decode_exr_native
 from volcap_core.production.performance import Performance
 from volcap_core.store import ArtifactStore
 from volcap_core.synth import synthesize_capture
@@ -67,7 +67,7 @@ def test_production_runs_plans_and_explains(prefect_api, static_capture, tmp_pat
     assert sorted(frames) == [f"{f:06d}.exr" for f in range(4)]
     # (after 20 steps the Gaussians are still large blobs filling the stage volume, so the crop to
     # the performers cannot show at this budget: test_production_shot tests it on a built model)
-    pixels, _ = imageio.decode_exr_native(s.get_bytes(frames["000002.exr"].digest))
+    pixels, _ = decode_exr_native(s.get_bytes(frames["000002.exr"].digest))
     # RGBA, then flow.x/flow.y on frames with an exact flow to the previous one (docs/shots.md)
     assert pixels.shape[-1] in (4, 6)
     rgba = pixels[..., :4]

@@ -11,7 +11,7 @@ import OpenEXR
 import pytest
 import torch
 
-from volcap_core.imageio import decode_exr
+from volcap_core.imageio.read import decode_exr
 from volcap_core.production.performance import Performance, PerformanceSegment
 from volcap_core.production.shot import (
     ShotError,

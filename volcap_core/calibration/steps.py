@@ -26,7 +26,6 @@ from pydantic import BaseModel, ConfigDict, Field
 from safetensors.numpy import load as st_load
 from safetensors.numpy import save as st_save
 
-from volcap_core import imageio
 from volcap_core.calibration import scale
 from volcap_core.calibration.colour import ColourCalibrationOptions
 from volcap_core.calibration.dense import DenseOptions, dense_points, sweep_range
@@ -42,6 +41,7 @@ from volcap_core.calibration.tracking import (StaticReference, TrackingOptions, 
                                               build_static_reference, calibrate_tracking_cameras, tracking_support,
                                               zoom_lens)
 from volcap_core.capture import Capture
+from volcap_core.imageio.read import decode_exr
 from volcap_core.records import ArtifactRef, Record
 
 log = logging.getLogger("volcap.calibrate")
@@ -144,7 +144,7 @@ def frame_loader(get_bytes: GetBytes, cap: Capture) -> FrameSource:
             raise CalibrationInputError(f"capture {cap.name}, camera {camera_id}: no frame {take_index} "
                                         f"(take has {len(cam.frames)})")
         ref = cam.frames[take_index]
-        pixels, _ = imageio.decode_exr(get_bytes(ref), name=f"{cap.name}/{camera_id}/{take_index} ({ref.digest})")
+        pixels, _ = decode_exr(get_bytes(ref), name=f"{cap.name}/{camera_id}/{take_index} ({ref.digest})")
         return np.ascontiguousarray(pixels[..., :3], dtype=np.float32)
 
     return load
@@ -678,7 +678,7 @@ def _view_image(view: ChartView, get_bytes: GetBytes) -> np.ndarray:
                                     "or an image")
     if view.image is not None:
         try:
-            pixels, _ = imageio.decode_exr(get_bytes(view.image), name=f"chart image {view.image.digest}")
+            pixels, _ = decode_exr(get_bytes(view.image), name=f"chart image {view.image.digest}")
         except ValueError as exc:
             raise CalibrationInputError(f"colour chart ({view.label()}): not a readable EXR: {exc}") from exc
         return np.ascontiguousarray(pixels[..., :3], np.float32)

@@ -137,7 +137,7 @@ def bicubic_unsharp(lq: torch.Tensor, size: tuple[int, int] | None = None, *, am
 # --------------------------------------------------------------------------- the synthetic capture
 
 def _read_mask(path: Path) -> np.ndarray:
-    from volcap_core.imageio import read_exr_native
+    from volcap_core.imageio.read import read_exr_native
 
     pixels, _ = read_exr_native(path)  # one channel "Z": coverage in [0, 1]
     return np.asarray(pixels, np.float32).reshape(pixels.shape[0], pixels.shape[1], -1)[..., 0]

@@ -236,8 +236,8 @@ def face_pairs_from_capture(capture, get_bytes: GetBytes, *, subsequences: int, 
     channel, else 1. The square crop of a window's frames is fixed by its first frame (so the
     sequence does not jump). Degradation noise is seeded by ``degradation.seed``, the window and
     the camera."""
-    from volcap_core import imageio
     from volcap_core.enhance.pairs import make_degraded_pairs
+    from volcap_core.imageio.read import decode_exr
 
     cams = list(capture.cameras)
     if not cams:
@@ -250,7 +250,7 @@ def face_pairs_from_capture(capture, get_bytes: GetBytes, *, subsequences: int, 
             cam = cams[(wi * per_window + k) % len(cams)]
             frames = []
             for f in take:
-                pixels, channels = imageio.decode_exr(get_bytes(cam.frames[f]), name=f"{cam.id}/{f}")
+                pixels, channels = decode_exr(get_bytes(cam.frames[f]), name=f"{cam.id}/{f}")
                 rgb = np.asarray(pixels[..., :3], np.float32)
                 alpha = load_mask(cam.id, f) if load_mask is not None else None
                 if alpha is None:

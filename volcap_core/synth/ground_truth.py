@@ -107,9 +107,9 @@ def performer_mask(exr_bytes: bytes) -> np.ndarray:
     [H, W] float32 in [0, 1]: the fraction of the pixel where an actor is the visible surface
     (1 = only actor, 0 = only set). Restrict image metrics to the performers with it (e.g. ``> 0.5``,
     or as a weight)."""
-    from volcap_core import imageio   # OpenImageIO: imported only by the code that reads EXRs
+    from volcap_core.imageio.read import decode_exr_native  # OpenImageIO: only code reading EXRs imports it
 
-    pixels, channels = imageio.decode_exr_native(exr_bytes, "performer mask")
+    pixels, channels = decode_exr_native(exr_bytes, "performer mask")
     if pixels.ndim != 3 or pixels.shape[-1] != 1:
         raise ValueError(f"performer mask: expected one channel, got {channels}")
     return np.clip(pixels[..., 0].astype(np.float32), 0.0, 1.0)
@@ -149,11 +149,11 @@ def depth_points(files: GroundTruthFiles, camera_ids: Sequence[str], frame: int,
     :class:`~volcap_core.calibration.distortion.Distortion` (None: pinholes; the depth maps and
     frames are in each camera's own pixels). Returns xyz [N, 3], rgb [N, 3] float32.
     """
-    from volcap_core import imageio
+    from volcap_core.imageio.read import decode_exr_native
 
     xyz_all, rgb_all = [], []
     for cam in camera_ids:
-        depth, _ = imageio.decode_exr_native(files.read(f"depth/{cam}/{frame:06d}.exr"))
+        depth, _ = decode_exr_native(files.read(f"depth/{cam}/{frame:06d}.exr"))
         K, w2c = camera_at_frame(cam, frame)
         xyz, rgb = backproject_depth(depth[..., 0].astype(np.float32), load_image(cam, frame), K, w2c,
                                      distortion=distortion_of(cam, frame) if distortion_of is not None else None)
