@@ -51,6 +51,8 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 from torch import nn
 
+from volcap_core.enhance.lora import LoRALinear
+
 __all__ = [
     "CONDITION_SLOTS",
     "FLUX_SCALING_FACTOR",
@@ -602,10 +604,8 @@ def enhancer_from_bytes(data: bytes, *, device: str | torch.device = "cpu") -> E
 
 
 def _reject_lora(model: Enhancer) -> None:
-    from volcap_core.enhance.training import LoRALinear
-
     if any(isinstance(m, LoRALinear) for m in model.modules()):
-        raise ValueError("the model still holds LoRA adapters: merge them first (training.merge_lora)")
+        raise ValueError("the model still holds LoRA adapters: merge them first (lora.merge_lora)")
 
 
 # ------------------------------------------------------------------------- conditions, targets

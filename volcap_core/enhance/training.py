@@ -37,18 +37,15 @@ DIS (:class:`~volcap_core.enhance.temporal.DisFlow`) on the LQ frames (computed 
 and cached); ``"dis"`` always DIS; ``"zero"`` no motion compensation (an ablation).
 
 Fine-tuning (``finetune``): ``"full"`` trains every transformer weight; ``"lora"`` freezes them and
-trains low-rank adapters (:class:`LoRALinear`, our own, ``W x + (alpha/r) B A x`` with ``A`` Kaiming-
-uniform and ``B`` zero, so training starts from the widened model exactly) on the attention and
-feed-forward linears of every block (the target list of diffusers' Flux LoRA scripts,
-:data:`LORA_TARGETS`), plus, in full, the widened ``x_embedder`` and ``proj_out`` (their new columns /
-rows start at zero or as copies and must be learnt). The VAE is frozen while the transformer trains;
+trains low-rank adapters (:mod:`volcap_core.enhance.lora`: zero at the start, so training starts
+from the widened model exactly) on the attention and feed-forward linears of every block, plus, in
+full, the widened ``x_embedder`` and ``proj_out`` (their new columns / rows start at zero or as
+copies and must be learnt). The VAE is frozen while the transformer trains;
 with ``vae_steps`` > 0 it is first pre-trained on its own (:func:`train_vae`: L1 + L2 reconstruction
 of the pair sets' HQ and LQ frames, RGB and alpha-as-gray, through the enhancer's own encode/decode
 mapping), which a tiny enhancer with random weights needs and FLUX.1's trained VAE does not. After
-training the adapters are merged into the weights (:func:`merge_lora`), so the result saves as a
-plain enhancer.
-Why not peft: it pulls ``transformers`` and ``accelerate`` in, and its adapters would have to be
-serialised and re-created for bit-identical resumption anyway.
+training the adapters are merged into the weights (:func:`~volcap_core.enhance.lora.merge_lora`), so
+the result saves as a plain enhancer.
 
 Checkpoints are safetensors bytes (trainable tensors, Adam moments, the RNG state, the step, the loss
 history; configs in the metadata). ``resume_from`` continues exactly: on CPU a resumed run ends
@@ -60,7 +57,6 @@ from __future__ import annotations
 
 import contextlib
 import json
-import math
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -87,17 +83,14 @@ from volcap_core.enhance.model import (
     rgb_to_vae,
     shift_sigma,
 )
+from volcap_core.enhance.lora import add_lora, merge_lora
 from volcap_core.records import omit_unset
 from volcap_core.splat.optim import AdamState, adam_step
 
 __all__ = [
-    "LORA_TARGETS",
     "EnhancerTrainConfig",
     "EnhancerTrainResult",
-    "LoRALinear",
-    "add_lora",
     "flow_matching_loss",
-    "merge_lora",
     "sample_sigmas",
     "train_enhancer",
     "train_vae",
@@ -106,14 +99,6 @@ __all__ = [
 ]
 
 CHECKPOINT_FORMAT = "volcap-enhancer-train/1"
-
-#: Linear layers (module-name suffixes inside ``transformer_blocks`` / ``single_transformer_blocks``)
-#: that get LoRA adapters: attention q/k/v/out of both streams, the feed-forward layers, and the
-#: single blocks' MLP in and joint out projections.
-LORA_TARGETS = ("attn.to_q", "attn.to_k", "attn.to_v", "attn.to_out.0", "attn.add_q_proj",
-                "attn.add_k_proj", "attn.add_v_proj", "attn.to_add_out", "ff.net.0.proj", "ff.net.2",
-                "ff_context.net.0.proj", "ff_context.net.2", "proj_mlp", "proj_out")
-
 
 class EnhancerTrainConfig(BaseModel):
     """Everything that shapes an enhancer training run (JSON; a task's cache key).
@@ -236,70 +221,6 @@ class EnhancerTrainResult:
     steps: int = 0
     wall_s: float = 0.0
     vae_losses: list[float] = field(default_factory=list)
-
-
-# -------------------------------------------------------------------------------------- LoRA
-
-class LoRALinear(nn.Module):
-    """``base(x) + scale * B(A(x))`` with ``A [r, in]``, ``B [out, r]``, ``scale = alpha / r``.
-    ``A`` starts Kaiming-uniform (bound ``1/sqrt(in)``, as ``nn.Linear`` and peft), ``B`` at zero."""
-
-    def __init__(self, base: nn.Linear, rank: int, alpha: float, generator: torch.Generator):
-        super().__init__()
-        self.base = base
-        self.base.requires_grad_(False)
-        self.rank, self.scale = rank, alpha / rank
-        bound = 1.0 / math.sqrt(base.in_features)
-        a = (torch.rand(rank, base.in_features, generator=generator) * 2.0 - 1.0) * bound
-        # float32 adapters on a bfloat16 base (frozen_dtype): low-precision master weights would
-        # lose most small Adam updates
-        kw = {"device": base.weight.device, "dtype": torch.promote_types(base.weight.dtype, torch.float32)}
-        self.lora_A = nn.Parameter(a.to(**kw))
-        self.lora_B = nn.Parameter(torch.zeros(base.out_features, rank, **kw))
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.base(x) + F.linear(F.linear(x, self.lora_A), self.lora_B) * self.scale
-
-    def merged(self) -> nn.Linear:
-        """The base layer with the adapter folded in (``W + scale B A``)."""
-        with torch.no_grad():
-            self.base.weight.add_((self.lora_B @ self.lora_A) * self.scale)
-        return self.base
-
-
-def _lora_sites(transformer) -> list[tuple[nn.Module, str, nn.Linear]]:
-    sites = []
-    for blocks in (transformer.transformer_blocks, transformer.single_transformer_blocks):
-        for block in blocks:
-            for name, mod in block.named_modules():
-                if isinstance(mod, nn.Linear) and name in LORA_TARGETS:
-                    parent_name, _, attr = name.rpartition(".")
-                    sites.append((block.get_submodule(parent_name) if parent_name else block, attr, mod))
-    return sites
-
-
-def add_lora(model: Enhancer, rank: int, alpha: float | None = None, *,
-             generator: torch.Generator | None = None) -> int:
-    """Wrap every :data:`LORA_TARGETS` linear of the transformer's blocks in a :class:`LoRALinear`
-    (in place; already wrapped layers are left alone). Returns the number of adapters added."""
-    gen = generator or torch.Generator().manual_seed(0)
-    n = 0
-    for parent, attr, mod in _lora_sites(model.transformer):
-        setattr(parent, attr, LoRALinear(mod, rank, float(alpha or rank), gen))
-        n += 1
-    return n
-
-
-def merge_lora(model: Enhancer) -> int:
-    """Fold every adapter into its base weight and put the plain ``nn.Linear`` back (in place).
-    Returns the number merged."""
-    n = 0
-    for name, mod in list(model.transformer.named_modules()):
-        if isinstance(mod, LoRALinear):
-            parent_name, _, attr = name.rpartition(".")
-            setattr(model.transformer.get_submodule(parent_name), attr, mod.merged())
-            n += 1
-    return n
 
 
 def _cast_frozen(model: Enhancer, trained: dict[str, nn.Parameter], dtype: torch.dtype) -> None:
