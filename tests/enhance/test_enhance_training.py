@@ -6,6 +6,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from volcap_core.checkpoint import AdamState, adam_step
 from volcap_core.enhance.lora import LoRALinear, add_lora, merge_lora
 from volcap_core.enhance.model import (
     EnhancerConfig,
@@ -27,7 +28,6 @@ from volcap_core.enhance.training import (
     train_enhancer,
     trainable_parameters,
 )
-from volcap_core.splat.optim import AdamState, adam_step
 
 
 def _face_like(t: int = 3, h: int = 64, w: int = 64, seed: int = 0) -> torch.Tensor:

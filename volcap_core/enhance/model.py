@@ -51,6 +51,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 from torch import nn
 
+from volcap_core.checkpoint import safetensors_bytes, safetensors_metadata
 from volcap_core.enhance.lora import LoRALinear
 
 __all__ = [
@@ -312,8 +313,6 @@ class PromptEmbedding:
 
     def to_bytes(self) -> bytes:
         """Safetensors bytes (the stored artifact of a group's prompt)."""
-        from volcap_core.splat.model import safetensors_bytes
-
         return safetensors_bytes({"pooled": self.pooled.detach().float().contiguous().cpu(),
                                   "sequence": self.sequence.detach().float().contiguous().cpu()},
                                  {"format": "volcap-prompt-embedding/1"})
@@ -421,8 +420,6 @@ class Enhancer(nn.Module):
         """A diffusers-style directory: ``transformer/`` and ``vae/`` (``save_pretrained``; the
         transformer config holds the widened ``in_channels``/``out_channels``),
         ``prompts.safetensors`` and ``enhancer.json`` (the whole :class:`EnhancerConfig`)."""
-        from volcap_core.splat.model import safetensors_bytes
-
         path = Path(path)
         path.mkdir(parents=True, exist_ok=True)
         self.transformer.save_pretrained(path / "transformer")
@@ -566,8 +563,6 @@ def enhancer_to_bytes(model: Enhancer) -> bytes:
     """The whole enhancer as safetensors bytes (the stored artifact): every weight (float32 unless
     the model is in another dtype) plus :class:`EnhancerConfig` and the group names in the
     metadata. Same model, same bytes."""
-    from volcap_core.splat.model import safetensors_bytes
-
     _reject_lora(model)
     tensors = {k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}
     meta = {"format": ENHANCER_FORMAT, "config": model.config.model_dump_json(),
@@ -580,9 +575,7 @@ def enhancer_from_bytes(data: bytes, *, device: str | torch.device = "cpu") -> E
     tensors assigned, so no random initialisation of a large model is paid."""
     from safetensors.torch import load as st_load
 
-    from volcap_core.splat.model import _safetensors_metadata
-
-    meta = _safetensors_metadata(data)
+    meta = safetensors_metadata(data)
     if meta.get("format") != ENHANCER_FORMAT:
         raise ValueError(f"not an enhancer (format {meta.get('format')!r})")
     config = EnhancerConfig.model_validate_json(meta["config"])

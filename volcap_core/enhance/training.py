@@ -48,9 +48,9 @@ training the adapters are merged into the weights (:func:`~volcap_core.enhance.l
 the result saves as a plain enhancer.
 
 Checkpoints are safetensors bytes (trainable tensors, Adam moments, the RNG state, the step, the loss
-history; configs in the metadata). ``resume_from`` continues exactly: on CPU a resumed run ends
-bit-identical to an uninterrupted one (tested). With LoRA, the checkpoint holds only what is trained:
-resume on the same base model.
+history; configs in the metadata; :mod:`volcap_core.checkpoint`). ``resume_from`` continues exactly:
+on CPU a resumed run ends bit-identical to an uninterrupted one (tested). With LoRA, the checkpoint
+holds only what is trained: resume on the same base model.
 """
 
 from __future__ import annotations
@@ -68,6 +68,13 @@ import torch.nn.functional as F
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_serializer, model_validator
 from torch import nn
 
+from volcap_core.checkpoint import (
+    AdamState,
+    adam_step,
+    deterministic_torch,
+    safetensors_bytes,
+    safetensors_metadata,
+)
 from volcap_core.enhance.model import (
     DEFAULT_GROUP,
     Enhancer,
@@ -85,7 +92,6 @@ from volcap_core.enhance.model import (
 )
 from volcap_core.enhance.lora import add_lora, merge_lora
 from volcap_core.records import omit_unset
-from volcap_core.splat.optim import AdamState, adam_step
 
 __all__ = [
     "EnhancerTrainConfig",
@@ -419,8 +425,6 @@ def train_vae(model: Enhancer, frames: torch.Tensor, config: EnhancerTrainConfig
     with one thread (as training runs) the same inputs give the same weights bit for bit. Every VAE
     weight is trained; the VAE is left frozen (``requires_grad`` off) and in eval mode.
     Returns the loss of every step."""
-    from volcap_core.reconstruction import deterministic_torch
-
     if frames.ndim != 4 or frames.shape[1] != 4:
         raise ValueError(f"frames must be [N, 4, H, W], got {tuple(frames.shape)}")
     device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
@@ -483,13 +487,10 @@ class _State:
 
 
 def _serialise(state: _State, model: Enhancer, config: EnhancerTrainConfig) -> bytes:
-    from volcap_core.splat.model import safetensors_bytes
-
     tensors: dict[str, torch.Tensor] = {}
     for k, p in state.params.items():
         tensors[f"param/{k}"] = p.detach()
-        tensors[f"adam/m/{k}"] = state.adam.exp_avg[k]
-        tensors[f"adam/v/{k}"] = state.adam.exp_avg_sq[k]
+    tensors.update(state.adam.to_tensors("adam"))
     tensors["rng"] = state.generator.get_state()
     tensors["losses"] = torch.tensor(state.losses, dtype=torch.float64)
     if config.vae_steps > 0:  # the pre-trained VAE (frozen from here on): resumption skips pre-training
@@ -508,9 +509,7 @@ def _restore(data: bytes, model: Enhancer, config: EnhancerTrainConfig, params: 
              state: _State) -> None:
     from safetensors.torch import load as st_load
 
-    from volcap_core.splat.model import _safetensors_metadata
-
-    meta = _safetensors_metadata(data)
+    meta = safetensors_metadata(data)
     if meta.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"not an enhancer training checkpoint (format {meta.get('format')!r})")
     if meta["enhancer_config"] != model.config.model_dump_json():
@@ -529,9 +528,7 @@ def _restore(data: bytes, model: Enhancer, config: EnhancerTrainConfig, params: 
     with torch.no_grad():
         for k, p in params.items():
             p.copy_(t[f"param/{k}"])
-            state.adam.exp_avg[k].copy_(t[f"adam/m/{k}"])
-            state.adam.exp_avg_sq[k].copy_(t[f"adam/v/{k}"])
-    state.adam.step = int(info["adam_step"])
+    state.adam = AdamState.from_tensors(t, "adam", int(info["adam_step"]), like=params)
     state.generator.set_state(t["rng"].clone())
     state.step, state.wall_s = int(info["step"]), float(info["wall_s"])
     state.losses = [float(x) for x in t["losses"].tolist()]
@@ -575,7 +572,6 @@ def train_enhancer(model: Enhancer, pairs: Sequence, config: EnhancerTrainConfig
     Returns:
         :class:`EnhancerTrainResult`.
     """
-    from volcap_core.reconstruction import deterministic_torch
     if not pairs:
         raise ValueError("no training pairs")
     device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
