@@ -167,11 +167,9 @@ class EnhancerConfig(BaseModel):
         transformer (8 heads x 32, rope axes (8, 12, 12); 3.8 M parameters) and VAE tiling only
         above 256 px (``sample_size`` 256). Each token must carry six packed latents in (6 x 64
         features) and two out (2 x 64): the tiny transformer's 32 features cannot even carry one,
-        and trained it stays below the LQ input (flow-matching loss 0.81 after 700 steps); 128
-        features (4 heads) reached 24.59 dB / 0.720 SSIM on the bench's held-out cameras after 4000
-        steps, 256 features 25.56 dB / 0.755 with the same VAE, steps and seed, for 1.5x the time
-        per step. The tiny VAE's 64-px tiles cost 0.9 dB on 128-px frames (measured, held-out
-        camera F002)."""
+        and trained it stays below the LQ input; 256 features learn more than 128 for a longer
+        step, and tiling a 128-px frame into the tiny VAE's 64-px tiles costs detail (figures in
+        ``docs/enhancer.md``, "The model")."""
         tiny = cls.tiny()
         transformer = {**tiny.transformer, "attention_head_dim": 32, "num_attention_heads": 8,
                        "axes_dims_rope": [8, 12, 12]}

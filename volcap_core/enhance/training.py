@@ -114,10 +114,9 @@ class EnhancerTrainConfig(BaseModel):
         lr: Adam learning rate (constant after ``warmup_steps`` of linear warm-up).
         lr_decay: ``(step, factor)`` pairs: from optimiser step ``step`` on, the rate is ``lr`` times
             ``factor`` (the last pair reached applies). Default none (left out of the JSON, so
-            configs written before the field existed keep their cache keys). Measured on the bench
-            (``docs/enhancer.md``): the small model's loss swings between 0.03 and 0.3 at a constant
-            1e-3; 6000 steps with ``((4000, 0.2),)`` reached 27.79 dB / 0.866 SSIM on the held-out
-            cameras where 4000 at 1e-3 reached 26.33 / 0.820, without the 16-px token blotches.
+            configs written before the field existed keep their cache keys). At a constant rate the
+            small model's loss swings widely and its output shows 16-px token blotches; a drop for
+            the last third removes them (``docs/enhancer.md``, "Training").
         batch: samples per step (one crop of one frame each).
         crop: crop side in pixels (multiple of 16; lowered to the smallest frame, floored to 16).
         finetune: ``"lora"`` (adapters + widened layers) or ``"full"`` (every transformer weight).
@@ -143,10 +142,8 @@ class EnhancerTrainConfig(BaseModel):
             stages run in order, each a fresh :func:`train_vae` (new Adam moments) whose crops come
             from the stream of ``seed + k`` for stage ``k`` = 1, 2, ...: continuing at lower rates.
             Default none (left out of the JSON, so configs written before the field existed keep
-            their cache keys). Measured on the bench's small VAE (``docs/enhancer.md``): 3000 steps
-            at 3e-3 then (1500, 1e-3) and (1500, 3e-4) took its held-out round trip from 28.94 dB /
-            0.883 SSIM to 30.84 / 0.917 and took the collar it painted skin-coloured half-way back
-            to its green.
+            their cache keys). A random VAE pre-trained at one rate keeps wrong colours and blurred
+            features that lower-rate stages restore (``docs/enhancer.md``, "The model").
         frozen_dtype: ``"float32"`` or ``"bfloat16"``: the dtype of every weight that is *not*
             trained (the VAE, and with LoRA the transformer's base weights); trained tensors
             (adapters, the widened layers, everything in full fine-tuning) stay float32 master
@@ -269,13 +266,11 @@ def training_attention(device: torch.device | str) -> Iterator[None]:
     """While training on CUDA, PyTorch's scaled-dot-product attention uses flash, memory-efficient
     or math kernels, never cuDNN's; elsewhere nothing changes.
 
-    Measured on an H200 (torch 2.11 + CUDA 13.0, diffusers 0.42): with cuDNN's attention chosen
-    (PyTorch's default there for bf16), the backward pass of the FLUX.1-sized transformer under
-    bf16 autocast failed (``mha_graph.execute(...).is_good()``; without ``CUDA_LAUNCH_BLOCKING``
-    it surfaced later as ``CUBLAS_STATUS_EXECUTION_FAILED`` or an illegal memory access), and the
-    small model's loss went NaN by the third step; float32 training (no autocast) ran. Flash and
-    memory-efficient attention train it (``bench/bench_enhance_gpu.py``). Inference keeps the
-    default choice: only the backward failed.
+    Why: with cuDNN's attention chosen (PyTorch's default for bf16 on recent GPUs), the backward
+    pass of the transformer under bf16 autocast fails or goes NaN, where flash and memory-efficient
+    attention train it (what was seen on which GPU and software: ``docs/enhancer.md``, "Attention
+    kernels in training"; ``bench/bench_enhance_gpu.py``). Inference keeps the default choice: only
+    the backward failed.
 
     The switch (``torch.backends.cuda.enable_cudnn_sdp``) is one flag for the whole process, not
     per thread, so trainings that overlap in one process (mapped tasks) share it: the first to
