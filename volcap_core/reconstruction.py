@@ -10,7 +10,6 @@ touches a store or Prefect.
 from __future__ import annotations
 
 from collections import OrderedDict
-from contextlib import contextmanager
 from collections.abc import Callable, Sequence
 from threading import Lock
 from typing import Any, ClassVar, Literal
@@ -22,38 +21,13 @@ from pydantic import BaseModel, ConfigDict
 from volcap_core.calibration.distortion import needs_rectify, rectified_valid, rectify_frame
 from volcap_core.calibration.record import Calibration, TrackingFrames, camera_at, frame_camera
 from volcap_core.capture import Capture
+from volcap_core.checkpoint import safetensors_bytes, safetensors_metadata
 from volcap_core.imageio.read import decode_exr
 from volcap_core.pointcloud import PointCloudSequence
 from volcap_core.records import ArtifactRef, Record
-from volcap_core.splat import Camera, PointsAtTime, SegmentData
+from volcap_core.splat import Camera, ExposureGrids, PointsAtTime, SegmentData
 
 SEGMENT_MODEL_MEDIA = "application/vnd.volcap.poly4dgs+safetensors"
-
-@contextmanager
-def deterministic_torch(device: str = "cpu"):
-    """Reproducible CPU training: one intra-op thread while training (restored after).
-
-    Measured on the demo segment (30k Gaussians, 320x180): with 2 intra-op threads the same seed
-    ended with different Gaussians in two runs (multi-threaded accumulation order), which breaks
-    bit-identical resumption from a checkpoint. ``torch.use_deterministic_algorithms`` fixed it but
-    took 12 s per step instead of 0.7 s; one thread is deterministic and, on a busy 2-core machine,
-    no slower. On CUDA nothing changes (bit-identity is promised on CPU only).
-
-    Safe with concurrently mapped tasks in one process: with torch's OpenMP back-end the intra-op
-    thread count is per calling thread (checked: a thread kept 1 while another thread switched
-    ``torch.set_num_threads`` between 2 and 1 a hundred times), so a task restoring its setting on
-    exit does not change the count of a task still training in another thread; a new thread
-    starts from the last value set anywhere, and this context sets its own before training.
-    """
-    if device != "cpu":
-        yield
-        return
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(before)
 
 
 class EvalSample(BaseModel):
@@ -291,21 +265,14 @@ def default_held_out(capture: Capture, n: int = 1, calibration: Calibration | No
 
 
 def encode_grids(camera_ids: Sequence[str], exposure: torch.Tensor, black: torch.Tensor) -> bytes:
-    from volcap_core.splat.model import safetensors_bytes
-
+    """Safetensors bytes of a segment's per-camera grids (``exposure``, ``black``; the camera ids in
+    the metadata)."""
     return safetensors_bytes({"exposure": exposure, "black": black}, {"cameras": ",".join(camera_ids)})
 
 
-def decode_grids(data: bytes):
+def decode_grids(data: bytes) -> ExposureGrids:
     """ExposureGrids from :func:`encode_grids` bytes."""
-    import json as _json
-    import struct
-
     from safetensors.torch import load
 
-    from volcap_core.splat.grids import ExposureGrids
-
-    n = struct.unpack("<Q", data[:8])[0]
-    meta = _json.loads(data[8:8 + n]).get("__metadata__", {})
     t = load(data)
-    return ExposureGrids(meta["cameras"].split(","), t["exposure"], t["black"])
+    return ExposureGrids(safetensors_metadata(data)["cameras"].split(","), t["exposure"], t["black"])

@@ -22,6 +22,7 @@ from pydantic import BaseModel, ConfigDict
 from volcap_core import reconstruction
 from volcap_core.calibration.record import Calibration, TrackingFrames, decode_tracking_frames
 from volcap_core.capture import Capture
+from volcap_core.checkpoint import deterministic_torch
 from volcap_core.contact_sheet import contact_sheet, encode_jpeg, encode_png
 from volcap_core.imageio.write import encode_exr
 from volcap_core.pointcloud import PointCloudSequence
@@ -82,7 +83,7 @@ def fit_segment(cap: Capture, capture_ref: ArtifactRef, calib: Calibration, cali
                                        load_mask=load_mask)
     init = reconstruction.segment_init(get_bytes, cap, points, data, config.held_out_cameras)
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
-    with reconstruction.deterministic_torch(device):
+    with deterministic_torch(device):
         result = train_segment(data, init, config, checkpoint=checkpoint if config.checkpoint_every else None,
                                resume_from=resume_from, seed=seed, device=device, progress=progress)
         report = score_segment(result.model, result.grids, data, init, config, seed=seed, device=device)

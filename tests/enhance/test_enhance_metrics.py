@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 
+from volcap_core import image_metrics
 from volcap_core.enhance.metrics import (
     PSNR_CAP_DB,
     MetricUnavailable,
@@ -22,7 +23,6 @@ from volcap_core.enhance.metrics import (
     warp_error,
 )
 from volcap_core.enhance.temporal import warp
-from volcap_core.splat import loss as splat_loss
 
 
 def _video(t=5, c=4, h=24, w=32, seed=0):
@@ -35,11 +35,11 @@ def test_psnr_and_ssim_reuse_the_project_metrics():
     assert psnr(x, x) == pytest.approx(PSNR_CAP_DB)                 # capped, finite
     mse = float(((x.double() - y.double()) ** 2).mean())
     assert psnr(x, y) == pytest.approx(10 * math.log10(1 / mse), abs=1e-6)
-    assert psnr(x, y) == pytest.approx(float(splat_loss.psnr(x, y)), abs=1e-3)
+    assert psnr(x, y) == pytest.approx(float(image_metrics.psnr(x, y)), abs=1e-3)
     assert ssim(x, x) == pytest.approx(1.0, abs=1e-6)
     s = ssim(x, y)
     assert 0 < s < 1
-    assert s == pytest.approx(float(splat_loss.ssim(x.movedim(0, -1), y.movedim(0, -1), padding="valid")), abs=1e-6)
+    assert s == pytest.approx(float(image_metrics.ssim(x.movedim(0, -1), y.movedim(0, -1), padding="valid")), abs=1e-6)
 
 
 def test_tpsnr():

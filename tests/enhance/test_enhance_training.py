@@ -6,6 +6,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
+from volcap_core.checkpoint import AdamState, adam_step
+from volcap_core.enhance.lora import LoRALinear, add_lora, merge_lora
 from volcap_core.enhance.model import (
     EnhancerConfig,
     build_enhancer,
@@ -20,16 +22,12 @@ from volcap_core.enhance.model import (
 from volcap_core.enhance.pairs import PairSet, make_degraded_pairs
 from volcap_core.enhance.training import (
     EnhancerTrainConfig,
-    LoRALinear,
     _sample,
-    add_lora,
     flow_matching_loss,
-    merge_lora,
     sample_sigmas,
     train_enhancer,
     trainable_parameters,
 )
-from volcap_core.splat.optim import AdamState, adam_step
 
 
 def _face_like(t: int = 3, h: int = 64, w: int = 64, seed: int = 0) -> torch.Tensor:

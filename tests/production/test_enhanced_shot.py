@@ -56,7 +56,7 @@ def test_a_pair_sequence_round_trips_as_half_float_with_its_group():
     assert torch.equal(ps.flow, flow) and ps.group == "anna"
     assert decode_pair_sequence(encode_pair_sequence(lq, hq)).flow is None
     with pytest.raises(ValueError, match="not a pair sequence"):
-        from volcap_core.splat.model import safetensors_bytes
+        from volcap_core.checkpoint import safetensors_bytes
 
         decode_pair_sequence(safetensors_bytes({"x": lq}, {"format": "other"}))
 

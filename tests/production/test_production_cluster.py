@@ -154,6 +154,7 @@ def _assert_bit_identical_to_uninterrupted(s, segment_digest: str) -> None:
     from volcap_core import reconstruction
     from volcap_core.calibration.record import Calibration
     from volcap_core.capture import Capture
+    from volcap_core.checkpoint import deterministic_torch
     from volcap_core.pointcloud import PointCloudSequence
     from volcap_core.splat import save_model, train_segment
     from volcap_core.splat.train import TrainConfig
@@ -168,7 +169,7 @@ def _assert_bit_identical_to_uninterrupted(s, segment_digest: str) -> None:
     pts = s.get_record(_points_of(s, segment_digest), PointCloudSequence)
     init = reconstruction.segment_init(s.get_bytes, cap, pts, data, config.held_out_cameras)
     torch.set_num_threads(1)
-    with reconstruction.deterministic_torch("cpu"):
+    with deterministic_torch("cpu"):
         result = train_segment(data, init, config, seed=0, device="cpu")
     assert save_model(result.model) == s.get_bytes(rec.model)
 

@@ -8,7 +8,8 @@ import pytest
 import torch
 
 from volcap_core.colour import srgb_encode_unbounded
-from volcap_core.splat.loss import grid_regularisers, psnr, reconstruction_loss, ssim
+from volcap_core.image_metrics import psnr, ssim
+from volcap_core.splat.loss import grid_regularisers, reconstruction_loss
 
 PAIRS = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "reference" / "ssim_pairs"
 

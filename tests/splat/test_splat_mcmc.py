@@ -5,6 +5,7 @@ import math
 import pytest
 import torch
 
+from volcap_core.checkpoint import AdamState
 from volcap_core.splat.mcmc import (
     MCMCConfig,
     add_gaussians,
@@ -14,7 +15,6 @@ from volcap_core.splat.mcmc import (
     relocation_opacity_scale,
 )
 from volcap_core.splat.model import Poly4DGS, Poly4DGSConfig
-from volcap_core.splat.optim import AdamState
 
 
 def _model(n=40, seed=0):

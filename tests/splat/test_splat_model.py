@@ -5,13 +5,13 @@ import math
 import pytest
 import torch
 
+from volcap_core.checkpoint import safetensors_bytes
 from volcap_core.splat.model import (
     Poly4DGS,
     Poly4DGSConfig,
     evaluate,
     load_model,
     opacity_envelope,
-    safetensors_bytes,
     save_model,
 )
 

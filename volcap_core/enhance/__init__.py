@@ -5,6 +5,7 @@ Modules (imported on demand: :mod:`~volcap_core.enhance.model` pulls in diffuser
 - :mod:`~volcap_core.enhance.model`: the widened Flux transformer + Flux VAE + per-group prompt
   embeddings (:class:`~volcap_core.enhance.model.Enhancer`, ``EnhancerConfig``), latents, packing,
   the noise schedule, persistence (diffusers directories, safetensors bytes).
+- :mod:`~volcap_core.enhance.lora`: low-rank adapters for the transformer (add, merge).
 - :mod:`~volcap_core.enhance.training`: rectified-flow fine-tuning (LoRA or full), checkpoints,
   exact resumption.
 - :mod:`~volcap_core.enhance.inference`: Euler sampling, tiled latent inference, per-frame and
@@ -12,5 +13,6 @@ Modules (imported on demand: :mod:`~volcap_core.enhance.model` pulls in diffuser
 - :mod:`~volcap_core.enhance.temporal`: optical-flow back-ends, warping, the validity mask.
 - :mod:`~volcap_core.enhance.pyramid`: Laplacian pyramid and the low-frequency swap.
 - :mod:`~volcap_core.enhance.pairs`: LQ/HQ pair sequences.
-- :mod:`~volcap_core.enhance.metrics`: PSNR, SSIM, TPSNR, flicker, warp error.
+- :mod:`~volcap_core.enhance.metrics`: PSNR and SSIM (:mod:`volcap_core.image_metrics`'s), TPSNR,
+  flicker, warp error.
 """

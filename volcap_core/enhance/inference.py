@@ -32,21 +32,19 @@ previous LQ and the flow between the LQ frames) into an enhanced RGBA frame:
    the space in which the model and its VAE drift at low frequency, and the one a viewer sees. In
    linear light the swap spreads the correction of the bright face over the dark background beside
    it (a 4x4 lowest level of a 128-px crop reaches ~30 px), and near black the display encoding
-   magnifies that (linear 0.007 is display 0.08): measured on held-out frames of the bench's
-   model, swapping in linear light cost 1.1-1.4 dB of display PSNR, in the encoded space 0.1-0.2 dB,
-   and with the img2img start (below) it gains 0.5-0.7 dB. Even there the lowest level (4x4 on a
-   128-px crop) carries the face's colour a few pixels past the silhouette, so the RGB change is
-   weighted by the swapped alpha: ``rgb + alpha (swapped_rgb - rgb)``, exactly the paper's swap
-   inside the matte (alpha 1), none outside it (alpha 0), where the LQ says there is no colour to
-   correct (measured on the whole-frame outputs of a 4000-step bench model: 23.58 dB / 0.631 SSIM
-   against 23.31 / 0.569 unweighted). Decoded RGB is clamped to >= 0 before it (the decoder can
-   return negative light, which no display shows) and after it, alpha to [0, 1].
+   magnifies that (linear 0.007 is display 0.08). Even in the encoded space the lowest level
+   carries the face's colour a few pixels past the silhouette, so the RGB change is weighted by the
+   swapped alpha: ``rgb + alpha (swapped_rgb - rgb)``, exactly the paper's swap inside the matte
+   (alpha 1), none outside it (alpha 0), where the LQ says there is no colour to correct. Decoded
+   RGB is clamped to >= 0 before it (the decoder can return negative light, which no display shows)
+   and after it, alpha to [0, 1]. What each choice measured is in ``docs/enhancer.md`` ("Temporal
+   stability").
 
 8. transparent pixels carry no colour: RGB is set to 0 where the enhanced alpha is below
    :data:`TRANSPARENT` (one 8-bit code). The output is premultiplied, as the render is, and a
    render has RGB <= alpha x colour; RGB and alpha are decoded from separate latents, so without
    this the background the matte calls empty keeps the decoder's faint colour, which a compositor
-   would add over the plate as a glow (on the bench's held-out frames it cost 0.09-0.18 SSIM).
+   would add over the plate as a glow (its cost in SSIM: ``docs/benchmarks.md``).
 
 :func:`enhance_sequence` runs it frame by frame in order, each frame conditioned on the previous
 frame's output.

@@ -4,10 +4,10 @@ Layouts: images ``[..., C, H, W]``, videos ``[T, C, H, W]`` (channel-first, as t
 Values are whatever the caller passes (the benchmark decides between linear and display-encoded
 values and between RGB and RGBA); ``data_range`` is the peak (1.0 for ``[0, 1]`` images).
 
-* :func:`psnr` is the project's :func:`volcap_core.splat.loss.psnr` (``10 log10(L² / MSE)`` over all
+* :func:`psnr` is the project's :func:`volcap_core.image_metrics.psnr` (``10 log10(L² / MSE)`` over all
   elements, MSE floored at 1e-20): identical inputs give a finite **cap of 200 dB** at
   ``data_range = 1`` (not ``inf``), so means over frames stay finite.
-* :func:`ssim` is :func:`volcap_core.splat.loss.ssim` (Gaussian 11×11, σ = 1.5, Wang et al.'s
+* :func:`ssim` is :func:`volcap_core.image_metrics.ssim` (Gaussian 11×11, σ = 1.5, Wang et al.'s
   constants) on channel-first input, ``padding="valid"`` by default: the mean over the region where
   the window fits, as scikit-image's ``structural_similarity(gaussian_weights=True,
   use_sample_covariance=False)`` computes it.
@@ -35,8 +35,8 @@ import numpy as np
 import torch
 
 from volcap_core.enhance.temporal import FlowBackend, in_frame, to_display_u8, warp
-from volcap_core.splat.loss import psnr as _psnr
-from volcap_core.splat.loss import ssim as _ssim
+from volcap_core.image_metrics import psnr as _psnr
+from volcap_core.image_metrics import ssim as _ssim
 
 __all__ = [
     "MetricUnavailable",
@@ -51,7 +51,7 @@ __all__ = [
     "warp_error",
 ]
 
-#: PSNR of identical inputs at data_range 1 (MSE floored at 1e-20 by :func:`volcap_core.splat.loss.psnr`).
+#: PSNR of identical inputs at data_range 1 (MSE floored at 1e-20 by :func:`volcap_core.image_metrics.psnr`).
 PSNR_CAP_DB = 200.0
 
 

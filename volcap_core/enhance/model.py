@@ -51,6 +51,9 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 from torch import nn
 
+from volcap_core.checkpoint import safetensors_bytes, safetensors_metadata
+from volcap_core.enhance.lora import LoRALinear
+
 __all__ = [
     "CONDITION_SLOTS",
     "FLUX_SCALING_FACTOR",
@@ -164,11 +167,9 @@ class EnhancerConfig(BaseModel):
         transformer (8 heads x 32, rope axes (8, 12, 12); 3.8 M parameters) and VAE tiling only
         above 256 px (``sample_size`` 256). Each token must carry six packed latents in (6 x 64
         features) and two out (2 x 64): the tiny transformer's 32 features cannot even carry one,
-        and trained it stays below the LQ input (flow-matching loss 0.81 after 700 steps); 128
-        features (4 heads) reached 24.59 dB / 0.720 SSIM on the bench's held-out cameras after 4000
-        steps, 256 features 25.56 dB / 0.755 with the same VAE, steps and seed, for 1.5x the time
-        per step. The tiny VAE's 64-px tiles cost 0.9 dB on 128-px frames (measured, held-out
-        camera F002)."""
+        and trained it stays below the LQ input; 256 features learn more than 128 for a longer
+        step, and tiling a 128-px frame into the tiny VAE's 64-px tiles costs detail (figures in
+        ``docs/enhancer.md``, "The model")."""
         tiny = cls.tiny()
         transformer = {**tiny.transformer, "attention_head_dim": 32, "num_attention_heads": 8,
                        "axes_dims_rope": [8, 12, 12]}
@@ -310,8 +311,6 @@ class PromptEmbedding:
 
     def to_bytes(self) -> bytes:
         """Safetensors bytes (the stored artifact of a group's prompt)."""
-        from volcap_core.splat.model import safetensors_bytes
-
         return safetensors_bytes({"pooled": self.pooled.detach().float().contiguous().cpu(),
                                   "sequence": self.sequence.detach().float().contiguous().cpu()},
                                  {"format": "volcap-prompt-embedding/1"})
@@ -419,8 +418,6 @@ class Enhancer(nn.Module):
         """A diffusers-style directory: ``transformer/`` and ``vae/`` (``save_pretrained``; the
         transformer config holds the widened ``in_channels``/``out_channels``),
         ``prompts.safetensors`` and ``enhancer.json`` (the whole :class:`EnhancerConfig`)."""
-        from volcap_core.splat.model import safetensors_bytes
-
         path = Path(path)
         path.mkdir(parents=True, exist_ok=True)
         self.transformer.save_pretrained(path / "transformer")
@@ -564,8 +561,6 @@ def enhancer_to_bytes(model: Enhancer) -> bytes:
     """The whole enhancer as safetensors bytes (the stored artifact): every weight (float32 unless
     the model is in another dtype) plus :class:`EnhancerConfig` and the group names in the
     metadata. Same model, same bytes."""
-    from volcap_core.splat.model import safetensors_bytes
-
     _reject_lora(model)
     tensors = {k: v.detach().contiguous().cpu() for k, v in model.state_dict().items()}
     meta = {"format": ENHANCER_FORMAT, "config": model.config.model_dump_json(),
@@ -578,9 +573,7 @@ def enhancer_from_bytes(data: bytes, *, device: str | torch.device = "cpu") -> E
     tensors assigned, so no random initialisation of a large model is paid."""
     from safetensors.torch import load as st_load
 
-    from volcap_core.splat.model import _safetensors_metadata
-
-    meta = _safetensors_metadata(data)
+    meta = safetensors_metadata(data)
     if meta.get("format") != ENHANCER_FORMAT:
         raise ValueError(f"not an enhancer (format {meta.get('format')!r})")
     config = EnhancerConfig.model_validate_json(meta["config"])
@@ -602,10 +595,8 @@ def enhancer_from_bytes(data: bytes, *, device: str | torch.device = "cpu") -> E
 
 
 def _reject_lora(model: Enhancer) -> None:
-    from volcap_core.enhance.training import LoRALinear
-
     if any(isinstance(m, LoRALinear) for m in model.modules()):
-        raise ValueError("the model still holds LoRA adapters: merge them first (training.merge_lora)")
+        raise ValueError("the model still holds LoRA adapters: merge them first (lora.merge_lora)")
 
 
 # ------------------------------------------------------------------------- conditions, targets

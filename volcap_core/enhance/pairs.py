@@ -118,10 +118,9 @@ def bicubic_unsharp(lq: torch.Tensor, size: tuple[int, int] | None = None, *, am
     already that size; LQ from :func:`make_degraded_pairs` is already HQ-sized), then an unsharp
     mask ``x + amount · (x - gaussian_blur(x, sigma))`` (σ in output pixels). RGB clamped to
     ``>= 0``, alpha to ``[0, 1]``. ``lq``: ``[C, H, W]`` or ``[T, C, H, W]``, C = 3 or 4.
-    Defaults (amount 1, σ 2 px ≈ scale / 2) for the ×4 degradation: measured on a 320×180 synthetic
-    Face Rig capture (6 frames, 2 cameras), display-sRGB PSNR against HQ went from 24.19 / 24.60 dB
-    (LQ) to 24.94 / 25.32 dB; stronger settings (amount 1.5, σ 3) score higher there but halo on
-    sharper content, and this is a floor, not a contender."""
+    Defaults (amount 1, σ 2 px ≈ scale / 2) suit the ×4 degradation; stronger settings score
+    higher on the synthetic faces but halo on sharper content, and this is a floor, not a
+    contender (figures in ``docs/enhancer.md``, "Pairs")."""
     single = lq.ndim == 3
     x = lq[None] if single else lq
     if x.ndim != 4 or x.shape[1] not in (3, 4):

@@ -31,6 +31,7 @@ import torch
 import torch.nn.functional as F
 from pydantic import BaseModel, ConfigDict, Field
 
+from volcap_core.checkpoint import safetensors_bytes, safetensors_metadata
 from volcap_core.records import ArtifactRef, Record
 
 __all__ = [
@@ -155,7 +156,6 @@ def encode_pair_sequence(lq: torch.Tensor, hq: torch.Tensor, flow: torch.Tensor 
     """Safetensors bytes of one pair sequence: ``lq``, ``hq`` ``[T, 4, H, W]`` as half float
     (finite values clamped to +-65504, as the EXRs are), ``flow`` float32; ``meta`` (JSON) in
     the metadata. Same tensors, same bytes."""
-    from volcap_core.splat.model import safetensors_bytes
 
     def half(x: torch.Tensor) -> torch.Tensor:
         return x.detach().float().clamp(-65504.0, 65504.0).half().contiguous().cpu()
@@ -175,9 +175,8 @@ def decode_pair_sequence(data: bytes, name: str = "", group: str | None = None):
     from safetensors.torch import load as st_load
 
     from volcap_core.enhance.pairs import PairSet
-    from volcap_core.splat.model import _safetensors_metadata
 
-    meta = _safetensors_metadata(data)
+    meta = safetensors_metadata(data)
     if meta.get("format") != PAIR_SEQUENCE_FORMAT:
         raise ValueError(f"not a pair sequence (format {meta.get('format')!r})")
     t = st_load(data)

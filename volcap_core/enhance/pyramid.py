@@ -20,9 +20,9 @@ last. With ``levels = 5`` (the paper's "5-level Laplacian pyramid") a 3840×2160
 states; :func:`pyramid_sizes` gives the sizes without allocating anything.
 
 Tensors are ``[..., H, W]`` (any leading dims: ``[C, H, W]`` or ``[B, C, H, W]``), floating point;
-filtering is done in the input dtype (float32: same values as OpenCV to float rounding). Cost:
-:func:`swap_low_frequency` of a 3840×2160 RGBA float32 frame took ~7 s on one (busy) CPU thread
-and ~1.3 GB peak; it is memory-bound elementwise work, trivial on a GPU.
+filtering is done in the input dtype (float32: same values as OpenCV to float rounding). The work
+is memory-bound and elementwise: seconds on one CPU thread for a 4K frame, trivial on a GPU
+(``docs/enhancer.md``).
 """
 
 from __future__ import annotations

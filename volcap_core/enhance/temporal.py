@@ -55,10 +55,8 @@ __all__ = [
 #: differ by at most this much in **every** channel, measured on display values in ``[0, 1]``
 #: (sRGB-encoded, clamped RGB and linear alpha; :func:`to_display`). 0.08 ≈ 20/255 codes: above the
 #: LQ noise and bilinear-resampling differences where the flow is right, below the differences at
-#: disocclusions and at silhouettes that moved. Measured on degraded 320×180 synthetic Face Rig
-#: pairs (:mod:`volcap_core.enhance.pairs`, 2 cameras, 5 frame pairs) with DIS flow: the per-pixel
-#: max difference was <= 0.03 at the 99th percentile on pairs without disocclusion (99 % valid),
-#: while the pair where the colour chart leaves the frame had differences up to 1.0 (87-96 % valid).
+#: disocclusions and at silhouettes that moved (the measurement behind it: ``docs/enhancer.md``,
+#: "Temporal stability").
 VALIDITY_THRESHOLD = 0.08
 
 #: OpenCV DIS presets by name.
@@ -114,10 +112,8 @@ class DisFlow:
     codes). DIS is run from the current to the previous image, which gives the backward flow
     directly (``cur(x) ≈ prev(x + flow)``). ``preset``: ``"medium"`` (default), ``"fast"`` or
     ``"ultrafast"`` (``cv2.DISOPTICAL_FLOW_PRESET_*``); ``exposure`` scales linear RGB before the
-    tone map (dark renders). Measured: a translated smooth random texture (128×96, shift (2.6, -1.4)
-    px) is recovered with a mean end-point error of 0.03 px in the interior with ``"medium"``
-    (0.08 px with ``"fast"`` / ``"ultrafast"``), in ~20 ms. One OpenCV DIS object per instance:
-    use one instance per thread.
+    tone map (dark renders); its accuracy on a known shift is in ``docs/enhancer.md``. One OpenCV
+    DIS object per instance: use one instance per thread.
     """
 
     def __init__(self, preset: str = "medium", exposure: float = 1.0):

@@ -37,30 +37,26 @@ DIS (:class:`~volcap_core.enhance.temporal.DisFlow`) on the LQ frames (computed 
 and cached); ``"dis"`` always DIS; ``"zero"`` no motion compensation (an ablation).
 
 Fine-tuning (``finetune``): ``"full"`` trains every transformer weight; ``"lora"`` freezes them and
-trains low-rank adapters (:class:`LoRALinear`, our own, ``W x + (alpha/r) B A x`` with ``A`` Kaiming-
-uniform and ``B`` zero, so training starts from the widened model exactly) on the attention and
-feed-forward linears of every block (the target list of diffusers' Flux LoRA scripts,
-:data:`LORA_TARGETS`), plus, in full, the widened ``x_embedder`` and ``proj_out`` (their new columns /
-rows start at zero or as copies and must be learnt). The VAE is frozen while the transformer trains;
+trains low-rank adapters (:mod:`volcap_core.enhance.lora`: zero at the start, so training starts
+from the widened model exactly) on the attention and feed-forward linears of every block, plus, in
+full, the widened ``x_embedder`` and ``proj_out`` (their new columns / rows start at zero or as
+copies and must be learnt). The VAE is frozen while the transformer trains;
 with ``vae_steps`` > 0 it is first pre-trained on its own (:func:`train_vae`: L1 + L2 reconstruction
 of the pair sets' HQ and LQ frames, RGB and alpha-as-gray, through the enhancer's own encode/decode
 mapping), which a tiny enhancer with random weights needs and FLUX.1's trained VAE does not. After
-training the adapters are merged into the weights (:func:`merge_lora`), so the result saves as a
-plain enhancer.
-Why not peft: it pulls ``transformers`` and ``accelerate`` in, and its adapters would have to be
-serialised and re-created for bit-identical resumption anyway.
+training the adapters are merged into the weights (:func:`~volcap_core.enhance.lora.merge_lora`), so
+the result saves as a plain enhancer.
 
 Checkpoints are safetensors bytes (trainable tensors, Adam moments, the RNG state, the step, the loss
-history; configs in the metadata). ``resume_from`` continues exactly: on CPU a resumed run ends
-bit-identical to an uninterrupted one (tested). With LoRA, the checkpoint holds only what is trained:
-resume on the same base model.
+history; configs in the metadata; :mod:`volcap_core.checkpoint`). ``resume_from`` continues exactly:
+on CPU a resumed run ends bit-identical to an uninterrupted one (tested). With LoRA, the checkpoint
+holds only what is trained: resume on the same base model.
 """
 
 from __future__ import annotations
 
 import contextlib
 import json
-import math
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -72,6 +68,13 @@ import torch.nn.functional as F
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_serializer, model_validator
 from torch import nn
 
+from volcap_core.checkpoint import (
+    AdamState,
+    adam_step,
+    deterministic_torch,
+    safetensors_bytes,
+    safetensors_metadata,
+)
 from volcap_core.enhance.model import (
     DEFAULT_GROUP,
     Enhancer,
@@ -87,17 +90,13 @@ from volcap_core.enhance.model import (
     rgb_to_vae,
     shift_sigma,
 )
+from volcap_core.enhance.lora import add_lora, merge_lora
 from volcap_core.records import omit_unset
-from volcap_core.splat.optim import AdamState, adam_step
 
 __all__ = [
-    "LORA_TARGETS",
     "EnhancerTrainConfig",
     "EnhancerTrainResult",
-    "LoRALinear",
-    "add_lora",
     "flow_matching_loss",
-    "merge_lora",
     "sample_sigmas",
     "train_enhancer",
     "train_vae",
@@ -107,14 +106,6 @@ __all__ = [
 
 CHECKPOINT_FORMAT = "volcap-enhancer-train/1"
 
-#: Linear layers (module-name suffixes inside ``transformer_blocks`` / ``single_transformer_blocks``)
-#: that get LoRA adapters: attention q/k/v/out of both streams, the feed-forward layers, and the
-#: single blocks' MLP in and joint out projections.
-LORA_TARGETS = ("attn.to_q", "attn.to_k", "attn.to_v", "attn.to_out.0", "attn.add_q_proj",
-                "attn.add_k_proj", "attn.add_v_proj", "attn.to_add_out", "ff.net.0.proj", "ff.net.2",
-                "ff_context.net.0.proj", "ff_context.net.2", "proj_mlp", "proj_out")
-
-
 class EnhancerTrainConfig(BaseModel):
     """Everything that shapes an enhancer training run (JSON; a task's cache key).
 
@@ -123,10 +114,9 @@ class EnhancerTrainConfig(BaseModel):
         lr: Adam learning rate (constant after ``warmup_steps`` of linear warm-up).
         lr_decay: ``(step, factor)`` pairs: from optimiser step ``step`` on, the rate is ``lr`` times
             ``factor`` (the last pair reached applies). Default none (left out of the JSON, so
-            configs written before the field existed keep their cache keys). Measured on the bench
-            (``docs/enhancer.md``): the small model's loss swings between 0.03 and 0.3 at a constant
-            1e-3; 6000 steps with ``((4000, 0.2),)`` reached 27.79 dB / 0.866 SSIM on the held-out
-            cameras where 4000 at 1e-3 reached 26.33 / 0.820, without the 16-px token blotches.
+            configs written before the field existed keep their cache keys). At a constant rate the
+            small model's loss swings widely and its output shows 16-px token blotches; a drop for
+            the last third removes them (``docs/enhancer.md``, "Training").
         batch: samples per step (one crop of one frame each).
         crop: crop side in pixels (multiple of 16; lowered to the smallest frame, floored to 16).
         finetune: ``"lora"`` (adapters + widened layers) or ``"full"`` (every transformer weight).
@@ -152,10 +142,8 @@ class EnhancerTrainConfig(BaseModel):
             stages run in order, each a fresh :func:`train_vae` (new Adam moments) whose crops come
             from the stream of ``seed + k`` for stage ``k`` = 1, 2, ...: continuing at lower rates.
             Default none (left out of the JSON, so configs written before the field existed keep
-            their cache keys). Measured on the bench's small VAE (``docs/enhancer.md``): 3000 steps
-            at 3e-3 then (1500, 1e-3) and (1500, 3e-4) took its held-out round trip from 28.94 dB /
-            0.883 SSIM to 30.84 / 0.917 and took the collar it painted skin-coloured half-way back
-            to its green.
+            their cache keys). A random VAE pre-trained at one rate keeps wrong colours and blurred
+            features that lower-rate stages restore (``docs/enhancer.md``, "The model").
         frozen_dtype: ``"float32"`` or ``"bfloat16"``: the dtype of every weight that is *not*
             trained (the VAE, and with LoRA the transformer's base weights); trained tensors
             (adapters, the widened layers, everything in full fine-tuning) stay float32 master
@@ -238,70 +226,6 @@ class EnhancerTrainResult:
     vae_losses: list[float] = field(default_factory=list)
 
 
-# -------------------------------------------------------------------------------------- LoRA
-
-class LoRALinear(nn.Module):
-    """``base(x) + scale * B(A(x))`` with ``A [r, in]``, ``B [out, r]``, ``scale = alpha / r``.
-    ``A`` starts Kaiming-uniform (bound ``1/sqrt(in)``, as ``nn.Linear`` and peft), ``B`` at zero."""
-
-    def __init__(self, base: nn.Linear, rank: int, alpha: float, generator: torch.Generator):
-        super().__init__()
-        self.base = base
-        self.base.requires_grad_(False)
-        self.rank, self.scale = rank, alpha / rank
-        bound = 1.0 / math.sqrt(base.in_features)
-        a = (torch.rand(rank, base.in_features, generator=generator) * 2.0 - 1.0) * bound
-        # float32 adapters on a bfloat16 base (frozen_dtype): low-precision master weights would
-        # lose most small Adam updates
-        kw = {"device": base.weight.device, "dtype": torch.promote_types(base.weight.dtype, torch.float32)}
-        self.lora_A = nn.Parameter(a.to(**kw))
-        self.lora_B = nn.Parameter(torch.zeros(base.out_features, rank, **kw))
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.base(x) + F.linear(F.linear(x, self.lora_A), self.lora_B) * self.scale
-
-    def merged(self) -> nn.Linear:
-        """The base layer with the adapter folded in (``W + scale B A``)."""
-        with torch.no_grad():
-            self.base.weight.add_((self.lora_B @ self.lora_A) * self.scale)
-        return self.base
-
-
-def _lora_sites(transformer) -> list[tuple[nn.Module, str, nn.Linear]]:
-    sites = []
-    for blocks in (transformer.transformer_blocks, transformer.single_transformer_blocks):
-        for block in blocks:
-            for name, mod in block.named_modules():
-                if isinstance(mod, nn.Linear) and name in LORA_TARGETS:
-                    parent_name, _, attr = name.rpartition(".")
-                    sites.append((block.get_submodule(parent_name) if parent_name else block, attr, mod))
-    return sites
-
-
-def add_lora(model: Enhancer, rank: int, alpha: float | None = None, *,
-             generator: torch.Generator | None = None) -> int:
-    """Wrap every :data:`LORA_TARGETS` linear of the transformer's blocks in a :class:`LoRALinear`
-    (in place; already wrapped layers are left alone). Returns the number of adapters added."""
-    gen = generator or torch.Generator().manual_seed(0)
-    n = 0
-    for parent, attr, mod in _lora_sites(model.transformer):
-        setattr(parent, attr, LoRALinear(mod, rank, float(alpha or rank), gen))
-        n += 1
-    return n
-
-
-def merge_lora(model: Enhancer) -> int:
-    """Fold every adapter into its base weight and put the plain ``nn.Linear`` back (in place).
-    Returns the number merged."""
-    n = 0
-    for name, mod in list(model.transformer.named_modules()):
-        if isinstance(mod, LoRALinear):
-            parent_name, _, attr = name.rpartition(".")
-            setattr(model.transformer.get_submodule(parent_name), attr, mod.merged())
-            n += 1
-    return n
-
-
 def _cast_frozen(model: Enhancer, trained: dict[str, nn.Parameter], dtype: torch.dtype) -> None:
     """Every parameter not in ``trained`` to ``dtype``, every trained one to float32 (in place)."""
     keep = {id(p) for p in trained.values()}
@@ -342,13 +266,11 @@ def training_attention(device: torch.device | str) -> Iterator[None]:
     """While training on CUDA, PyTorch's scaled-dot-product attention uses flash, memory-efficient
     or math kernels, never cuDNN's; elsewhere nothing changes.
 
-    Measured on an H200 (torch 2.11 + CUDA 13.0, diffusers 0.42): with cuDNN's attention chosen
-    (PyTorch's default there for bf16), the backward pass of the FLUX.1-sized transformer under
-    bf16 autocast failed (``mha_graph.execute(...).is_good()``; without ``CUDA_LAUNCH_BLOCKING``
-    it surfaced later as ``CUBLAS_STATUS_EXECUTION_FAILED`` or an illegal memory access), and the
-    small model's loss went NaN by the third step; float32 training (no autocast) ran. Flash and
-    memory-efficient attention train it (``bench/bench_enhance_gpu.py``). Inference keeps the
-    default choice: only the backward failed.
+    Why: with cuDNN's attention chosen (PyTorch's default for bf16 on recent GPUs), the backward
+    pass of the transformer under bf16 autocast fails or goes NaN, where flash and memory-efficient
+    attention train it (what was seen on which GPU and software: ``docs/enhancer.md``, "Attention
+    kernels in training"; ``bench/bench_enhance_gpu.py``). Inference keeps the default choice: only
+    the backward failed.
 
     The switch (``torch.backends.cuda.enable_cudnn_sdp``) is one flag for the whole process, not
     per thread, so trainings that overlap in one process (mapped tasks) share it: the first to
@@ -498,8 +420,6 @@ def train_vae(model: Enhancer, frames: torch.Tensor, config: EnhancerTrainConfig
     with one thread (as training runs) the same inputs give the same weights bit for bit. Every VAE
     weight is trained; the VAE is left frozen (``requires_grad`` off) and in eval mode.
     Returns the loss of every step."""
-    from volcap_core.reconstruction import deterministic_torch
-
     if frames.ndim != 4 or frames.shape[1] != 4:
         raise ValueError(f"frames must be [N, 4, H, W], got {tuple(frames.shape)}")
     device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
@@ -562,13 +482,10 @@ class _State:
 
 
 def _serialise(state: _State, model: Enhancer, config: EnhancerTrainConfig) -> bytes:
-    from volcap_core.splat.model import safetensors_bytes
-
     tensors: dict[str, torch.Tensor] = {}
     for k, p in state.params.items():
         tensors[f"param/{k}"] = p.detach()
-        tensors[f"adam/m/{k}"] = state.adam.exp_avg[k]
-        tensors[f"adam/v/{k}"] = state.adam.exp_avg_sq[k]
+    tensors.update(state.adam.to_tensors("adam"))
     tensors["rng"] = state.generator.get_state()
     tensors["losses"] = torch.tensor(state.losses, dtype=torch.float64)
     if config.vae_steps > 0:  # the pre-trained VAE (frozen from here on): resumption skips pre-training
@@ -587,9 +504,7 @@ def _restore(data: bytes, model: Enhancer, config: EnhancerTrainConfig, params: 
              state: _State) -> None:
     from safetensors.torch import load as st_load
 
-    from volcap_core.splat.model import _safetensors_metadata
-
-    meta = _safetensors_metadata(data)
+    meta = safetensors_metadata(data)
     if meta.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"not an enhancer training checkpoint (format {meta.get('format')!r})")
     if meta["enhancer_config"] != model.config.model_dump_json():
@@ -608,9 +523,7 @@ def _restore(data: bytes, model: Enhancer, config: EnhancerTrainConfig, params: 
     with torch.no_grad():
         for k, p in params.items():
             p.copy_(t[f"param/{k}"])
-            state.adam.exp_avg[k].copy_(t[f"adam/m/{k}"])
-            state.adam.exp_avg_sq[k].copy_(t[f"adam/v/{k}"])
-    state.adam.step = int(info["adam_step"])
+    state.adam = AdamState.from_tensors(t, "adam", int(info["adam_step"]), like=params)
     state.generator.set_state(t["rng"].clone())
     state.step, state.wall_s = int(info["step"]), float(info["wall_s"])
     state.losses = [float(x) for x in t["losses"].tolist()]
@@ -654,7 +567,6 @@ def train_enhancer(model: Enhancer, pairs: Sequence, config: EnhancerTrainConfig
     Returns:
         :class:`EnhancerTrainResult`.
     """
-    from volcap_core.reconstruction import deterministic_torch
     if not pairs:
         raise ValueError("no training pairs")
     device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))

@@ -8,7 +8,7 @@ Modules, one concern each (see ``docs/poly4dgs.md``):
   :func:`render_flow` (the exact backward flow between two instants, for the enhancer).
 - :mod:`~volcap_core.splat.rasterize` — the pure-PyTorch back-end (gsplat conventions).
 - :mod:`~volcap_core.splat.grids` — per-camera exposure / black-level grids.
-- :mod:`~volcap_core.splat.loss` — L1 + SSIM in unbounded sRGB, regularisers, PSNR/SSIM.
+- :mod:`~volcap_core.splat.loss` — L1 + SSIM in unbounded sRGB, regularisers, display metrics.
 - :mod:`~volcap_core.splat.mcmc` — 3DGS-MCMC relocation, growth, noise, regularisers.
 - :mod:`~volcap_core.splat.train` — :func:`train_segment`.
 - :mod:`~volcap_core.splat.ply` — standard 3DGS PLY export.

@@ -36,8 +36,8 @@ import math
 import torch
 from pydantic import BaseModel, ConfigDict, Field
 
+from volcap_core.checkpoint import AdamState
 from volcap_core.splat.model import LOG_SCALE_MAX, LOG_SCALE_MIN, Poly4DGS
-from volcap_core.splat.optim import AdamState
 from volcap_core.splat.rasterize import quat_scale_to_covar
 
 __all__ = ["MCMCConfig", "add_gaussians", "inject_noise", "mcmc_regulariser", "relocate_dead",

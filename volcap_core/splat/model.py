@@ -41,7 +41,6 @@ floor on the norm.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, fields
 from typing import Literal
@@ -50,6 +49,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field, model_serializer
 from safetensors.torch import load as st_load
 
+from volcap_core.checkpoint import safetensors_bytes, safetensors_metadata
 from volcap_core.splat.sh import num_sh_bases
 
 __all__ = [
@@ -61,7 +61,6 @@ __all__ = [
     "evaluate",
     "load_model",
     "opacity_envelope",
-    "safetensors_bytes",
     "save_model",
 ]
 
@@ -334,54 +333,10 @@ def evaluate(model: Poly4DGS, t: float, *, min_opacity: float = ALPHA_MIN) -> Ga
                        ids=ids, colour_space=c.colour_space)
 
 
-#: torch dtype -> safetensors name, in the order of safetensors' ``Dtype`` enum (it lays tensors
-#: out by that order, largest first, then by name)
-_ST_DTYPES = {torch.bool: "BOOL", torch.uint8: "U8", torch.int8: "I8", torch.int16: "I16",
-              torch.float16: "F16", torch.bfloat16: "BF16", torch.int32: "I32",
-              torch.float32: "F32", torch.float64: "F64", torch.int64: "I64"}
-_ST_RANK = {d: i for i, d in enumerate(_ST_DTYPES)}
-
-
-def safetensors_bytes(tensors: dict[str, torch.Tensor],
-                      metadata: dict[str, str] | None = None) -> bytes:
-    """Safetensors bytes that depend only on the tensors and the metadata (readable by
-    ``safetensors.torch.load``).
-
-    Why not ``safetensors.torch.save``: it keeps the metadata in a Rust ``HashMap``, whose
-    iteration order is randomised per map, so the same model with two metadata keys was written
-    in one of two byte orders at random (measured: 2 different encodings in 20 saves in one
-    process). A content-addressed store then sees two different artifacts, which is what broke
-    "a resumed segment's model is bit-identical to an uninterrupted one". Here the header is JSON
-    with sorted keys; tensors are laid out as safetensors does (by its dtype order, largest
-    first, then by name, so every tensor is aligned); the header is space-padded to a multiple
-    of 8 bytes. With at most one metadata key the bytes equal ``safetensors.torch.save``'s
-    (tested).
-    """
-    items = []
-    for name, t in tensors.items():
-        if t.dtype not in _ST_DTYPES:
-            raise ValueError(f"{name}: dtype {t.dtype} not supported")
-        items.append((name, t.detach().to("cpu").contiguous()))
-    items.sort(key=lambda kv: (-_ST_RANK[kv[1].dtype], kv[0]))
-    header: dict = {}
-    if metadata:
-        header["__metadata__"] = {str(k): str(v) for k, v in sorted(metadata.items())}
-    chunks, offset = [], 0
-    for name, t in items:
-        raw = t.reshape(-1).view(torch.uint8).numpy().tobytes() if t.numel() else b""
-        header[name] = {"dtype": _ST_DTYPES[t.dtype], "shape": list(t.shape),
-                        "data_offsets": [offset, offset + len(raw)]}
-        chunks.append(raw)
-        offset += len(raw)
-    head = json.dumps(header, separators=(",", ":"), ensure_ascii=False).encode("utf-8")
-    head += b" " * (-len(head) % 8)
-    return len(head).to_bytes(8, "little") + head + b"".join(chunks)
-
-
 def save_model(model: Poly4DGS) -> bytes:
     """Serialise to safetensors bytes; the config travels as JSON in the header metadata
     (``volcap.config``), so one artifact holds the whole model. No pickle. The same model gives
-    the same bytes in any process (:func:`safetensors_bytes`)."""
+    the same bytes in any process (:func:`~volcap_core.checkpoint.safetensors_bytes`)."""
     tensors = {k: v.detach().contiguous().cpu() for k, v in model.params.items()}
     meta = {"format": MODEL_FORMAT, "volcap.config": model.config.model_dump_json()}
     return safetensors_bytes(tensors, meta)
@@ -389,19 +344,9 @@ def save_model(model: Poly4DGS) -> bytes:
 
 def load_model(data: bytes, device: torch.device | str = "cpu") -> Poly4DGS:
     """Inverse of :func:`save_model`."""
-    meta = _safetensors_metadata(data)
+    meta = safetensors_metadata(data)
     if meta.get("format") != MODEL_FORMAT:
         raise ValueError(f"not a Poly4DGS model (format {meta.get('format')!r})")
     config = Poly4DGSConfig.model_validate_json(meta["volcap.config"])
     tensors = st_load(data)  # views on read-only buffers: own the memory (writable, aligned)
     return Poly4DGS(config, {k: v.to(device).clone() for k, v in tensors.items()})
-
-
-def _safetensors_metadata(data: bytes) -> dict[str, str]:
-    """The ``__metadata__`` of safetensors bytes (8-byte little-endian header length, JSON)."""
-    if len(data) < 8:
-        raise ValueError("truncated safetensors data")
-    n = int.from_bytes(data[:8], "little")
-    if n > len(data) - 8:
-        raise ValueError("truncated safetensors header")
-    return json.loads(data[8:8 + n]).get("__metadata__", {}) or {}

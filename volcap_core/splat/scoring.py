@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from volcap_core.colour import srgb_encode
-from volcap_core.splat.loss import psnr, ssim
+from volcap_core.image_metrics import psnr, ssim
 
 __all__ = ["ColourTransform", "ViewScore", "Scores", "cross_fitted_transforms",
            "fit_colour_transform", "score_views", "summarise"]

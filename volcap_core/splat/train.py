@@ -34,6 +34,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 from safetensors.torch import load as st_load
 
+from volcap_core.checkpoint import AdamState, adam_step, safetensors_bytes, safetensors_metadata
 from volcap_core.colour import srgb_encode_unbounded
 from volcap_core.splat.camera import Camera
 from volcap_core.splat.grids import ExposureGrids, apply_grids
@@ -54,9 +55,7 @@ from volcap_core.splat.model import (
     Poly4DGS,
     Poly4DGSConfig,
     evaluate,
-    safetensors_bytes,
 )
-from volcap_core.splat.optim import AdamState, adam_step, exponential_lr
 from volcap_core.splat.render import BackendChoice, render, resolve_backend
 from volcap_core.splat.scoring import ViewScore, score_views, summarise
 
@@ -358,6 +357,15 @@ def frame_interval(times: Sequence[float]) -> float:
     return float(np.median(np.diff(np.asarray(sorted(times)))))
 
 
+def exponential_lr(lr_init: float, lr_final: float, step: int, max_steps: int) -> float:
+    """Log-linear decay from ``lr_init`` at step 0 to ``lr_final`` at ``max_steps`` (3DGS's position
+    schedule: 1.6e-4 -> 1.6e-6 times the scene scale), constant after."""
+    if max_steps <= 0 or lr_init == lr_final:
+        return lr_init
+    f = min(max(step / max_steps, 0.0), 1.0)
+    return float(lr_init * (lr_final / lr_init) ** f)
+
+
 def _learning_rates(cfg: TrainConfig, step: int, scene_scale: float, time_scale: float,
                     model: Poly4DGS) -> dict[str, float | torch.Tensor]:
     lr = cfg.lr
@@ -447,13 +455,10 @@ def _serialise(state: _State, config: TrainConfig, extra: dict) -> bytes:
     tensors: dict[str, torch.Tensor] = {}
     for k, v in state.model.params.items():
         tensors[f"model/{k}"] = v.detach()
-        tensors[f"adam/m/{k}"] = state.adam.exp_avg[k]
-        tensors[f"adam/v/{k}"] = state.adam.exp_avg_sq[k]
+    tensors.update(state.adam.to_tensors("adam"))
     tensors["grids/exposure"] = state.grids.exposure.detach()
     tensors["grids/black"] = state.grids.black.detach()
-    for k in ("exposure", "black"):
-        tensors[f"grid_adam/m/{k}"] = state.grid_adam.exp_avg[k]
-        tensors[f"grid_adam/v/{k}"] = state.grid_adam.exp_avg_sq[k]
+    tensors.update(state.grid_adam.to_tensors("grid_adam"))
     tensors["rng"] = state.generator.get_state()
     tensors = {k: v.detach().contiguous().cpu() for k, v in tensors.items()}
     meta = {
@@ -471,9 +476,7 @@ def _serialise(state: _State, config: TrainConfig, extra: dict) -> bytes:
 
 
 def _deserialise(data: bytes, device) -> tuple[_State, dict, Poly4DGSConfig]:
-    from volcap_core.splat.model import _safetensors_metadata
-
-    meta = _safetensors_metadata(data)
+    meta = safetensors_metadata(data)
     if meta.get("format") != CHECKPOINT_FORMAT:
         raise ValueError(f"not a Poly4DGS training checkpoint (format {meta.get('format')!r})")
     info = json.loads(meta["state"])
@@ -484,13 +487,11 @@ def _deserialise(data: bytes, device) -> tuple[_State, dict, Poly4DGSConfig]:
     names = sorted(k.split("/", 1)[1] for k in t if k.startswith("model/"))
     model = Poly4DGS(model_cfg, {k: t[f"model/{k}"].to(device).requires_grad_(True)
                                  for k in names})
-    adam = AdamState({k: t[f"adam/m/{k}"].to(device) for k in names},
-                     {k: t[f"adam/v/{k}"].to(device) for k in names}, info["adam_step"])
+    adam = AdamState.from_tensors(t, "adam", info["adam_step"], like=model.params)
     grids = ExposureGrids(info["camera_ids"], t["grids/exposure"].to(device),
                           t["grids/black"].to(device))
-    gadam = AdamState({k: t[f"grid_adam/m/{k}"].to(device) for k in ("exposure", "black")},
-                      {k: t[f"grid_adam/v/{k}"].to(device) for k in ("exposure", "black")},
-                      info["grid_adam_step"])
+    gadam = AdamState.from_tensors(t, "grid_adam", info["grid_adam_step"],
+                                   like={"exposure": grids.exposure, "black": grids.black})
     gen = torch.Generator()
     gen.set_state(t["rng"])
     history = [EvalPoint(int(s), float(w), float(p), float(q)) for s, w, p, q in info["history"]]
