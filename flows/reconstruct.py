@@ -1,6 +1,6 @@
 """The reconstruct flow: an ingested capture in, one trained Poly4DGS model per segment out.
 
-Segments and training settings come from a named preset (:mod:`volcap_core.presets`), the same
+Segments and training settings come from a named preset (:mod:`volcap_core.production.presets`), the same
 table a production spec's ``quality:`` reads: the same capture, frames and preset give the same
 segments here as in a production (overlapping neighbours included; each is trained on its own).
 """
@@ -15,7 +15,7 @@ from tasks.reconstruct import ground_truth_calibration, ground_truth_points, tra
 from volcap_core import reconstruction
 from volcap_core.calibration.record import Calibration
 from volcap_core.capture import Capture
-from volcap_core.presets import named_preset
+from volcap_core.production.presets import named_preset
 from volcap_core.production.segments import SegmentPlan
 from volcap_core.production.spec import CaptureInfo
 from volcap_core.store import ArtifactStore

@@ -12,7 +12,7 @@ from flows.ingest import ingest_flow
 from flows.reconstruct import plan_reconstruction, reconstruct_flow
 from flows.runtime import run_flow
 from volcap_core import imageio
-from volcap_core.presets import PRESETS, named_preset
+from volcap_core.production.presets import PRESETS, named_preset
 from volcap_core.production.spec import CaptureInfo, needed_steps, parse_spec
 from volcap_core.reconstruction import SegmentModel
 from volcap_core.splat import load_model

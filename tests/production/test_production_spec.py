@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from volcap_core.presets import PRESETS
+from volcap_core.production.presets import PRESETS
 from volcap_core.production.segments import SegmentBudget, plan_segments
 from volcap_core.production.spec import (
     CaptureInfo,

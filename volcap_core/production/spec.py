@@ -1,7 +1,7 @@
 """The production spec (YAML) and the planner that decides what it needs.
 
 A production spec names the captures, the rigs they come from, the actors, the shots to deliver
-and a quality preset (:mod:`volcap_core.presets`; format and example in
+and a quality preset (:mod:`volcap_core.production.presets`; format and example in
 ``docs/production-spec.md``). :func:`load_spec`
 validates it with pydantic and reports every problem with its field path, the offending value and
 the YAML line. :func:`needed_steps` turns a spec into the list of :class:`Step` s it needs — and no
@@ -37,7 +37,7 @@ from pydantic import (
 )
 
 from volcap_core.production._errors import clean_loc, format_validation_error
-from volcap_core.presets import PRESETS, QualityPreset
+from volcap_core.production.presets import PRESETS, QualityPreset
 from volcap_core.production.segments import SegmentPlan
 from volcap_core.production.shot import Shot, ShotError, load_shot
 
@@ -68,7 +68,7 @@ class SpecError(ValueError):
 
 class QualitySelection(BaseModel):
     """``quality: {preset: NAME, <field>: <override>...}``: a preset of
-    :data:`volcap_core.presets.PRESETS`, single :class:`~volcap_core.presets.QualityPreset` fields
+    :data:`volcap_core.production.presets.PRESETS`, single :class:`~volcap_core.production.presets.QualityPreset` fields
     replaced."""
 
     model_config = ConfigDict(extra="allow", frozen=True)
@@ -391,7 +391,7 @@ def capture_info_from_folder(folder: str | Path) -> CaptureInfo:
 
 def segment_plan_for(spec: ProductionSpec, capture: str, info: CaptureInfo) -> SegmentPlan:
     """The capture's segment plan: ``info.segment_plan``, or one from the quality preset
-    (:meth:`~volcap_core.presets.QualityPreset.plan_segments`, as ``volcap reconstruct`` plans)."""
+    (:meth:`~volcap_core.production.presets.QualityPreset.plan_segments`, as ``volcap reconstruct`` plans)."""
     if info.segment_plan is not None:
         return info.segment_plan
     q = spec.quality_preset()
