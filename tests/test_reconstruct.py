@@ -61,7 +61,7 @@ def _production_segments(info: CaptureInfo, quality, frames=None) -> list[tuple[
     capture = {"folder": "/data/take", "reconstruct": True, **({"frames": list(frames)} if frames else {})}
     spec = parse_spec({"format": "volcap-production/1", "name": "p", "quality": quality,
                        "captures": {"take": capture}})
-    return [tuple(s.parameters["frames"]) for s in needed_steps(spec, {"take": info}) if s.kind == "train-segment"]
+    return [tuple(s.parameters.frames) for s in needed_steps(spec, {"take": info}) if s.kind == "train-segment"]
 
 
 def test_reconstruct_plans_the_segments_a_production_plans():
