@@ -21,7 +21,6 @@ from flows.runtime import RunSummary, quiet_prefect_defaults, reproducible_cpu_d
 from flows.runtime import skip_final_collection, start_api_early  # docs/benchmarks.md, cached reruns
 
 quiet_prefect_defaults(log_level="INFO")
-reproducible_cpu_defaults()  # before torch is imported
 skip_final_collection()  # registered first: the command's exit does not wait on a full collection
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
@@ -718,7 +717,11 @@ def _split_verbose(argv: list[str]) -> tuple[list[str], bool]:
 
 
 def main() -> None:
-    """Entry point: stderr is one line (the cause) for failed work, exit 1; flows/cli_output.py."""
+    """Entry point: stderr is one line (the cause) for failed work, exit 1; flows/cli_output.py.
+
+    First the process defaults (one OpenMP thread) while nothing has imported torch: every command,
+    and through ``volcap worker``'s environment every flow run its worker starts."""
+    reproducible_cpu_defaults()
     args, verbose = _split_verbose(sys.argv[1:])
     OUTPUT.start(verbose)
     try:
