@@ -170,7 +170,7 @@ def reconstruct(capture: Annotated[str, typer.Argument(help="capture ref name (c
                 degrees: Annotated[str, typer.Option(help="model: poly4dgs, rotor4d, static")] = "poly4dgs",
                 segment_frames: Annotated[Optional[int], typer.Option(help="at most this many frames per segment, neighbours sharing the preset's overlap (default: the preset's segments)")] = None,
                 steps: Annotated[Optional[int], typer.Option(help="train this many steps instead of the preset's (its schedule stretched to match)")] = None,
-                max_gaussians: Annotated[Optional[int], typer.Option(help="Gaussian budget (MCMC's cap; training starts at 70 % of it)")] = None,
+                max_gaussians: Annotated[Optional[int], typer.Option(help="Gaussian budget of every segment (MCMC's cap; training starts at 70 % of it); default: the preset's plan, gaussians_per_frame a frame within max_gaussians_per_segment, as a production trains")] = None,
                 calibration: Annotated[Optional[str], typer.Option(help="Calibration ref; estimated here (cached) when omitted")] = None,
                 points: Annotated[Optional[str], typer.Option(help="PointCloudSequence ref; dense points of the frames when omitted")] = None,
                 ground_truth: Annotated[bool, typer.Option("--ground-truth", help="use a synthetic capture's true cameras and depth points instead of estimating them")] = False,

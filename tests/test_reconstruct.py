@@ -9,7 +9,7 @@ from prefect import flow
 import tasks.reconstruct as reconstruct_tasks
 import volcap_core.segment as segment_lib
 from flows.ingest import ingest_flow
-from flows.reconstruct import plan_reconstruction, reconstruct_flow
+from flows.reconstruct import plan_reconstruction, reconstruct_flow, segment_configs
 from flows.runtime import run_flow
 from volcap_core import imageio
 from volcap_core.production.presets import PRESETS, named_preset
@@ -223,6 +223,26 @@ def test_demo_and_test_presets_train_as_they_were_measured():
     assert test == TrainConfig(steps=20, grid_size=4, eval_every=0, eval_max_views=2, checkpoint_every=10,
                                mcmc=MCMCConfig(refine_start=5, refine_every=5, refine_stop=15),
                                held_out_cameras=["S002"])
+
+
+def test_reconstruct_trains_each_segment_to_its_plans_budget():
+    """`volcap reconstruct --preset P` trains what the preset says, as a production's train-segment
+    step does: each segment to its plan's Gaussian budget (the preset's Gaussians a frame within its
+    cap), unless --max-gaussians replaces it. So `--preset demo` trains what the demo trains."""
+    info = CaptureInfo(has_tracking_cameras=True, fps=24, frame_count=24, width=320, height=180)
+    [demo] = segment_configs(plan_reconstruction(info, (0, 8), "demo"), "demo", held_out=["S004"])
+    assert demo == PRESETS["demo"].train_config(held_out=["S004"], max_gaussians=80_000)
+    assert [c.mcmc.cap_max for c in segment_configs(plan_reconstruction(info, (0, 4), "demo"), "demo")] == [40_000]
+    plan = plan_reconstruction(info, (0, 24), "test")
+    spec = parse_spec({"format": "volcap-production/1", "name": "p", "quality": "test",
+                       "captures": {"take": {"folder": "/data/take", "reconstruct": True}}})
+    budgets = [s.parameters.gaussians for s in needed_steps(spec, {"take": info}) if s.kind == "train-segment"]
+    configs = segment_configs(plan, "test", steps=40)
+    assert [(c.mcmc.cap_max, c.init_max_points) for c in configs] == [(g, g) for g in budgets]
+    assert budgets[0] == 8 * 500 and len(budgets) == len(plan.segments) > 1
+    assert {c.steps for c in configs} == {40}
+    given = segment_configs(plan, "test", max_gaussians=30_000)
+    assert {(c.mcmc.cap_max, c.init_max_points) for c in given} == {(30_000, 30_000)}
 
 
 @flow
