@@ -8,6 +8,8 @@
   blending across overlaps, rendering at any time.
 - :mod:`~volcap_core.production.shot` — shots (camera paths over a performance) from JSON, the
   camera at a frame, cropped RGBA EXR frames with camera metadata.
+- :mod:`~volcap_core.production.steps` — the step kinds of a plan, each with its parameters as a
+  pydantic model.
 - :mod:`~volcap_core.production.spec` — the production spec (YAML) and the planner that decides
   which steps a spec needs.
 
