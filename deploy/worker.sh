@@ -14,7 +14,8 @@
 #   AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY, AWS_DEFAULT_REGION [, AWS_ENDPOINT_URL]
 #                        store credentials (or a Prefect Secret block the flows read)
 # `volcap worker` (flows/cli.py) is `prefect worker start` with volcap's settings (DO_NOT_TRACK,
-# heartbeats every 60 s); VOLCAP_WORKER_CMD overrides the command. Logs: VOLCAP_WORKER_LOGS
+# heartbeats every 60 s, one OpenMP thread per process); VOLCAP_WORKER_CMD overrides the command,
+# and this script sets the same defaults for it. Logs: VOLCAP_WORKER_LOGS
 # (default $VOLCAP_HOME/.volcap/workers).
 # SIGTERM / SIGINT stop every worker gracefully (a Prefect worker stops on SIGTERM by sending
 # itself SIGINT) and exit; when one worker exits, the others are stopped the same way and the
@@ -27,7 +28,7 @@ while [[ $# -gt 0 ]]; do
   case "$1" in
     --gpus) GPU_LIST="$2"; shift 2 ;;
     --control) CONTROL=1; shift ;;
-    -h|--help) sed -n '2,21p' "$0"; exit 0 ;;
+    -h|--help) sed -n '2,22p' "$0"; exit 0 ;;
     *) echo "unknown argument: $1 (see --help)" >&2; exit 2 ;;
   esac
 done
@@ -36,6 +37,9 @@ done
 WORKER=(${VOLCAP_WORKER_CMD:-volcap worker})
 export DO_NOT_TRACK=1 PREFECT_SERVER_ANALYTICS_ENABLED=false
 export PREFECT_FLOWS_HEARTBEAT_FREQUENCY="${PREFECT_FLOWS_HEARTBEAT_FREQUENCY:-60}"
+# one OpenMP/MKL thread per process, before any flow run imports torch (flows/runtime.py
+# reproducible_cpu_defaults: bit-reproducible CPU work); set them to trade that for speed
+export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}" MKL_NUM_THREADS="${MKL_NUM_THREADS:-1}"
 
 if [[ -z "$GPU_LIST" ]]; then
   if ! command -v nvidia-smi >/dev/null 2>&1; then

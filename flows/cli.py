@@ -21,7 +21,6 @@ from flows.runtime import RunSummary, quiet_prefect_defaults, reproducible_cpu_d
 from flows.runtime import skip_final_collection, start_api_early  # docs/benchmarks.md, cached reruns
 
 quiet_prefect_defaults(log_level="INFO")
-reproducible_cpu_defaults()  # before torch is imported
 skip_final_collection()  # registered first: the command's exit does not wait on a full collection
 
 app = typer.Typer(add_completion=False, no_args_is_help=True, pretty_exceptions_enable=False,
@@ -171,7 +170,7 @@ def reconstruct(capture: Annotated[str, typer.Argument(help="capture ref name (c
                 degrees: Annotated[str, typer.Option(help="model: poly4dgs, rotor4d, static")] = "poly4dgs",
                 segment_frames: Annotated[Optional[int], typer.Option(help="at most this many frames per segment, neighbours sharing the preset's overlap (default: the preset's segments)")] = None,
                 steps: Annotated[Optional[int], typer.Option(help="train this many steps instead of the preset's (its schedule stretched to match)")] = None,
-                max_gaussians: Annotated[Optional[int], typer.Option(help="Gaussian budget (MCMC's cap; training starts at 70 % of it)")] = None,
+                max_gaussians: Annotated[Optional[int], typer.Option(help="Gaussian budget of every segment (MCMC's cap; training starts at 70 % of it); default: the preset's plan, gaussians_per_frame a frame within max_gaussians_per_segment, as a production trains")] = None,
                 calibration: Annotated[Optional[str], typer.Option(help="Calibration ref; estimated here (cached) when omitted")] = None,
                 points: Annotated[Optional[str], typer.Option(help="PointCloudSequence ref; dense points of the frames when omitted")] = None,
                 ground_truth: Annotated[bool, typer.Option("--ground-truth", help="use a synthetic capture's true cameras and depth points instead of estimating them")] = False,
@@ -718,7 +717,11 @@ def _split_verbose(argv: list[str]) -> tuple[list[str], bool]:
 
 
 def main() -> None:
-    """Entry point: stderr is one line (the cause) for failed work, exit 1; flows/cli_output.py."""
+    """Entry point: stderr is one line (the cause) for failed work, exit 1; flows/cli_output.py.
+
+    First the process defaults (one OpenMP thread) while nothing has imported torch: every command,
+    and through ``volcap worker``'s environment every flow run its worker starts."""
+    reproducible_cpu_defaults()
     args, verbose = _split_verbose(sys.argv[1:])
     OUTPUT.start(verbose)
     try:

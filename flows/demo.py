@@ -1,8 +1,8 @@
 """The demo: every stage that exists, run on the built-in synthetic capture.
 
 ingest → calibrate (static cameras, tracking cameras, dense points of the frames reconstructed) →
-reconstruct (Poly4DGS, one segment of the first 8 frames, on the estimated calibration, scored on a
-held-out camera against the empty- and untrained-model floors) → the segment's contact sheet
+reconstruct (Poly4DGS, one segment of the first 8 frames to the preset's Gaussian budget, on the
+estimated calibration, scored on a held-out camera against the empty- and untrained-model floors) → the segment's contact sheet
 (footage | render | error) as ``demo/contact_sheet.png``, a held-out camera's view at the segment's
 middle rendered to EXR and the Gaussians there exported as PLY; the calibration's error against the
 capture's ground truth is reported. Stages join as they land.
@@ -25,21 +25,16 @@ from volcap_core.splat import export_ply, load_model
 from volcap_core.store import ArtifactStore
 
 
-#: the demo segment's Gaussian budget (MCMC's cap; training starts at 70 % of it): measured against
-#: the 8-minute demo target on 2 CPU cores (docs/poly4dgs.md "Demo")
-DEMO_GAUSSIANS = 80_000
-
-
 @flow(name="demo", persist_result=False)
 def demo_flow(store: str, capture_dir: str, out_dir: str, preset: str = "demo") -> dict:
     """Run the pipeline on the demo capture; returns the references a coordinator would look at."""
     log = get_run_logger()
     s = ArtifactStore(store)
     capture = ingest_flow(store=store, capture_dir=capture_dir)
-    # The first third of the take at a denser point budget: at demo size a whole take spreads the
-    # Gaussians too thin per instant (each lives ~1.5 frames), and a reviewer wants a legible view.
-    recon = reconstruct_flow(store=store, capture=capture.digest, frames=(0, 8), preset=preset,
-                             max_gaussians=DEMO_GAUSSIANS)
+    # The first third of the take, one segment at the preset's budget (the demo preset's 10,000
+    # Gaussians a frame): at demo size a whole take spreads the Gaussians too thin per instant (each
+    # lives ~1.5 frames), and a reviewer wants a legible view.
+    recon = reconstruct_flow(store=store, capture=capture.digest, frames=(0, 8), preset=preset)
     seg_ref = s.resolve(recon["segments"][0]["model"]["digest"])
     seg = s.get_record(seg_ref, SegmentModel)
     calib_ref = s.resolve(recon["calibration"]["digest"])

@@ -13,9 +13,12 @@ It reads like the process it runs::
               their prompt embeddings, one detail enhancer trained on all their pairs, then each
               enhanced shot's frames in order (shots in parallel): ``docs/enhancer.md``
 
-Every step is a cached volcap task (``docs/tasks.md``), so a rerun recomputes only what changed or
-never finished. After each step a journal entry (``volcap_core.production.journal``) records what
-it ran on, which is how ``volcap plan`` explains why a step is to run.
+Each step kind (``volcap_core.production.steps``) has one entry in :data:`STEP_KINDS`: the tasks
+it runs, what its fingerprint reads beside its parameters, and how it runs; the flow runs the plan
+kind by kind in :data:`PHASES`. Every step is a cached volcap task (``docs/tasks.md``), so a rerun
+recomputes only what changed or never finished. After each step a journal entry
+(``volcap_core.production.journal``) records what it ran on, which is how ``volcap plan`` explains
+why a step is to run.
 
 Segment runs across machines (``docs/operations.md``): ``run_deployment`` with ``timeout=None``
 and an idempotency key made of the segment's cache key and the attempt number, so a doubled or
@@ -27,36 +30,35 @@ it trains.
 
 from __future__ import annotations
 
-from flows.runtime import reproducible_cpu_defaults
+import os
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
 
-reproducible_cpu_defaults()  # before torch: workers import this module as their entrypoint
+from prefect import flow, get_run_logger, task, unmapped
+from prefect.cache_policies import NO_CACHE
 
-import os  # noqa: E402
-from dataclasses import dataclass, field  # noqa: E402
-from pathlib import Path  # noqa: E402
-from typing import Any, Literal  # noqa: E402
-
-from prefect import flow, get_run_logger, task, unmapped  # noqa: E402
-from prefect.cache_policies import NO_CACHE  # noqa: E402
-
-from flows.calibrate import calibrate_capture, point_cloud_for_frames  # noqa: E402
-from flows.ingest import ingest_flow  # noqa: E402
-from tasks import calibrate as calibrate_tasks  # noqa: E402
-from tasks.contract import cached_output, task_identity  # noqa: E402
-from tasks.enhance import actor_prompt, enhance_shot, face_pairs, train_enhancer_task  # noqa: E402
-from tasks.ingest import fingerprint_camera, ingest_camera, record_capture  # noqa: E402
-from tasks.production import assemble_performance, render_shot  # noqa: E402
-from tasks.reconstruct import train_segment_task  # noqa: E402
-from volcap_core import reconstruction  # noqa: E402
-from volcap_core.capture import Capture  # noqa: E402
-from volcap_core.digest import digest_bytes  # noqa: E402
-from volcap_core.production.journal import (compare_fingerprints, folder_listing_digest,  # noqa: E402
-                                            read_entry, write_entry)
-from volcap_core.production.spec import (CaptureInfo, ProductionSpec, Step,  # noqa: E402
-                                         capture_info_from_folder, load_spec, needed_steps)
-from volcap_core.records import ArtifactRef, canonical_json  # noqa: E402
-from volcap_core.splat.train import TrainConfig  # noqa: E402
-from volcap_core.store import ArtifactStore  # noqa: E402
+from flows.calibrate import calibrate_capture, point_cloud_for_frames
+from flows.ingest import ingest_flow
+from tasks import calibrate as calibrate_tasks
+from tasks.contract import cached_output, task_identity
+from tasks.enhance import actor_prompt, enhance_shot, face_pairs, train_enhancer_task
+from tasks.ingest import fingerprint_camera, ingest_camera, record_capture
+from tasks.production import assemble_performance, render_shot
+from tasks.reconstruct import train_segment_task
+from volcap_core import reconstruction
+from volcap_core.capture import Capture
+from volcap_core.digest import digest_bytes
+from volcap_core.enhance.production import (check_flux_directory, check_raft_weights, directory_fingerprint,
+                                            has_text_encoders)
+from volcap_core.production.journal import compare_fingerprints, folder_listing_digest, read_entry, write_entry
+from volcap_core.production.presets import QualityPreset
+from volcap_core.production.spec import CaptureInfo, ProductionSpec, capture_info_from_folder, load_spec, needed_steps
+from volcap_core.production.steps import Step
+from volcap_core.records import ArtifactRef, canonical_json
+from volcap_core.splat.train import TrainConfig
+from volcap_core.store import ArtifactStore
 
 SEGMENT_DEPLOYMENT = "train-segment-flow/train-segment"
 #: The global concurrency limit with one slot per GPU (deploy/setup-pool.sh creates it).
@@ -152,8 +154,6 @@ class Production:
         naming the spec and the path otherwise)."""
         if not any(s.kind in ENHANCER_STEPS for s in self.steps):
             return
-        from volcap_core.enhance.production import check_flux_directory
-
         where = where or self.spec.name
         q = self.spec.quality_preset()
         weights = self.enhancer_weights()
@@ -171,8 +171,6 @@ class Production:
             except FileNotFoundError as exc:
                 raise ValueError(f"{where}: quality.{exc}") from None
         if q.enhancer_flow in ("raft", "raft-small") and any(s.kind == "enhance-shot" for s in self.steps):
-            from volcap_core.enhance.production import check_raft_weights
-
             try:  # the file and torchvision; the weights load when a shot is enhanced
                 check_raft_weights(q.enhancer_flow, self.enhancer_flow_weights(),
                                    what=f"{where}: quality.enhancer_flow {q.enhancer_flow}",
@@ -224,33 +222,18 @@ def _versions(*tasks: Any) -> dict[str, Any]:
     return {t.cache_policy.task_name: task_identity(t) for t in tasks}
 
 
-def has_tracking_step(steps: list[Step], capture: str) -> bool:
-    """Whether the plan calibrates ``capture``'s tracking cameras (then the static step is not final)."""
-    return any(s.kind == "calibrate-tracking" and s.parameters["capture"] == capture for s in steps)
+def final_calibration(steps: Sequence[Step], capture: str) -> str:
+    """The id of the step whose output is ``capture``'s calibration: its tracking-camera step when the
+    plan has one, else its static step."""
+    tracking = f"calibrate-tracking:{capture}"
+    return tracking if any(s.id == tracking for s in steps) else f"calibrate-static:{capture}"
 
 
-def step_versions(step: Step, steps: list[Step]) -> dict[str, str]:
-    """Name → version of every task a step runs (a bumped version re-runs the step)."""
-    if step.kind == "ingest":
-        return _versions(fingerprint_camera, ingest_camera, record_capture)
-    if step.kind == "calibrate-static":
-        final = () if has_tracking_step(steps, step.parameters["capture"]) else (calibrate_tasks.assemble_calibration,)
-        return _versions(calibrate_tasks.calibrate_static, *final)
-    if step.kind == "calibrate-tracking":
-        return _versions(calibrate_tasks.calibrate_tracking_camera, calibrate_tasks.assemble_calibration)
-    if step.kind == "dense-points":
-        return _versions(calibrate_tasks.dense_points_frame, calibrate_tasks.point_cloud_sequence)
-    if step.kind == "train-segment":
-        return _versions(train_segment_task)
-    if step.kind == "render-shot":
-        return _versions(assemble_performance, render_shot)
-    if step.kind == "face-pairs":
-        return _versions(face_pairs)
-    if step.kind == "train-enhancer":
-        return _versions(actor_prompt, train_enhancer_task)
-    if step.kind == "enhance-shot":
-        return _versions(enhance_shot)
-    return {}
+def step_versions(step: Step, steps: Sequence[Step]) -> dict[str, Any]:
+    """Name → identity of every task a step runs (a bumped version re-runs the step)."""
+    kind = STEP_KINDS[step.kind]
+    final = step.id == final_calibration(steps, step.parameters.capture) if kind.final_tasks else False
+    return _versions(*kind.tasks, *(kind.final_tasks if final else ()))
 
 
 def _outputs_digest(outputs: dict[str, ArtifactRef]) -> str:
@@ -265,21 +248,9 @@ def step_fingerprint(prod: Production, step: Step, done: dict[str, dict[str, Art
         if i not in done:
             return f"after {i}, which is to run"
         inputs[i] = _outputs_digest(done[i])
-    fp: dict[str, Any] = {"kind": step.kind, "versions": step_versions(step, prod.steps), "inputs": inputs,
-                          "parameters": step.parameters}
-    if step.kind == "ingest":
-        fp["source"] = folder_listing_digest(prod.folder(step.parameters["capture"]))
-    elif step.kind == "train-enhancer" and prod.enhancer_weights() is not None:
-        from volcap_core.enhance.production import directory_fingerprint
-
-        fp["weights"] = directory_fingerprint(prod.enhancer_weights())
-    elif step.kind == "enhance-shot" and prod.enhancer_flow_weights() is not None:
-        from volcap_core.enhance.production import directory_fingerprint
-
-        fp["flow_weights"] = directory_fingerprint(prod.enhancer_flow_weights())
-    elif step.parameters.get("capture_ref"):
-        fp["source"] = ArtifactStore(prod.store).resolve(step.parameters["capture_ref"]).digest
-    return fp
+    source = STEP_KINDS[step.kind].source
+    return {"kind": step.kind, "versions": step_versions(step, prod.steps), "inputs": inputs,
+            "parameters": step.parameters.as_json(), **(source(prod, step) if source else {})}
 
 
 @dataclass
@@ -292,7 +263,7 @@ class PlannedStep:
     def as_json(self) -> dict[str, Any]:
         return {"id": self.step.id, "kind": self.step.kind, "status": self.status, "reason": self.reason,
                 "inputs": list(self.step.inputs), "outputs": {k: v.digest for k, v in self.outputs.items()},
-                "parameters": {k: v for k, v in self.step.parameters.items() if k != "shot_spec"}}
+                "parameters": {k: v for k, v in self.step.parameters.as_json().items() if k != "shot_spec"}}
 
 
 def plan_production(prod: Production) -> list[PlannedStep]:
@@ -448,6 +419,258 @@ def train_segments(store: str, jobs: list[SegmentJob], mode: Literal["local", "d
 
 
 # ---------------------------------------------------------------------------------------------
+# Step kinds: what each runs, what its fingerprint reads, how it runs
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class ProductionRun:
+    """One run of a production: the plan, where each step's outputs went, the shots delivered."""
+
+    prod: Production
+    mode: Literal["local", "deployment"]
+    max_attempts: int
+    poll_interval_s: float
+    log: Any
+    done: dict[str, dict[str, ArtifactRef]] = field(default_factory=dict)
+    shots: dict[str, dict[str, Any]] = field(default_factory=dict)
+    store: ArtifactStore = field(init=False)
+    quality: QualityPreset = field(init=False)
+    steps: dict[str, Step] = field(init=False)
+    _captures: dict[str, ArtifactRef] = field(default_factory=dict, init=False, repr=False)
+    _records: dict[str, Capture] = field(default_factory=dict, init=False, repr=False)
+
+    def __post_init__(self) -> None:
+        self.store = ArtifactStore(self.prod.store)
+        self.quality = self.prod.spec.quality_preset()
+        self.steps = {s.id: s for s in self.prod.steps}
+
+    def finish(self, step: Step, outputs: dict[str, ArtifactRef]) -> None:
+        """Journal the step's fingerprint and outputs; later steps read its outputs."""
+        fp = step_fingerprint(self.prod, step, self.done)
+        assert not isinstance(fp, str), fp  # every input finished before this step
+        write_entry(self.store, self.prod.spec.name, step.id, fp, outputs)
+        self.done[step.id] = outputs
+
+    def capture(self, name: str) -> ArtifactRef:
+        """A capture's Capture record: its ingest step's output, or the spec's ``ref`` resolved (once)."""
+        if name not in self._captures:
+            ingested = self.done.get(f"ingest:{name}")
+            self._captures[name] = (ingested["capture"] if ingested
+                                    else self.store.resolve(self.prod.spec.captures[name].ref))
+        return self._captures[name]
+
+    def record(self, name: str) -> Capture:
+        if name not in self._records:
+            self._records[name] = self.store.get_record(self.capture(name), Capture)
+        return self._records[name]
+
+    def output(self, step: Step, kind: str, name: str) -> ArtifactRef:
+        """Output ``name`` of the input of ``step`` of kind ``kind`` (its first, in plan order)."""
+        return self.done[next(i for i in step.inputs if self.steps[i].kind == kind)][name]
+
+    def calibration(self, capture: str) -> ArtifactRef:
+        """The final calibration of ``capture``."""
+        return self.done[final_calibration(self.prod.steps, capture)]["calibration"]
+
+    def result(self) -> dict[str, Any]:
+        return {"production": self.prod.spec.name, "store": self.prod.store, "segment_runs": self.mode,
+                "steps": {sid: {k: v.digest for k, v in outs.items()} for sid, outs in self.done.items()},
+                "shots": self.shots}
+
+
+def run_ingest(run: ProductionRun, steps: list[Step]) -> None:
+    [step] = steps
+    p = step.parameters
+    run.finish(step, {"capture": ingest_flow(store=run.prod.store, capture_dir=str(run.prod.folder(p.capture)))})
+
+
+def run_calibrate_static(run: ProductionRun, steps: list[Step]) -> None:
+    """The static cameras; with no tracking step after it, the capture's whole calibration."""
+    [step] = steps
+    cap = step.parameters.capture
+    _check_rig(run.prod, cap, run.record(cap), run.log)
+    if final_calibration(run.prod.steps, cap) == step.id:
+        run.finish(step, {"calibration": calibrate_capture(run.prod.store, run.capture(cap))})
+    else:
+        run.finish(step, {"static": calibrate_tasks.calibrate_static(run.prod.store, run.capture(cap))})
+
+
+def run_calibrate_tracking(run: ProductionRun, steps: list[Step]) -> None:
+    [step] = steps
+    run.finish(step, {"calibration": calibrate_capture(run.prod.store, run.capture(step.parameters.capture))})
+
+
+def run_dense_points(run: ProductionRun, steps: list[Step]) -> None:
+    """Every point of every frame: training thins them to the segment's budget itself
+    (splat/init.py), after the static/moving split has seen them all."""
+    [step] = steps
+    p = step.parameters
+    a, b = p.frames
+    points = point_cloud_for_frames(run.prod.store, run.capture(p.capture), run.calibration(p.capture),
+                                    list(range(a, b)), scale=p.dense_scale,
+                                    exclude_cameras=reconstruction.default_held_out(run.record(p.capture)))
+    run.finish(step, {"points": points})
+
+
+def run_train_segments(run: ProductionRun, steps: list[Step]) -> None:
+    """Every needed segment at once, each to its plan's Gaussian budget."""
+    jobs = []
+    for step in steps:
+        p = step.parameters
+        config = run.quality.train_config(held_out=reconstruction.default_held_out(run.record(p.capture)),
+                                          max_gaussians=p.gaussians)
+        jobs.append(SegmentJob(capture=run.capture(p.capture), calibration=run.calibration(p.capture),
+                               points=run.output(step, "dense-points", "points"), frames=p.frames, config=config))
+    run.log.info("training %d segment(s) (%s)", len(jobs), run.mode)
+    for step, ref in zip(steps, train_segments(run.prod.store, jobs, run.mode, run.max_attempts,
+                                               run.poll_interval_s)):
+        run.finish(step, {"segment": ref})
+
+
+def run_render_shot(run: ProductionRun, steps: list[Step]) -> None:
+    """The shot's performance (its segments, each owning its core) and its frames."""
+    [step] = steps
+    p = step.parameters
+    segments = [run.steps[i] for i in step.inputs]
+    perf = assemble_performance(run.prod.store, p.capture, run.capture(p.capture),
+                                [run.done[s.id]["segment"] for s in segments],
+                                [list(s.parameters.core) for s in segments])
+    frames = render_shot(run.prod.store, perf, p.shot_spec)
+    run.store.set_ref(f"productions/{run.prod.spec.name}/shots/{p.shot}", frames)
+    run.store.set_ref(f"productions/{run.prod.spec.name}/performances/{p.shot}", perf)
+    run.finish(step, {"performance": perf, "frames": frames})
+    run.shots[p.shot] = {"frames": frames.digest, "performance": perf.digest,
+                         "count": len(run.store.get_tree(frames))}
+    run.log.info("shot %s: %d frames -> %s", p.shot, run.shots[p.shot]["count"], frames.digest)
+
+
+def run_face_pairs(run: ProductionRun, steps: list[Step]) -> None:
+    [step] = steps
+    p = step.parameters
+    pairs = face_pairs(run.prod.store, run.capture(p.face_capture), p.actor, p.subsequences, p.subsequence_frames,
+                       p.camera_paths, p.resolution, lq_gaussians=list(p.lq_gaussians),
+                       hq_gaussians_per_frame=p.hq_gaussians_per_frame)
+    run.finish(step, {"pairs": pairs})
+
+
+def run_train_enhancer(run: ProductionRun, steps: list[Step]) -> None:
+    """Each actor's prompt embedding, then one enhancer on all their pairs: from the preset's
+    FLUX.1 weights when it names them, else the CPU architecture from scratch."""
+    [step] = steps
+    p = step.parameters
+    q = run.quality
+    weights = run.prod.enhancer_weights()
+    arch = q.enhancer_config()
+    fingerprint = directory_fingerprint(weights) if weights is not None else None
+    encoders = str(weights) if weights is not None and has_text_encoders(weights) else None
+    if weights is not None and encoders is None:
+        run.log.warning("%s has no FLUX.1 text encoders (or transformers is missing): zero prompt embeddings",
+                        weights)
+    prompts = {a: actor_prompt(run.prod.store, a, arch, text=p.prompts.get(a), encoders=encoders,
+                               encoders_fingerprint=fingerprint if encoders else None) for a in p.actors}
+    pairs = [run.done[f"face-pairs:{a}"]["pairs"] for a in p.actors]
+    if weights is None:
+        enhancer = train_enhancer_task(run.prod.store, pairs, prompts, q.enhancer_train_config(), architecture=arch)
+    else:
+        enhancer = train_enhancer_task(run.prod.store, pairs, prompts, q.enhancer_train_config(),
+                                       base_weights=str(weights), base_fingerprint=fingerprint)
+    run.store.set_ref(f"productions/{run.prod.spec.name}/enhancer", enhancer)
+    run.finish(step, {"enhancer": enhancer, **{f"prompt:{a}": r for a, r in prompts.items()}})
+
+
+def run_enhance_shots(run: ProductionRun, steps: list[Step]) -> None:
+    """Every enhanced shot at once (frames in order within a shot), each with its first actor's
+    prompt; RAFT's weights file (``enhancer_flow`` raft / raft-small) as a location pinned by its
+    fingerprint."""
+    flow_weights = run.prod.enhancer_flow_weights()
+    raft = {} if flow_weights is None else {"flow_weights": str(flow_weights),
+                                            "flow_weights_fingerprint": directory_fingerprint(flow_weights)}
+    submitted = [(step, enhance_shot.submit(run.prod.store, run.output(step, "render-shot", "frames"),
+                                            run.output(step, "train-enhancer", "enhancer"),
+                                            step.parameters.actors[0], run.quality.enhance_settings(), **raft))
+                 for step in steps]
+    for step, future in submitted:
+        shot = step.parameters.shot
+        ref = future.result()
+        run.store.set_ref(f"productions/{run.prod.spec.name}/enhanced/{shot}", ref)
+        run.finish(step, {"frames": ref})
+        run.shots[shot]["enhanced"] = ref.digest
+        run.log.info("shot %s: enhanced -> %s", shot, ref.digest)
+
+
+def _folder_source(prod: Production, step: Step) -> dict[str, Any]:
+    """An ingest reads its folder: the listing digest stands in for the files."""
+    return {"source": folder_listing_digest(prod.folder(step.parameters.capture))}
+
+
+def _ref_source(prod: Production, step: Step) -> dict[str, Any]:
+    """A calibration of a capture given by ref reads what the ref names now."""
+    ref = step.parameters.capture_ref
+    return {"source": ArtifactStore(prod.store).resolve(ref).digest} if ref else {}
+
+
+def _weights_source(prod: Production, step: Step) -> dict[str, Any]:
+    """The enhancer trains from the preset's FLUX.1 directory when it names one."""
+    weights = prod.enhancer_weights()
+    return {} if weights is None else {"weights": directory_fingerprint(weights)}
+
+
+def _flow_weights_source(prod: Production, step: Step) -> dict[str, Any]:
+    """A shot's enhancement reads RAFT's weights file when the preset names one."""
+    weights = prod.enhancer_flow_weights()
+    return {} if weights is None else {"flow_weights": directory_fingerprint(weights)}
+
+
+@dataclass(frozen=True)
+class StepKindRun:
+    """How the flow runs one step kind (``volcap_core.production.steps``).
+
+    ``tasks``: the volcap tasks it runs (their identities are in its fingerprint); ``final_tasks``:
+    those it runs only as its capture's final calibration. ``run(run, steps)``: runs ``steps`` (one,
+    or with ``together`` every step of the kind at once) and journals each. ``source``: what its
+    fingerprint reads besides its parameters and inputs (files outside the store)."""
+
+    tasks: tuple[Any, ...]
+    run: Callable[[ProductionRun, list[Step]], None]
+    source: Callable[[Production, Step], dict[str, Any]] | None = None
+    final_tasks: tuple[Any, ...] = ()
+    together: bool = False
+
+
+STEP_KINDS: dict[str, StepKindRun] = {
+    "ingest": StepKindRun((fingerprint_camera, ingest_camera, record_capture), run_ingest, _folder_source),
+    "calibrate-static": StepKindRun((calibrate_tasks.calibrate_static,), run_calibrate_static, _ref_source,
+                                    final_tasks=(calibrate_tasks.assemble_calibration,)),
+    "calibrate-tracking": StepKindRun((calibrate_tasks.calibrate_tracking_camera, calibrate_tasks.assemble_calibration),
+                                      run_calibrate_tracking, _ref_source),
+    "dense-points": StepKindRun((calibrate_tasks.dense_points_frame, calibrate_tasks.point_cloud_sequence),
+                                run_dense_points),
+    "train-segment": StepKindRun((train_segment_task,), run_train_segments, together=True),
+    "render-shot": StepKindRun((assemble_performance, render_shot), run_render_shot),
+    "face-pairs": StepKindRun((face_pairs,), run_face_pairs),
+    "train-enhancer": StepKindRun((actor_prompt, train_enhancer_task), run_train_enhancer, _weights_source),
+    "enhance-shot": StepKindRun((enhance_shot,), run_enhance_shots, _flow_weights_source, together=True),
+}
+
+#: The order the flow runs a plan in: what the segments need (in plan order), every segment at
+#: once, the shots, then the enhancer half (nothing without an enhanced shot).
+PHASES = (("ingest", "calibrate-static", "calibrate-tracking", "dense-points"), ("train-segment",),
+          ("render-shot",), ("face-pairs",), ("train-enhancer",), ("enhance-shot",))
+
+
+def batches(steps: Sequence[Step]) -> Iterator[list[Step]]:
+    """The plan's steps as the flow runs them: phase by phase, one step at a time, or a whole
+    phase at once for a kind that runs ``together``."""
+    for phase in PHASES:
+        todo = [s for s in steps if s.kind in phase]
+        if todo and STEP_KINDS[todo[0].kind].together:
+            yield todo
+        else:
+            yield from ([s] for s in todo)
+
+
+# ---------------------------------------------------------------------------------------------
 # The flow
 # ---------------------------------------------------------------------------------------------
 
@@ -464,143 +687,11 @@ def production_flow(spec: str, store: str | None = None, shots: list[str] | None
     log = get_run_logger()
     store_credentials_from_block()
     prod = open_production(spec, store, shots)  # refuses an enhancer it cannot build before anything runs
-    s = ArtifactStore(prod.store)
-    mode = segment_runs_mode(segment_runs)
-    log.info("production %s: %d steps, store %s, segments %s", prod.spec.name, len(prod.steps), prod.store, mode)
-    done: dict[str, dict[str, ArtifactRef]] = {}
-
-    def finish(step: Step, outputs: dict[str, ArtifactRef]) -> None:
-        fp = step_fingerprint(prod, step, done)
-        assert not isinstance(fp, str), fp  # every input finished before this step
-        write_entry(s, prod.spec.name, step.id, fp, outputs)
-        done[step.id] = outputs
-
-    q = prod.spec.quality_preset()
-    captures: dict[str, ArtifactRef] = {}
-    records: dict[str, Capture] = {}
-    calibrations: dict[str, ArtifactRef] = {}
-    points: dict[str, ArtifactRef] = {}
-    train_steps = [st for st in prod.steps if st.kind == "train-segment"]
-    for step in prod.steps:
-        p = step.parameters
-        if step.kind == "ingest":
-            captures[p["capture"]] = ingest_flow(store=prod.store, capture_dir=str(prod.folder(p["capture"])))
-            finish(step, {"capture": captures[p["capture"]]})
-        elif step.kind == "calibrate-static":
-            cap = p["capture"]
-            if p.get("capture_ref"):
-                captures[cap] = s.resolve(p["capture_ref"])
-            records[cap] = s.get_record(captures[cap], Capture)
-            _check_rig(prod, cap, records[cap], log)
-            if has_tracking_step(prod.steps, cap):
-                finish(step, {"static": calibrate_tasks.calibrate_static(prod.store, captures[cap])})
-            else:
-                calibrations[cap] = calibrate_capture(prod.store, captures[cap])
-                finish(step, {"calibration": calibrations[cap]})
-        elif step.kind == "calibrate-tracking":
-            cap = p["capture"]
-            calibrations[cap] = calibrate_capture(prod.store, captures[cap])
-            finish(step, {"calibration": calibrations[cap]})
-        elif step.kind == "dense-points":
-            cap = p["capture"]
-            a, b = p["frames"]
-            # every point of every frame: training thins them to the segment's budget itself
-            # (splat/init.py), after the static/moving split has seen them all
-            points[step.id] = point_cloud_for_frames(prod.store, captures[cap], calibrations[cap], list(range(a, b)),
-                                                     scale=p["dense_scale"],
-                                                     exclude_cameras=reconstruction.default_held_out(records[cap]))
-            finish(step, {"points": points[step.id]})
-
-    # every needed segment at once
-    jobs = []
-    for step in train_steps:
-        p = step.parameters
-        cap = p["capture"]
-        held = reconstruction.default_held_out(records[cap])
-        config = q.train_config(held_out=held, max_gaussians=p["gaussians"])
-        dense = next(i for i in step.inputs if i.startswith("dense-points:"))
-        jobs.append(SegmentJob(capture=captures[cap], calibration=calibrations[cap], points=points[dense],
-                               frames=(p["frames"][0], p["frames"][1]), config=config))
-    log.info("training %d segment(s) (%s)", len(jobs), mode)
-    for step, ref in zip(train_steps, train_segments(prod.store, jobs, mode, max_attempts, poll_interval_s)):
-        finish(step, {"segment": ref})
-
-    shots_out = {}
-    for step in (st for st in prod.steps if st.kind == "render-shot"):
-        p = step.parameters
-        segs = [prod_step for prod_step in train_steps if prod_step.id in step.inputs]
-        perf = assemble_performance(prod.store, p["capture"], captures[p["capture"]],
-                                    [done[st.id]["segment"] for st in segs],
-                                    [list(st.parameters["core"]) for st in segs])
-        frames = render_shot(prod.store, perf, p["shot_spec"])
-        s.set_ref(f"productions/{prod.spec.name}/shots/{p['shot']}", frames)
-        s.set_ref(f"productions/{prod.spec.name}/performances/{p['shot']}", perf)
-        finish(step, {"performance": perf, "frames": frames})
-        shots_out[p["shot"]] = {"frames": frames.digest, "performance": perf.digest,
-                                "count": len(s.get_tree(frames))}
-        log.info("shot %s: %d frames -> %s", p["shot"], shots_out[p["shot"]]["count"], frames.digest)
-
-    enhance_shots(prod, s, q, captures, done, shots_out, finish, log)
-
-    return {"production": prod.spec.name, "store": prod.store, "segment_runs": mode,
-            "steps": {sid: {k: v.digest for k, v in outs.items()} for sid, outs in done.items()},
-            "shots": shots_out}
-
-
-def enhance_shots(prod: Production, s: ArtifactStore, q, captures: dict[str, ArtifactRef],
-                  done: dict[str, dict[str, ArtifactRef]], shots_out: dict[str, dict], finish, log) -> None:
-    """The enhancer half: face pairs per actor of an enhanced shot, each actor's prompt, one
-    enhancer trained on all their pairs, then every enhanced shot at once (frames in order within
-    a shot). Nothing when no requested shot has ``enhance: true``."""
-    from volcap_core.enhance.production import directory_fingerprint, has_text_encoders
-
-    pairs: dict[str, ArtifactRef] = {}
-    for step in (st for st in prod.steps if st.kind == "face-pairs"):
-        p = step.parameters
-        pairs[p["actor"]] = face_pairs(prod.store, captures[p["face_capture"]], p["actor"], p["subsequences"],
-                                       p["subsequence_frames"], p["camera_paths"], p["resolution"],
-                                       lq_gaussians=p["lq_gaussians"],
-                                       hq_gaussians_per_frame=p["hq_gaussians_per_frame"])
-        finish(step, {"pairs": pairs[p["actor"]]})
-    enhancer: ArtifactRef | None = None
-    for step in (st for st in prod.steps if st.kind == "train-enhancer"):
-        p = step.parameters
-        weights = prod.enhancer_weights()
-        arch = q.enhancer_config()
-        fingerprint = directory_fingerprint(weights) if weights is not None else None
-        encoders = str(weights) if weights is not None and has_text_encoders(weights) else None
-        if weights is not None and encoders is None:
-            log.warning("%s has no FLUX.1 text encoders (or transformers is missing): zero prompt embeddings",
-                        weights)
-        prompts = {a: actor_prompt(prod.store, a, arch, text=p["prompts"].get(a), encoders=encoders,
-                                   encoders_fingerprint=fingerprint if encoders else None) for a in p["actors"]}
-        if weights is None:
-            enhancer = train_enhancer_task(prod.store, [pairs[a] for a in p["actors"]], prompts,
-                                           q.enhancer_train_config(), architecture=arch)
-        else:
-            enhancer = train_enhancer_task(prod.store, [pairs[a] for a in p["actors"]], prompts,
-                                           q.enhancer_train_config(), base_weights=str(weights),
-                                           base_fingerprint=fingerprint)
-        s.set_ref(f"productions/{prod.spec.name}/enhancer", enhancer)
-        finish(step, {"enhancer": enhancer, **{f"prompt:{a}": r for a, r in prompts.items()}})
-    submitted = []
-    # RAFT's weights file (enhancer_flow raft / raft-small): a location, pinned by its fingerprint
-    flow_weights = prod.enhancer_flow_weights()
-    raft = {} if flow_weights is None else {"flow_weights": str(flow_weights),
-                                            "flow_weights_fingerprint": directory_fingerprint(flow_weights)}
-    for step in (st for st in prod.steps if st.kind == "enhance-shot"):
-        p = step.parameters
-        frames = done[f"render-shot:{p['shot']}"]["frames"]
-        # the shot's prompt group: its first actor's (a shot of several actors uses that one prompt)
-        submitted.append((step, enhance_shot.submit(prod.store, frames, enhancer, p["actors"][0],
-                                                    q.enhance_settings(), **raft)))
-    for step, future in submitted:
-        shot = step.parameters["shot"]
-        ref = future.result()
-        s.set_ref(f"productions/{prod.spec.name}/enhanced/{shot}", ref)
-        finish(step, {"frames": ref})
-        shots_out[shot]["enhanced"] = ref.digest
-        log.info("shot %s: enhanced -> %s", shot, ref.digest)
+    run = ProductionRun(prod, segment_runs_mode(segment_runs), max_attempts, poll_interval_s, log)
+    log.info("production %s: %d steps, store %s, segments %s", prod.spec.name, len(prod.steps), prod.store, run.mode)
+    for steps in batches(prod.steps):
+        STEP_KINDS[steps[0].kind].run(run, steps)
+    return run.result()
 
 
 def _check_rig(prod: Production, capture: str, record: Capture, log) -> None:
@@ -616,5 +707,6 @@ def _check_rig(prod: Production, capture: str, record: Capture, log) -> None:
                     capture, name, rig.name, record.rig.name, record.rig.name)
 
 
-__all__ = ["Production", "PlannedStep", "SegmentJob", "open_production", "plan_production", "production_flow",
-           "run_segment_deployment", "segment_runs_mode", "train_segment_flow", "train_segments"]
+__all__ = ["PHASES", "STEP_KINDS", "PlannedStep", "Production", "ProductionRun", "SegmentJob", "StepKindRun",
+           "open_production", "plan_production", "production_flow", "run_segment_deployment", "segment_runs_mode",
+           "step_fingerprint", "step_versions", "train_segment_flow", "train_segments"]

@@ -1,11 +1,14 @@
 """The reconstruct flow: an ingested capture in, one trained Poly4DGS model per segment out.
 
-Segments and training settings come from a named preset (:mod:`volcap_core.presets`), the same
+Segments and training settings come from a named preset (:mod:`volcap_core.production.presets`), the same
 table a production spec's ``quality:`` reads: the same capture, frames and preset give the same
-segments here as in a production (overlapping neighbours included; each is trained on its own).
+segments here as in a production (overlapping neighbours included; each is trained on its own), and
+each segment trains to the same Gaussian budget, the plan's (``--max-gaussians`` replaces it).
 """
 
 from __future__ import annotations
+
+from collections.abc import Sequence
 
 from prefect import flow, get_run_logger, unmapped
 
@@ -15,9 +18,10 @@ from tasks.reconstruct import ground_truth_calibration, ground_truth_points, tra
 from volcap_core import reconstruction
 from volcap_core.calibration.record import Calibration
 from volcap_core.capture import Capture
-from volcap_core.presets import named_preset
+from volcap_core.production.presets import named_preset
 from volcap_core.production.segments import SegmentPlan
 from volcap_core.production.spec import CaptureInfo
+from volcap_core.splat.train import TrainConfig
 from volcap_core.store import ArtifactStore
 
 
@@ -30,6 +34,17 @@ def plan_reconstruction(info: CaptureInfo, frames: tuple[int, int], preset: str,
     if segment_frames is not None:
         quality = quality.with_overrides(max_segment_frames=segment_frames)
     return quality.plan_segments(frames, info.width, info.height)
+
+
+def segment_configs(plan: SegmentPlan, preset: str, *, degrees: str = "poly4dgs", held_out: Sequence[str] = (),
+                    steps: int | None = None, max_gaussians: int | None = None) -> list[TrainConfig]:
+    """Each segment's TrainConfig: the preset's (its schedule stretched to ``steps`` when given),
+    with the segment's Gaussian budget from the plan (``gaussians_per_frame`` a frame within the
+    preset's cap), as a production's train-segment step trains it; ``max_gaussians`` replaces that
+    budget for every segment."""
+    quality = named_preset(preset) if steps is None else named_preset(preset).with_steps(steps)
+    return [quality.train_config(degrees=degrees, held_out=held_out, max_gaussians=max_gaussians or seg.gaussians)
+            for seg in plan.segments]
 
 
 def segment_summary(rec: reconstruction.SegmentModel, ref) -> dict:
@@ -73,10 +88,9 @@ def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = 
     ``calibrate_flow`` takes them (the same settings give the same cached calibration); refused
     with ``calibration`` or ``ground_truth``, which run none.
 
-    Segments: :func:`plan_reconstruction` (``segment_frames`` caps their length). Training: the
-    preset's TrainConfig, stretched to ``steps`` when given; the Gaussian budget is
-    ``max_gaussians`` (TrainConfig's cap when None), not the plan's per-segment figure, which here
-    only places the boundaries.
+    Segments: :func:`plan_reconstruction` (``segment_frames`` caps their length). Training:
+    :func:`segment_configs`, the preset's TrainConfig stretched to ``steps`` when given, each
+    segment to its plan's Gaussian budget unless ``max_gaussians`` is given.
     Returns the segment model refs and their held-out PSNR/SSIM and training wall time, each with
     its frames and its core (the frames no neighbour shares).
     """
@@ -120,13 +134,12 @@ def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = 
     log.info("capture %s: %s calibration %s, points %s", cap.name,
              "given" if calibration else "ground-truth" if ground_truth else "estimated", calib_ref.digest,
              points_ref.digest)
-    quality = named_preset(preset) if steps is None else named_preset(preset).with_steps(steps)
-    config = quality.train_config(degrees=degrees, held_out=held, max_gaussians=max_gaussians)
+    configs = segment_configs(plan, preset, degrees=degrees, held_out=held, steps=steps, max_gaussians=max_gaussians)
     log.info("capture %s: %d segment(s) of frames %d:%d (%d shared by neighbours), preset %s, held out %s",
              cap.name, len(plan.segments), a, b, plan.overlap, preset, ", ".join(held) or "none")
     futures = train_segment_task.map(unmapped(store), unmapped(capture_ref), unmapped(calib_ref),
                                      unmapped(points_ref), [list(seg.frames) for seg in plan.segments],
-                                     unmapped(config), unmapped(seed))
+                                     configs, unmapped(seed))
     models = [f.result() for f in futures]
     report = [{**segment_summary(s.get_record(ref, reconstruction.SegmentModel), ref), "core": list(seg.core)}
               for seg, ref in zip(plan.segments, models)]

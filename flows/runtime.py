@@ -27,11 +27,12 @@ def quiet_prefect_defaults(log_level: str = "WARNING") -> None:
 def reproducible_cpu_defaults() -> None:
     """One CPU thread per process for torch's OpenMP/MKL pools, unless the user chose otherwise.
 
-    Call before torch is imported. Measured: CPU training of the same segment from the same seed gave
-    different Gaussians in 1 run of 4 with 2 threads, even with ``torch.set_num_threads(1)`` inside
-    the task's worker thread; with ``OMP_NUM_THREADS=1`` for the process, 4 of 4 were bit-identical
-    (resuming from a checkpoint relies on that). On the 2-core machines here one thread is also
-    faster (two threads spin against each other). Set ``OMP_NUM_THREADS`` to trade this for speed.
+    The one setting under which CPU training is bit-reproducible (resuming from a checkpoint relies
+    on it; docs/poly4dgs.md "Reproducibility"). OpenMP reads it when torch is imported, so the entry
+    points set it before anything imports torch: ``volcap`` (``flows.cli.main``, whose environment
+    ``volcap worker`` hands to its flow runs), ``deploy/worker.sh``, the deployments' job
+    environment (``deploy/prefect.yaml``) and ``tests/conftest.py``. Set ``OMP_NUM_THREADS`` to
+    trade this for speed.
     """
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     os.environ.setdefault("MKL_NUM_THREADS", "1")

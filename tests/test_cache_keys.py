@@ -34,7 +34,7 @@ from volcap_core.calibration.static import StaticCalibrationOptions
 from volcap_core.calibration.tracking import TrackingOptions
 from volcap_core.capture import CameraSource, Encoding
 from volcap_core.records import ArtifactRef
-from volcap_core.presets import named_preset
+from volcap_core.production.presets import named_preset
 from volcap_core.store import ArtifactStore
 
 TASK_MODULES = (ingest_tasks, calibrate_tasks, reconstruct_tasks, production_tasks, enhance_tasks)

@@ -135,7 +135,7 @@ def test_reconstruct_without_lidar_beats_the_empty_model(calibrated, capture_dir
     # the same calibration options as the calibrate run (the marks): reconstruct runs the same
     # calibration, cached
     res = run_flow(reconstruct_flow, store=store, capture=capture.digest, frames=(2, 4), preset="test",
-                   steps=40, points_per_frame=6000, held_out=["S003"],
+                   steps=40, points_per_frame=6000, held_out=["S003"], max_gaussians=1_000_000,
                    known_points=known_points(capture_dir))
     out = res.result
     assert out["calibration"] == first.result["calibration"]     # the same (cached) calibration

@@ -99,6 +99,34 @@ def test_store_put_get_gc_and_errors(tmp_path):
     assert g.returncode == 1 and ref["digest"] in g.stderr and "corrupt" in g.stderr
 
 
+def test_volcap_and_its_workers_run_one_openmp_thread():
+    """CPU runs are one OpenMP thread per process (flows/runtime.py reproducible_cpu_defaults):
+    ``volcap``'s entry point sets it before any command imports torch, and ``volcap worker`` hands
+    it to the worker it becomes (and so to every flow run the worker starts)."""
+    probe = """
+import os, sys
+import flows.cli as cli
+assert "torch" not in sys.modules and "OMP_NUM_THREADS" not in os.environ
+seen = {}
+def execv(path, args):
+    seen.update(os.environ)
+    raise SystemExit(0)
+os.execv = execv
+sys.argv = ["volcap", "worker", "--pool", "gpu"]
+try:
+    cli.main()
+except SystemExit:
+    pass
+import torch
+print(seen["OMP_NUM_THREADS"], seen["MKL_NUM_THREADS"], torch.get_num_threads())
+"""
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "MKL_NUM_THREADS")}
+    res = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=REPO, timeout=300,
+                         env={**env, "PREFECT_API_URL": "http://127.0.0.1:9/api"})
+    assert res.returncode == 0, res.stderr
+    assert res.stdout.split()[-3:] == ["1", "1", "1"]
+
+
 def test_usage_errors_exit_2_and_help_exits_0():
     assert volcap("no-such-command").returncode == 2
     for cmd in (["--help"], ["ingest", "--help"], ["store", "gc", "--help"], ["synth", "--help"], ["demo", "--help"],

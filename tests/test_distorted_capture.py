@@ -22,7 +22,7 @@ from volcap_core.calibration.record import Calibration
 from volcap_core.calibration.steps import dense_points_step, frame_loader
 from volcap_core.capture import Capture
 from volcap_core.pointcloud import POINTS_MEDIA, PointCloudFrame, PointCloudSequence, encode_points
-from volcap_core.presets import named_preset
+from volcap_core.production.presets import named_preset
 from volcap_core.segment import fit_segment
 from volcap_core.store import ArtifactStore
 from volcap_core.synth import synthesize_capture

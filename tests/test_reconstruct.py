@@ -9,10 +9,10 @@ from prefect import flow
 import tasks.reconstruct as reconstruct_tasks
 import volcap_core.segment as segment_lib
 from flows.ingest import ingest_flow
-from flows.reconstruct import plan_reconstruction, reconstruct_flow
+from flows.reconstruct import plan_reconstruction, reconstruct_flow, segment_configs
 from flows.runtime import run_flow
 from volcap_core.imageio.read import decode_exr
-from volcap_core.presets import PRESETS, named_preset
+from volcap_core.production.presets import PRESETS, named_preset
 from volcap_core.production.spec import CaptureInfo, needed_steps, parse_spec
 from volcap_core.reconstruction import SegmentModel
 from volcap_core.splat import load_model
@@ -49,9 +49,11 @@ def reconstructed(prefect_api, tiny_capture, tmp_path_factory):
 
 def _reconstruct(store: str, capture: str, **kw):
     # ground truth (true cameras, depth points): fast and independent of the calibration's error;
-    # tests/test_calibrate_flow.py trains on the estimated calibration
+    # tests/test_calibrate_flow.py trains on the estimated calibration. A budget of TrainConfig's
+    # cap, every point kept: the floors below were measured so (the test preset's own, 500 a frame,
+    # starts these 2 frames from 700 Gaussians, near the empty model)
     params = dict(store=store, capture=capture, preset="test", points_per_frame=2000, held_out=["S002"],
-                  ground_truth=True)
+                  ground_truth=True, max_gaussians=1_000_000)
     params.update(kw)
     return run_flow(reconstruct_flow, **params)
 
@@ -61,7 +63,7 @@ def _production_segments(info: CaptureInfo, quality, frames=None) -> list[tuple[
     capture = {"folder": "/data/take", "reconstruct": True, **({"frames": list(frames)} if frames else {})}
     spec = parse_spec({"format": "volcap-production/1", "name": "p", "quality": quality,
                        "captures": {"take": capture}})
-    return [tuple(s.parameters["frames"]) for s in needed_steps(spec, {"take": info}) if s.kind == "train-segment"]
+    return [tuple(s.parameters.frames) for s in needed_steps(spec, {"take": info}) if s.kind == "train-segment"]
 
 
 def test_reconstruct_plans_the_segments_a_production_plans():
@@ -223,6 +225,26 @@ def test_demo_and_test_presets_train_as_they_were_measured():
     assert test == TrainConfig(steps=20, grid_size=4, eval_every=0, eval_max_views=2, checkpoint_every=10,
                                mcmc=MCMCConfig(refine_start=5, refine_every=5, refine_stop=15),
                                held_out_cameras=["S002"])
+
+
+def test_reconstruct_trains_each_segment_to_its_plans_budget():
+    """`volcap reconstruct --preset P` trains what the preset says, as a production's train-segment
+    step does: each segment to its plan's Gaussian budget (the preset's Gaussians a frame within its
+    cap), unless --max-gaussians replaces it. So `--preset demo` trains what the demo trains."""
+    info = CaptureInfo(has_tracking_cameras=True, fps=24, frame_count=24, width=320, height=180)
+    [demo] = segment_configs(plan_reconstruction(info, (0, 8), "demo"), "demo", held_out=["S004"])
+    assert demo == PRESETS["demo"].train_config(held_out=["S004"], max_gaussians=80_000)
+    assert [c.mcmc.cap_max for c in segment_configs(plan_reconstruction(info, (0, 4), "demo"), "demo")] == [40_000]
+    plan = plan_reconstruction(info, (0, 24), "test")
+    spec = parse_spec({"format": "volcap-production/1", "name": "p", "quality": "test",
+                       "captures": {"take": {"folder": "/data/take", "reconstruct": True}}})
+    budgets = [s.parameters.gaussians for s in needed_steps(spec, {"take": info}) if s.kind == "train-segment"]
+    configs = segment_configs(plan, "test", steps=40)
+    assert [(c.mcmc.cap_max, c.init_max_points) for c in configs] == [(g, g) for g in budgets]
+    assert budgets[0] == 8 * 500 and len(budgets) == len(plan.segments) > 1
+    assert {c.steps for c in configs} == {40}
+    given = segment_configs(plan, "test", max_gaussians=30_000)
+    assert {(c.mcmc.cap_max, c.init_max_points) for c in given} == {(30_000, 30_000)}
 
 
 @flow

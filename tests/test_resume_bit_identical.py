@@ -25,7 +25,7 @@ TIMING = {"wall_s"}  # record fields that measure time, not content
 
 
 def _config():
-    from volcap_core.presets import PRESETS
+    from volcap_core.production.presets import PRESETS
     from volcap_core.splat.mcmc import MCMCConfig
 
     # MCMC relocation and growth on both sides of the checkpoint at step 4

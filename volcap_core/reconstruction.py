@@ -3,7 +3,7 @@
 A capture (scene-linear EXR frames), a calibration (cameras per frame) and dense points per frame
 become :class:`~volcap_core.splat.SegmentData` and :class:`~volcap_core.splat.PointsAtTime`; a
 trained segment becomes a :class:`SegmentModel` record. Training settings come from the named
-presets of :mod:`volcap_core.presets`. Loaders are passed in, so this module never
+presets of :mod:`volcap_core.production.presets`. Loaders are passed in, so this module never
 touches a store or Prefect.
 """
 

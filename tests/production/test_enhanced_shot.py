@@ -395,7 +395,7 @@ def test_a_raft_flow_in_a_spec_is_checked_before_anything_runs(static_capture, t
 
     from flows.production import step_fingerprint
     from volcap_core.enhance.production import directory_fingerprint
-    from volcap_core.presets import named_preset
+    from volcap_core.production.presets import named_preset
 
     with pytest.raises(ValueError, match="enhancer_flow raft needs enhancer_flow_weights"):
         named_preset("test").with_overrides(enhancer_flow="raft")
@@ -419,7 +419,7 @@ def test_a_raft_flow_in_a_spec_is_checked_before_anything_runs(static_capture, t
     prod = open_production(spec)
     assert prod.enhancer_flow_weights() == weights and prod.spec.quality_preset().enhance_settings().flow == "raft"
     step = next(st for st in prod.steps if st.kind == "enhance-shot")
-    assert step.parameters["enhancer_flow"] == "raft"
+    assert step.parameters.enhancer_flow == "raft"
     done = {i: {"out": ArtifactStore(store).put_bytes(i.encode())} for i in step.inputs}
     assert step_fingerprint(prod, step, done)["flow_weights"] == directory_fingerprint(weights)
 

@@ -889,6 +889,26 @@ def test_worker_sh_without_gpus_or_nvidia_smi(tmp_path):
     assert "deploy/worker.sh --gpus 0,1" in _script(["deploy/worker.sh", "--help"], {}).stdout
 
 
+def test_workers_and_deployments_run_one_openmp_thread_per_process(tmp_path):
+    """CPU runs are one OpenMP thread per process (flows/runtime.py reproducible_cpu_defaults), set
+    before a flow run imports torch: by worker.sh for whatever worker command it starts (a choice
+    already made wins), and by each deployment's job environment (process and Kubernetes pools)."""
+    fake = tmp_path / "fake-worker"
+    fake.write_text('#!/usr/bin/env bash\necho "$OMP_NUM_THREADS $MKL_NUM_THREADS" > "$VOLCAP_HOME/threads"\n')
+    fake.chmod(0o755)
+    base = {k: v for k, v in os.environ.items() if k not in ("OMP_NUM_THREADS", "MKL_NUM_THREADS")}
+    for chosen, threads in (({}, ["1", "1"]), ({"OMP_NUM_THREADS": "4"}, ["4", "1"])):
+        env = {**base, **chosen, "PREFECT_API_URL": "http://h/api", "VOLCAP_HOME": str(tmp_path),
+               "VOLCAP_WORKER_CMD": str(fake)}
+        res = subprocess.run([BASH, "deploy/worker.sh", "--gpus", "0"], cwd=REPO, env=env, capture_output=True,
+                             text=True, timeout=30)
+        assert res.returncode == 0, res.stderr
+        assert (tmp_path / "threads").read_text().split() == threads
+    for deployment in load_yaml("prefect.yaml")["deployments"]:
+        env = deployment["work_pool"]["job_variables"]["env"]
+        assert (env["OMP_NUM_THREADS"], env["MKL_NUM_THREADS"]) == ("1", "1"), deployment["name"]
+
+
 # =================================================================================================
 # against a Prefect server (slow: a server, several `prefect` commands, worker processes)
 # =================================================================================================

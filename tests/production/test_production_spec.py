@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from volcap_core.presets import PRESETS
+from volcap_core.production.presets import PRESETS
 from volcap_core.production.segments import SegmentBudget, plan_segments
 from volcap_core.production.spec import (
     CaptureInfo,
@@ -65,12 +65,12 @@ def test_documented_example_validates_and_plans(doc_spec):
                                            "train-segment:sc12_take3:000111-000225",
                                            "train-segment:sc12_take3:000222-000336"]
     seg = next(s for s in steps if s.kind == "train-segment")
-    assert seg.parameters["gaussians"] == 11_400_000 and seg.parameters["train_steps"] == 30_000
+    assert seg.parameters.gaussians == 11_400_000 and seg.parameters.train_steps == 30_000
     assert len(segment_plan_for(spec, "sc12_take3", facts["sc12_take3"]).segments) == 13
     face = next(s for s in steps if s.kind == "face-pairs")
     assert face.inputs == ("calibrate-static:anna_face",)
-    assert next(s for s in steps if s.id == "calibrate-static:anna_face").parameters[
-        "capture_ref"] == "captures/anna_face"
+    assert next(s for s in steps if s.id == "calibrate-static:anna_face").parameters.capture_ref == \
+        "captures/anna_face"
 
 
 def write_spec(tmp_path, data) -> Path:
@@ -203,7 +203,7 @@ def test_only_segments_the_shots_cover():
                                           "train-segment:take:000018-000026"]  # blends at 18, 19
     cu = needed_steps(spec, facts(), shots=["cu_anna"])             # frames 60..69
     segs = [s for s in cu if s.kind == "train-segment"]
-    assert [s.parameters["frames"] for s in segs] == [[54, 62], [60, 68], [66, 74]]
+    assert [list(s.parameters.frames) for s in segs] == [[54, 62], [60, 68], [66, 74]]
     assert len(plan.segments) == 17                                  # ceil((100 - 2) / (8 - 2))
     render = next(s for s in cu if s.kind == "render-shot")
     assert render.inputs == tuple(s.id for s in segs)
@@ -228,15 +228,15 @@ def test_quality_overrides_reach_the_plan_and_the_training():
     assert len(segment_plan_for(spec, "take", facts()["take"]).segments) == 4
     assert ids(steps, "train-segment") == ["train-segment:take:000000-000028"]
     train = next(s for s in steps if s.kind == "train-segment")
-    assert train.parameters["train_steps"] == 20_000 and train.parameters["checkpoint_every"] == 500
-    assert next(s for s in steps if s.kind == "dense-points").parameters["dense_scale"] == q.dense_scale
-    cfg = q.train_config(held_out=["S004"], max_gaussians=train.parameters["gaussians"])
-    assert (cfg.steps, cfg.checkpoint_every, cfg.mcmc.cap_max) == (20_000, 500, train.parameters["gaussians"])
+    assert train.parameters.train_steps == 20_000 and train.parameters.checkpoint_every == 500
+    assert next(s for s in steps if s.kind == "dense-points").parameters.dense_scale == q.dense_scale
+    cfg = q.train_config(held_out=["S004"], max_gaussians=train.parameters.gaussians)
+    assert (cfg.steps, cfg.checkpoint_every, cfg.mcmc.cap_max) == (20_000, 500, train.parameters.gaussians)
     assert cfg.mcmc.refine_stop == PRESETS["production"].refine_stop          # an override is not a stretch
     # what the spec changed, not only the steps, changes the train-segment step (its cache journal)
     data["quality"]["grid_size"] = 16
     again = next(s for s in needed_steps(parse_spec(data), facts(), shots=["wide"]) if s.kind == "train-segment")
-    assert again.parameters["grid_size"] == 16 != train.parameters["grid_size"]
+    assert again.parameters.grid_size == 16 != train.parameters.grid_size
 
 
 def test_plan_order_stability_and_reconstruct():

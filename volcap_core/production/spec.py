@@ -1,11 +1,11 @@
 """The production spec (YAML) and the planner that decides what it needs.
 
 A production spec names the captures, the rigs they come from, the actors, the shots to deliver
-and a quality preset (:mod:`volcap_core.presets`; format and example in
+and a quality preset (:mod:`volcap_core.production.presets`; format and example in
 ``docs/production-spec.md``). :func:`load_spec`
 validates it with pydantic and reports every problem with its field path, the offending value and
-the YAML line. :func:`needed_steps` turns a spec into the list of :class:`Step` s it needs — and no
-more:
+the YAML line. :func:`needed_steps` turns a spec into the list of
+:class:`~volcap_core.production.steps.Step` s it needs — and no more:
 
 - a capture no requested shot shows is not touched (unless it sets ``reconstruct: true``);
 - no tracking-camera calibration for a capture whose rig has no tracking cameras;
@@ -13,8 +13,9 @@ more:
 - no Face Rig work (face captures, face pairs, enhancer) unless a requested shot has
   ``enhance: true``, and then only for the actors in those shots.
 
-Everything here is pure: no store, no Prefect. The flows layer maps each step kind to its flow or
-task and marks which steps are already cached (``volcap plan``).
+Everything here is pure: no store, no Prefect. Each step's parameters are its kind's model
+(:mod:`~volcap_core.production.steps`); the flows layer maps each kind to the tasks it runs and
+marks which steps are already cached (``volcap plan``).
 """
 
 from __future__ import annotations
@@ -36,9 +37,11 @@ from pydantic import (
 )
 
 from volcap_core.production._errors import clean_loc, format_validation_error
-from volcap_core.presets import PRESETS, QualityPreset
-from volcap_core.production.segments import SegmentPlan
+from volcap_core.production.presets import PRESETS, QualityPreset
+from volcap_core.production.segments import Segment, SegmentPlan
 from volcap_core.production.shot import Shot, ShotError, load_shot
+from volcap_core.production.steps import (CalibrateStatic, CalibrateTracking, DensePoints, EnhanceShot, FacePairs,
+                                          Ingest, RenderShot, Step, TrainEnhancer, TrainSegment)
 
 __all__ = [
     "SPEC_FORMAT",
@@ -47,8 +50,6 @@ __all__ = [
     "CaptureSpec",
     "ProductionSpec",
     "SpecError",
-    "Step",
-    "StepKind",
     "capture_info_from_folder",
     "largest_image",
     "load_spec",
@@ -67,7 +68,7 @@ class SpecError(ValueError):
 
 class QualitySelection(BaseModel):
     """``quality: {preset: NAME, <field>: <override>...}``: a preset of
-    :data:`volcap_core.presets.PRESETS`, single :class:`~volcap_core.presets.QualityPreset` fields
+    :data:`volcap_core.production.presets.PRESETS`, single :class:`~volcap_core.production.presets.QualityPreset` fields
     replaced."""
 
     model_config = ConfigDict(extra="allow", frozen=True)
@@ -321,22 +322,6 @@ def load_spec(path: str | Path) -> ProductionSpec:
 # Planning
 
 
-StepKind = Literal["ingest", "calibrate-static", "calibrate-tracking", "dense-points",
-                   "train-segment", "render-shot", "face-pairs", "train-enhancer", "enhance-shot"]
-STEP_KINDS: tuple[str, ...] = StepKind.__args__  # type: ignore[attr-defined]
-
-
-class Step(BaseModel):
-    """One unit of work of a plan. ``id`` is stable (``<kind>:<subject>``): the same spec and
-    capture facts always give the same ids, so a plan can be compared with the cache."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-    kind: StepKind
-    id: str
-    inputs: tuple[str, ...] = ()
-    parameters: dict[str, Any] = Field(default_factory=dict)
-
-
 class CaptureInfo(BaseModel):
     """What the planner must know about a capture before anything runs.
 
@@ -383,7 +368,7 @@ def capture_info_from_folder(folder: str | Path) -> CaptureInfo:
 
 def segment_plan_for(spec: ProductionSpec, capture: str, info: CaptureInfo) -> SegmentPlan:
     """The capture's segment plan: ``info.segment_plan``, or one from the quality preset
-    (:meth:`~volcap_core.presets.QualityPreset.plan_segments`, as ``volcap reconstruct`` plans)."""
+    (:meth:`~volcap_core.production.presets.QualityPreset.plan_segments`, as ``volcap reconstruct`` plans)."""
     if info.segment_plan is not None:
         return info.segment_plan
     q = spec.quality_preset()
@@ -430,7 +415,7 @@ def needed_steps(spec: ProductionSpec, capture_info: Mapping[str, CaptureInfo], 
         return capture_info[capture]
 
     # which segments of which capture are needed, and by whom
-    needed_segments: dict[str, dict[str, Any]] = {}   # capture -> {seg id -> Segment}
+    needed_segments: dict[str, dict[str, Segment]] = {}   # capture -> {seg id -> Segment}
     shot_segments: dict[str, list[str]] = {}
     plans: dict[str, SegmentPlan] = {}
     for shot in requested:
@@ -467,21 +452,17 @@ def needed_steps(spec: ProductionSpec, capture_info: Mapping[str, CaptureInfo], 
         if cap in calibrated:
             return calibrated[cap]
         cs = spec.captures[cap]
-        src: dict[str, Any] = {"capture": cap}
         inputs: tuple[str, ...] = ()
         if cs.folder is not None:
-            steps.append(Step(kind="ingest", id=f"ingest:{cap}",
-                              parameters={"capture": cap, "folder": cs.folder}))
+            steps.append(Step(id=f"ingest:{cap}", parameters=Ingest(capture=cap, folder=cs.folder)))
             inputs = (f"ingest:{cap}",)
-        else:
-            src["capture_ref"] = cs.ref
         rig = spec.rigs.get(cs.rig) if cs.rig else None
-        steps.append(Step(kind="calibrate-static", id=f"calibrate-static:{cap}", inputs=inputs,
-                          parameters={**src, "rig": rig}))
+        steps.append(Step(id=f"calibrate-static:{cap}", inputs=inputs,
+                          parameters=CalibrateStatic(capture=cap, capture_ref=cs.ref, rig=rig)))
         final = f"calibrate-static:{cap}"
         if ci.has_tracking_cameras:
-            steps.append(Step(kind="calibrate-tracking", id=f"calibrate-tracking:{cap}",
-                              inputs=(*inputs, final), parameters=src))
+            steps.append(Step(id=f"calibrate-tracking:{cap}", inputs=(*inputs, final),
+                              parameters=CalibrateTracking(capture=cap, capture_ref=cs.ref)))
             final = f"calibrate-tracking:{cap}"
         calibrated[cap] = final
         return final
@@ -493,22 +474,13 @@ def needed_steps(spec: ProductionSpec, capture_info: Mapping[str, CaptureInfo], 
         plan = plans[cap]
         for seg in sorted(needed_segments[cap].values(), key=lambda s: s.index):
             points = f"dense-points:{cap}:{seg.id}"
-            steps.append(Step(kind="dense-points", id=points, inputs=(*ingest, calib),
-                              parameters={"capture": cap, "frames": list(seg.frames),
-                                          "dense_scale": q.dense_scale}))
-            steps.append(Step(
-                kind="train-segment", id=f"train-segment:{cap}:{seg.id}",
-                inputs=(*ingest, calib, points),
-                parameters={"capture": cap, "segment": seg.index, "frames": list(seg.frames),
-                            "core": list(seg.core), "overlap": plan.overlap,
-                            "gaussians": seg.gaussians, "memory_bytes": seg.memory_bytes,
-                            **q.training()}))
+            steps.append(Step(id=points, inputs=(*ingest, calib), parameters=DensePoints.for_segment(cap, seg, q)))
+            steps.append(Step(id=f"train-segment:{cap}:{seg.id}", inputs=(*ingest, calib, points),
+                              parameters=TrainSegment.for_segment(cap, seg, plan.overlap, q)))
     for shot in requested:
-        steps.append(Step(kind="render-shot", id=f"render-shot:{shot.name}",
-                          inputs=tuple(shot_segments[shot.name]),
-                          parameters={"shot": shot.name, "capture": shot.performance,
-                                      "frames": list(shot.frames), "enhance": shot.enhance,
-                                      "shot_spec": shot.model_dump(mode="json")}))
+        steps.append(Step(id=f"render-shot:{shot.name}", inputs=tuple(shot_segments[shot.name]),
+                          parameters=RenderShot(shot=shot.name, capture=shot.performance, frames=shot.frames,
+                                                enhance=shot.enhance, shot_spec=shot.model_dump(mode="json"))))
     if enhanced:
         pair_ids = []
         for actor in enhance_actors:
@@ -517,26 +489,14 @@ def needed_steps(spec: ProductionSpec, capture_info: Mapping[str, CaptureInfo], 
             calib = calibrate(fc, fci)
             ingest = (f"ingest:{fc}",) if spec.captures[fc].folder is not None else ()
             pid = f"face-pairs:{actor}"
-            steps.append(Step(kind="face-pairs", id=pid, inputs=(*ingest, calib), parameters={
-                "actor": actor, "face_capture": fc,
-                "subsequences": q.face_subsequences,
-                "subsequence_frames": q.face_subsequence_frames,
-                "camera_paths": q.face_camera_paths,
-                "hq_gaussians_per_frame": q.face_hq_gaussians_per_frame,
-                "lq_gaussians": list(q.face_lq_gaussians),
-                "resolution": q.pair_resolution}))
+            steps.append(Step(id=pid, inputs=(*ingest, calib), parameters=FacePairs.for_actor(actor, fc, q)))
             pair_ids.append(pid)
         enhancer = "train-enhancer:" + "+".join(enhance_actors)
-        steps.append(Step(kind="train-enhancer", id=enhancer, inputs=tuple(pair_ids),
-                          parameters={"actors": enhance_actors, "steps": q.enhancer_steps,
-                                      "prompts": {a: spec.actor(a).prompt for a in enhance_actors},
-                                      **q.enhancer_training()}))
+        steps.append(Step(id=enhancer, inputs=tuple(pair_ids), parameters=TrainEnhancer.for_actors(
+            {a: spec.actor(a).prompt for a in enhance_actors}, q)))
         for shot in enhanced:
-            steps.append(Step(kind="enhance-shot", id=f"enhance-shot:{shot.name}",
-                              inputs=(f"render-shot:{shot.name}", enhancer),
-                              parameters={"shot": shot.name,
-                                          "actors": [a.name for a in spec.shot_actors(shot)],
-                                          **q.enhancing()}))
+            steps.append(Step(id=f"enhance-shot:{shot.name}", inputs=(f"render-shot:{shot.name}", enhancer),
+                              parameters=EnhanceShot.for_shot(shot.name, [a.name for a in spec.shot_actors(shot)], q)))
     _check_order(steps)
     return steps
 

@@ -26,6 +26,9 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from volcap_core.enhance.model import EnhancerConfig
+from volcap_core.enhance.production import EnhanceSettings
+from volcap_core.enhance.training import EnhancerTrainConfig
 from volcap_core.production.segments import DEFAULT_OVERLAP, GIB, SegmentBudget, SegmentPlan, plan_segments
 from volcap_core.splat.mcmc import MCMCConfig
 from volcap_core.splat.model import Poly4DGSConfig
@@ -168,30 +171,24 @@ class QualityPreset(BaseModel):
         """The fields of :data:`ENHANCING_FIELDS` by name."""
         return {name: getattr(self, name) for name in ENHANCING_FIELDS}
 
-    def enhancer_config(self):
+    def enhancer_config(self) -> EnhancerConfig:
         """The :class:`~volcap_core.enhance.model.EnhancerConfig` of the architecture (the tiny
         model's training crop is the preset's)."""
-        from volcap_core.enhance.model import EnhancerConfig
-
         if self.enhancer_architecture in ("tiny", "small"):
             cpu = EnhancerConfig.tiny() if self.enhancer_architecture == "tiny" else EnhancerConfig.small()
             return cpu.model_copy(update={"train_crop": self.enhancer_crop})
         return EnhancerConfig.flux_dev()
 
-    def enhancer_train_config(self):
+    def enhancer_train_config(self) -> EnhancerTrainConfig:
         """The :class:`~volcap_core.enhance.training.EnhancerTrainConfig` of the enhancer's training."""
-        from volcap_core.enhance.training import EnhancerTrainConfig
-
         return EnhancerTrainConfig(steps=self.enhancer_steps, lr=self.enhancer_lr, batch=self.enhancer_batch,
                                    crop=self.enhancer_crop, finetune=self.enhancer_finetune,
                                    lora_rank=self.enhancer_lora_rank, vae_steps=self.enhancer_vae_steps,
                                    checkpoint_every=self.enhancer_checkpoint_every,
                                    frozen_dtype=self.enhancer_frozen_dtype)
 
-    def enhance_settings(self):
+    def enhance_settings(self) -> EnhanceSettings:
         """The :class:`~volcap_core.enhance.production.EnhanceSettings` of a shot's enhancement."""
-        from volcap_core.enhance.production import EnhanceSettings
-
         return EnhanceSettings(steps=self.enhancer_sampling_steps, strength=self.enhancer_strength,
                                tile=self.enhancer_tile, vae_tiling=self.enhancer_vae_tiling, flow=self.enhancer_flow)
 
@@ -243,8 +240,8 @@ class QualityPreset(BaseModel):
 #: Face Rig and enhancer sizes of the presets that run on a CPU: the tiny enhancer (random weights,
 #: its VAE pre-trained first), full fine-tuning on 64-px crops of 4 sequences of 128-px pairs, 4
 #: sampling steps over whole frames, started from the noised LQ (strength 0.4: a CPU-sized model
-#: enhances the LQ rather than drawing a face from noise; docs/benchmarks.md "Detail enhancer").
-#: What it costs: docs/enhancer.md ("Cost on a CPU")
+#: enhances the LQ rather than drawing a face from noise). Why and what it costs:
+#: docs/benchmarks.md "Detail enhancer", docs/enhancer.md "Cost on a CPU"
 _CPU_FACE = dict(face_subsequences=2, face_subsequence_frames=4, face_camera_paths=2,
                  face_hq_gaussians_per_frame=2_000, face_lq_gaussians=(200, 500), pair_resolution=128,
                  enhancer_architecture="tiny", enhancer_steps=20, enhancer_finetune="full", enhancer_lr=1e-3,
@@ -253,15 +250,14 @@ _CPU_FACE = dict(face_subsequences=2, face_subsequence_frames=4, face_camera_pat
                  enhancer_sampling_steps=4, enhancer_strength=0.4, enhancer_tile=None, enhancer_vae_tiling=False)
 
 PRESETS: dict[str, QualityPreset] = {
-    # CI and laptops: 20 steps at full resolution, tiny segments. The reconstruct tests' measured
-    # floors were taken with this schedule; production tests override train_scale/sh_degree for speed
+    # CI and laptops: 20 steps at full resolution, tiny segments (the reconstruct tests' schedule;
+    # production tests override train_scale/sh_degree for speed)
     "test": QualityPreset(train_steps=20, grid_size=4, eval_every=0, eval_max_views=2, checkpoint_every=10,
                           refine_start=5, refine_every=5, refine_stop=15,
                           gaussians_per_frame=500, max_gaussians_per_segment=8_000, max_segment_frames=8,
                           overlap=2, dense_scale=0.5, **_CPU_FACE),
-    # the built-in demo on 2 CPU cores: 550 steps is what fits its 8 minutes with a margin (650 took
-    # 8 min 3 s; docs/poly4dgs.md "The demo"); 80,000 Gaussians for its 8-frame segment is the budget
-    # measured there (flows/demo.py DEMO_GAUSSIANS), 10,000 a frame
+    # the built-in demo on 2 CPU cores: the schedule and the Gaussian budget (10,000 a frame, one
+    # 8-frame segment) that fit its time target; the measurements: docs/poly4dgs.md "The demo"
     "demo": QualityPreset(train_steps=550, grid_size=8, eval_every=110, eval_max_views=4, checkpoint_every=110,
                           refine_start=100, refine_every=100, refine_stop=500,
                           gaussians_per_frame=10_000, max_gaussians_per_segment=80_000, overlap=2, **_CPU_FACE),
