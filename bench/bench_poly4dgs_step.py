@@ -11,19 +11,15 @@ carries more floats per Gaussian through backward and Adam: 72 instead of 59 at 
 (``means_t``, ``quats_t``, ``log_lambdas``, ``t0``). This bench measures that cost per step with
 the project's own code. The rasterizer and the loss are the same for both models.
 
-What one step is: the step of :func:`volcap_core.splat.train.train_segment`, using its functions
-in its order. Learning rates for the step (``train._learning_rates``, with the per-order
-polynomial rates), grads cleared, :func:`~volcap_core.splat.model.evaluate` at t,
-:func:`~volcap_core.splat.render.render` (``"gsplat"`` on CUDA, ``"torch"`` on CPU, tile 8 as
-``TrainConfig``), the camera's exposure/black-level grids
-(:func:`~volcap_core.splat.grids.apply_grids`),
-:func:`~volcap_core.splat.loss.reconstruction_loss` (L1 + SSIM in unbounded sRGB), the grid and
-MCMC regularisers, the non-finite-loss check, backward, ``train._freeze_static_lifespans``,
-:func:`~volcap_core.splat.optim.adam_step` on the model and on the grids, and MCMC's SGLD noise
-(:func:`~volcap_core.splat.mcmc.inject_noise`). All settings are ``TrainConfig()``'s defaults.
-Left out are the parts of a training step that do not depend on the model: loading the view (the
-target is one fixed image already on the device), plus progress, evaluation and checkpoints.
-Relocation and growth (every 100 steps) are left out too; they are not a per-step cost.
+What one step is: the step of :func:`volcap_core.splat.train.train_segment`, through the very
+functions it calls: :func:`~volcap_core.splat.train.learning_rates`, grads cleared,
+:func:`~volcap_core.splat.train.step_loss` (evaluate at t, render — ``"gsplat"`` on CUDA, ``"torch"``
+on CPU — the camera's grids, L1 + SSIM, the grid and MCMC regularisers), the non-finite-loss check,
+backward, and :func:`~volcap_core.splat.train.optimiser_step` (Adam on the model and the grids,
+MCMC's noise). All settings are ``TrainConfig()``'s defaults. Left out are the parts of a training
+step that do not depend on the model: loading the view (the target is one fixed image already on
+the device), plus progress, evaluation and checkpoints; relocation and growth run every 100 steps
+only, past the timed steps.
 
 Scene: :func:`bench_rasterizer.scene`, anisotropic Gaussians in a 1.2 m ball with σ 4-24 mm,
 opacity 0.05-0.95 and SH degree 3 coefficients, cut to ``--sh-degree``. The camera is
@@ -73,22 +69,21 @@ sys.path[:0] = [str(ROOT), str(Path(__file__).resolve().parent)]
 from bench_rasterizer import scene  # noqa: E402
 
 from volcap_core.splat.camera import Camera, look_at  # noqa: E402
-from volcap_core.splat.grids import ExposureGrids, apply_grids  # noqa: E402
-from volcap_core.splat.loss import grid_regularisers, reconstruction_loss  # noqa: E402
-from volcap_core.splat.mcmc import inject_noise, mcmc_regulariser  # noqa: E402
+from volcap_core.checkpoint import AdamState  # noqa: E402
+from volcap_core.splat.grids import ExposureGrids  # noqa: E402
 from volcap_core.splat.model import (  # noqa: E402
     Gaussians3D,
     Poly4DGS,
     Poly4DGSConfig,
     evaluate,
 )
-from volcap_core.splat.optim import AdamState, adam_step  # noqa: E402
 from volcap_core.splat.render import render, resolve_backend  # noqa: E402
 from volcap_core.splat.sh import num_sh_bases  # noqa: E402
 from volcap_core.splat.train import (  # noqa: E402
     TrainConfig,
-    _freeze_static_lifespans,
-    _learning_rates,
+    learning_rates,
+    optimiser_step,
+    step_loss,
 )
 
 #: standard deviation of the random polynomial coefficients of moving Gaussians, per unit s^-i
@@ -193,30 +188,23 @@ def bench(config: Poly4DGSConfig, label: str, n: int, size: int, frames: int, *,
         step = i + 1
         t = times[i % len(times)]
         clock.start()
-        lrs = _learning_rates(tc, step, scene_scale, time_scale, model)
+        lrs = learning_rates(tc, step, scene_scale, time_scale, model)
         for p in (*model.params.values(), *grid_params.values()):
             p.grad = None
-        g = evaluate(model, t)
-        out = render(g, camera, backend=backend, background=bg, tile_size=tc.tile_size)
-        pred = apply_grids(out["rgb"], grid_params["exposure"][0], grid_params["black"][0])
-        loss, _ = reconstruction_loss(pred, target, ssim_weight=tc.ssim_weight)
-        reg, _ = grid_regularisers(grid_params["exposure"], grid_params["black"][0],
-                                   exposure_weight=tc.exposure_weight, black_weight=tc.black_weight)
-        loss = loss + reg + mcmc_regulariser(model, tc.mcmc)
+        loss, _ = step_loss(model, t, camera, target, None, grid_params["exposure"], 0, grid_params["black"], tc,
+                            backend=backend, background=bg)
         if not torch.isfinite(loss.detach()):
             raise FloatingPointError(f"{label}: step {step}: loss is {float(loss.detach())}")
         clock.mark()
         loss.backward()
         clock.mark()
-        _freeze_static_lifespans(model)
-        adam_step(model.params, lrs, adam)
-        adam_step(grid_params, grid_lrs, grid_adam)
-        inject_noise(model, float(lrs["means"]), tc.mcmc, gen, scene_scale=scene_scale)
+        optimiser_step(model, adam, grid_params, grid_lrs, grid_adam, lrs, tc, step, gen, scene_scale=scene_scale)
         total, split = clock.stop()
         if i >= warmup:
             totals.append(total)
             phases.append(split)
-            visible.append(len(g))
+            with torch.no_grad():  # outside the timed step
+                visible.append(len(evaluate(model, t)))
     peak = torch.cuda.max_memory_allocated(device) if device.type == "cuda" else None
     per_gaussian = sum(math.prod(s) for s in config.param_shapes().values())
     row = {"model": label, "config": config.model_dump(), "n": n, "size": size,
@@ -227,7 +215,7 @@ def bench(config: Poly4DGSConfig, label: str, n: int, size: int, frames: int, *,
            "step_s_all": totals, "peak_bytes": peak}
     for k, name in enumerate(("fwd_s", "bwd_s", "opt_s")):
         row[name] = statistics.median(s[k] for s in phases)
-    del model, adam, grids, grid_params, grid_adam, out, g, loss, pred
+    del model, adam, grids, grid_params, grid_adam, loss
     return row
 
 

@@ -39,7 +39,6 @@ from volcap_core.colour import srgb_encode_unbounded
 from volcap_core.splat.camera import Camera
 from volcap_core.splat.grids import ExposureGrids, apply_grids
 from volcap_core.splat.loss import (
-    display_metrics,
     grid_regularisers,
     reconstruction_loss,
 )
@@ -366,8 +365,12 @@ def exponential_lr(lr_init: float, lr_final: float, step: int, max_steps: int) -
     return float(lr_init * (lr_final / lr_init) ** f)
 
 
-def _learning_rates(cfg: TrainConfig, step: int, scene_scale: float, time_scale: float,
-                    model: Poly4DGS) -> dict[str, float | torch.Tensor]:
+def learning_rates(cfg: TrainConfig, step: int, scene_scale: float, time_scale: float,
+                   model: Poly4DGS) -> dict[str, float | torch.Tensor]:
+    """Each parameter's learning rate at ``step``: the means' exponential decay in scene units
+    (``scene_scale``, m), and the motion coefficients' order ``k`` divided by ``time_scale ** k``
+    (``time_scale`` in s) so that a coefficient's step moves a Gaussian as far at every order;
+    these are tensors [1, k, 1] broadcasting over the Gaussians."""
     lr = cfg.lr
     means = exponential_lr(lr.means * scene_scale, lr.means_final * scene_scale, step, cfg.steps)
     out: dict[str, float | torch.Tensor] = {
@@ -501,6 +504,63 @@ def _deserialise(data: bytes, device) -> tuple[_State, dict, Poly4DGSConfig]:
 
 # ------------------------------------------------------------------------------------- training
 
+def step_loss(model: Poly4DGS, time: float, camera: Camera, target: torch.Tensor,
+              valid: torch.Tensor | None, exposure: torch.Tensor, row: int, black: torch.Tensor,
+              config: TrainConfig, *, backend: str, background: torch.Tensor
+              ) -> tuple[torch.Tensor, dict[str, float]]:
+    """The loss of one training step: the model at ``time`` rendered at ``camera``, through the
+    camera's exposure and black-level grids, against its footage.
+
+    Args:
+        target: the footage [H, W, 3] or, with alpha, [H, W, 4], linear.
+        valid: [H, W] bool, where the frame holds footage (a rectified lens's border does not),
+            or None for everywhere.
+        exposure: every training camera's exposure grid [C, Gy, Gx, 3]; ``row`` picks this one.
+        black: every training camera's black-level grid [C, 3]; ``row`` picks this one.
+    Returns:
+        (scalar loss, its reported parts): L1 + SSIM (``config.ssim_weight``), the alpha term where
+        the target has alpha, the grids' regularisers and the MCMC regulariser.
+    """
+    out = render(evaluate(model, time), camera, backend=backend, background=background,
+                 tile_size=config.tile_size)
+    pred = apply_grids(out["rgb"], exposure[row] if config.optimise_exposure else None,
+                       black[row] if config.optimise_black_level else None)
+    target_rgb = target[..., :3]
+    if valid is not None:
+        # no footage there (a rectified lens's border): render and target are both 0 there, so
+        # those pixels add no error, no gradient, and whatever the frame holds there is unseen
+        v = valid.to(target.device)[..., None]
+        target_rgb = torch.where(v, target_rgb, torch.zeros_like(target_rgb))
+        pred = torch.where(v, pred, target_rgb)
+    loss, parts = reconstruction_loss(pred, target_rgb, ssim_weight=config.ssim_weight)
+    if config.alpha_weight and target.shape[2] == 4:
+        loss = loss + config.alpha_weight * (out["alpha"] - target[..., 3:]).abs().mean()
+    reg, _ = grid_regularisers(
+        exposure, black[row],
+        exposure_weight=config.exposure_weight if config.optimise_exposure else 0.0,
+        black_weight=config.black_weight if config.optimise_black_level else 0.0)
+    return loss + reg + mcmc_regulariser(model, config.mcmc), parts
+
+
+def optimiser_step(model: Poly4DGS, adam: AdamState, grid_params: dict[str, torch.Tensor],
+                   grid_lrs: dict[str, float], grid_adam: AdamState,
+                   lrs: dict[str, float | torch.Tensor], config: TrainConfig, step: int,
+                   generator: torch.Generator, *, scene_scale: float) -> tuple[int, int]:
+    """Everything after the backward pass of one step: Adam on the model (static lifespans frozen)
+    and on the grids, MCMC relocation and growth on its refine steps, then MCMC's position noise.
+    Returns (Gaussians relocated, Gaussians added)."""
+    _freeze_static_lifespans(model)
+    adam_step(model.params, lrs, adam)
+    adam_step(grid_params, grid_lrs, grid_adam)
+    relocated = grown = 0
+    if config.mcmc.is_refine_step(step):
+        relocated = relocate_dead(model, adam, config.mcmc, generator)
+        grown = add_gaussians(model, adam, config.mcmc, generator)
+    inject_noise(model, float(lrs["means"]), config.mcmc, generator, scene_scale=scene_scale)
+    return relocated, grown
+
+
+
 def train_segment(views: SegmentData, init_points: Sequence[PointsAtTime], config: TrainConfig,
                   *, checkpoint: Callable[[bytes, int], None] | None = None,
                   resume_from: bytes | None = None, seed: int = 0,
@@ -582,47 +642,21 @@ def train_segment(views: SegmentData, init_points: Sequence[PointsAtTime], confi
         model = state.model
         view = train_views[int(torch.randint(len(train_views), (1,), generator=state.generator))]
         target = view.load().to(device)
-        lrs = _learning_rates(config, step, scene_scale, time_scale, model)
+        lrs = learning_rates(config, step, scene_scale, time_scale, model)
         for p in (*model.params.values(), *grid_params.values()):
             p.grad = None
-
-        out = render(evaluate(model, view.time), view.camera, backend=backend.name,
-                     background=bg, tile_size=config.tile_size)
         row = cam_row[view.camera_id]
-        pred = apply_grids(out["rgb"],
-                           grid_params["exposure"][row] if config.optimise_exposure else None,
-                           grid_params["black"][row] if config.optimise_black_level else None)
-        target_rgb = target[..., :3]
-        valid = view.load_valid()
-        if valid is not None:
-            # no footage there (a rectified lens's border): render and target are both 0 there, so
-            # those pixels add no error, no gradient, and whatever the frame holds there is unseen
-            v = valid.to(device)[..., None]
-            target_rgb = torch.where(v, target_rgb, torch.zeros_like(target_rgb))
-            pred = torch.where(v, pred, target_rgb)
-        loss, parts = reconstruction_loss(pred, target_rgb, ssim_weight=config.ssim_weight)
-        if config.alpha_weight and target.shape[2] == 4:
-            loss = loss + config.alpha_weight * (out["alpha"] - target[..., 3:]).abs().mean()
-        reg, _ = grid_regularisers(
-            grid_params["exposure"], grid_params["black"][row],
-            exposure_weight=config.exposure_weight if config.optimise_exposure else 0.0,
-            black_weight=config.black_weight if config.optimise_black_level else 0.0)
-        loss = loss + reg + mcmc_regulariser(model, config.mcmc)
+        loss, parts = step_loss(model, view.time, view.camera, target, view.load_valid(),
+                                grid_params["exposure"], row, grid_params["black"], config,
+                                backend=backend.name, background=bg)
         if not torch.isfinite(loss.detach()):
             raise FloatingPointError(
                 f"step {step}: loss is {float(loss.detach())} on view {view.camera_id}@{view.frame} "
                 f"({len(model)} Gaussians; non-finite parameters: {_non_finite(model)}; target "
                 f"{'finite' if bool(torch.isfinite(target).all()) else 'has NaN/Inf pixels'})")
         loss.backward()
-        _freeze_static_lifespans(model)
-        adam_step(model.params, lrs, state.adam)
-        adam_step(grid_params, grid_lrs, state.grid_adam)
-
-        relocated = grown = 0
-        if config.mcmc.is_refine_step(step):
-            relocated = relocate_dead(model, state.adam, config.mcmc, state.generator)
-            grown = add_gaussians(model, state.adam, config.mcmc, state.generator)
-        inject_noise(model, float(lrs["means"]), config.mcmc, state.generator, scene_scale=scene_scale)
+        relocated, grown = optimiser_step(model, state.adam, grid_params, grid_lrs, state.grid_adam, lrs,
+                                          config, step, state.generator, scene_scale=scene_scale)
         state.step = step
         state.wall_s += time.perf_counter() - t_start
 
