@@ -1,15 +1,18 @@
 """Calibration tasks: static cameras once, each tracking camera on its own, one task per frame of
-dense points, and small assembling steps. Each loads its inputs from the store, calls one step of
-:mod:`volcap_core.calibration.steps` (or the metrics) and stores what it returns:
+dense points, and small assembling steps. Each loads its inputs from the store, calls one step
+(``volcap_core.calibration.*_step``, :mod:`~volcap_core.calibration.assemble`, or the metrics) and
+stores what it returns:
 
-- :func:`calibrate_static` -> a :class:`StaticCalibrationRecord`;
-- :func:`calibrate_tracking_camera` -> a :class:`TrackingCameraRecord` (one camera over the take);
+- :func:`calibrate_static` -> a :class:`~volcap_core.calibration.static_step.StaticCalibrationRecord`;
+- :func:`calibrate_tracking_camera` -> a
+  :class:`~volcap_core.calibration.tracking_step.TrackingCameraRecord` (one camera over the take);
 - :func:`assemble_calibration` -> the :class:`~volcap_core.calibration.record.Calibration` record;
-- :func:`dense_points_frame` -> a :class:`DensePointsFrame` (one frame's fused multi-view points);
+- :func:`dense_points_frame` -> a :class:`~volcap_core.calibration.dense_points_step.DensePointsFrame`
+  (one frame's fused multi-view points);
 - :func:`point_cloud_sequence` -> the :class:`~volcap_core.pointcloud.PointCloudSequence` record;
 - :func:`calibration_errors` -> the error table against a synthetic capture's ground truth (JSON);
-- :func:`calibrate_colour` -> a :class:`ColourMatrixRecord`: the colour matrix between two rigs from a
-  chart seen by each.
+- :func:`calibrate_colour` -> a :class:`~volcap_core.calibration.colour_step.ColourMatrixRecord`: the
+  colour matrix between two rigs from a chart seen by each.
 
 Settings are parameters with the library's defaults (their every field is in the cache key);
 the calibration reads the capture's ``lidar`` scan (an input, like the frames), never its ground truth.
@@ -20,18 +23,23 @@ from __future__ import annotations
 import json
 
 from tasks.contract import volcap_task
-from volcap_core.calibration import steps
+from volcap_core.calibration.assemble import assemble_calibration_record
 from volcap_core.calibration.colour import ColourCalibrationOptions
+from volcap_core.calibration.colour_step import ChartView, colour_step
 from volcap_core.calibration.dense import DenseOptions
+from volcap_core.calibration.dense_points_step import DensePointsFrame, dense_points_step, thin_points
+from volcap_core.calibration.errors import CalibrationInputError
+from volcap_core.calibration.inputs import capture_cameras, frame_loader, lens_encoder, load_lidar
 from volcap_core.calibration.lidar import LidarScan
 from volcap_core.calibration.metrics import calibration_report, ground_truth_from_json
 from volcap_core.calibration.record import Calibration, decode_tracking_frames
 from volcap_core.calibration.scale import KnownPoints
 from volcap_core.calibration.static import StaticCalibrationOptions
-from volcap_core.calibration.steps import (CalibrationInputError, ChartView, ColourMatrixRecord, DensePointsFrame,
-                                           StaticCalibrationRecord, TrackingCameraRecord, split_cameras,
-                                           tracking_camera_ids)
+from volcap_core.calibration.static_step import (StaticCalibrationRecord, calibrate_static_step, decode_reference,
+                                                 encode_reference, static_record)
 from volcap_core.calibration.tracking import TrackingOptions
+from volcap_core.calibration.tracking_step import (TrackingCameraRecord, calibrate_tracking_step,
+                                                   encode_tracking_solution, tracking_record)
 from volcap_core.capture import Capture
 from volcap_core.pointcloud import POINTS_MEDIA, PointCloudFrame, PointCloudSequence, decode_points, encode_points
 from volcap_core.records import MEDIA_SAFETENSORS, ArtifactRef
@@ -69,14 +77,12 @@ def calibrate_static(store: str, capture: ArtifactRef,
     instead of bilinear (``sfm.undistort_views``), which moves its calibration."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
-    statics, trackers = split_cameras(cap)
-    # the known points are checked and applied inside the step (as pipeline.calibrate_capture does)
-    step = steps.calibrate_static_step(cap.name, cap.rig, statics, trackers, cap.frame_count,
-                                       steps.frame_loader(s.get_bytes, cap), steps.load_lidar(s.get_bytes, cap),
-                                       options, known_points)
-    reference = (s.put_bytes(steps.encode_reference(step.reference), MEDIA_SAFETENSORS)
+    statics, trackers = capture_cameras(cap)
+    step = calibrate_static_step(cap.name, cap.rig, statics, trackers, cap.frame_count,
+                                 frame_loader(s.get_bytes, cap), load_lidar(s.get_bytes, cap), options, known_points)
+    reference = (s.put_bytes(encode_reference(step.reference), MEDIA_SAFETENSORS)
                  if step.reference is not None else None)
-    return s.put_record(steps.static_record(cap.name, step, reference))
+    return s.put_record(static_record(cap.name, step, reference))
 
 
 @volcap_task(name="calibrate-tracking-camera", version="4", libraries=CALIBRATION_LIBRARIES)
@@ -94,11 +100,13 @@ def calibrate_tracking_camera(store: str, capture: ArtifactRef, static: Artifact
     stats carry the covariance's ``focal_sigma_pct``, ``rotation_sigma_deg``, ``centre_sigma_m``."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
+    encoder = lens_encoder(cap, camera)
     st = s.get_record(static, StaticCalibrationRecord)
-    reference = steps.decode_reference(s.get_bytes(st.reference)) if st.reference is not None else None
-    sol = steps.calibrate_tracking_step(cap, camera, reference, steps.frame_loader(s.get_bytes, cap), options)
-    frames = s.put_bytes(steps.encode_tracking_solution(sol), MEDIA_SAFETENSORS)
-    return s.put_record(steps.tracking_record(cap.name, camera, sol, frames))
+    reference = decode_reference(s.get_bytes(st.reference)) if st.reference is not None else None
+    sol = calibrate_tracking_step(cap.name, cap.rig, camera, encoder, cap.frame_count, frame_loader(s.get_bytes, cap),
+                                  reference, options)
+    frames = s.put_bytes(encode_tracking_solution(sol), MEDIA_SAFETENSORS)
+    return s.put_record(tracking_record(cap.name, camera, sol, frames))
 
 
 @volcap_task(name="assemble-calibration", version="6")
@@ -115,7 +123,7 @@ def assemble_calibration(store: str, capture: ArtifactRef, static: ArtifactRef,
     principal-point sigma), as a tracking camera's carries its solve's."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
-    record, blob = steps.assemble_calibration_record(
+    record, blob = assemble_calibration_record(
         cap, s.get_record(static, StaticCalibrationRecord),
         [s.get_record(ref, TrackingCameraRecord) for ref in tracking], s.get_bytes)
     if blob is not None:
@@ -137,8 +145,8 @@ def dense_points_frame(store: str, capture: ArtifactRef, calibration: ArtifactRe
     ``DenseOptions`` range as before, so the version is unchanged."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
-    out = steps.dense_points_step(cap, s.get_record(calibration, Calibration), frame,
-                                  steps.frame_loader(s.get_bytes, cap), options, scale, exclude_cameras or ())
+    out = dense_points_step(cap, s.get_record(calibration, Calibration), frame, frame_loader(s.get_bytes, cap),
+                            options, scale, exclude_cameras or ())
     ref = s.put_bytes(encode_points(out.positions, out.colours), POINTS_MEDIA)
     return s.put_record(DensePointsFrame(calibration=calibration, frame=frame, time=cap.frame_time(frame),
                                          count=len(out.positions), points=ref, cameras=tuple(out.cameras),
@@ -149,7 +157,7 @@ def dense_points_frame(store: str, capture: ArtifactRef, calibration: ArtifactRe
 def point_cloud_sequence(store: str, calibration: ArtifactRef, frames: list[ArtifactRef],
                          max_points_per_frame: int | None = None, seed: int = 0) -> ArtifactRef:
     """The PointCloudSequence of the given dense frames, in frame order. ``max_points_per_frame``
-    thins each frame (:func:`volcap_core.calibration.steps.thin_points`) to a budget; the dense
+    thins each frame (:func:`volcap_core.calibration.dense_points_step.thin_points`) to a budget; the dense
     frames themselves stay whole (a new budget does not redo the sweep)."""
     s = ArtifactStore(store)
     recs = sorted((s.get_record(r, DensePointsFrame) for r in frames), key=lambda r: r.frame)
@@ -164,7 +172,7 @@ def point_cloud_sequence(store: str, calibration: ArtifactRef, frames: list[Arti
         ref, count = r.points, r.count
         dense_counts.append(r.count)
         if max_points_per_frame is not None and r.count > max_points_per_frame:
-            xyz, rgb = steps.thin_points(*decode_points(s.get_bytes(r.points)), max_points_per_frame, seed, r.frame)
+            xyz, rgb = thin_points(*decode_points(s.get_bytes(r.points)), max_points_per_frame, seed, r.frame)
             ref, count = s.put_bytes(encode_points(xyz, rgb), POINTS_MEDIA), len(xyz)
         out.append(PointCloudFrame(frame=r.frame, time=r.time, count=count, points=ref))
     method = "plane sweep over the calibrated static cameras, fused by cross-view depth consistency"
@@ -211,10 +219,8 @@ def calibrate_colour(store: str, source: ChartView, reference: ChartView,
     image, calibration) are inputs: their digests are in the key. Version 2: a view given by
     ``patches_m`` through a distorted static camera samples its rectified frame."""
     s = ArtifactStore(store)
-    return s.put_record(steps.colour_step(source, reference, s.get_bytes, options))
+    return s.put_record(colour_step(source, reference, s.get_bytes, options))
 
 
 __all__ = ["calibrate_static", "calibrate_tracking_camera", "assemble_calibration", "dense_points_frame",
-           "point_cloud_sequence", "calibration_errors", "StaticCalibrationRecord", "TrackingCameraRecord",
-           "DensePointsFrame", "CalibrationInputError", "tracking_camera_ids", "split_cameras", "calibrate_colour",
-           "ChartView", "ColourMatrixRecord"]
+           "point_cloud_sequence", "calibration_errors", "calibrate_colour"]

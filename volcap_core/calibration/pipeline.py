@@ -16,13 +16,15 @@ from typing import Callable, Mapping
 import numpy as np
 
 from hardware.rig import Rig
+from volcap_core.calibration.assemble import build_record, tracking_blob
 from volcap_core.calibration.lidar import LidarScan
-from volcap_core.calibration.record import Calibration, CameraCalibration, matrix4, tracking_frames_ref
+from volcap_core.calibration.record import Calibration
 from volcap_core.calibration.scale import KnownPoints
 from volcap_core.calibration.static import StaticCalibration, StaticCalibrationOptions
-from volcap_core.calibration.steps import calibrate_static_step, check_tracking_support, tracking_blob
+from volcap_core.calibration.static_step import calibrate_static_step
 from volcap_core.calibration.tracking import (StaticReference, TrackingOptions, TrackingSolution,
                                               calibrate_tracking_cameras, zoom_lens)
+from volcap_core.calibration.tracking_step import check_tracking_support
 
 FrameSource = Callable[[str, int], np.ndarray]
 
@@ -57,8 +59,8 @@ def calibrate_capture(load: FrameSource, rig: Rig, camera_ids: list[str], frame_
     when the capture has none. ``known_points``: marked scene points and their measured distances
     (``volcap calibrate --known-points``): without a scan the static calibration is scaled to them,
     with one they are only checked; checked and applied by the static step exactly as the
-    ``calibrate-static`` task does (:func:`~volcap_core.calibration.steps.calibrate_static_step`).
-    Raises :class:`~volcap_core.calibration.steps.CalibrationInputError` naming the capture (and the
+    ``calibrate-static`` task does (:func:`~volcap_core.calibration.static_step.calibrate_static_step`).
+    Raises :class:`~volcap_core.calibration.errors.CalibrationInputError` naming the capture (and the
     point and camera) on input that cannot be calibrated.
     """
     t0 = time.perf_counter()
@@ -86,56 +88,6 @@ def calibrate_capture(load: FrameSource, rig: Rig, camera_ids: list[str], frame_
     record = build_record(capture_name, rig, static, tracking, frame_count, fps, ref_frame, blob)
     stats["time_total_s"] = time.perf_counter() - t0
     return CalibrationResult(record, blob, static, tracking, reference, stats)
-
-
-def _quality(stats: Mapping) -> dict[str, float]:
-    """A camera's fit statistics as its record's ``quality``: the finite numbers, as floats."""
-    return {k: float(v) for k, v in stats.items() if isinstance(v, (int, float)) and np.isfinite(v)}
-
-
-def build_record(capture_name: str, rig: Rig, static: StaticCalibration, tracking: Mapping[str, TrackingSolution],
-                 frame_count: int, fps: float, reference_frame: int, blob: bytes | None) -> Calibration:
-    """The JSON-small record; ``blob`` (from :func:`volcap_core.calibration.steps.tracking_blob` of the
-    supported cameras) gives the tracking ref. A tracking camera marked ``unsupported`` is left out
-    and listed in ``unregistered`` with its reason, as a static camera the adjustment left out."""
-    cams = []
-    for cid in static.camera_ids:
-        K = static.K[cid]
-        w, h = static.size[cid]
-        extra = {"scene_depth_m": static.scene_depth.get(cid)}   # where its dense points sweep
-        raw = getattr(static, "raw_intrinsics", {}).get(cid)
-        if raw is not None:       # a distorted lens: its intrinsics on its own frames, and the distortion
-            K = raw.K
-            extra["distortion"] = tuple(float(v) for v in raw.distortion.opencv())  # 5, or 8 (rational)
-        # how well the adjustment holds and knows it (static.camera_support): observations, residual,
-        # rotation / centre / principal-point sigma
-        q = _quality(static.support.get(cid, {}))
-        cams.append(CameraCalibration(id=cid, role=rig.camera(cid).role.value, static=True, width=w, height=h,
-                                      intrinsics=(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])),
-                                      world_to_camera=matrix4(static.world_to_camera[cid]), quality=q, **extra))
-    left_out = {c: f"tracking camera: {v.unsupported}" for c, v in tracking.items() if v.unsupported is not None}
-    tracking = {c: v for c, v in tracking.items() if c not in left_out}
-    for cid in sorted(tracking):
-        s = rig.camera(cid).sensor
-        q = _quality(tracking[cid].stats)
-        q["focal_gain"] = tracking[cid].gain
-        q["focal_offset_px"] = tracking[cid].offset
-        cams.append(CameraCalibration(id=cid, role=rig.camera(cid).role.value, static=False,
-                                      width=s.width_px, height=s.height_px, quality=q))
-    bstats = static.stats.get("bundle", {})
-    rec_stats = {"static_cameras": float(len(static.camera_ids)), "tracking_cameras": float(len(tracking))}
-    if "median_reprojection_px" in bstats:
-        rec_stats["static_median_reprojection_px"] = float(bstats["median_reprojection_px"])
-    # a capture without a lidar scan: how the stage frame and scale were set and the mounts' residual
-    # (static.frame_without_lidar); with a scan and a known distance, that distance's check
-    for k, v in static.stats.get("frame", {}).items():
-        if isinstance(v, (int, float)) and np.isfinite(v):
-            rec_stats[f"static_frame_{k}"] = float(v)
-    return Calibration(capture=capture_name, frame_count=frame_count, fps=fps, reference_frame=reference_frame,
-                       stage_size_m=tuple(rig.stage_size_m), cameras=tuple(cams),
-                       tracking_frames=tracking_frames_ref(blob) if blob is not None else None, stats=rec_stats,
-                       unregistered={**{c: static.reasons.get(c, "not registered") for c in static.unregistered},
-                                     **left_out})
 
 
 # --------------------------------------------------------------------------- capture folders
