@@ -1,9 +1,12 @@
-"""The whole calibration of one capture as one pure function (the task layer wraps it).
+"""The whole calibration of one capture in one call: the steps the calibration tasks run, composed.
 
-Inputs are plain values: a frame source ``load(camera_id, take_index) -> linear RGB [H, W, 3]``
-(lazy, so a task can decode EXRs from the store one at a time), the rig, the lens-encoder readings
-re-indexed to take indices, and the lidar scan. Outputs: the :class:`Calibration` record (with the
-ref its tracking blob will have), the blob's bytes, and the intermediate results for reports.
+For tests, benchmarks and notebooks that hold a capture's frames rather than a store. It runs the
+very step functions of the ``calibrate-static``, ``calibrate-tracking-camera`` and
+``assemble-calibration`` tasks (:mod:`~volcap_core.calibration.static_step`,
+:mod:`~volcap_core.calibration.tracking_step`, :mod:`~volcap_core.calibration.assemble`), the
+cameras' roles split by the same :func:`~volcap_core.calibration.inputs.split_cameras`, so it
+gives what ``volcap calibrate`` gives; it only keeps the library's results in memory instead of
+storing records between the steps.
 """
 
 from __future__ import annotations
@@ -11,22 +14,20 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Mapping
+from typing import Mapping
 
 import numpy as np
 
 from hardware.rig import Rig
 from volcap_core.calibration.assemble import build_record, tracking_blob
+from volcap_core.calibration.inputs import EncoderReadings, FrameSource, split_cameras
 from volcap_core.calibration.lidar import LidarScan
 from volcap_core.calibration.record import Calibration
 from volcap_core.calibration.scale import KnownPoints
 from volcap_core.calibration.static import StaticCalibration, StaticCalibrationOptions
 from volcap_core.calibration.static_step import calibrate_static_step
-from volcap_core.calibration.tracking import (StaticReference, TrackingOptions, TrackingSolution,
-                                              calibrate_tracking_cameras, zoom_lens)
-from volcap_core.calibration.tracking_step import check_tracking_support
-
-FrameSource = Callable[[str, int], np.ndarray]
+from volcap_core.calibration.tracking import StaticReference, TrackingOptions, TrackingSolution
+from volcap_core.calibration.tracking_step import calibrate_tracking_step
 
 
 @dataclass(frozen=True)
@@ -40,6 +41,12 @@ class CalibrationOptions:
 
 @dataclass
 class CalibrationResult:
+    """The Calibration ``record`` and its tracking-frames blob (``tracking_bytes``, None without
+    tracking cameras), with the library's results it was built from (``static``: with its sparse
+    model; ``tracking``: id -> solution; ``reference``: the static reference) and ``stats``
+    (``time_static_s``, ``time_tracking_s``, ``time_total_s``; ``tracking``: why that step was
+    skipped)."""
+
     record: Calibration
     tracking_bytes: bytes | None
     static: StaticCalibration
@@ -49,45 +56,35 @@ class CalibrationResult:
 
 
 def calibrate_capture(load: FrameSource, rig: Rig, camera_ids: list[str], frame_count: int, fps: float, *,
-                      capture_name: str, encoder: Mapping[str, tuple[np.ndarray, np.ndarray]],
+                      capture_name: str, encoder: Mapping[str, EncoderReadings],
                       scan: LidarScan | None, options: CalibrationOptions = CalibrationOptions(),
                       known_points: KnownPoints | None = None) -> CalibrationResult:
-    """Calibrate every camera of a capture.
+    """Calibrate every camera of a capture: the static step, then the tracking step of each tracking
+    camera, then the record, as the calibrate flow's tasks run them.
 
-    ``camera_ids``: the capture's cameras (their roles come from the rig); ``encoder``: tracking camera
-    id -> (take indices [S], focal mm [S]). Tracking cameras are skipped (with a note in ``stats``)
-    when the capture has none. ``known_points``: marked scene points and their measured distances
-    (``volcap calibrate --known-points``): without a scan the static calibration is scaled to them,
-    with one they are only checked; checked and applied by the static step exactly as the
-    ``calibrate-static`` task does (:func:`~volcap_core.calibration.static_step.calibrate_static_step`).
-    Raises :class:`~volcap_core.calibration.errors.CalibrationInputError` naming the capture (and the
-    point and camera) on input that cannot be calibrated.
+    ``load(camera_id, take_index) -> float32 [H, W, 3]`` linear RGB; ``camera_ids``: the capture's
+    cameras (their roles come from the rig); ``encoder``: tracking camera id -> (take indices [S],
+    focal mm [S]); ``scan``: the capture's lidar scan or None. Tracking cameras are skipped (with a
+    note in ``stats``) when the capture has none. ``known_points``: marked scene points and their
+    measured distances (``volcap calibrate --known-points``), checked and applied by the static step.
+    Raises :class:`~volcap_core.calibration.errors.CalibrationInputError` naming the capture (and
+    the point and camera) on input that cannot be calibrated.
     """
     t0 = time.perf_counter()
-    statics = [c for c in camera_ids if not rig.camera(c).role.tracks]
-    trackers = [c for c in camera_ids if rig.camera(c).role.tracks]
+    statics, trackers = split_cameras(capture_name, rig, camera_ids)
     step = calibrate_static_step(capture_name, rig, statics, trackers, frame_count, load, scan, options.static,
                                  known_points)
-    static, reference, ref_frame = step.calibration, step.reference, step.reference_frame
-    t2 = time.perf_counter()
-    stats: dict = {"time_static_s": t2 - t0}  # frames are loaded inside the static step
-    tracking: dict[str, TrackingSolution] = {}
-    blob = None
-    if trackers:
-        frames = {c: [load(c, t) for t in range(frame_count)] for c in trackers}
-        ppm = {c: rig.camera(c).sensor.width_px / rig.camera(c).sensor.width_mm for c in trackers}
-        mounts = {c: np.asarray(rig.camera(c).mount.position_m, np.float64) for c in trackers}
-        lenses = {c: zoom_lens(rig.zoom_intrinsics(c)) for c in trackers}   # zoom lens tables (own or group's)
-        tracking = calibrate_tracking_cameras(frames, encoder, ppm, mounts, reference, options.tracking, lenses)
-        # the tasks' check: an unsupported camera is an error, or left out and listed
-        tracking = {c: check_tracking_support(capture_name, c, v, options.tracking) for c, v in tracking.items()}
-        blob = tracking_blob(tracking)
-    else:
+    t1 = time.perf_counter()
+    stats: dict = {"time_static_s": t1 - t0}  # frames are loaded inside the static step
+    tracking = {c: calibrate_tracking_step(capture_name, rig, c, encoder.get(c), frame_count, load, step.reference,
+                                           options.tracking) for c in trackers}
+    if not trackers:
         stats["tracking"] = "skipped: the capture has no tracking cameras"
-    stats["time_tracking_s"] = time.perf_counter() - t2
-    record = build_record(capture_name, rig, static, tracking, frame_count, fps, ref_frame, blob)
+    stats["time_tracking_s"] = time.perf_counter() - t1
+    blob = tracking_blob(tracking)
+    record = build_record(capture_name, rig, step.calibration, tracking, frame_count, fps, step.reference_frame, blob)
     stats["time_total_s"] = time.perf_counter() - t0
-    return CalibrationResult(record, blob, static, tracking, reference, stats)
+    return CalibrationResult(record, blob, step.calibration, tracking, step.reference, stats)
 
 
 # --------------------------------------------------------------------------- capture folders
