@@ -16,6 +16,7 @@ stores what it returns:
 
 Settings are parameters with the library's defaults (their every field is in the cache key);
 the calibration reads the capture's ``lidar`` scan (an input, like the frames), never its ground truth.
+What each task version changed: docs/calibration.md, "Task versions".
 """
 
 from __future__ import annotations
@@ -58,23 +59,8 @@ def calibrate_static(store: str, capture: ArtifactRef,
     """Static cameras on the middle frame (+ background plates), registered to the capture's lidar;
     with tracking cameras, also the static reference they register against. A camera the adjustment
     cannot support is an error naming it, or (``options.allow_unregistered``) left out and listed.
-    Version 3: unsupported cameras (``options.min_observations``, pose bounds) are refused or left
-    out, never returned at their mount; per-camera support in the stats. Version 4: a distorted
-    camera carries its intrinsics on its own frames and its distortion (``raw_intrinsics``,
-    ``distortion``), and the static reference lifts features from plates rectified into the
-    calibrated pinholes (before: raw plates read with the pinhole K); also (same version) several
-    instants pooled into the SfM (``options.instants`` / ``instant_frames``), and a capture without
-    a lidar scan placed by a robust similarity onto the mounts or scaled by ``options.known_distance``,
-    its residual in the stats (``frame.*``). Version 6: without a scan the stand-in surface's sweep
-    depths come from the scene (``static.surface_from_plates``); ``known_points`` (distances between
-    marked scene points, ``volcap_core.calibration.scale``) scale a capture without a scan.
-    Version 8: each camera's view of the static scene (``StaticCamera.scene_depth_m``, from the
-    sparse points), which the Calibration record carries on to where dense points sweep.
-    Version 9: after step 5 each camera's support (``support.<id>.*``) gives its rotation, centre,
-    principal-point and focal sigma from step 5's covariance, the principal point and focal unknown
-    under their priors (``bundle_adjust(...)["sigma"]``; before: a pose-only bound on the SfM's
-    observations). Version 10: a distorted camera's frames and plates are rectified with Lanczos
-    instead of bilinear (``sfm.undistort_views``), which moves its calibration."""
+    ``known_points`` (distances between marked scene points, ``volcap_core.calibration.scale``)
+    scale a capture without a scan; the step checks and applies them."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
     statics, trackers = capture_cameras(cap)
@@ -88,16 +74,8 @@ def calibrate_static(store: str, capture: ArtifactRef,
 @volcap_task(name="calibrate-tracking-camera", version="4", libraries=CALIBRATION_LIBRARIES)
 def calibrate_tracking_camera(store: str, capture: ArtifactRef, static: ArtifactRef, camera: str,
                               options: TrackingOptions = TrackingOptions()) -> ArtifactRef:
-    """One tracking camera at every frame of the take, against the fixed static reference.
-    Version 3: a camera whose rig carries a zoom lens table (``zoom_intrinsics``) has each frame's
-    keypoints undistorted with the lens at that frame's smoothed encoder focal before matching
-    (``options.zoom_distortion``), and its frames blob carries each frame's lens (``distortion``).
-    Version 4: a 2D-3D match behind the camera no longer freezes the solve where it starts (its
-    Jacobian is zero), one start along the zoom/dolly valley instead of seven, the frame-to-frame
-    background homography at 1.5 px instead of 3 (``options.homography_px``), a guided 2D-3D
-    matching and refinement after the first solve (``options.guided_radius_px``), a camera the solve
-    cannot support refused or left out (``options.allow_unsupported``), and the record's
-    stats carry the covariance's ``focal_sigma_pct``, ``rotation_sigma_deg``, ``centre_sigma_m``."""
+    """One tracking camera at every frame of the take, against the fixed static reference; a camera
+    the solve cannot support is an error naming it, or (``options.allow_unsupported``) left out."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
     encoder = lens_encoder(cap, camera)
@@ -113,14 +91,8 @@ def calibrate_tracking_camera(store: str, capture: ArtifactRef, static: Artifact
 def assemble_calibration(store: str, capture: ArtifactRef, static: ArtifactRef,
                          tracking: list[ArtifactRef]) -> ArtifactRef:
     """The Calibration record (and its tracking-frames blob) from the static and per-camera results,
-    exactly as ``volcap_core.calibration.pipeline.calibrate_capture`` makes it in one call.
-    Version 2: the record lists the cameras left out (``unregistered``, with the reasons).
-    Version 3: a distorted camera is recorded with its intrinsics on its own frames and its
-    distortion, as ``calibrate_capture`` records it (before: the rectified pinhole, no distortion).
-    Version 5: a tracking camera with a zoom lens has each frame's lens in the tracking-frames blob
-    (``<id>/distortion`` [T, 5|8], blob format ``volcap-tracking-frames/2``). Version 6: a static
-    camera's ``quality`` carries its support (observations, residual, rotation / centre /
-    principal-point sigma), as a tracking camera's carries its solve's."""
+    built by :func:`~volcap_core.calibration.assemble.build_record`, as
+    ``volcap_core.calibration.pipeline.calibrate_capture`` builds it."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
     record, blob = assemble_calibration_record(
@@ -138,11 +110,8 @@ def dense_points_frame(store: str, capture: ArtifactRef, calibration: ArtifactRe
                        options: DenseOptions = DenseOptions()) -> ArtifactRef:
     """One frame's dense points from the calibrated static cameras but ``exclude_cameras`` (a
     reconstruction's held-out cameras); ``scale`` < 1 matches downscaled images (previews, tests).
-    Version 3: a distorted camera's frame is rectified into the pinhole of its record's K first
-    (``distortion.rectify_frame``), and pixels outside its source give no depth. A calibration with
-    scene depths (calibrate-static 8) is swept around each camera's scene
-    (``CameraCalibration.scene_depth_m``); one without (a new digest either way) sweeps the fixed
-    ``DenseOptions`` range as before, so the version is unchanged."""
+    A distorted camera's frame is rectified into the pinhole of its record's K first; a calibration
+    with scene depths is swept around each camera's scene."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
     out = dense_points_step(cap, s.get_record(calibration, Calibration), frame, frame_loader(s.get_bytes, cap),
@@ -215,9 +184,8 @@ def calibrate_colour(store: str, source: ChartView, reference: ChartView,
                      options: ColourCalibrationOptions = ColourCalibrationOptions()) -> ArtifactRef:
     """The colour matrix between two rigs from a chart seen by each (``source``: the rig mapped,
     usually the Face Rig; ``reference``: the rig it is mapped onto, usually the Scene Rig): a
-    :class:`ColourMatrixRecord` with the fit's ΔE before and after. The views' refs (capture,
-    image, calibration) are inputs: their digests are in the key. Version 2: a view given by
-    ``patches_m`` through a distorted static camera samples its rectified frame."""
+    :class:`~volcap_core.calibration.colour_step.ColourMatrixRecord` with the fit's ΔE before and
+    after. The views' refs (capture, image, calibration) are inputs: their digests are in the key."""
     s = ArtifactStore(store)
     return s.put_record(colour_step(source, reference, s.get_bytes, options))
 
