@@ -124,8 +124,8 @@ def calibrate_static_step(cap_name: str, rig, static_ids: Sequence[str], trackin
         raise CalibrationInputError(f"capture {cap_name}: static calibration needs at least two static cameras, "
                                     f"it has {len(static_ids)} ({', '.join(static_ids) or 'none'})")
     if scan is None and tracking_ids:
-        # Measured: against the SfM points alone (no scan) the tracking cameras' absolute orientation
-        # came out 70-145° wrong on the test capture. Refuse rather than hand out such a calibration.
+        # against the SfM points alone the tracking cameras' absolute orientation comes out wrong by
+        # tens of degrees (docs/calibration.md): refuse rather than hand out such a calibration
         raise CalibrationInputError(
             f"capture {cap_name} has tracking cameras ({', '.join(tracking_ids)}) but no lidar scan: they register "
             "against the static set lifted onto the scan; name the scan in capture.json's 'lidar'"
@@ -211,20 +211,22 @@ def _plate_in_pinhole(plate: np.ndarray, static: StaticCalibration, camera: str)
     out = Intrinsics(float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]), raw.width, raw.height)
     mx, my = undistort_maps(raw, raw.distortion, out)
     # the border is replicated, not black: a black corner's edge is a ring of strong SIFT features
-    # that are no part of the scene. Measured on the distorted demo capture (6 frames), tracking
-    # camera S011: black border 155° off (a flipped solution); replicated 0.18°, focal 0.36 %; the
-    # raw plates read as pinholes (before) 0.51°, focal 1.24 %
+    # that are no part of the scene, and can flip a tracking camera's solution (docs/calibration.md,
+    # "Through the flow")
     return cv2.remap(np.ascontiguousarray(plate, np.float32), mx, my, cv2.INTER_LINEAR,
                      borderMode=cv2.BORDER_REPLICATE)
 
 
 def encode_reference(ref: StaticReference) -> bytes:
+    """The static reference as the record's blob: safetensors ``points`` [N, 3] float64 (stage
+    frame, metres) and ``descriptors`` [N, 128] uint8."""
     return st_save({"points": np.ascontiguousarray(ref.points, np.float64),
                     "descriptors": np.ascontiguousarray(ref.descriptors, np.uint8)},
                    metadata={"format": "volcap-static-reference/1"})
 
 
 def decode_reference(data: bytes) -> StaticReference:
+    """Inverse of :func:`encode_reference`."""
     t = st_load(data)
     return StaticReference(t["points"], t["descriptors"])
 
