@@ -24,10 +24,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from volcap_core.calibration.lidar import LidarScan  # noqa: E402
+from volcap_core.calibration.inputs import split_cameras  # noqa: E402
 from volcap_core.calibration.metrics import (calibration_table, count_multiview_points, distance_to_parts,  # noqa: E402
                                              load_ground_truth, static_errors, tracking_errors)
 from volcap_core.calibration.photometric import PhotometricOptions, background_plate  # noqa: E402
 from volcap_core.calibration.static import StaticCalibrationOptions, calibrate_static_cameras  # noqa: E402
+from volcap_core.calibration.static_step import plate_frames, reference_frame  # noqa: E402
 from volcap_core.calibration.tracking import (TrackingOptions, build_static_reference, prepare_tracking,  # noqa: E402
                                               solve_tracking)
 from volcap_core.capture import CaptureFolder  # noqa: E402
@@ -39,12 +41,12 @@ def run(capture_dir: Path, point_frames: int = 3, variants=("priors", "free", "i
     gt = load_ground_truth(capture_dir / "ground_truth")
     scan = LidarScan.from_ply_bytes(cap.lidar_path.read_bytes())
     T = cap.frame_count
-    mid = T // 2
-    statics = [c for c in cap.camera_ids if not cap.rig.camera(c).role.tracks]
-    trackers = [c for c in cap.camera_ids if cap.rig.camera(c).role.tracks]
+    # the calibrate-static step's policy: its roles, reference frame and plate frames
+    mid = reference_frame(T, StaticCalibrationOptions())
+    statics, trackers = split_cameras(cap.name, cap.rig, cap.camera_ids)
     t = time.perf_counter()
     images = {c: cap.load(c, mid) for c in statics}
-    idx = np.unique(np.linspace(0, T - 1, min(8, T)).round().astype(int))
+    idx = plate_frames(T, StaticCalibrationOptions())
     plates = {c: background_plate([cap.load(c, int(k)) for k in idx]) for c in statics}
     times["load_static_s"] = time.perf_counter() - t
 

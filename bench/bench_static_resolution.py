@@ -17,7 +17,7 @@ so that the finer rig is not handed a better calibration: ``synthesize_capture``
 ``lens_calibration_error``).
 
 Each render: ``synthesize_capture(rig, seed, frames=6, cameras=<the 8 static>)`` (with the lidar
-scan), then the ``calibrate-static`` task's step (``steps.calibrate_static_step``, default
+scan), then the ``calibrate-static`` task's step (``static_step.calibrate_static_step``, default
 options) and the errors against the ground truth (``metrics.static_errors``) at the reference
 frame. The scale-1 rows are the floors: the same code on the demo's pixels. ``--exact-lenses``
 renders every unit with exactly the lens the rig states (no lens-calibration error): what is left
@@ -43,9 +43,10 @@ import cv2  # noqa: E402,F401  (before pycolmap)
 import volcap_core.synth.synthesize as synthesize  # noqa: E402
 from hardware.rig import load_rig  # noqa: E402
 from volcap_core.calibration.lidar import LidarScan  # noqa: E402
+from volcap_core.calibration.inputs import split_cameras  # noqa: E402
 from volcap_core.calibration.metrics import load_ground_truth, static_errors  # noqa: E402
 from volcap_core.calibration.static import StaticCalibrationOptions  # noqa: E402
-from volcap_core.calibration.steps import calibrate_static_step, reference_frame  # noqa: E402
+from volcap_core.calibration.static_step import calibrate_static_step, reference_frame  # noqa: E402
 from volcap_core.capture import CaptureFolder  # noqa: E402
 
 RIG = "demo_scene_distorted"
@@ -73,10 +74,10 @@ def render(workdir: Path, seed: int, scale: int, exact_lenses: bool = False) -> 
 
 def calibrate(capture_dir: Path) -> dict:
     cap = CaptureFolder.open(capture_dir)
-    statics = [c for c in cap.camera_ids if not cap.rig.camera(c).role.tracks]
+    statics, trackers = split_cameras(capture_dir.name, cap.rig, cap.camera_ids)
     t0 = time.perf_counter()
     scan = LidarScan.from_ply_bytes(cap.lidar_path.read_bytes())
-    static = calibrate_static_step(capture_dir.name, cap.rig, statics, [], cap.frame_count, cap.load,
+    static = calibrate_static_step(capture_dir.name, cap.rig, statics, trackers, cap.frame_count, cap.load,
                                    scan).calibration
     seconds = time.perf_counter() - t0
     err = static_errors(static.K, static.world_to_camera, load_ground_truth(capture_dir / "ground_truth"),

@@ -20,10 +20,12 @@ from prefect import flow, get_run_logger, unmapped
 from pydantic import ValidationError
 
 from tasks.calibrate import (assemble_calibration, calibrate_colour, calibrate_static, calibrate_tracking_camera,
-                             calibration_errors, dense_points_frame, point_cloud_sequence, tracking_camera_ids)
-from volcap_core.calibration.steps import CalibrationInputError, ChartView, ColourMatrixRecord
+                             calibration_errors, dense_points_frame, point_cloud_sequence)
+from volcap_core.calibration.colour_step import ChartView, ColourMatrixRecord
+from volcap_core.calibration.errors import CalibrationInputError, KnownPointsError
+from volcap_core.calibration.inputs import tracking_camera_ids
 from volcap_core.calibration.record import Calibration
-from volcap_core.calibration.scale import KnownPoints, KnownPointsError
+from volcap_core.calibration.scale import KnownPoints
 from volcap_core.calibration.sfm import StaticSfmOptions
 from volcap_core.calibration.static import StaticCalibrationOptions
 from volcap_core.calibration.tracking import TrackingOptions

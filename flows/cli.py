@@ -250,7 +250,8 @@ def _scale_options(known_distance: str | None, known_points: Path | None
                                      param_hint="--known-distance") from None
     marks = None
     if known_points is not None:
-        from volcap_core.calibration.scale import KnownPoints, KnownPointsError
+        from volcap_core.calibration.errors import KnownPointsError
+        from volcap_core.calibration.scale import KnownPoints
 
         marks = _read_json(known_points)
         try:

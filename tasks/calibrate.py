@@ -1,18 +1,22 @@
 """Calibration tasks: static cameras once, each tracking camera on its own, one task per frame of
-dense points, and small assembling steps. Each loads its inputs from the store, calls one step of
-:mod:`volcap_core.calibration.steps` (or the metrics) and stores what it returns:
+dense points, and small assembling steps. Each loads its inputs from the store, calls one step
+(``volcap_core.calibration.*_step``, :mod:`~volcap_core.calibration.assemble`, or the metrics) and
+stores what it returns:
 
-- :func:`calibrate_static` -> a :class:`StaticCalibrationRecord`;
-- :func:`calibrate_tracking_camera` -> a :class:`TrackingCameraRecord` (one camera over the take);
+- :func:`calibrate_static` -> a :class:`~volcap_core.calibration.static_step.StaticCalibrationRecord`;
+- :func:`calibrate_tracking_camera` -> a
+  :class:`~volcap_core.calibration.tracking_step.TrackingCameraRecord` (one camera over the take);
 - :func:`assemble_calibration` -> the :class:`~volcap_core.calibration.record.Calibration` record;
-- :func:`dense_points_frame` -> a :class:`DensePointsFrame` (one frame's fused multi-view points);
+- :func:`dense_points_frame` -> a :class:`~volcap_core.calibration.dense_points_step.DensePointsFrame`
+  (one frame's fused multi-view points);
 - :func:`point_cloud_sequence` -> the :class:`~volcap_core.pointcloud.PointCloudSequence` record;
 - :func:`calibration_errors` -> the error table against a synthetic capture's ground truth (JSON);
-- :func:`calibrate_colour` -> a :class:`ColourMatrixRecord`: the colour matrix between two rigs from a
-  chart seen by each.
+- :func:`calibrate_colour` -> a :class:`~volcap_core.calibration.colour_step.ColourMatrixRecord`: the
+  colour matrix between two rigs from a chart seen by each.
 
 Settings are parameters with the library's defaults (their every field is in the cache key);
 the calibration reads the capture's ``lidar`` scan (an input, like the frames), never its ground truth.
+What each task version changed: docs/calibration.md, "Task versions".
 """
 
 from __future__ import annotations
@@ -20,18 +24,23 @@ from __future__ import annotations
 import json
 
 from tasks.contract import volcap_task
-from volcap_core.calibration import steps
+from volcap_core.calibration.assemble import assemble_calibration_record
 from volcap_core.calibration.colour import ColourCalibrationOptions
+from volcap_core.calibration.colour_step import ChartView, colour_step
 from volcap_core.calibration.dense import DenseOptions
+from volcap_core.calibration.dense_points_step import DensePointsFrame, dense_points_step, thin_points
+from volcap_core.calibration.errors import CalibrationInputError
+from volcap_core.calibration.inputs import capture_cameras, frame_loader, lens_encoder, load_lidar
 from volcap_core.calibration.lidar import LidarScan
 from volcap_core.calibration.metrics import calibration_report, ground_truth_from_json
 from volcap_core.calibration.record import Calibration, decode_tracking_frames
 from volcap_core.calibration.scale import KnownPoints
 from volcap_core.calibration.static import StaticCalibrationOptions
-from volcap_core.calibration.steps import (CalibrationInputError, ChartView, ColourMatrixRecord, DensePointsFrame,
-                                           StaticCalibrationRecord, TrackingCameraRecord, split_cameras,
-                                           tracking_camera_ids)
+from volcap_core.calibration.static_step import (StaticCalibrationRecord, calibrate_static_step, decode_reference,
+                                                 encode_reference, static_record)
 from volcap_core.calibration.tracking import TrackingOptions
+from volcap_core.calibration.tracking_step import (TrackingCameraRecord, calibrate_tracking_step,
+                                                   encode_tracking_solution, tracking_record)
 from volcap_core.capture import Capture
 from volcap_core.pointcloud import POINTS_MEDIA, PointCloudFrame, PointCloudSequence, decode_points, encode_points
 from volcap_core.records import MEDIA_SAFETENSORS, ArtifactRef
@@ -50,72 +59,43 @@ def calibrate_static(store: str, capture: ArtifactRef,
     """Static cameras on the middle frame (+ background plates), registered to the capture's lidar;
     with tracking cameras, also the static reference they register against. A camera the adjustment
     cannot support is an error naming it, or (``options.allow_unregistered``) left out and listed.
-    Version 3: unsupported cameras (``options.min_observations``, pose bounds) are refused or left
-    out, never returned at their mount; per-camera support in the stats. Version 4: a distorted
-    camera carries its intrinsics on its own frames and its distortion (``raw_intrinsics``,
-    ``distortion``), and the static reference lifts features from plates rectified into the
-    calibrated pinholes (before: raw plates read with the pinhole K); also (same version) several
-    instants pooled into the SfM (``options.instants`` / ``instant_frames``), and a capture without
-    a lidar scan placed by a robust similarity onto the mounts or scaled by ``options.known_distance``,
-    its residual in the stats (``frame.*``). Version 6: without a scan the stand-in surface's sweep
-    depths come from the scene (``static.surface_from_plates``); ``known_points`` (distances between
-    marked scene points, ``volcap_core.calibration.scale``) scale a capture without a scan.
-    Version 8: each camera's view of the static scene (``StaticCamera.scene_depth_m``, from the
-    sparse points), which the Calibration record carries on to where dense points sweep.
-    Version 9: after step 5 each camera's support (``support.<id>.*``) gives its rotation, centre,
-    principal-point and focal sigma from step 5's covariance, the principal point and focal unknown
-    under their priors (``bundle_adjust(...)["sigma"]``; before: a pose-only bound on the SfM's
-    observations). Version 10: a distorted camera's frames and plates are rectified with Lanczos
-    instead of bilinear (``sfm.undistort_views``), which moves its calibration."""
+    ``known_points`` (distances between marked scene points, ``volcap_core.calibration.scale``)
+    scale a capture without a scan; the step checks and applies them."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
-    statics, trackers = split_cameras(cap)
-    # the known points are checked and applied inside the step (as pipeline.calibrate_capture does)
-    step = steps.calibrate_static_step(cap.name, cap.rig, statics, trackers, cap.frame_count,
-                                       steps.frame_loader(s.get_bytes, cap), steps.load_lidar(s.get_bytes, cap),
-                                       options, known_points)
-    reference = (s.put_bytes(steps.encode_reference(step.reference), MEDIA_SAFETENSORS)
+    statics, trackers = capture_cameras(cap)
+    step = calibrate_static_step(cap.name, cap.rig, statics, trackers, cap.frame_count,
+                                 frame_loader(s.get_bytes, cap), load_lidar(s.get_bytes, cap), options, known_points)
+    reference = (s.put_bytes(encode_reference(step.reference), MEDIA_SAFETENSORS)
                  if step.reference is not None else None)
-    return s.put_record(steps.static_record(cap.name, step, reference))
+    return s.put_record(static_record(cap.name, step, reference))
 
 
 @volcap_task(name="calibrate-tracking-camera", version="4", libraries=CALIBRATION_LIBRARIES)
 def calibrate_tracking_camera(store: str, capture: ArtifactRef, static: ArtifactRef, camera: str,
                               options: TrackingOptions = TrackingOptions()) -> ArtifactRef:
-    """One tracking camera at every frame of the take, against the fixed static reference.
-    Version 3: a camera whose rig carries a zoom lens table (``zoom_intrinsics``) has each frame's
-    keypoints undistorted with the lens at that frame's smoothed encoder focal before matching
-    (``options.zoom_distortion``), and its frames blob carries each frame's lens (``distortion``).
-    Version 4: a 2D-3D match behind the camera no longer freezes the solve where it starts (its
-    Jacobian is zero), one start along the zoom/dolly valley instead of seven, the frame-to-frame
-    background homography at 1.5 px instead of 3 (``options.homography_px``), a guided 2D-3D
-    matching and refinement after the first solve (``options.guided_radius_px``), a camera the solve
-    cannot support refused or left out (``options.allow_unsupported``), and the record's
-    stats carry the covariance's ``focal_sigma_pct``, ``rotation_sigma_deg``, ``centre_sigma_m``."""
+    """One tracking camera at every frame of the take, against the fixed static reference; a camera
+    the solve cannot support is an error naming it, or (``options.allow_unsupported``) left out."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
+    encoder = lens_encoder(cap, camera)
     st = s.get_record(static, StaticCalibrationRecord)
-    reference = steps.decode_reference(s.get_bytes(st.reference)) if st.reference is not None else None
-    sol = steps.calibrate_tracking_step(cap, camera, reference, steps.frame_loader(s.get_bytes, cap), options)
-    frames = s.put_bytes(steps.encode_tracking_solution(sol), MEDIA_SAFETENSORS)
-    return s.put_record(steps.tracking_record(cap.name, camera, sol, frames))
+    reference = decode_reference(s.get_bytes(st.reference)) if st.reference is not None else None
+    sol = calibrate_tracking_step(cap.name, cap.rig, camera, encoder, cap.frame_count, frame_loader(s.get_bytes, cap),
+                                  reference, options)
+    frames = s.put_bytes(encode_tracking_solution(sol), MEDIA_SAFETENSORS)
+    return s.put_record(tracking_record(cap.name, camera, sol, frames))
 
 
 @volcap_task(name="assemble-calibration", version="6")
 def assemble_calibration(store: str, capture: ArtifactRef, static: ArtifactRef,
                          tracking: list[ArtifactRef]) -> ArtifactRef:
     """The Calibration record (and its tracking-frames blob) from the static and per-camera results,
-    exactly as ``volcap_core.calibration.pipeline.calibrate_capture`` makes it in one call.
-    Version 2: the record lists the cameras left out (``unregistered``, with the reasons).
-    Version 3: a distorted camera is recorded with its intrinsics on its own frames and its
-    distortion, as ``calibrate_capture`` records it (before: the rectified pinhole, no distortion).
-    Version 5: a tracking camera with a zoom lens has each frame's lens in the tracking-frames blob
-    (``<id>/distortion`` [T, 5|8], blob format ``volcap-tracking-frames/2``). Version 6: a static
-    camera's ``quality`` carries its support (observations, residual, rotation / centre /
-    principal-point sigma), as a tracking camera's carries its solve's."""
+    built by :func:`~volcap_core.calibration.assemble.build_record`, as
+    ``volcap_core.calibration.pipeline.calibrate_capture`` builds it."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
-    record, blob = steps.assemble_calibration_record(
+    record, blob = assemble_calibration_record(
         cap, s.get_record(static, StaticCalibrationRecord),
         [s.get_record(ref, TrackingCameraRecord) for ref in tracking], s.get_bytes)
     if blob is not None:
@@ -130,15 +110,12 @@ def dense_points_frame(store: str, capture: ArtifactRef, calibration: ArtifactRe
                        options: DenseOptions = DenseOptions()) -> ArtifactRef:
     """One frame's dense points from the calibrated static cameras but ``exclude_cameras`` (a
     reconstruction's held-out cameras); ``scale`` < 1 matches downscaled images (previews, tests).
-    Version 3: a distorted camera's frame is rectified into the pinhole of its record's K first
-    (``distortion.rectify_frame``), and pixels outside its source give no depth. A calibration with
-    scene depths (calibrate-static 8) is swept around each camera's scene
-    (``CameraCalibration.scene_depth_m``); one without (a new digest either way) sweeps the fixed
-    ``DenseOptions`` range as before, so the version is unchanged."""
+    A distorted camera's frame is rectified into the pinhole of its record's K first; a calibration
+    with scene depths is swept around each camera's scene."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
-    out = steps.dense_points_step(cap, s.get_record(calibration, Calibration), frame,
-                                  steps.frame_loader(s.get_bytes, cap), options, scale, exclude_cameras or ())
+    out = dense_points_step(cap, s.get_record(calibration, Calibration), frame, frame_loader(s.get_bytes, cap),
+                            options, scale, exclude_cameras or ())
     ref = s.put_bytes(encode_points(out.positions, out.colours), POINTS_MEDIA)
     return s.put_record(DensePointsFrame(calibration=calibration, frame=frame, time=cap.frame_time(frame),
                                          count=len(out.positions), points=ref, cameras=tuple(out.cameras),
@@ -149,7 +126,7 @@ def dense_points_frame(store: str, capture: ArtifactRef, calibration: ArtifactRe
 def point_cloud_sequence(store: str, calibration: ArtifactRef, frames: list[ArtifactRef],
                          max_points_per_frame: int | None = None, seed: int = 0) -> ArtifactRef:
     """The PointCloudSequence of the given dense frames, in frame order. ``max_points_per_frame``
-    thins each frame (:func:`volcap_core.calibration.steps.thin_points`) to a budget; the dense
+    thins each frame (:func:`volcap_core.calibration.dense_points_step.thin_points`) to a budget; the dense
     frames themselves stay whole (a new budget does not redo the sweep)."""
     s = ArtifactStore(store)
     recs = sorted((s.get_record(r, DensePointsFrame) for r in frames), key=lambda r: r.frame)
@@ -164,7 +141,7 @@ def point_cloud_sequence(store: str, calibration: ArtifactRef, frames: list[Arti
         ref, count = r.points, r.count
         dense_counts.append(r.count)
         if max_points_per_frame is not None and r.count > max_points_per_frame:
-            xyz, rgb = steps.thin_points(*decode_points(s.get_bytes(r.points)), max_points_per_frame, seed, r.frame)
+            xyz, rgb = thin_points(*decode_points(s.get_bytes(r.points)), max_points_per_frame, seed, r.frame)
             ref, count = s.put_bytes(encode_points(xyz, rgb), POINTS_MEDIA), len(xyz)
         out.append(PointCloudFrame(frame=r.frame, time=r.time, count=count, points=ref))
     method = "plane sweep over the calibrated static cameras, fused by cross-view depth consistency"
@@ -207,14 +184,11 @@ def calibrate_colour(store: str, source: ChartView, reference: ChartView,
                      options: ColourCalibrationOptions = ColourCalibrationOptions()) -> ArtifactRef:
     """The colour matrix between two rigs from a chart seen by each (``source``: the rig mapped,
     usually the Face Rig; ``reference``: the rig it is mapped onto, usually the Scene Rig): a
-    :class:`ColourMatrixRecord` with the fit's ΔE before and after. The views' refs (capture,
-    image, calibration) are inputs: their digests are in the key. Version 2: a view given by
-    ``patches_m`` through a distorted static camera samples its rectified frame."""
+    :class:`~volcap_core.calibration.colour_step.ColourMatrixRecord` with the fit's ΔE before and
+    after. The views' refs (capture, image, calibration) are inputs: their digests are in the key."""
     s = ArtifactStore(store)
-    return s.put_record(steps.colour_step(source, reference, s.get_bytes, options))
+    return s.put_record(colour_step(source, reference, s.get_bytes, options))
 
 
 __all__ = ["calibrate_static", "calibrate_tracking_camera", "assemble_calibration", "dense_points_frame",
-           "point_cloud_sequence", "calibration_errors", "StaticCalibrationRecord", "TrackingCameraRecord",
-           "DensePointsFrame", "CalibrationInputError", "tracking_camera_ids", "split_cameras", "calibrate_colour",
-           "ChartView", "ColourMatrixRecord"]
+           "point_cloud_sequence", "calibration_errors", "calibrate_colour"]

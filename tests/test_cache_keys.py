@@ -29,7 +29,7 @@ from tasks import contract
 from tasks.contract import StoreCachePolicy, canonical_inputs, task_cache_key, task_identity, volcap_task
 from volcap_core.calibration.colour import ColourCalibrationOptions
 from volcap_core.calibration.dense import DenseOptions
-from volcap_core.calibration.steps import ChartView
+from volcap_core.calibration.colour_step import ChartView
 from volcap_core.calibration.static import StaticCalibrationOptions
 from volcap_core.calibration.tracking import TrackingOptions
 from volcap_core.capture import CameraSource, Encoding

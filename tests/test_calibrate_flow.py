@@ -22,7 +22,9 @@ import pytest
 from flows.calibrate import calibrate_flow
 from flows.ingest import ingest_flow
 from flows.runtime import run_flow
-from tasks.calibrate import CalibrationInputError, StaticCalibrationRecord, calibrate_static, calibrate_tracking_camera
+from tasks.calibrate import calibrate_static, calibrate_tracking_camera
+from volcap_core.calibration.errors import CalibrationInputError
+from volcap_core.calibration.static_step import StaticCalibrationRecord
 from tasks.contract import cached_output
 from volcap_core.calibration.record import Calibration, camera_at, decode_tracking_frames
 from volcap_core.capture import Capture, IngestError

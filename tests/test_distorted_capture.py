@@ -19,7 +19,8 @@ from flows.ingest import ingest_flow
 from flows.runtime import run_flow
 from volcap_core.calibration.distortion import Distortion, rectified_valid
 from volcap_core.calibration.record import Calibration
-from volcap_core.calibration.steps import dense_points_step, frame_loader
+from volcap_core.calibration.dense_points_step import dense_points_step
+from volcap_core.calibration.inputs import frame_loader
 from volcap_core.capture import Capture
 from volcap_core.pointcloud import POINTS_MEDIA, PointCloudFrame, PointCloudSequence, encode_points
 from volcap_core.production.presets import named_preset

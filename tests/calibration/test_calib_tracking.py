@@ -265,7 +265,8 @@ def test_a_tracker_the_solve_cannot_support_is_an_error_naming_it_or_left_out():
     matches, is supported; with only the wrong matches left in three frames it has no 2D-3D
     inliers and the priors alone would place it: an error naming the capture, the camera and the
     reason, or, allowed, the solution marked ``unsupported``."""
-    from volcap_core.calibration.steps import CalibrationInputError, check_tracking_support
+    from volcap_core.calibration.errors import CalibrationInputError
+    from volcap_core.calibration.tracking_step import check_tracking_support
     from volcap_core.calibration.tracking import tracking_support
 
     obs, C, R, f, enc, mount = _scene()

@@ -22,7 +22,8 @@ from flows.ingest import ingest_flow
 from flows.runtime import run_flow
 from volcap_core.calibration.colour import (ColourCalibrationOptions, apply_colour_matrix, chart_grid_px,
                                             colour_residuals)
-from volcap_core.calibration.steps import CalibrationInputError, ChartView, ColourMatrixRecord, colour_step
+from volcap_core.calibration.colour_step import ChartView, ColourMatrixRecord, colour_step
+from volcap_core.calibration.errors import CalibrationInputError
 from volcap_core.store import ArtifactStore
 from volcap_core.synth import synthesize_capture, synthesize_face_capture
 
@@ -88,7 +89,7 @@ def test_calibrate_colour_command_fits_the_charts_of_both_rigs(rigs):
     assert rec.source.camera == FACE and rec.reference.corners_px is None and len(rec.delta_e2000) == 24
     # the record applied to the face view's patch colours gives the scene view's (RGBA, alpha kept)
     opts = ColourCalibrationOptions()
-    from volcap_core.calibration.steps import chart_view_colours
+    from volcap_core.calibration.colour_step import chart_view_colours
 
     src, _ = chart_view_colours(rec.source, s.get_bytes, opts)
     ref, _ = chart_view_colours(rec.reference, s.get_bytes, opts)

@@ -14,8 +14,9 @@ import numpy as np
 import pytest
 
 from volcap_core.calibration.distortion import Distortion
+from volcap_core.calibration.errors import KnownPointsError
 from volcap_core.calibration.geometry import Similarity, camera_centre, look_at_rotation, pose_matrix
-from volcap_core.calibration.scale import (KnownPoints, KnownPointsError, check_known_points, scale_to_known_points,
+from volcap_core.calibration.scale import (KnownPoints, check_known_points, scale_to_known_points,
                                            triangulate_marks)
 from volcap_core.calibration.sfm import Intrinsics
 from volcap_core.calibration.static import StaticCalibration
@@ -226,7 +227,7 @@ def test_triangulated_marks_report_their_geometry():
 
 
 # --------------------------------------------------------------------------- through the static step
-# ``steps.calibrate_static_step`` checks and applies the known points for both the calibrate-static
+# ``static_step.calibrate_static_step`` checks and applies the known points for both the calibrate-static
 # task and ``pipeline.calibrate_capture``. The SfM is replaced by the analytic ring (a calibration
 # shrunk by 3 %, what mounts surveyed 3 % short give), the frames are blank: no images are matched.
 
@@ -261,7 +262,7 @@ def _blank(camera_id: str, take_index: int) -> np.ndarray:
 @pytest.fixture
 def shrunk_sfm(monkeypatch):
     """The static step's SfM replaced by the analytic cameras shrunk by 3 %; records its calls."""
-    from volcap_core.calibration import steps
+    from volcap_core.calibration import static_step
 
     calls = []
 
@@ -269,7 +270,7 @@ def shrunk_sfm(monkeypatch):
         calls.append(sorted(images))
         return _static(_shrunk(0.97))
 
-    monkeypatch.setattr(steps, "calibrate_static_cameras", fake)
+    monkeypatch.setattr(static_step, "calibrate_static_cameras", fake)
     return calls
 
 
@@ -298,8 +299,8 @@ def test_calibrate_capture_scales_to_known_points(shrunk_sfm):
 
 def test_calibrate_capture_refuses_bad_known_points_before_calibrating(shrunk_sfm):
     from volcap_core.calibration.pipeline import CalibrationOptions, calibrate_capture
+    from volcap_core.calibration.errors import CalibrationInputError
     from volcap_core.calibration.static import StaticCalibrationOptions
-    from volcap_core.calibration.steps import CalibrationInputError
 
     ids = sorted(TRUE)
     bad = KnownPoints(points={"A": {**_marks(A, ["C0"]), "T001": [100.0, 100.0]}, "B": _marks(B, ["C2", "C3"])},
@@ -318,8 +319,8 @@ def test_calibrate_capture_refuses_bad_known_points_before_calibrating(shrunk_sf
 def test_tracking_cameras_without_a_scan_are_refused_with_known_points(shrunk_sfm):
     """Known points scale the static cameras; the tracking cameras register against the static
     reference lifted onto a scan, which known points do not replace: refused, naming the capture."""
+    from volcap_core.calibration.errors import CalibrationInputError
     from volcap_core.calibration.pipeline import calibrate_capture
-    from volcap_core.calibration.steps import CalibrationInputError
 
     ids = sorted(TRUE) + ["T001"]
     with pytest.raises(CalibrationInputError, match=r"capture cap-k has tracking cameras \(T001\) but no lidar scan"
@@ -333,7 +334,7 @@ def test_the_static_reference_is_built_from_the_scaled_cameras(shrunk_sfm, monke
     """The static step applies the known points before it builds the static reference, so the
     reference and the static cameras it is handed back with are in one frame (with a scan nothing
     moves; the step is checked here with its no-scan refusal lifted)."""
-    from volcap_core.calibration import steps
+    from volcap_core.calibration import static_step
     from volcap_core.calibration.tracking import StaticReference
 
     seen = {}
@@ -342,12 +343,12 @@ def test_the_static_reference_is_built_from_the_scaled_cameras(shrunk_sfm, monke
         seen.update(world_to_camera)
         return StaticReference(np.zeros((0, 3)), np.zeros((0, 128), np.uint8))
 
-    monkeypatch.setattr(steps, "build_static_reference", reference)
+    monkeypatch.setattr(static_step, "build_static_reference", reference)
     sentinel = object()                                  # a "scan" the step only hands on
-    monkeypatch.setattr(steps.scale, "apply_to_static_step",
-                        lambda *a, has_scan, **kw: steps.scale.scale_to_known_points(
+    monkeypatch.setattr(static_step.scale, "apply_to_static_step",
+                        lambda *a, has_scan, **kw: static_step.scale.scale_to_known_points(
                             a[2], a[3], MOUNTS, has_scan=False))   # scale as without a scan
-    step = steps.calibrate_static_step("cap-k", _Rig(["T001"]), sorted(TRUE), ["T001"], 2, _blank, sentinel,
+    step = static_step.calibrate_static_step("cap-k", _Rig(["T001"]), sorted(TRUE), ["T001"], 2, _blank, sentinel,
                                        known_points=_known())
     assert step.reference is not None
     for c in TRUE:

@@ -119,9 +119,9 @@ def test_static_record_carries_raw_intrinsics_and_distortion_into_the_calibratio
     """The flow's static step stores what ``pipeline.build_record`` needs: the flow's Calibration
     equals the one-call pipeline's."""
     from hardware.rig import load_rig
-    from volcap_core.calibration.pipeline import build_record
+    from volcap_core.calibration.assemble import build_record
     from volcap_core.calibration.static import StaticCalibration
-    from volcap_core.calibration.steps import StaticStep, static_calibration, static_record
+    from volcap_core.calibration.static_step import StaticStep, static_calibration, static_record
 
     rig = load_rig("demo_scene_distorted")
     ids = ["S000", "S001", "S004"]

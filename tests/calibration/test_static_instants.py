@@ -17,7 +17,8 @@ import pytest
 from volcap_core.calibration.lidar import LidarScan
 from volcap_core.calibration.metrics import calibration_table, load_ground_truth, static_errors
 from volcap_core.calibration.static import StaticCalibrationOptions, instant_frames
-from volcap_core.calibration.steps import CalibrationInputError, calibrate_static_step
+from volcap_core.calibration.errors import CalibrationInputError
+from volcap_core.calibration.static_step import calibrate_static_step
 from volcap_core.capture import CaptureFolder
 
 synth = pytest.importorskip("volcap_core.synth.synthesize", reason="the synthetic capture renderer is absent")

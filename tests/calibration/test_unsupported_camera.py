@@ -15,10 +15,11 @@ import pytest
 
 from volcap_core.calibration.lidar import LidarScan
 from volcap_core.calibration.metrics import load_ground_truth, static_errors
-from volcap_core.calibration.pipeline import build_record
+from volcap_core.calibration.assemble import build_record
+from volcap_core.calibration.errors import CalibrationInputError
 from volcap_core.calibration.static import StaticCalibrationOptions, camera_support
-from volcap_core.calibration.steps import (CalibrationInputError, StaticCalibrationRecord, calibrate_static_step,
-                                           static_calibration, static_record)
+from volcap_core.calibration.static_step import (StaticCalibrationRecord, calibrate_static_step, static_calibration,
+                                                 static_record)
 from volcap_core.capture import CaptureFolder
 from volcap_core.synth import synthesize_capture
 
@@ -93,7 +94,7 @@ def test_allowed_it_is_left_out_and_the_rest_calibrated(capture):
         assert err[c]["rotation_deg"] < 3 * q["rotation_sigma_deg"], (c, err[c], q)
 
     # a tracking camera the solve could not support (allowed) is left out and listed the same way
-    from volcap_core.calibration.steps import tracking_blob
+    from volcap_core.calibration.assemble import tracking_blob
     from volcap_core.calibration.tracking import TrackingSolution
 
     def solved(unsupported=None):

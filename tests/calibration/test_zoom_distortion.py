@@ -321,22 +321,23 @@ def test_frame_camera_rectifies_each_tracking_frame_with_its_own_lens():
 
 
 def test_tracking_solution_and_assembled_record_carry_the_lens(tmp_path):
-    from volcap_core.calibration import steps
+    from volcap_core.calibration.assemble import tracking_blob
     from volcap_core.calibration.tracking import TrackingSolution
+    from volcap_core.calibration.tracking_step import encode_tracking_solution, tracking_record, tracking_solution
 
     frames = _frames()["T1"]
     K = np.zeros((4, 3, 3))
     K[:, 0, 0], K[:, 1, 1], K[:, 0, 2], K[:, 1, 2], K[:, 2, 2] = (*frames.intrinsics.T, 1.0)
     sol = TrackingSolution(K, frames.world_to_camera, 1.0, 0.0, np.zeros(3), {"cost": 1.0}, frames.distortion)
-    back = steps.tracking_solution(steps.tracking_record("demo", "T1", sol, tracking_frames_ref(b"x")),
-                                   steps.encode_tracking_solution(sol))
+    back = tracking_solution(tracking_record("demo", "T1", sol, tracking_frames_ref(b"x")),
+                             encode_tracking_solution(sol))
     np.testing.assert_array_equal(back.distortion, frames.distortion)
-    tf = decode_tracking_frames(steps.tracking_blob({"T1": back}))
+    tf = decode_tracking_frames(tracking_blob({"T1": back}))
     np.testing.assert_array_equal(tf["T1"].distortion, frames.distortion)
     np.testing.assert_allclose(tf["T1"].intrinsics, frames.intrinsics)
     sol.distortion = None
-    assert steps.tracking_solution(steps.tracking_record("demo", "T1", sol, tracking_frames_ref(b"x")),
-                                   steps.encode_tracking_solution(sol)).distortion is None
+    assert tracking_solution(tracking_record("demo", "T1", sol, tracking_frames_ref(b"x")),
+                             encode_tracking_solution(sol)).distortion is None
 
 
 def test_ground_truth_calibration_carries_the_tracking_lens_per_frame():

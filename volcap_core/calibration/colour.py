@@ -70,7 +70,7 @@ def apply_colour_matrix(image: np.ndarray, M, b: np.ndarray | None = None, *,
     """``rgb @ M.T + b`` (linear) on an RGB [..., 3] or RGBA [..., 4] image or colour array.
 
     ``M``: a [3, 3] matrix, or a colour-matrix record (anything with ``matrix`` and ``offset``, e.g.
-    :class:`volcap_core.calibration.steps.ColourMatrixRecord`; then ``b`` must be None). Alpha is
+    :class:`volcap_core.calibration.colour_step.ColourMatrixRecord`; then ``b`` must be None). Alpha is
     passed through unchanged; with ``premultiplied`` (colour already multiplied by alpha, as a
     Gaussian renderer's RGBA is) the offset is scaled by alpha, so a transparent pixel stays 0.
     float32 out for float32 / half images, else float64.

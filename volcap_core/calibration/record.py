@@ -22,6 +22,7 @@ task layer stores the bytes and puts the ref in the record.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import ClassVar, Mapping
 
@@ -32,6 +33,7 @@ from safetensors.numpy import save as st_save
 
 from volcap_core.records import MEDIA_SAFETENSORS, ArtifactRef, Record, omit_unset
 
+Matrix3 = tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]
 Matrix4 = tuple[tuple[float, float, float, float], ...]
 
 
@@ -56,7 +58,7 @@ class CameraCalibration(BaseModel):
     scene_depth_m: tuple[float, float, float] | None = Field(
         default=None, description="a static camera's view of the static scene: the 1st percentile, median "
                                   "and 99th percentile depth (metres along its axis) of the calibration's sparse "
-                                  "points it observes; where dense points sweep (steps.dense_points_step). "
+                                  "points it observes; where dense points sweep (dense_points_step). "
                                   "None: not measured (a calibration made before it was, or too few points)")
 
     @model_serializer(mode="wrap")
@@ -260,3 +262,21 @@ def matrix4(m: np.ndarray) -> Matrix4:
     m[:3, :3] = U @ Vt
     m[3] = (0.0, 0.0, 0.0, 1.0)
     return tuple(tuple(float(round(v, 12)) for v in row) for row in m)
+
+
+def float_matrix(m: np.ndarray) -> tuple:
+    """An array's rows as nested tuples of floats, as they are: a record field (the intermediate
+    records', :mod:`~volcap_core.calibration.static_step`; unlike :func:`matrix4`, not re-orthonormalised)."""
+    return tuple(tuple(float(v) for v in row) for row in np.asarray(m, np.float64))
+
+
+def finite_figures(stats: Mapping, prefix: str = "") -> dict[str, float]:
+    """The finite numbers of a nested stats dict, flattened to ``a.b`` keys: a record's ``stats``."""
+    out: dict[str, float] = {}
+    for k, v in stats.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(finite_figures(v, key + "."))
+        elif isinstance(v, (int, float, np.integer, np.floating)) and math.isfinite(float(v)):
+            out[key] = float(v)
+    return out

@@ -33,14 +33,10 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from volcap_core.calibration.errors import CalibrationInputError, KnownPointsError
 from volcap_core.calibration.geometry import Similarity, camera_centre
 
 log = logging.getLogger("volcap.calibrate")
-
-
-
-class KnownPointsError(ValueError):
-    """Known scene points that cannot give a scale; the message names the point and the camera."""
 
 
 class KnownPoints(BaseModel):
@@ -336,9 +332,7 @@ def check_for_capture(cap_name: str, known: KnownPoints, static_ids: Sequence[st
                       known_distance: tuple | None = None) -> None:
     """Before calibrating a capture: :func:`check_known_points`, and not both known points and a
     known distance between cameras; a
-    :class:`~volcap_core.calibration.steps.CalibrationInputError` naming the capture otherwise."""
-    from volcap_core.calibration.steps import CalibrationInputError
-
+    :class:`~volcap_core.calibration.errors.CalibrationInputError` naming the capture otherwise."""
     if known_distance is not None:
         raise CalibrationInputError(f"capture {cap_name}: give either a known distance between two cameras or "
                                     "known points, not both")
@@ -351,9 +345,7 @@ def check_for_capture(cap_name: str, known: KnownPoints, static_ids: Sequence[st
 def apply_to_static_step(cap_name: str, rig, static, known: KnownPoints, *, has_scan: bool,
                          mount_tolerance_m: float = 0.10):
     """:func:`scale_to_known_points` for a capture's static step: the mounts from the rig, a
-    :class:`~volcap_core.calibration.steps.CalibrationInputError` naming the capture on bad input."""
-    from volcap_core.calibration.steps import CalibrationInputError
-
+    :class:`~volcap_core.calibration.errors.CalibrationInputError` naming the capture on bad input."""
     mounts = {c: np.asarray(rig.camera(c).mount.position_m, np.float64) for c in static.camera_ids}
     try:
         return scale_to_known_points(static, known, mounts, has_scan=has_scan, mount_tolerance_m=mount_tolerance_m)

@@ -41,6 +41,7 @@ import numpy as np
 from hardware.rig import Rig, RigCamera
 from volcap_core.calibration.bundle import BundleOptions, bundle_adjust
 from volcap_core.calibration.distortion import Distortion, undistort_valid_mask
+from volcap_core.calibration.errors import KnownDistanceError, UnsupportedCameraError
 from volcap_core.calibration.geometry import (Similarity, camera_centre, look_at_rotation, pose_matrix,
                                               robust_umeyama, triangulate_points)
 from volcap_core.calibration.guided import GuidedMatchOptions, guided_tracks
@@ -162,15 +163,6 @@ class StaticCalibration:
     #: per calibrated camera, its view of the scene (:func:`scene_depths`): where its dense points
     #: sweep; kept by the records when ``model`` is not
     scene_depth: dict[str, tuple[float, float, float]] = field(default_factory=dict)
-
-
-class UnsupportedCameraError(RuntimeError):
-    """Static cameras the adjustment cannot support (``reasons``: camera id -> why), raised unless
-    ``StaticCalibrationOptions.allow_unregistered``."""
-
-    def __init__(self, reasons: Mapping[str, str]):
-        self.reasons = dict(reasons)
-        super().__init__("; ".join(f"{c}: {r}" for c, r in sorted(self.reasons.items())))
 
 
 def nominal_intrinsics(cam: RigCamera) -> Intrinsics:
@@ -603,11 +595,6 @@ def _surface_depth_ranges(plates: Mapping[str, np.ndarray], cameras: Mapping[str
                   "depth_fallback_cameras": len(fallback), "near_limit_cameras": len(close),
                   "probe_seconds": time.perf_counter() - t0})
     return ranges, middle, stats
-
-
-class KnownDistanceError(ValueError):
-    """``StaticCalibrationOptions.known_distance`` names a camera that is not calibrated, or a
-    distance that is not positive."""
 
 
 def _check_known_distance(world_to_camera: Mapping[str, np.ndarray], known: tuple[str, str, float]) -> dict:
