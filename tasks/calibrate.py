@@ -31,7 +31,7 @@ from volcap_core.calibration.static import StaticCalibrationOptions
 from volcap_core.calibration.steps import (CalibrationInputError, ChartView, ColourMatrixRecord, DensePointsFrame,
                                            StaticCalibrationRecord, TrackingCameraRecord, split_cameras,
                                            tracking_camera_ids)
-from volcap_core.calibration.tracking import TrackingOptions
+from volcap_core.calibration.tracking.options import TrackingOptions
 from volcap_core.capture import Capture
 from volcap_core.pointcloud import POINTS_MEDIA, PointCloudFrame, PointCloudSequence, decode_points, encode_points
 from volcap_core.records import MEDIA_SAFETENSORS, ArtifactRef

@@ -21,8 +21,11 @@ from volcap_core.calibration.record import Calibration, CameraCalibration, matri
 from volcap_core.calibration.scale import KnownPoints
 from volcap_core.calibration.static import StaticCalibration, StaticCalibrationOptions
 from volcap_core.calibration.steps import calibrate_static_step, check_tracking_support, tracking_blob
-from volcap_core.calibration.tracking import (StaticReference, TrackingOptions, TrackingSolution,
-                                              calibrate_tracking_cameras, zoom_lens)
+from volcap_core.calibration.tracking.calibrate import calibrate_tracking_cameras
+from volcap_core.calibration.tracking.lens import zoom_lens
+from volcap_core.calibration.tracking.observe import StaticReference
+from volcap_core.calibration.tracking.options import TrackingOptions
+from volcap_core.calibration.tracking.solve import TrackingSolution
 
 FrameSource = Callable[[str, int], np.ndarray]
 

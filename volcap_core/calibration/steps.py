@@ -38,9 +38,11 @@ from volcap_core.calibration.record import (Calibration, TrackingFrames, camera_
 from volcap_core.calibration.static import (StaticCalibration, StaticCalibrationOptions, UnsupportedCameraError,
                                             KnownDistanceError, calibrate_static_cameras, instant_frames,
                                             scene_depths)
-from volcap_core.calibration.tracking import (StaticReference, TrackingOptions, TrackingSolution,
-                                              build_static_reference, calibrate_tracking_cameras, tracking_support,
-                                              zoom_lens)
+from volcap_core.calibration.tracking.calibrate import calibrate_tracking_cameras
+from volcap_core.calibration.tracking.lens import zoom_lens
+from volcap_core.calibration.tracking.observe import StaticReference, build_static_reference
+from volcap_core.calibration.tracking.options import TrackingOptions
+from volcap_core.calibration.tracking.solve import TrackingSolution, tracking_support
 from volcap_core.capture import Capture
 from volcap_core.records import ArtifactRef, Record
 
