@@ -24,7 +24,7 @@ from volcap_core.calibration.record import (Calibration, CameraCalibration, Trac
                                             tracking_frames_ref)
 from volcap_core.calibration.tracking.calibrate import TrackingProblem, solve_tracking
 from volcap_core.calibration.tracking.lens import frame_undistorter, lens_corner_shift_px, smooth_encoder_focal, zoom_lens
-from volcap_core.calibration.tracking.observe import TrackingObservations, undistort_observations
+from volcap_core.calibration.tracking.observe import undistort_observations
 from volcap_core.calibration.tracking.options import TrackingOptions
 from volcap_core.calibration.tracking.solve import initialise_tracking
 

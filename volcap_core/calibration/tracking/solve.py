@@ -352,7 +352,6 @@ def _normal_equations(st: _State, bt: _Batch, o: TrackingOptions):
             Jw = J * w[:, None, None]
             JtJ = Jw.transpose(1, 2) @ J                                        # [Q, m, m]
             Jtr = (Jw.transpose(1, 2) @ r[..., None])[..., 0]                   # [Q, m]
-            m = idx.shape[1]
             flat = (b[:, None, None] * n * n + idx[:, :, None] * n + idx[:, None, :]).reshape(-1)
             H.index_add_(0, flat, JtJ.reshape(-1))
             g.index_add_(0, (b[:, None] * n + idx).reshape(-1), Jtr.reshape(-1))
@@ -405,7 +404,6 @@ def refine_tracking(obs: list[TrackingObservations], init: list[tuple[np.ndarray
         new = st.step(d, T)
         new_cost = _cost(new, bt, options)
         better = new_cost < cost
-        sel = better.to(torch.float64)
         st = _State(*[torch.where(_bc(better, x), y, x) for x, y in
                       ((st.R, new.R), (st.C, new.C), (st.logf, new.logf), (st.Cm, new.Cm), (st.a, new.a),
                        (st.off, new.off))])
@@ -414,7 +412,6 @@ def refine_tracking(obs: list[TrackingObservations], init: list[tuple[np.ndarray
         lam = torch.where(better, (lam / 3).clamp(min=1e-9), lam * 5)
         if bool(((rel.abs() < 1e-7) & better | (lam > 1e7)).all()) and it > 2:
             break
-        del sel
     sols = []
     f = torch.exp(st.logf)
     spread = _spread(st, bt, options)
