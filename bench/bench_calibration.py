@@ -30,8 +30,9 @@ from volcap_core.calibration.metrics import (calibration_table, count_multiview_
 from volcap_core.calibration.photometric import PhotometricOptions, background_plate  # noqa: E402
 from volcap_core.calibration.static import StaticCalibrationOptions, calibrate_static_cameras  # noqa: E402
 from volcap_core.calibration.static_step import plate_frames, reference_frame  # noqa: E402
-from volcap_core.calibration.tracking import (TrackingOptions, build_static_reference, prepare_tracking,  # noqa: E402
-                                              solve_tracking)
+from volcap_core.calibration.tracking.calibrate import prepare_tracking, solve_tracking
+from volcap_core.calibration.tracking.observe import build_static_reference
+from volcap_core.calibration.tracking.options import TrackingOptions
 from volcap_core.capture import CaptureFolder  # noqa: E402
 
 

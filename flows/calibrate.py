@@ -28,7 +28,7 @@ from volcap_core.calibration.record import Calibration
 from volcap_core.calibration.scale import KnownPoints
 from volcap_core.calibration.sfm import StaticSfmOptions
 from volcap_core.calibration.static import StaticCalibrationOptions
-from volcap_core.calibration.tracking import TrackingOptions
+from volcap_core.calibration.tracking.options import TrackingOptions
 from volcap_core.capture import Capture
 from volcap_core.records import ArtifactRef
 from volcap_core.store import ArtifactStore

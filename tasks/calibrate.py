@@ -38,7 +38,7 @@ from volcap_core.calibration.scale import KnownPoints
 from volcap_core.calibration.static import StaticCalibrationOptions
 from volcap_core.calibration.static_step import (StaticCalibrationRecord, calibrate_static_step, decode_reference,
                                                  encode_reference, static_record)
-from volcap_core.calibration.tracking import TrackingOptions
+from volcap_core.calibration.tracking.options import TrackingOptions
 from volcap_core.calibration.tracking_step import (TrackingCameraRecord, calibrate_tracking_step,
                                                    encode_tracking_solution, tracking_record)
 from volcap_core.capture import Capture

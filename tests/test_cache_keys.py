@@ -31,7 +31,7 @@ from volcap_core.calibration.colour import ColourCalibrationOptions
 from volcap_core.calibration.dense import DenseOptions
 from volcap_core.calibration.colour_step import ChartView
 from volcap_core.calibration.static import StaticCalibrationOptions
-from volcap_core.calibration.tracking import TrackingOptions
+from volcap_core.calibration.tracking.options import TrackingOptions
 from volcap_core.capture import CameraSource, Encoding
 from volcap_core.records import ArtifactRef
 from volcap_core.production.presets import named_preset

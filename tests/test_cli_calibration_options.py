@@ -24,7 +24,7 @@ from tasks.contract import task_cache_key
 from volcap_core.calibration.scale import KnownPoints
 from volcap_core.calibration.sfm import StaticSfmOptions
 from volcap_core.calibration.static import StaticCalibrationOptions
-from volcap_core.calibration.tracking import TrackingOptions
+from volcap_core.calibration.tracking.options import TrackingOptions
 from volcap_core.capture import Capture, CaptureCamera
 from volcap_core.store import ArtifactStore
 

@@ -1,4 +1,4 @@
-"""The bundle adjustment states how well it determines each camera (``bundle_adjust(...)["sigma"]``),
+"""The bundle adjustment states how well it determines each camera (``bundle_adjust(...).sigma``),
 and what it states is what repeated captures show: a principal point the adjustment refines widens
 its camera's rotation, since a shift of the principal point by d px and a turn by d / f rad move the
 image alike but for the second order of the projection."""
@@ -61,10 +61,10 @@ def test_the_stated_sigma_is_the_spread_over_repeated_captures():
         # the principal point held where the prior says it is
         held = _adjust(X, poses, obs, mounts, None)
         rot_held.append(_turns(held, poses))
-        stated_held.append(held["sigma"]["rotation_deg"])
-        pp.append(out["principal"] - truth)
-        stated_rot.append(out["sigma"]["rotation_deg"])
-        stated_pp.append(out["sigma"]["principal_px"])
+        stated_held.append(held.sigma.rotation_deg)
+        pp.append(out.principal - truth)
+        stated_rot.append(out.sigma.rotation_deg)
+        stated_pp.append(out.sigma.principal_px)
     rot, pp, rot_held = np.array(rot), np.array(pp), np.array(rot_held)   # [60, 6, 3], [60, 6, 2], [60, 6, 3]
 
     def largest_sd(samples):                                                # [60, k] -> the largest sd
@@ -85,13 +85,13 @@ def test_the_stated_sigma_is_the_spread_over_repeated_captures():
     measured_held = np.degrees([largest_sd(rot_held[:, i]) for i in range(6)])
     stated_held = np.mean(stated_held, 0)
     print("principal point held: rotation sd (deg) measured", measured_held.round(4), "stated", stated_held.round(4))
-    assert np.all(np.isnan(held["sigma"]["principal_px"]))
+    assert np.all(np.isnan(held.sigma.principal_px))
     assert (measured_held / stated_held).mean() > 1.4
 
 
 def _turns(out, poses):
     """Each camera's rotation error [6, 3] (axis-angle, rad)."""
-    return [Rotation.from_matrix(out["world_to_camera"][i, :3, :3] @ poses[i, :3, :3].T).as_rotvec()
+    return [Rotation.from_matrix(out.world_to_camera[i, :3, :3] @ poses[i, :3, :3].T).as_rotvec()
             for i in range(len(poses))]
 
 
@@ -101,5 +101,5 @@ def test_an_adjustment_without_rounds_states_its_start():
     oc, op, uv = _capture(X, poses, np.random.default_rng(2), np.tile(CENTRE, (6, 1)))
     out = bundle_adjust(poses, np.full(6, F), np.tile(CENTRE, (6, 1)), X, oc, op, uv,
                         options=BundleOptions(pixel_sigma=NOISE, outlier_px=()))
-    np.testing.assert_allclose(out["world_to_camera"], poses, atol=1e-12)
-    assert np.all(np.isfinite(out["sigma"]["rotation_deg"])) and np.all(out["sigma"]["rotation_deg"] > 0)
+    np.testing.assert_allclose(out.world_to_camera, poses, atol=1e-12)
+    assert np.all(np.isfinite(out.sigma.rotation_deg)) and np.all(out.sigma.rotation_deg > 0)

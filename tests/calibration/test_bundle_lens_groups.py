@@ -80,12 +80,12 @@ def test_a_lens_group_shares_one_focal_closer_to_the_truth(seed):
     problem, mounts = _problem(seed)
     shared = _adjust(problem, mounts)
     apart = _adjust(problem, mounts, share_group_focal=False)
-    f = shared["focal"]
+    f = shared.focal
     assert np.all(f[:4] == f[0]), f                                   # one focal for the group, to the bit
-    assert len(set(apart["focal"][:4])) == 4                           # per camera without sharing
-    assert shared["stats"]["focals"] == 3 and apart["stats"]["focals"] == 6
+    assert len(set(apart.focal[:4])) == 4                           # per camera without sharing
+    assert shared.stats["focals"] == 3 and apart.stats["focals"] == 6
     err_shared = np.abs(f[:4] / F_TRUE[:4] - 1)
-    err_apart = np.abs(apart["focal"][:4] / F_TRUE[:4] - 1)
+    err_apart = np.abs(apart.focal[:4] / F_TRUE[:4] - 1)
     # measured (seeds 0-7): the group's focal 0.04-0.40 % off, the four per-camera fits 0.22-0.72 % rms
     print("focal error %: shared", 100 * err_shared[0], "per camera", 100 * err_apart)
     assert np.sqrt(np.mean(err_shared ** 2)) < np.sqrt(np.mean(err_apart ** 2)), (err_shared, err_apart)
@@ -99,8 +99,8 @@ def test_without_groups_nothing_changes():
     b = _adjust(problem, mounts, lens_group=[None] * 6)
     c = _adjust(problem, mounts, lens_group=["A", "B", "C", "D", "E", "F"])
     for k in ("world_to_camera", "focal", "points"):
-        np.testing.assert_array_equal(a[k], b[k])
-        np.testing.assert_array_equal(a[k], c[k])
+        np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
+        np.testing.assert_array_equal(getattr(a, k), getattr(c, k))
 
 
 def test_shared_principal_points_only_when_asked_and_refined():
@@ -110,10 +110,10 @@ def test_shared_principal_points_only_when_asked_and_refined():
     refined = _adjust(problem, mounts, pixel_sigma=0.1, principal_sigma_px=2.0)
     shared = _adjust(problem, mounts, pixel_sigma=0.1, principal_sigma_px=2.0, share_group_principal=True)
     held = _adjust(problem, mounts, share_group_principal=True)
-    assert len({tuple(p) for p in refined["principal"][:4]}) == 4            # per camera by default
-    assert (shared["principal"][:4] == shared["principal"][0]).all()         # one for the group
-    assert len({tuple(p) for p in shared["principal"][4:]} | {tuple(shared["principal"][0])}) == 3
-    np.testing.assert_array_equal(held["principal"], np.tile(CENTRE, (6, 1)))  # held: as given
+    assert len({tuple(p) for p in refined.principal[:4]}) == 4            # per camera by default
+    assert (shared.principal[:4] == shared.principal[0]).all()         # one for the group
+    assert len({tuple(p) for p in shared.principal[4:]} | {tuple(shared.principal[0])}) == 3
+    np.testing.assert_array_equal(held.principal, np.tile(CENTRE, (6, 1)))  # held: as given
 
 
 def _rectified_views(rng, rig_k, true_k, focal=300.0, noise_px=0.05, n_points=600):
@@ -190,10 +190,10 @@ def test_radial_corrections_of_a_rectified_lens():
                                    centre_prior=centres, lens=lens,
                                    options=BundleOptions(pixel_sigma=0.1, focal_sigma_rel=0.03, centre_sigma_m=0.001,
                                                          distortion_sigma=sigma, outlier_px=(3.0,)))
-    dk = out["refined"]["distortion"]
-    assert "distortion" not in out["held"]
-    res = {k: np.median(v["reprojection_px"]) for k, v in out.items()}
-    rot = {k: max(rotation_angle_deg(W[:3, :3], We[:3, :3]) for W, We in zip(poses, v["world_to_camera"]))
+    dk = out["refined"].distortion
+    assert out["held"].distortion is None
+    res = {k: np.median(v.reprojection_px) for k, v in out.items()}
+    rot = {k: max(rotation_angle_deg(W[:3, :3], We[:3, :3]) for W, We in zip(poses, v.world_to_camera))
            for k, v in out.items()}
     print("corrections", dk, "median residual", res, "rotation max", rot)
     # measured: dk1 0.0023-0.0041 (mean 0.0035), median residual 0.0386 -> 0.0372 px; k1 and k2

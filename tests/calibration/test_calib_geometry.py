@@ -197,11 +197,11 @@ def test_bundle_adjustment_with_lidar_prior_recovers_cameras():
     res = bundle_adjust(np.stack(W0), np.full(5, 300.0 * 1.01), np.tile([159.5, 89.5], (5, 1)),
                         X + rng.normal(0, 0.03, X.shape), oc, op, uv, scan=scan, focal_prior=np.full(5, 300.0),
                         options=BundleOptions(focal_sigma_rel=0.05, centre_sigma_m=0.5))
-    for W, We in zip(Ws, res["world_to_camera"]):
+    for W, We in zip(Ws, res.world_to_camera):
         assert rotation_angle_deg(W[:3, :3], We[:3, :3]) < 0.1
         assert np.linalg.norm(-W[:3, :3].T @ W[:3, 3] + We[:3, :3].T @ We[:3, 3]) < 0.015
-    np.testing.assert_allclose(res["focal"], 300.0, rtol=4e-3)
-    assert np.median(res["reprojection_px"]) < 0.5
+    np.testing.assert_allclose(res.focal, 300.0, rtol=4e-3)
+    assert np.median(res.reprojection_px) < 0.5
 
 
 def test_bundle_adjustment_refines_principal_points_only_when_asked():
@@ -222,10 +222,10 @@ def test_bundle_adjustment_refines_principal_points_only_when_asked():
                                                                   principal_sigma_px=principal_sigma_px))
 
     free, held = adjust(2.0), adjust(None)
-    np.testing.assert_array_equal(held["principal"], centred)
-    assert np.abs(free["principal"] - true_pp).max() < 0.35, free["principal"] - true_pp
-    rot = [rotation_angle_deg(W[:3, :3], We[:3, :3]) for W, We in zip(Ws, free["world_to_camera"])]
-    rot_held = [rotation_angle_deg(W[:3, :3], We[:3, :3]) for W, We in zip(Ws, held["world_to_camera"])]
+    np.testing.assert_array_equal(held.principal, centred)
+    assert np.abs(free.principal - true_pp).max() < 0.35, free.principal - true_pp
+    rot = [rotation_angle_deg(W[:3, :3], We[:3, :3]) for W, We in zip(Ws, free.world_to_camera)]
+    rot_held = [rotation_angle_deg(W[:3, :3], We[:3, :3]) for W, We in zip(Ws, held.world_to_camera)]
     assert max(rot) < 0.06 and min(rot_held) > 0.15, (rot, rot_held)
 
 

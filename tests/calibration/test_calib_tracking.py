@@ -20,9 +20,11 @@ import numpy as np
 import pytest
 
 from volcap_core.calibration.geometry import look_at_rotation, rotation_angle_deg
-from volcap_core.calibration.tracking import (TrackingObservations, TrackingOptions, TrackingProblem,
-                                              dolly_zoom_start, initialise_tracking, refine_tracking,
-                                              smooth_encoder_focal, solve_tracking)
+from volcap_core.calibration.tracking.calibrate import TrackingProblem, dolly_zoom_start, solve_tracking
+from volcap_core.calibration.tracking.lens import smooth_encoder_focal
+from volcap_core.calibration.tracking.observe import TrackingObservations
+from volcap_core.calibration.tracking.options import TrackingOptions
+from volcap_core.calibration.tracking.solve import initialise_tracking, refine_tracking
 
 T, W, H = 24, 320, 180
 CX, CY = (W - 1) / 2, (H - 1) / 2
@@ -267,7 +269,7 @@ def test_a_tracker_the_solve_cannot_support_is_an_error_naming_it_or_left_out():
     reason, or, allowed, the solution marked ``unsupported``."""
     from volcap_core.calibration.errors import CalibrationInputError
     from volcap_core.calibration.tracking_step import check_tracking_support
-    from volcap_core.calibration.tracking import tracking_support
+    from volcap_core.calibration.tracking.solve import tracking_support
 
     obs, C, R, f, enc, mount = _scene()
     prior = smooth_encoder_focal(np.arange(T), enc, T, 4.0)

@@ -335,7 +335,7 @@ def test_the_static_reference_is_built_from_the_scaled_cameras(shrunk_sfm, monke
     reference and the static cameras it is handed back with are in one frame (with a scan nothing
     moves; the step is checked here with its no-scan refusal lifted)."""
     from volcap_core.calibration import static_step
-    from volcap_core.calibration.tracking import StaticReference
+    from volcap_core.calibration.tracking.observe import StaticReference
 
     seen = {}
 

@@ -95,7 +95,7 @@ def test_allowed_it_is_left_out_and_the_rest_calibrated(capture):
 
     # a tracking camera the solve could not support (allowed) is left out and listed the same way
     from volcap_core.calibration.assemble import tracking_blob
-    from volcap_core.calibration.tracking import TrackingSolution
+    from volcap_core.calibration.tracking.solve import TrackingSolution
 
     def solved(unsupported=None):
         K = np.tile(np.diag([900.0, 900.0, 1.0]), (FRAMES, 1, 1))

@@ -22,10 +22,11 @@ from volcap_core.calibration.geometry import look_at_rotation, rotation_angle_de
 from volcap_core.calibration.record import (Calibration, CameraCalibration, TrackingFrames, camera_at,
                                             decode_tracking_frames, encode_tracking_frames, frame_camera, matrix4,
                                             tracking_frames_ref)
-from volcap_core.calibration.tracking import (TrackingObservations, TrackingOptions, TrackingProblem,
-                                              frame_undistorter, initialise_tracking, lens_corner_shift_px,
-                                              smooth_encoder_focal, solve_tracking, undistort_observations,
-                                              zoom_lens)
+from volcap_core.calibration.tracking.calibrate import TrackingProblem, solve_tracking
+from volcap_core.calibration.tracking.lens import frame_undistorter, lens_corner_shift_px, smooth_encoder_focal, zoom_lens
+from volcap_core.calibration.tracking.observe import undistort_observations
+from volcap_core.calibration.tracking.options import TrackingOptions
+from volcap_core.calibration.tracking.solve import initialise_tracking
 
 T, W, H = 24, 320, 180
 CX, CY = (W - 1) / 2, (H - 1) / 2
@@ -322,7 +323,7 @@ def test_frame_camera_rectifies_each_tracking_frame_with_its_own_lens():
 
 def test_tracking_solution_and_assembled_record_carry_the_lens(tmp_path):
     from volcap_core.calibration.assemble import tracking_blob
-    from volcap_core.calibration.tracking import TrackingSolution
+    from volcap_core.calibration.tracking.solve import TrackingSolution
     from volcap_core.calibration.tracking_step import encode_tracking_solution, tracking_record, tracking_solution
 
     frames = _frames()["T1"]

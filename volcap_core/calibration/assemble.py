@@ -21,7 +21,7 @@ from volcap_core.calibration.record import (Calibration, CameraCalibration, Trac
                                             matrix4, tracking_frames_ref)
 from volcap_core.calibration.static import StaticCalibration
 from volcap_core.calibration.static_step import StaticCalibrationRecord, static_calibration
-from volcap_core.calibration.tracking import TrackingSolution
+from volcap_core.calibration.tracking.solve import TrackingSolution
 from volcap_core.calibration.tracking_step import TrackingCameraRecord, tracking_solution
 from volcap_core.capture import Capture
 

@@ -72,8 +72,8 @@ class BundleOptions:
     #: cameras of one lens group (``bundle_adjust(lens_group=...)``) share one focal: one unknown,
     #: one prior (around the mean of the members' priors). Off by default: a lens group is one body and
     #: lens *model* calibrated once (``hardware.rig``), its units' focals differ by that calibration's
-    #: error, and on the distorted demo capture (its two units 0.15 % apart) one focal for both took
-    #: the static rotation from 0.052° / 0.084° (mean / max) to 0.069° / 0.102° (docs/calibration.md)
+    #: error, and on the distorted demo capture one focal for both made the static rotations worse
+    #: (docs/calibration.md)
     share_group_focal: bool = False
     #: ... and one principal point (when principal points are refined). Off: a lens group is one
     #: body and lens *model*, and each unit's principal point is where its sensor sits behind its lens
@@ -82,6 +82,48 @@ class BundleOptions:
     #: lens, the group's calibration being of one of them (or of the model)
     share_group_distortion: bool = False
     device: str = "cpu"
+
+
+@dataclass(frozen=True)
+class CameraSigma:
+    """How well an adjustment determines each camera: the standard deviations from the solution's
+    covariance (:func:`_camera_sigma`), each [C]; NaN for an intrinsic the adjustment holds."""
+
+    #: the largest standard deviation of the camera's rotation over the axes (degrees)
+    rotation_deg: np.ndarray
+    #: the largest standard deviation of the camera's centre over the axes (metres)
+    centre_m: np.ndarray
+    #: the standard deviation of the log focal (relative)
+    focal_rel: np.ndarray
+    #: the largest standard deviation of the principal point over x, y (px)
+    principal_px: np.ndarray
+
+
+@dataclass(frozen=True)
+class BundleResult:
+    """What :func:`bundle_adjust` returns: C cameras, P points, M observations (in the order given)."""
+
+    #: refined poses [C, 4, 4] (OpenCV, metres)
+    world_to_camera: np.ndarray
+    #: refined focal lengths [C] (px, fx = fy)
+    focal: np.ndarray
+    #: principal points [C, 2] (OpenCV px; as given when held)
+    principal: np.ndarray
+    #: refined points [P, 3] (metres)
+    points: np.ndarray
+    #: [P] bool: the points that carried a lidar term in the last round
+    on_lidar: np.ndarray
+    #: [M] reprojection error of every observation at the solution (px)
+    reprojection_px: np.ndarray
+    #: [M] bool: the observations kept in the last round
+    inlier: np.ndarray
+    #: each camera's standard deviations from the solution's covariance
+    sigma: CameraSigma
+    #: ``cost_per_round``, ``seconds``, ``lidar_points``, ``focals`` and ``principal_points`` (the
+    #: number of distinct unknowns)
+    stats: dict
+    #: with lens corrections, [C, 2] (dk1, dk2: zero for the cameras without a lens); None without
+    distortion: np.ndarray | None = None
 
 
 def _skew(v: torch.Tensor) -> torch.Tensor:
@@ -227,12 +269,12 @@ def bundle_adjust(world_to_camera: np.ndarray, focal: np.ndarray, principal: np.
                   centre_prior: np.ndarray | None = None, lens_group: Sequence[str | None] | None = None,
                   lens: Sequence[Sequence[float] | None] | None = None,
                   principal_sigma: Sequence[float] | None = None,
-                  options: BundleOptions = BundleOptions()) -> dict:
+                  options: BundleOptions = BundleOptions()) -> BundleResult:
     """Refine static cameras and points.
 
     Shapes: ``world_to_camera`` [C, 4, 4] (OpenCV), ``focal`` [C] px (fx = fy), ``principal``
-    [C, 2] OpenCV px (held fixed unless ``options.principal_sigma_px``), ``points`` [P, 3] metres, observations ``obs_camera`` [M],
-    ``obs_point`` [M], ``obs_xy`` [M, 2] OpenCV px. ``focal_prior`` [C] px (default: ``focal``),
+    [C, 2] OpenCV px (held fixed unless ``options.principal_sigma_px``), ``points`` [P, 3] metres,
+    observations ``obs_camera`` [M], ``obs_point`` [M], ``obs_xy`` [M, 2] OpenCV px. ``focal_prior`` [C] px (default: ``focal``),
     ``centre_prior`` [C, 3] (default: the initial centres). ``lens_group`` [C]: each camera's lens
     group (the rig's ``lens_group``; None: its own); the cameras of a group share one focal
     (``options.share_group_focal``), started at and held around the mean of their focals and priors
@@ -245,12 +287,8 @@ def bundle_adjust(world_to_camera: np.ndarray, focal: np.ndarray, principal: np.
     sigma (px) when ``options.principal_sigma_px`` refines them (default: that value for every camera;
     e.g. tighter for cameras whose principal point a lens calibration measured).
 
-    Returns a dict: ``world_to_camera`` [C, 4, 4], ``focal`` [C], ``principal`` [C, 2], ``points`` [P, 3],
-    ``on_lidar`` [P] bool (points that carried a lidar term in the last round), ``reprojection_px``
-    [M], ``inlier`` [M] bool (observations kept in the last round), ``sigma`` (each camera's
-    standard deviations from the solution's covariance, :func:`_camera_sigma`: ``rotation_deg``,
-    ``centre_m``, ``focal_rel``, ``principal_px``, each [C]), ``stats``, and with lens corrections
-    ``distortion`` [C, 2] (dk1, dk2: zero for the cameras without a lens).
+    Returns the refined cameras and points, each observation's reprojection error and inlier flag,
+    and each camera's standard deviations (:class:`BundleResult`).
     """
     t0 = time.perf_counter()
     dev = torch.device(options.device)
@@ -338,16 +376,15 @@ def bundle_adjust(world_to_camera: np.ndarray, focal: np.ndarray, principal: np.
     out_w2c[:, :3, :3] = Rn
     out_w2c[:, :3, 3] = -(Rn @ Cn[..., None])[..., 0]
     res = _residual_px(state, prob, oc_all, op_all, uv_all)
-    out = {"world_to_camera": out_w2c.cpu().numpy(), "focal": torch.exp(state.logf).cpu().numpy(),
-           "principal": state.pp.cpu().numpy(),
-           "points": state.X.cpu().numpy(), "on_lidar": on_lidar.cpu().numpy(),
-           "reprojection_px": res.norm(dim=1).cpu().numpy(), "inlier": keep.cpu().numpy(), "sigma": sigma,
-           "stats": {"cost_per_round": history, "seconds": time.perf_counter() - t0,
-                     "lidar_points": int(on_lidar.sum()), "focals": int(params.focal_of.max(initial=-1)) + 1,
-                     "principal_points": int(params.principal_of.max(initial=-1)) + 1}}
-    if state.dk is not None:
-        out["distortion"] = state.dk.cpu().numpy()
-    return out
+    return BundleResult(world_to_camera=out_w2c.cpu().numpy(), focal=torch.exp(state.logf).cpu().numpy(),
+                        principal=state.pp.cpu().numpy(), points=state.X.cpu().numpy(),
+                        on_lidar=on_lidar.cpu().numpy(), reprojection_px=res.norm(dim=1).cpu().numpy(),
+                        inlier=keep.cpu().numpy(), sigma=sigma,
+                        stats={"cost_per_round": history, "seconds": time.perf_counter() - t0,
+                               "lidar_points": int(on_lidar.sum()),
+                               "focals": int(params.focal_of.max(initial=-1)) + 1,
+                               "principal_points": int(params.principal_of.max(initial=-1)) + 1},
+                        distortion=None if state.dk is None else state.dk.cpu().numpy())
 
 
 def _observation_pairs(op: torch.Tensor, npt: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -445,7 +482,7 @@ def _lm_step(state, prob: _Problem, oc, op, uv, plane_n, plane_d, on_lidar, pair
     return dc, dp
 
 
-def _camera_sigma(state, prob: _Problem, oc, op, uv, plane_n, plane_d, on_lidar, pairs, ncam, npt) -> dict:
+def _camera_sigma(state, prob: _Problem, oc, op, uv, plane_n, plane_d, on_lidar, pairs, ncam, npt) -> CameraSigma:
     """How well the adjustment determines each camera at ``state``: the Gauss-Newton covariance of
     the camera parameters with the points eliminated (the inverse of the undamped reduced camera
     system, priors and lidar terms included; residuals in units of ``pixel_sigma``, the last
@@ -479,9 +516,9 @@ def _camera_sigma(state, prob: _Problem, oc, op, uv, plane_n, plane_d, on_lidar,
         return torch.where(top >= 0, top.clamp(min=0).sqrt(), torch.full_like(top, float("inf"))).cpu().numpy()
 
     nan = np.full(ncam, np.nan)
-    return {"rotation_deg": np.degrees(largest(blocks[:, :3, :3])), "centre_m": largest(blocks[:, 3:6, 3:6]),
-            "focal_rel": nan if prob.fix_focal else largest(blocks[:, 6:7, 6:7]),
-            "principal_px": nan if prob.options.principal_sigma_px is None else largest(blocks[:, 7:9, 7:9])}
+    return CameraSigma(rotation_deg=np.degrees(largest(blocks[:, :3, :3])), centre_m=largest(blocks[:, 3:6, 3:6]),
+                       focal_rel=nan if prob.fix_focal else largest(blocks[:, 6:7, 6:7]),
+                       principal_px=nan if prob.options.principal_sigma_px is None else largest(blocks[:, 7:9, 7:9]))
 
 
 def _reduced_system(state, prob: _Problem, oc, op, uv, plane_n, plane_d, on_lidar, pairs, lam, ncam, npt):

@@ -139,9 +139,6 @@ class Similarity:
         """self ∘ other (apply other first)."""
         return Similarity(self.s * other.s, self.R @ other.R, self.s * self.R @ other.t + self.t)
 
-    def as_dict(self) -> dict:
-        return {"scale": self.s, "rotation": self.R.tolist(), "translation": self.t.tolist()}
-
     def __repr__(self) -> str:
         return f"Similarity(s={self.s:.6g}, t={np.round(self.t, 4).tolist()})"
 

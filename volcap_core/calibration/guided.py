@@ -2,8 +2,8 @@
 
 Descriptor matching of wide 320x180 views 30° apart triangulates a few hundred points, nearly all
 on the far walls: a camera sees them as one plane, where a sideways shift, a rotation and a
-principal-point shift look alike (the static calibration stopped at 0.13° mean / 0.22° max
-rotation, 0.6 % of the stage in centre). Once the cameras are known to half a pixel, the lidar
+principal-point shift look alike, which holds the static calibration back (docs/calibration.md,
+step 5). Once the cameras are known to half a pixel, the lidar
 says where every background pixel of one camera lands in another, including on the floor and the
 props near the cameras, which descriptors cannot match at those grazing angles. So:
 
@@ -16,13 +16,13 @@ props near the cameras, which descriptors cannot match at those grazing angles. 
    cross-correlation over log luminance (per-camera gain and black level cancel), refined to
    sub-pixel by a parabola through the peak;
 4. an anchor and its matches form a track. The anchor's own position is exact by construction (the
-   template is centred on it), a match's error is the NCC localisation (~0.05 px on the demo).
+   template is centred on it), a match's error is the NCC localisation.
 
 The tracks carry no lidar positions into the adjustment: the bundle adjuster triangulates them
 freely and uses the scan only as a point-to-plane prior, so scan noise does not bias the cameras
 (unlike a photometric residual evaluated at scan points, :mod:`~volcap_core.calibration.photometric`).
-On the demo capture this gives ~8 000 tracks and ~24 000 observations over the whole image, and
-with them the bundle adjuster can also refine principal points.
+This gives tens of times the descriptor matches' observations, over the whole image, and with them
+the bundle adjuster can also refine principal points.
 """
 
 from __future__ import annotations
@@ -44,8 +44,8 @@ from volcap_core.calibration.lidar import LidarScan, depth_buffer, lift_to_lidar
 @dataclass(frozen=True)
 class GuidedMatchOptions:
     #: Shi-Tomasi corners per camera (``cv2.goodFeaturesToTrack``), their quality level and spacing:
-    #: every textured pixel (the principal points are noise-limited: adjusted at 1 px, 4000 corners
-    #: 3 px apart gave 0.12° max rotation on the demo capture, these 0.084°)
+    #: every textured pixel (the principal points are noise-limited: more corners, closer, place them
+    #: better; docs/calibration.md)
     max_corners: int = 30000
     corner_quality: float = 0.001
     min_corner_distance_px: float = 1.0
@@ -57,10 +57,9 @@ class GuidedMatchOptions:
     min_ncc: float = 0.85
     #: after the grid search, this many re-centred refinements: NCC at the current estimate and
     #: ``refine_step_px`` either side in x and y, a parabola through each triple. On a noise-free
-    #: texture the grid's parabola errs by 0.045 px rms (±0.01 px of it depending on where the match
-    #: falls between the grid's nodes), two refinements by 0.014 px; on the distorted demo capture
-    #: the cameras did not improve (0.068° / 0.137° against 0.066° / 0.115°), so 0 (the grid's
-    #: parabola only) stays the default
+    #: texture they bring a match closer than the grid's parabola, but the cameras did not improve
+    #: on the distorted demo capture (docs/calibration.md), so 0 (the grid's parabola only) stays
+    #: the default
     refine_iterations: int = 0
     refine_step_px: float = 0.25
     #: |cos| of the angle between the scan normal and each view ray must exceed this
@@ -153,8 +152,7 @@ def _match_patches(image: torch.Tensor, template: torch.Tensor, warped: np.ndarr
     ``warped`` [n, Q, 2] the template's pixels mapped into this camera (OpenCV px, the centre pixel
     at ``Q // 2``). Returns the matches [n, 2] (OpenCV px) and which of them are good [n]: a peak
     above ``min_ncc``, inside the window, and sharp. Anchors go ``chunk_anchors`` at a time, so
-    memory stays ~100 MB whatever their number (all at once it was ~1 GB per camera pair on the
-    demo).
+    the memory is bounded whatever their number.
     """
     steps = torch.arange(-options.search_px, options.search_px + 1e-9, options.search_step_px)
     ns = len(steps)

@@ -33,12 +33,3 @@ def to_uint8_gray(linear: np.ndarray, normalise: bool = True) -> np.ndarray:
     g = luminance(img) if img.ndim == 3 else img
     enc = srgb_encode(np.clip(g, 0.0, 1.0))
     return np.ascontiguousarray(np.round(enc * 255.0).astype(np.uint8))
-
-
-def to_uint8_rgb(linear: np.ndarray, normalise: bool = True) -> np.ndarray:
-    """Linear RGB(A) [H, W, C] -> sRGB uint8 [H, W, 3]."""
-    img = np.asarray(linear, np.float32)[..., :3]
-    if normalise:
-        img = exposure_normalise(img)
-    enc = srgb_encode(np.clip(img, 0.0, 1.0))
-    return np.ascontiguousarray(np.round(enc * 255.0).astype(np.uint8))

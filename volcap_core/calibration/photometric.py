@@ -1,7 +1,7 @@
 """Direct (photometric) refinement of static cameras against the lidar scan.
 
-Feature-based bundle adjustment of a few wide 320x180 views leaves rotations 0.2-0.5° off: a few
-hundred two- and three-view points do not pin them (near-null directions couple rotations with
+Feature-based bundle adjustment of a few wide low-resolution views leaves rotations tenths of a
+degree off (docs/calibration.md): a few hundred two- and three-view points do not pin them (near-null directions couple rotations with
 point depths). The stage background is clean and textured, and the lidar says where it is, so
 every textured background pixel can vote: a scan point ``X`` seen by cameras ``a`` and ``b`` must
 look the same in both,

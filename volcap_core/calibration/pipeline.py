@@ -23,7 +23,9 @@ from volcap_core.calibration.record import Calibration
 from volcap_core.calibration.scale import KnownPoints
 from volcap_core.calibration.static import StaticCalibration, StaticCalibrationOptions
 from volcap_core.calibration.static_step import calibrate_static_step
-from volcap_core.calibration.tracking import StaticReference, TrackingOptions, TrackingSolution
+from volcap_core.calibration.tracking.observe import StaticReference
+from volcap_core.calibration.tracking.options import TrackingOptions
+from volcap_core.calibration.tracking.solve import TrackingSolution
 from volcap_core.calibration.tracking_step import calibrate_tracking_step
 
 

@@ -1,13 +1,15 @@
-"""Static-camera structure from motion with pycolmap (CPU): SIFT, exhaustive matching, incremental
-mapping with the focal lengths held at the lens metadata, then a robust global bundle adjustment.
+"""Static-camera structure from motion with pycolmap (CPU): SIFT, exhaustive matching, then
+triangulation from the rig's nominal poses (seeded) or incremental mapping, the focal lengths held
+at the rig's, and a robust global bundle adjustment; distorted cameras' inputs rectified into
+square pinholes for the steps after (:func:`rectify_static_inputs`).
 
-Traps handled here (measured with pycolmap 4.2.1, see NOTES):
+Traps handled here (pycolmap 4.2.1, see NOTES):
 
 - ``cv2`` is imported before ``pycolmap`` (zlib clash on PNG writes otherwise);
 - ``Database.write_camera`` creates a rig implicitly, and images written by hand get no frame: the
   images are created by feature extraction with ``ImageReaderOptions.existing_camera_id`` so each
   image is tied to its own, known camera (and frame);
-- matching 320x180 views 30° apart gives 50-90 verified matches a pair: the mapper's initial-pair
+- matching small views 30° apart gives few verified matches a pair: the mapper's initial-pair
   and registration thresholds are lowered accordingly, and affine-adapted SIFT is used;
 - no dense MVS (``patch_match_stereo`` needs CUDA).
 
@@ -127,8 +129,8 @@ class StaticSfmOptions:
     refine_distortion: bool = False
     #: Cauchy loss scale of the final bundle adjustment, pixels
     loss_scale_px: float = 1.0
-    #: one thread: COLMAP's threaded matching is not deterministic (measured: the same views gave
-    #: 0.34° to 0.65° mean rotation error from run to run); one thread is, at ~1.5x the time
+    #: one thread: COLMAP's threaded matching is not deterministic (the same views gave a different
+    #: calibration from run to run: docs/calibration.md); one thread is, at more time
     num_threads: int = 1
     seed: int = 0
 
@@ -238,7 +240,7 @@ def rectified_intrinsics(intr: Intrinsics) -> Intrinsics:
 #: how far (px) inside the source frame a rectified pixel of :func:`undistort_views` must fall to
 #: count as footage: the Lanczos kernel's main lobe. Its side lobes reach 4 px with weights of a few
 #: percent; a 4 px margin dropped anchors at the image edges, where a principal point and a rotation
-#: differ most, and left the static cameras worse (0.054° mean over 10 renders against 0.050°)
+#: differ most, and left the static cameras worse (docs/calibration.md)
 RECTIFY_MARGIN_PX = 1.0
 
 
@@ -252,10 +254,8 @@ def undistort_views(images: Mapping[str, np.ndarray], intrinsics: Mapping[str, I
     the calibration measures sub-pixel positions in these views, and bilinear interpolation blurs
     each pixel by an amount that depends on its sub-pixel phase, which moves the guided matching's
     NCC peaks by hundredths of a pixel; along the direction where a principal point and a rotation
-    trade that is tenths of a pixel of principal point. Measured on the distorted demo capture
-    (10 renders, static step): rotation 0.061° -> 0.050° mean over the renders, 5 -> 3 of them
-    above 0.1° max; with exact lens calibrations 0.065° -> 0.046° (``docs/benchmarks.md``,
-    "Rectified with Lanczos")."""
+    trade that is tenths of a pixel of principal point (``docs/benchmarks.md``, "Rectified with
+    Lanczos")."""
     import cv2
 
     from volcap_core.calibration.distortion import undistort_image

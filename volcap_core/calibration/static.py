@@ -1,33 +1,46 @@
-"""Static wide cameras: one calibration from the middle frame, in metres and the stage frame.
+"""Static wide cameras: one calibration from the middle frame (or several instants pooled), in metres
+and the stage frame.
 
-Pipeline (each step a pure function of the previous one's output):
+:func:`calibrate_static_cameras` runs these stages in order, each a function of the previous ones'
+output:
 
-1. intrinsics from the lens metadata: the rig's nominal focal (mm) -> pixels, principal point at
-   the image centre, no distortion;
+1. the rig's priors (:func:`_rig_priors`): each camera's intrinsics, measured when the rig carries
+   a lens calibration (its own or its lens group's), else nominal (the nominal focal in pixels, a
+   centred principal point, no distortion); its pose at its nominal mount; its mount's position;
 2. sparse SfM with pycolmap (:func:`volcap_core.calibration.sfm.reconstruct_static`): SIFT,
-   exhaustive matching, then triangulation from the rig's nominal mount poses (seeded, default) or
-   COLMAP's incremental mapper followed by a robust similarity onto the nominal mount positions;
-3. a robust point-to-plane ICP of the sparse points onto the lidar scan (incremental path only:
-   seeded poses are already in the stage frame);
+   exhaustive matching, then triangulation from the nominal mount poses (seeded, default) or
+   COLMAP's incremental mapper; a distorted (or non-square) camera is then rectified into a square
+   pinhole (observations, images and plates resampled), and a camera with too few observations is
+   left out (:func:`_sparse_model`);
+3. incremental path only (seeded poses are in the stage frame already): a robust similarity of the
+   camera centres onto the mounts, then a robust point-to-plane ICP of the sparse points onto the
+   lidar scan (:func:`_into_stage_frame`);
 4. bundle adjustment in torch with the lidar as a prior on the points, a focal prior around the
-   lens metadata and a centre prior around the mounts (:mod:`volcap_core.calibration.bundle`);
-5. with a lidar scan: lidar-guided patch matching of the background plates between the cameras of
-   step 4 (:mod:`volcap_core.calibration.guided`, ~30x the observations, over the whole image) and
-   a second bundle adjustment on those tracks that also refines the principal points and leaves the
-   centres to the data (the mounts only a weak prior); without a scan the same matching runs through
-   a plane-sweep surface of the plates (:func:`surface_from_plates`), the centres held by the mounts,
-   and the stage frame and scale come from the mounts or a known distance (:func:`frame_without_lidar`);
+   rig's intrinsics and a centre prior around the mounts (:mod:`volcap_core.calibration.bundle`);
+   a camera its inliers do not support is left out; without a scan, the stage frame and scale
+   from the mounts or a known distance (:func:`frame_without_lidar`) (:func:`_first_adjustment`);
+5. patch matching of the background plates between the cameras of step 4, guided through the
+   lidar scan (:mod:`volcap_core.calibration.guided`, many times the observations, over the whole
+   image), and a second bundle adjustment on those tracks that also refines the principal points
+   and a rectified camera's radial k1, k2, and leaves the centres to the data (the mounts only a
+   weak prior); without a scan the same matching runs through a plane-sweep surface of the plates
+   (:func:`surface_from_plates`), the centres held by the mounts, and the stage frame taken again
+   (:func:`_guided_adjustment`);
 6. optionally, direct photometric refinement against the lidar
    (:mod:`volcap_core.calibration.photometric`): every textured background pixel seen by two cameras
-   votes (off by default: it did not improve the demo capture).
+   votes (off by default: it did not improve the demo capture) (:func:`_photometric_refinement`);
+7. the sparse points re-triangulated from the final cameras (:func:`_final_model`) and each
+   camera's support measured under them (:func:`_final_support`).
 
-Every camera's support is measured twice, on the SfM's observations and on the inliers of step 4's
+Every camera's support is measured on the SfM's observations (step 2) and on the inliers of step 4's
 adjustment (:func:`camera_support`: observation count, and the pose's standard deviation with the
 points held fixed, a lower bound); after step 5 the standard deviations reported are step 5's
-covariance, which counts what the principal point leaves open (``bundle_adjust(...)["sigma"]``). A camera below ``options.min_observations`` or above the
-uncertainty bounds is unsupported: with ``options.allow_unregistered`` it is left out (listed in
-``unregistered`` with the reason), otherwise :class:`UnsupportedCameraError` names it. A seeded
-camera without observations is never returned as calibrated (it would sit at its mount).
+covariance, which counts what the principal point leaves open
+(:attr:`~volcap_core.calibration.bundle.BundleResult.sigma`). A camera below
+``options.min_observations`` or above the uncertainty bounds is unsupported: with
+``options.allow_unregistered`` it is left out (listed in ``unregistered`` with the reason), otherwise
+:class:`UnsupportedCameraError` names it. A seeded camera without observations is never returned as
+calibrated (it would sit at its mount).
 """
 
 from __future__ import annotations
@@ -39,7 +52,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from hardware.rig import Rig, RigCamera
-from volcap_core.calibration.bundle import BundleOptions, bundle_adjust
+from volcap_core.calibration.bundle import BundleOptions, BundleResult, CameraSigma, bundle_adjust
 from volcap_core.calibration.distortion import Distortion, undistort_valid_mask
 from volcap_core.calibration.errors import KnownDistanceError, UnsupportedCameraError
 from volcap_core.calibration.geometry import (Similarity, camera_centre, look_at_rotation, pose_matrix,
@@ -80,9 +93,8 @@ class StaticCalibrationOptions:
     #: principal point, a sensor's ~1 px tolerance). None: ``guided_bundle``'s for every camera
     measured_principal_sigma_px: float | None = MEASURED_PRINCIPAL_SIGMA_PX
     #: None (default) skips the photometric refinement: on the demo capture it did not beat the
-    #: lidar-constrained bundle adjustment (rotation 0.19° vs 0.17° mean, centres 0.8 % vs 0.5 % of
-    #: the stage) at ten times the cost; ``PhotometricOptions(max_points=20000, centre_sigma_m=0.03)``
-    #: turns it on
+    #: bundle adjustments, at many times their cost (docs/calibration.md);
+    #: ``PhotometricOptions(max_points=20000, centre_sigma_m=0.03)`` turns it on
     photometric: PhotometricOptions | None = None
     #: frames (evenly spread over the take) whose median is each static camera's background plate
     plate_frames: int = 8
@@ -117,19 +129,15 @@ class StaticCalibrationOptions:
     #: the views do not overlap enough (or the frame is wrong), and calibration stops there
     min_registered_fraction: float = 0.5
     #: a camera needs at least this many observations (SfM keypoints of triangulated points) in the
-    #: sparse reconstruction, before and after step 4's outlier rejection, to count as calibrated.
-    #: Measured after step 4 on the synthetic demo capture (8 static cameras at 320x180, 24 frames):
-    #: seed 0: 89-308 per camera (the weakest, S000, sees one wall at 12.5 m; S007 97); seed 1:
-    #: 70-302; with one camera's frames replaced by noise that camera had 0 and the others 85-238.
-    #: 25 leaves a 2.8x margin below the weakest registered camera and is 6x the 4 observations of
-    #: the under-observed camera of issue 13 (mounts 2° / a few cm off)
+    #: sparse reconstruction, before and after step 4's outlier rejection, to count as calibrated:
+    #: well below what registered cameras of the demo capture have, well above what a camera whose
+    #: view matches nothing has (docs/calibration.md)
     min_observations: int = 25
     #: a camera whose pose standard deviation after step 4 (its inlier observations, points and
     #: intrinsics held fixed: a lower bound that ignores the priors, see :func:`camera_support`)
-    #: exceeds this rotation (degrees) or centre (metres) is unsupported too. Measured on the same
-    #: captures: 0.007-0.133° and 1.1-29 mm (the largest: S000, the far-wall camera, which step 5
-    #: then places to 0.013-0.05°); the bounds are 7.5x and 10x that, about what a mount survey
-    #: gives (None: no bound)
+    #: exceeds this rotation (degrees) or centre (metres) is unsupported too: bounds several times
+    #: what the demo capture's cameras reach, about what a mount survey gives (docs/calibration.md;
+    #: None: no bound)
     max_rotation_sigma_deg: float | None = 1.0
     max_centre_sigma_m: float | None = 0.3
     #: an unsupported camera (above) is an error naming it and the reason (False), or is left out
@@ -165,10 +173,6 @@ class StaticCalibration:
     scene_depth: dict[str, tuple[float, float, float]] = field(default_factory=dict)
 
 
-def nominal_intrinsics(cam: RigCamera) -> Intrinsics:
-    """Lens metadata -> pinhole intrinsics: nominal focal (mm) in pixels, centred principal point."""
-    s = cam.sensor
-    return Intrinsics.nominal(s.focal_px(cam.nominal_focal_mm), s.width_px, s.height_px)
 
 
 def nominal_pose(cam: RigCamera) -> np.ndarray:
@@ -201,7 +205,8 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
                              *, plates: Mapping[str, np.ndarray] | None = None,
                              options: StaticCalibrationOptions = StaticCalibrationOptions(),
                              more_instants: Sequence[Mapping[str, np.ndarray]] = ()) -> StaticCalibration:
-    """Calibrate the rig's static cameras from one instant, or several pooled.
+    """Calibrate the rig's static cameras from one instant, or several pooled: the stages of the
+    module docstring, in order.
 
     ``images``: static camera id -> scene-linear RGB [H, W, 3] float at the middle frame.
     ``more_instants``: the same cameras at other instants (:func:`instant_frames`), pooled into the
@@ -210,24 +215,114 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
     ``plates``: optional background plates (:func:`~volcap_core.calibration.photometric.background_plate`)
     for the guided matching and the photometric step (default: ``images``; plates have no actors, whom
     the scan does not have). ``scan``: the lidar scan of the static stage in the stage frame (None:
-    no lidar terms, no guided matching, no photometric step; the stage frame and the metric scale
-    from a robust similarity of the adjusted camera centres onto the rig's mounts, or the scale
-    from ``options.known_distance``, see :func:`frame_without_lidar`).
+    no lidar terms, no photometric step, step 5 through a plane-sweep surface of the plates; the
+    stage frame and the metric scale from a robust similarity of the adjusted camera centres onto
+    the rig's mounts, or the scale from ``options.known_distance``, see :func:`frame_without_lidar`).
     """
     t0 = time.perf_counter()
-    ids = sorted(images)
-    cams = {c: rig.camera(c) for c in ids}
-    intr = {c: Intrinsics.from_rig(rig, c) for c in ids}     # measured when the rig has them, else nominal
-    seeds = {c: nominal_pose(cams[c]) for c in ids}
-    mounts = {c: np.asarray(cams[c].mount.position_m, np.float64) for c in ids}
     stats: dict = {}
-    model = reconstruct_static(images, intr, options.sfm, initial_poses=seeds if options.seeded else None,
-                               more_instants=more_instants,
-                               lens_groups={c: cams[c].lens_group for c in ids if cams[c].lens_group})
+    priors = _rig_priors(rig, sorted(images))                                                               # 1
+    model, views, reasons = _sparse_model(images, plates, priors, options, more_instants, stats)            # 2
+    t1 = time.perf_counter()
+    model = _into_stage_frame(model, priors.mounts, scan, options, stats)                                   # 3
+    model, first, cams = _first_adjustment(model, views, priors, scan, options, reasons, stats)             # 4
+    t2 = time.perf_counter()
+    cams = _guided_adjustment(cams, views, priors, rig, scan, options, stats)                               # 5
+    t_guided = time.perf_counter()
+    cams = _photometric_refinement(cams, views, priors, scan, options, stats)                               # 6
+    t3 = time.perf_counter()
+    model = _final_model(model, first, cams, views)                                                         # 7
+    support = _final_support(model, first.inlier, cams)
+    stats["support"] = support
+    stats["time_s"] = {"sfm": t1 - t0, "bundle": t2 - t1, "guided": t_guided - t2, "photometric": t3 - t_guided,
+                       "total": time.perf_counter() - t0}
+    reg, K = cams.ids, cams.K
+    return StaticCalibration(camera_ids=reg, K=K, world_to_camera=cams.world_to_camera,
+                             size={c: (views.intrinsics[c].width, views.intrinsics[c].height) for c in reg},
+                             model=model, unregistered=sorted(reasons), stats=stats,
+                             reasons=dict(sorted(reasons.items())), support=support,
+                             raw_intrinsics={c: raw_from_rectified(K[c], cams.lenses[c]) for c in reg
+                                             if c in cams.lenses})
+
+
+@dataclass(frozen=True)
+class _RigPriors:
+    """Step 1: what the rig says of each static camera before any image is read (camera id -> ...)."""
+
+    #: the measured intrinsics when the rig carries them (its own or its lens group's), else the
+    #: nominal ones (:meth:`~volcap_core.calibration.sfm.Intrinsics.from_rig`)
+    intrinsics: dict[str, Intrinsics]
+    #: world-to-camera [4, 4] at the nominal mount (:func:`nominal_pose`), the seeded SfM's poses
+    seeds: dict[str, np.ndarray]
+    #: the mount's position [3] (metres, stage frame): the prior of the camera's centre
+    mounts: dict[str, np.ndarray]
+    #: the camera's lens group (None: its own)
+    lens_groups: dict[str, str | None]
+
+
+@dataclass(frozen=True)
+class _Views:
+    """Step 2's views of the cameras, which the later steps work on: distorted (or non-square)
+    cameras rectified into square pinholes, their images and plates resampled."""
+
+    #: camera id -> the pinhole its observations, images and plates are in
+    intrinsics: dict[str, Intrinsics]
+    #: camera id -> scene-linear RGB [H, W, 3] at the reference instant
+    images: Mapping[str, np.ndarray]
+    #: camera id -> background plate [H, W, 3], or None (the images serve)
+    plates: Mapping[str, np.ndarray] | None
+    #: camera id -> the lens a rectified camera's views were resampled from (its raw intrinsics and
+    #: distortion); cameras without distortion are absent
+    lenses: dict[str, Intrinsics]
+
+    @property
+    def background(self) -> Mapping[str, np.ndarray]:
+        """What the guided matching and the photometric step read: the plates, else the images."""
+        return self.plates if self.plates is not None else self.images
+
+
+@dataclass(frozen=True)
+class _Cameras:
+    """The calibrated cameras as a stage leaves them."""
+
+    #: the calibrated camera ids, in the order of every per-camera array below
+    ids: list[str]
+    #: camera id -> K [3, 3] of its (rectified) pinhole
+    K: dict[str, np.ndarray]
+    #: camera id -> world-to-camera [4, 4] (OpenCV, metres, stage frame)
+    world_to_camera: dict[str, np.ndarray]
+    #: camera id -> a rectified camera's lens as calibrated: its views' lens, with step 5's
+    #: corrections of its radial terms; cameras without distortion are absent
+    lenses: dict[str, Intrinsics]
+    #: step 5's inlier observations per camera [C] (None: step 5 did not run)
+    guided_observations: np.ndarray | None = None
+    #: step 5's standard deviations of each camera (None: step 5 did not run)
+    guided_sigma: CameraSigma | None = None
+
+
+def _rig_priors(rig: Rig, ids: Sequence[str]) -> _RigPriors:
+    """1. Each camera's intrinsics, nominal pose, mount and lens group from the rig."""
+    cams = {c: rig.camera(c) for c in ids}
+    return _RigPriors(intrinsics={c: Intrinsics.from_rig(rig, c) for c in ids},
+                      seeds={c: nominal_pose(cams[c]) for c in ids},
+                      mounts={c: np.asarray(cams[c].mount.position_m, np.float64) for c in ids},
+                      lens_groups={c: cams[c].lens_group for c in ids})
+
+
+def _sparse_model(images: Mapping[str, np.ndarray], plates: Mapping[str, np.ndarray] | None, priors: _RigPriors,
+                  options: StaticCalibrationOptions, more_instants: Sequence[Mapping[str, np.ndarray]],
+                  stats: dict) -> tuple[SparseModel, _Views, dict[str, str]]:
+    """2. The sparse SfM (seeded with the nominal poses, or incremental), its distorted cameras
+    rectified, and the cameras it does not hold left out. Returns the model, the views the later
+    steps work on, and why each left-out camera is (camera id -> reason); raises
+    :class:`UnsupportedCameraError` when fewer than two cameras are left."""
+    model = reconstruct_static(images, priors.intrinsics, options.sfm,
+                               initial_poses=priors.seeds if options.seeded else None, more_instants=more_instants,
+                               lens_groups={c: g for c, g in priors.lens_groups.items() if g})
     stats["sfm"] = dict(model.stats)
     # distorted (or non-square) cameras: from here on everything works on their rectified square
-    # pinholes (observations, images and plates resampled); ``raw_intr`` is what they came from
-    model, intr, images, plates, raw_intr = rectify_static_inputs(model, intr, images, plates)
+    # pinholes (observations, images and plates resampled); ``lenses`` is what they came from
+    model, intr, images, plates, lenses = rectify_static_inputs(model, priors.intrinsics, images, plates)
     reasons = {c: "the SfM did not register it (no view overlapping enough)" for c in model.unregistered}
     # a seeded camera is "registered" by construction: its observations say whether anything holds it
     counts = np.bincount(model.obs_camera, minlength=len(model.camera_ids))
@@ -238,16 +333,38 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
     model = _without_cameras(model, [c for c in model.camera_ids if c in reasons])
     if len(model.camera_ids) < 2:
         raise UnsupportedCameraError(reasons)
-    t1 = time.perf_counter()
-    if not options.seeded:
-        src = model.centres()
-        dst = np.stack([mounts[c] for c in model.camera_ids])
-        T, _ = robust_umeyama(src, dst, threshold=0.5)
-        model = model.transformed(T)
-        if scan is not None:
-            T2, icp = align_to_lidar(model.points, scan)
-            model = model.transformed(T2)
-            stats["icp"] = icp
+    return model, _Views(intr, images, plates, lenses), reasons
+
+
+def _into_stage_frame(model: SparseModel, mounts: Mapping[str, np.ndarray], scan: LidarScan | None,
+                      options: StaticCalibrationOptions, stats: dict) -> SparseModel:
+    """3. An incremental reconstruction into the stage frame: the robust similarity taking its
+    camera centres onto the mounts, then a robust point-to-plane ICP of its points onto the scan.
+    A seeded reconstruction is in the stage frame already: returned as it is."""
+    if options.seeded:
+        return model
+    src = model.centres()
+    dst = np.stack([mounts[c] for c in model.camera_ids])
+    T, _ = robust_umeyama(src, dst, threshold=0.5)
+    model = model.transformed(T)
+    if scan is not None:
+        T2, icp = align_to_lidar(model.points, scan)
+        model = model.transformed(T2)
+        stats["icp"] = icp
+    return model
+
+
+def _first_adjustment(model: SparseModel, views: _Views, priors: _RigPriors, scan: LidarScan | None,
+                      options: StaticCalibrationOptions, reasons: dict[str, str], stats: dict
+                      ) -> tuple[SparseModel, BundleResult, _Cameras]:
+    """4. The bundle adjustment of the sparse model (lidar prior on the points, focal prior around
+    the rig's intrinsics, centre prior around the mounts), then each camera's support on its inlier
+    observations (:func:`camera_support`): an unsupported camera is added to ``reasons`` and left
+    out (:class:`UnsupportedCameraError` unless ``options.allow_unregistered``). Without a scan the
+    cameras and points are then taken into the stage frame (:func:`frame_without_lidar`); with one,
+    a known distance is only checked. Returns the model without the cameras left out, the
+    adjustment (its observations aligned with that model's) and the cameras."""
+    intr, mounts = views.intrinsics, priors.mounts
     reg = model.camera_ids
     res = bundle_adjust(np.stack([model.world_to_camera[c] for c in reg]),
                         np.array([model.intrinsics[c].fx for c in reg]),
@@ -255,14 +372,14 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
                         model.points, model.obs_camera, model.obs_point, model.obs_xy, scan=scan,
                         focal_prior=np.array([intr[c].fx for c in reg]),
                         centre_prior=np.stack([mounts[c] for c in reg]),
-                        lens_group=[cams[c].lens_group for c in reg], options=options.bundle)
-    K = {c: np.array([[res["focal"][i], 0, intr[c].cx], [0, res["focal"][i], intr[c].cy], [0, 0, 1.0]])
+                        lens_group=[priors.lens_groups[c] for c in reg], options=options.bundle)
+    K = {c: np.array([[res.focal[i], 0, intr[c].cx], [0, res.focal[i], intr[c].cy], [0, 0, 1.0]])
          for i, c in enumerate(reg)}
-    w2c = {c: res["world_to_camera"][i] for i, c in enumerate(reg)}
-    stats["bundle"] = dict(res["stats"])
-    stats["bundle"]["median_reprojection_px"] = float(np.median(res["reprojection_px"][res["inlier"]]))
-    inl = res["inlier"]
-    support = camera_support(K, w2c, reg, res["points"], model.obs_camera[inl], model.obs_point[inl],
+    w2c = {c: res.world_to_camera[i] for i, c in enumerate(reg)}
+    stats["bundle"] = dict(res.stats)
+    stats["bundle"]["median_reprojection_px"] = float(np.median(res.reprojection_px[res.inlier]))
+    inl = res.inlier
+    support = camera_support(K, w2c, reg, res.points, model.obs_camera[inl], model.obs_point[inl],
                              model.obs_xy[inl])
     for c in reg:
         why = _unsupported(support[c], options)
@@ -275,8 +392,7 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
         drop = [c for c in reg if c in reasons]
         kept = np.array([c not in reasons for c in reg])
         keep_obs = kept[model.obs_camera]
-        res = {**res, "inlier": inl[keep_obs], "world_to_camera": res["world_to_camera"][kept],
-               "focal": res["focal"][kept]}
+        res = replace(res, inlier=inl[keep_obs], world_to_camera=res.world_to_camera[kept], focal=res.focal[kept])
         model = _without_cameras(model, drop, min_views=0)  # observations stay aligned with keep_obs
         reg = model.camera_ids
         if len(reg) < 2:
@@ -287,93 +403,118 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
         # no lidar: the stage frame and the metric scale from the mounts (or a measured distance)
         T, stats["frame"] = frame_without_lidar({c: w2c[c] for c in reg}, mounts, options)
         w2c = {c: T.apply_pose(w2c[c]) for c in reg}
-        res = {**res, "points": T.apply(res["points"])}
+        res = replace(res, points=T.apply(res.points))
     elif options.known_distance is not None:
         stats["frame"] = _check_known_distance(w2c, options.known_distance)
-    t2 = time.perf_counter()
-    background = plates if plates is not None else images
-    guided_counts = None
+    return model, res, _Cameras(reg, K, w2c, dict(views.lenses))
+
+
+def _guided_adjustment(cams: _Cameras, views: _Views, priors: _RigPriors, rig: Rig, scan: LidarScan | None,
+                       options: StaticCalibrationOptions, stats: dict) -> _Cameras:
+    """5. Patch matching of the background between the cameras of step 4, guided through the
+    scan (without one, through a plane-sweep surface of the plates: :func:`surface_from_plates`),
+    and a second adjustment on those tracks: principal points refined, a rectified camera's radial
+    k1, k2 corrected, the centres left to the data (with no scan, held by the mounts as in step 4:
+    they are the frame, taken again after it). The cameras unchanged when ``options.guided`` is
+    None or there is nothing to guide the matching."""
+    reg, K, w2c = cams.ids, cams.K, cams.world_to_camera
+    intr, mounts, background = views.intrinsics, priors.mounts, views.background
     guide, guided_bundle = scan, options.guided_bundle
     if scan is None and options.guided is not None and options.surface_without_scan:
         # no scan: step 5 warps its templates through a plane-sweep surface of the plates instead,
         # with no lidar prior and the centres held by the mounts as in step 4 (they are the frame)
         guide, stats["surface"] = surface_from_plates({c: background[c] for c in reg}, K, w2c)
         guided_bundle = replace(guided_bundle, centre_sigma_m=options.bundle.centre_sigma_m)
-    if guide is not None and options.guided is not None:
-        # the tracks' cameras come in ``reg`` order, the order of the dict passed; a rectified view's
-        # pixels without footage (a pincushion lens's black corners) take no part in the matching
-        valid = {c: undistort_valid_mask(raw_intr[c], raw_intr[c].distortion, intr[c],
-                                         margin_px=RECTIFY_MARGIN_PX) for c in reg if c in raw_intr}
-        tracks = guided_tracks({c: background[c] for c in reg}, K, w2c, guide, options.guided, valid=valid)
-        P = np.stack([K[c] @ w2c[c][:3] for c in reg])
-        start = triangulate_points(P, tracks.obs_point, tracks.obs_camera, tracks.obs_xy, len(tracks.points))
-        start = np.where(np.isfinite(start), start, tracks.points)
-        g = bundle_adjust(np.stack([w2c[c] for c in reg]), np.array([K[c][0, 0] for c in reg]),
-                          np.array([[intr[c].cx, intr[c].cy] for c in reg]), start, tracks.obs_camera,
-                          tracks.obs_point, tracks.obs_xy, scan=scan, focal_prior=np.array([intr[c].fx for c in reg]),
-                          centre_prior=np.stack([mounts[c] for c in reg]),
-                          lens_group=[cams[c].lens_group for c in reg],
-                          lens=[_radial_lens(intr[c], raw_intr.get(c)) for c in reg],
-                          principal_sigma=_principal_sigmas(reg, rig, guided_bundle, options), options=guided_bundle)
-        K = {c: np.array([[g["focal"][i], 0, g["principal"][i, 0]], [0, g["focal"][i], g["principal"][i, 1]],
-                          [0, 0, 1.0]]) for i, c in enumerate(reg)}
-        w2c = {c: g["world_to_camera"][i] for i, c in enumerate(reg)}
-        stats["guided"] = {**tracks.stats, "bundle": g["stats"], "inliers": int(g["inlier"].sum()),
-                           "median_reprojection_px": float(np.median(g["reprojection_px"][g["inlier"]])),
-                           "through": "lidar scan" if scan is not None else "plane-sweep surface"}
-        guided_counts = np.bincount(tracks.obs_camera[g["inlier"]], minlength=len(reg))
-        guided_sigma = g["sigma"]
-        if "distortion" in g:   # the lens as refined: what the record and the frames rectified after use
-            for i, c in enumerate(reg):
-                if _radial_lens(intr[c], raw_intr.get(c)) is not None:
-                    raw_intr[c] = replace(raw_intr[c], distortion=_with_radial(raw_intr[c].distortion,
-                                                                               g["distortion"][i]))
-                    stats["guided"].setdefault("distortion_correction", {})[c] = {
-                        "dk1": float(g["distortion"][i][0]), "dk2": float(g["distortion"][i][1])}
-        if scan is None:   # the adjusted cameras onto the mounts again (or the known distance)
-            T, stats["frame"] = frame_without_lidar(w2c, mounts, options)
-            w2c = {c: T.apply_pose(w2c[c]) for c in reg}
-    t_guided = time.perf_counter()
-    if scan is not None and options.photometric is not None:
-        ph = refine_photometric({c: background[c] for c in reg}, K, w2c, scan, centre_prior=mounts,
-                                focal_prior={c: intr[c].fx for c in reg}, options=options.photometric)
-        K, w2c = ph["K"], ph["world_to_camera"]
-        stats["photometric"] = {k: ph[k] for k in ("samples", "points", "rms_per_level", "seconds")}
-    t3 = time.perf_counter()
-    # the sparse points, re-triangulated from the final cameras (inlier observations only)
-    inl = res["inlier"]
+    if guide is None or options.guided is None:
+        return cams
+    # the tracks' cameras come in ``reg`` order, the order of the dict passed; a rectified view's
+    # pixels without footage (a pincushion lens's black corners) take no part in the matching
+    lenses = views.lenses
+    valid = {c: undistort_valid_mask(lenses[c], lenses[c].distortion, intr[c], margin_px=RECTIFY_MARGIN_PX)
+             for c in reg if c in lenses}
+    tracks = guided_tracks({c: background[c] for c in reg}, K, w2c, guide, options.guided, valid=valid)
+    P = np.stack([K[c] @ w2c[c][:3] for c in reg])
+    start = triangulate_points(P, tracks.obs_point, tracks.obs_camera, tracks.obs_xy, len(tracks.points))
+    start = np.where(np.isfinite(start), start, tracks.points)
+    g = bundle_adjust(np.stack([w2c[c] for c in reg]), np.array([K[c][0, 0] for c in reg]),
+                      np.array([[intr[c].cx, intr[c].cy] for c in reg]), start, tracks.obs_camera,
+                      tracks.obs_point, tracks.obs_xy, scan=scan, focal_prior=np.array([intr[c].fx for c in reg]),
+                      centre_prior=np.stack([mounts[c] for c in reg]),
+                      lens_group=[priors.lens_groups[c] for c in reg],
+                      lens=[_radial_lens(intr[c], lenses.get(c)) for c in reg],
+                      principal_sigma=_principal_sigmas(reg, rig, guided_bundle, options), options=guided_bundle)
+    K = {c: np.array([[g.focal[i], 0, g.principal[i, 0]], [0, g.focal[i], g.principal[i, 1]],
+                      [0, 0, 1.0]]) for i, c in enumerate(reg)}
+    w2c = {c: g.world_to_camera[i] for i, c in enumerate(reg)}
+    stats["guided"] = {**tracks.stats, "bundle": g.stats, "inliers": int(g.inlier.sum()),
+                       "median_reprojection_px": float(np.median(g.reprojection_px[g.inlier])),
+                       "through": "lidar scan" if scan is not None else "plane-sweep surface"}
+    calibrated = dict(cams.lenses)
+    if g.distortion is not None:   # the lens as refined: what the record and the frames rectified after use
+        for i, c in enumerate(reg):
+            if _radial_lens(intr[c], lenses.get(c)) is not None:
+                calibrated[c] = replace(calibrated[c], distortion=_with_radial(calibrated[c].distortion,
+                                                                               g.distortion[i]))
+                stats["guided"].setdefault("distortion_correction", {})[c] = {
+                    "dk1": float(g.distortion[i][0]), "dk2": float(g.distortion[i][1])}
+    if scan is None:   # the adjusted cameras onto the mounts again (or the known distance)
+        T, stats["frame"] = frame_without_lidar(w2c, mounts, options)
+        w2c = {c: T.apply_pose(w2c[c]) for c in reg}
+    return _Cameras(reg, K, w2c, calibrated, guided_observations=np.bincount(tracks.obs_camera[g.inlier],
+                                                                             minlength=len(reg)),
+                    guided_sigma=g.sigma)
+
+
+def _photometric_refinement(cams: _Cameras, views: _Views, priors: _RigPriors, scan: LidarScan | None,
+                            options: StaticCalibrationOptions, stats: dict) -> _Cameras:
+    """6. With a scan and ``options.photometric``: every textured background pixel seen by two
+    cameras votes on their poses and focals (:func:`~volcap_core.calibration.photometric.refine_photometric`).
+    Otherwise the cameras unchanged."""
+    if scan is None or options.photometric is None:
+        return cams
+    ph = refine_photometric({c: views.background[c] for c in cams.ids}, cams.K, cams.world_to_camera, scan,
+                            centre_prior=priors.mounts, focal_prior={c: views.intrinsics[c].fx for c in cams.ids},
+                            options=options.photometric)
+    stats["photometric"] = {k: ph[k] for k in ("samples", "points", "rms_per_level", "seconds")}
+    return replace(cams, K=ph["K"], world_to_camera=ph["world_to_camera"])
+
+
+def _final_model(model: SparseModel, first: BundleResult, cams: _Cameras, views: _Views) -> SparseModel:
+    """7. The sparse model under the final cameras: its points re-triangulated from them (inlier
+    observations of step 4 only; a point that does not triangulate keeps step 4's position)."""
+    reg, K, w2c = cams.ids, cams.K, cams.world_to_camera
+    inl = first.inlier
     P = np.stack([K[c] @ w2c[c][:3] for c in reg])
     pts = triangulate_points(P, model.obs_point[inl], model.obs_camera[inl], model.obs_xy[inl], len(model.points))
     good = np.isfinite(pts).all(1)
-    pts[~good] = res["points"][~good]
-    model.points = pts
-    model.world_to_camera = dict(w2c)
-    model.intrinsics = {c: Intrinsics(K[c][0, 0], K[c][1, 1], K[c][0, 2], K[c][1, 2], intr[c].width,
-                                      intr[c].height) for c in reg}
-    # the final support: the sparse reconstruction's observations under the final cameras
-    support = camera_support(K, w2c, reg, model.points, model.obs_camera[inl], model.obs_point[inl],
-                             model.obs_xy[inl])
-    if guided_counts is not None:
+    pts[~good] = first.points[~good]
+    intr = views.intrinsics
+    return replace(model, points=pts, world_to_camera=dict(w2c),
+                   intrinsics={c: Intrinsics(K[c][0, 0], K[c][1, 1], K[c][0, 2], K[c][1, 2], intr[c].width,
+                                             intr[c].height) for c in reg})
+
+
+def _final_support(model: SparseModel, inlier: np.ndarray, cams: _Cameras) -> dict[str, dict]:
+    """7. Each camera's support (:func:`camera_support`): the sparse model's observations (step 4's
+    inliers) under the final cameras; after step 5, its standard deviations are step 5's."""
+    reg = cams.ids
+    support = camera_support(cams.K, cams.world_to_camera, reg, model.points, model.obs_camera[inlier],
+                             model.obs_point[inlier], model.obs_xy[inlier])
+    if cams.guided_observations is not None:
         # how well step 5 knows each camera: its adjustment's covariance, the points eliminated and
         # the principal point, focal and lens corrections unknown under their priors (a
         # principal-point error is a rotation, bundle._camera_sigma), in place of the pose-only
         # bound on the SfM's observations
+        counts, sigma = cams.guided_observations, cams.guided_sigma
         for i, c in enumerate(reg):
             # a camera step 5 matched nothing for: its covariance is its priors and a regulariser
-            known = 1.0 if guided_counts[i] > 0 else float("inf")
-            support[c].update(guided_observations=int(guided_counts[i]),
-                              rotation_sigma_deg=known * float(guided_sigma["rotation_deg"][i]),
-                              centre_sigma_m=known * float(guided_sigma["centre_m"][i]),
-                              principal_sigma_px=known * float(guided_sigma["principal_px"][i]),
-                              focal_sigma_pct=known * 100 * float(guided_sigma["focal_rel"][i]))
-    stats["support"] = support
-    stats["time_s"] = {"sfm": t1 - t0, "bundle": t2 - t1, "guided": t_guided - t2, "photometric": t3 - t_guided,
-                       "total": time.perf_counter() - t0}
-    return StaticCalibration(camera_ids=reg, K=K, world_to_camera=w2c,
-                             size={c: (intr[c].width, intr[c].height) for c in reg}, model=model,
-                             unregistered=sorted(reasons), stats=stats, reasons=dict(sorted(reasons.items())),
-                             support=support,
-                             raw_intrinsics={c: raw_from_rectified(K[c], raw_intr[c]) for c in reg if c in raw_intr})
+            known = 1.0 if counts[i] > 0 else float("inf")
+            support[c].update(guided_observations=int(counts[i]),
+                              rotation_sigma_deg=known * float(sigma.rotation_deg[i]),
+                              centre_sigma_m=known * float(sigma.centre_m[i]),
+                              principal_sigma_px=known * float(sigma.principal_px[i]),
+                              focal_sigma_pct=known * 100 * float(sigma.focal_rel[i]))
+    return support
 
 
 def _radial_lens(rect: Intrinsics, raw: Intrinsics | None) -> tuple[float, ...] | None:
@@ -487,7 +628,7 @@ def scene_depths(static: StaticCalibration, stage_size_m: Sequence[float],
     neighbours are chosen for their triangulation angle, is the volume's median depth (the sparse
     points' without the volume in view). Cameras with fewer than ``min_points`` sparse points in
     front are left out (they sweep the fixed range); none without a model. Kept in ``StaticCalibration.scene_depth``
-    (:func:`~volcap_core.calibration.steps.calibrate_static_step`) and the records after it."""
+    (:func:`~volcap_core.calibration.static_step.calibrate_static_step`) and the records after it."""
     from volcap_core.stage import stage_volume
 
     model = static.model
@@ -597,14 +738,23 @@ def _surface_depth_ranges(plates: Mapping[str, np.ndarray], cameras: Mapping[str
     return ranges, middle, stats
 
 
-def _check_known_distance(world_to_camera: Mapping[str, np.ndarray], known: tuple[str, str, float]) -> dict:
+def _known_distance_of(ids: Sequence[str], known: tuple[str, str, float]) -> tuple[str, str, float]:
+    """``known`` (camera id, camera id, metres) when both cameras are among the calibrated ``ids``
+    and the distance is positive; :class:`KnownDistanceError` otherwise."""
     a, b, d = known
-    missing = [c for c in (a, b) if c not in world_to_camera]
+    missing = [c for c in (a, b) if c not in ids]
     if missing:
         raise KnownDistanceError(f"known_distance names camera(s) {missing} that are not calibrated static cameras "
-                                 f"({', '.join(sorted(world_to_camera))})")
+                                 f"({', '.join(sorted(ids))})")
     if not d > 0:
         raise KnownDistanceError(f"known_distance between {a} and {b} must be positive, got {d}")
+    return a, b, d
+
+
+def _check_known_distance(world_to_camera: Mapping[str, np.ndarray], known: tuple[str, str, float]) -> dict:
+    """With a scan (which gives the scale): how far the calibrated cameras' centres are from the
+    known distance (metres)."""
+    a, b, d = _known_distance_of(list(world_to_camera), known)
     measured = float(np.linalg.norm(camera_centre(world_to_camera[a]) - camera_centre(world_to_camera[b])))
     return {"known_distance_m": float(d), "known_distance_measured_m": measured,
             "known_distance_error_m": measured - float(d)}
@@ -638,12 +788,7 @@ def frame_without_lidar(world_to_camera: Mapping[str, np.ndarray], mounts: Mappi
         T, inl = Similarity(), np.ones(len(ids), bool)
     stats: dict = {"scale_source": 0.0, "mount_inliers": int(inl.sum())}
     if options.known_distance is not None:
-        a, b, d = options.known_distance
-        if a not in ids or b not in ids:
-            raise KnownDistanceError(f"known_distance names camera(s) {[c for c in (a, b) if c not in ids]} that "
-                                     f"are not calibrated static cameras ({', '.join(ids)})")
-        if not d > 0:
-            raise KnownDistanceError(f"known_distance between {a} and {b} must be positive, got {d}")
+        a, b, d = _known_distance_of(ids, options.known_distance)
         moved = T.apply(src)
         now = float(np.linalg.norm(moved[ids.index(a)] - moved[ids.index(b)]))
         k = float(d) / now
@@ -757,10 +902,3 @@ def _without_cameras(model: SparseModel, drop: list[str], min_views: int = 2) ->
                    keypoints={c: v for c, v in model.keypoints.items() if c not in drop},
                    descriptors={c: v for c, v in model.descriptors.items() if c not in drop},
                    point_of_keypoint=pok, unregistered=sorted(set(model.unregistered) | set(drop)))
-
-
-def similarity_to_mounts(model: SparseModel, rig: Rig) -> Similarity:
-    """Robust similarity taking a reconstruction's camera centres onto the rig's nominal mounts."""
-    src = model.centres()
-    dst = np.stack([np.asarray(rig.camera(c).mount.position_m, np.float64) for c in model.camera_ids])
-    return robust_umeyama(src, dst, threshold=0.5)[0]

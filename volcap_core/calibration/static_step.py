@@ -28,7 +28,7 @@ from volcap_core.calibration.photometric import background_plate
 from volcap_core.calibration.record import Matrix3, Matrix4, finite_figures, float_matrix
 from volcap_core.calibration.static import (StaticCalibration, StaticCalibrationOptions, calibrate_static_cameras,
                                             instant_frames, scene_depths)
-from volcap_core.calibration.tracking import StaticReference, build_static_reference
+from volcap_core.calibration.tracking.observe import StaticReference, build_static_reference
 from volcap_core.records import ArtifactRef, Record
 
 log = logging.getLogger("volcap.calibrate")

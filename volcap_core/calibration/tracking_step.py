@@ -20,8 +20,11 @@ from hardware.rig import Rig
 from volcap_core.calibration.errors import CalibrationInputError
 from volcap_core.calibration.inputs import EncoderReadings, FrameSource
 from volcap_core.calibration.record import finite_figures
-from volcap_core.calibration.tracking import (StaticReference, TrackingOptions, TrackingSolution,
-                                              calibrate_tracking_cameras, tracking_support, zoom_lens)
+from volcap_core.calibration.tracking.calibrate import calibrate_tracking_cameras
+from volcap_core.calibration.tracking.lens import zoom_lens
+from volcap_core.calibration.tracking.observe import StaticReference
+from volcap_core.calibration.tracking.options import TrackingOptions
+from volcap_core.calibration.tracking.solve import TrackingSolution, tracking_support
 from volcap_core.records import ArtifactRef, Record
 
 
@@ -99,7 +102,7 @@ def calibrate_tracking_step(cap_name: str, rig: Rig, camera: str, encoder: Encod
 
 def check_tracking_support(capture_name: str, camera: str, sol: TrackingSolution,
                            options: TrackingOptions = TrackingOptions()) -> TrackingSolution:
-    """``sol`` when the camera is supported (:func:`~volcap_core.calibration.tracking.tracking_support`);
+    """``sol`` when the camera is supported (:func:`~volcap_core.calibration.tracking.solve.tracking_support`);
     otherwise an error naming the capture, the camera and the reason, or, with
     ``options.allow_unsupported``, ``sol`` marked ``unsupported`` (the calibration leaves it out and
     lists it). The one check of :func:`calibrate_tracking_step`."""
