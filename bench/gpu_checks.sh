@@ -5,11 +5,12 @@
 #      weights): denoising steps at 1024² and 4K, VAE, a whole 4K frame, bf16 LoRA training;
 #   3. the CUDA tests (pytest -m gpu): gsplat against the torch back-end (forward, gradients,
 #      rendered flow), Poly4DGS training through gsplat, RAFT with torchvision;
-#   4. bench/bench_rasterizer.py on CUDA, gsplat beside the torch back-end.
+#   4. bench/bench_rasterizer.py on CUDA, gsplat beside the torch back-end;
+#   5. bench/bench_poly4dgs_step.py: a Poly4DGS training step against a static 3DGS of the same count.
 # Results go to $OUT (default /tmp/volcap-gpu). Python packages the machine lacks can travel as
 # wheels in .whl/ (installed with --no-deps into /tmp/site). On 2026-11-26 an H200 image with torch
 # 2.11 (Python 3.12) lacked pydantic, pydantic_core, annotated_types, typing_inspection, diffusers
-# 0.42.1, gsplat 1.5.3 and importlib_metadata; fetch them for it with
+# 0.42.1, gsplat 1.5.3 and importlib_metadata (and OpenEXR, for the tests that read EXR); fetch them for it with
 #   pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
 #       --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 -d .whl NAME==VERSION
 # (the tests that need OpenEXR, pycolmap or Prefect are not collected there: the first is reported
@@ -54,4 +55,8 @@ timeout "${RASTER_S:-120}" python3 bench/bench_rasterizer.py --device cuda --bac
     --gaussians 100000 --sizes 256 1024 --tile-sizes 16 --json "$OUT/raster_small.json" 2>&1 | tee "$OUT/raster.log"
 timeout "${RASTER_S:-120}" python3 bench/bench_rasterizer.py --device cuda --backends gsplat \
     --gaussians 1000000 --sizes 1024 2048 --json "$OUT/raster_large.json" 2>&1 | tee -a "$OUT/raster.log"
+
+# 5. Poly4DGS's step against a static 3DGS's, through gsplat (the paper: "no visible overhead")
+timeout "${STEP_S:-150}" python3 bench/bench_poly4dgs_step.py --device cuda --frames 1 8 \
+    --json "$OUT/poly4dgs_step.json" 2>&1 | tee "$OUT/poly4dgs_step.log"
 echo done

@@ -73,10 +73,9 @@ from volcap_core.imageio.plain_frame import (
     restamp_exr,
 )
 from volcap_core.imageio.read import ImageInfo, probe_footage, read_footage
-from volcap_core.imageio.write import encode_exr
+from volcap_core.imageio.write import HALF_MAX, encode_exr
 
 NanPolicy = Literal["error", "repair"]
-HALF_MAX = 65504.0
 
 
 @dataclass(frozen=True)

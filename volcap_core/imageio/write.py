@@ -18,7 +18,7 @@ from volcap_core.chromaticities import WORKING_CHROMATICITIES, Chromaticities
 from volcap_core.files import write_atomic
 from volcap_core.imageio.check import COMPRESSION_NAMES
 
-__all__ = ["HALF_MAX", "encode_exr", "write_exr", "extra_attributes"]
+__all__ = ["HALF_MAX", "encode_exr", "write_exr", "extra_attributes", "to_half"]
 
 #: Largest finite half-float value; ``write_exr(..., pixel_type="half")`` clamps finite values to it.
 HALF_MAX = 65504.0
@@ -39,7 +39,7 @@ def _compression_enum(name: str):
     return getattr(OpenEXR.Compression, "NO_COMPRESSION" if key == "none" else f"{key.upper()}_COMPRESSION")
 
 
-def _to_half(pixels: np.ndarray) -> np.ndarray:
+def to_half(pixels: np.ndarray) -> np.ndarray:
     """float -> float16, clamping finite values to +-HALF_MAX (a plain cast would turn 70000 into
     inf, which downstream would read as a blown-out pixel rather than a very bright one); NaN and
     +-inf stay as they are."""
@@ -86,7 +86,7 @@ def encode_exr(
     if not np.issubdtype(p.dtype, np.floating) and not np.issubdtype(p.dtype, np.integer):
         raise ValueError(f"pixels must be numeric, got {p.dtype}")
     if pixel_type == "half":
-        data = _to_half(p)
+        data = to_half(p)
     elif pixel_type == "float":
         data = p.astype(np.float32)
     else:

@@ -52,6 +52,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from volcap_core.calibration.geometry import look_at_rotation
 from volcap_core.chromaticities import WORKING_CHROMATICITIES
+from volcap_core.imageio.write import HALF_MAX, to_half
 from volcap_core.production._errors import format_validation_error
 from volcap_core.production.performance import Performance, gaussians_in_volume, render_performance, segments_at
 from volcap_core.records import ArtifactRef
@@ -473,7 +474,7 @@ def encode_shot_exr(rgba: np.ndarray, camera: Camera, shot: Shot, frame: int, *,
     if empty:
         window = (0, 0, 0, 0)
     x0, y0, x1, y1 = window
-    half = np.where(np.isfinite(px), np.clip(px, -65504.0, 65504.0), px).astype(np.float16)
+    half = to_half(px)
     cropped = half[y0:y1 + 1, x0:x1 + 1]
     focal = float(camera.K[0, 0]) * shot.sensor_size_mm[0] / w  # back from pixels to mm
     K = np.ascontiguousarray(camera.K.detach().cpu().double().numpy())
@@ -504,7 +505,7 @@ def encode_shot_exr(rgba: np.ndarray, camera: Camera, shot: Shot, frame: int, *,
                                    if isinstance(value, float) else value)
     planes = {c: np.ascontiguousarray(cropped[..., i]) for i, c in enumerate("RGBA")}
     if flow is not None and not empty:
-        f16 = np.clip(np.nan_to_num(np.asarray(flow, np.float32), nan=0.0), -65504.0, 65504.0).astype(np.float16)
+        f16 = np.clip(np.nan_to_num(np.asarray(flow, np.float32), nan=0.0), -HALF_MAX, HALF_MAX).astype(np.float16)
         for i, c in enumerate(FLOW_CHANNELS):
             planes[c] = np.ascontiguousarray(f16[y0:y1 + 1, x0:x1 + 1, i])
     out = io.BytesIO()
