@@ -116,7 +116,7 @@ def test_per_frame_lenses_keep_out_of_the_static_cameras_map_cache():
 
 
 def test_static_record_carries_raw_intrinsics_and_distortion_into_the_calibration():
-    """The flow's static step stores what ``pipeline.build_record`` needs: the flow's Calibration
+    """The flow's static step stores what ``assemble.build_record`` needs: the flow's Calibration
     equals the one-call pipeline's."""
     from hardware.rig import load_rig
     from volcap_core.calibration.assemble import build_record
