@@ -298,6 +298,8 @@ def _opencv_entries(source: str, data) -> dict[str, Mapping]:
 
 def _filestorage_to_python(node):
     """A ``cv2.FileNode`` as plain Python: maps -> dicts, sequences -> lists, matrices -> lists."""
+    if node.isMap() and {"rows", "cols", "data"} <= set(node.keys()):   # an !!opencv-matrix
+        return node.mat().tolist()
     if node.isMap():
         return {k: _filestorage_to_python(node.getNode(k)) for k in node.keys()}
     if node.isSeq():
