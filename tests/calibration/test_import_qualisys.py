@@ -197,3 +197,41 @@ def test_small_file_offsets_inactive_and_errors():
     bad = (XML % b"2000").replace(b'r11="1"', b'r11="2"')
     with pytest.raises(CalibrationInputError, match=r"lab\.qca\.txt: camera camA: the rotation is not a proper rotation"):
         calibration_from_qualisys(bad, "cap", 10, 25.0, source="lab.qca.txt")
+
+
+def test_cli_import_with_a_stored_capture(qca, tmp_path):
+    """`volcap import-calibration`: a stored capture gives frames, fps and its frames' sizes (cam01/
+    cam02 at 1080x1920, as SinglePerson's videos), the record is stored and named, its ref printed."""
+    import json
+
+    from typer.testing import CliRunner
+
+    import flows.cli as cli
+    from hardware.rig import load_rig
+    from volcap_core.calibration.record import Calibration
+    from volcap_core.capture import Capture, CaptureCamera
+    from volcap_core.store import ArtifactStore
+
+    s = ArtifactStore(str(tmp_path / "store"))
+    cams = tuple(CaptureCamera(id=c, width=1080 if c in ("cam01", "cam02") else 1088, height=1920,
+                               channels=("R", "G", "B"), source_encoding="linear", frames=())
+                 for c in ("cam01", "cam02", "cam03", "cam04", "cam05"))
+    s.set_ref("captures/single", s.put_record(Capture(name="single", rig=load_rig("demo_scene"), fps=60.0,
+                                                      start_timecode="00:00:00:00", frame_count=100, cameras=cams)))
+    res = CliRunner().invoke(cli.app, ["import-calibration", str(qca), "--format", "qualisys", "--capture", "single",
+                                       "--store", s.url, "--json"])
+    assert res.exit_code == 0, res.output
+    out = json.loads(res.output.strip().splitlines()[-1])
+    assert out["name"] == "imported-calibrations/single" and out["capture_cameras_missing"] == ["cam05"]
+    rec = s.get_record(s.get_ref("imported-calibrations/single"), Calibration)
+    assert rec.model_dump() == s.get_record(s.resolve(out["calibration"]["digest"]), Calibration).model_dump()
+    assert (rec.frame_count, rec.fps) == (100, 60.0)
+    assert rec.camera("cam01").width == 1080 and rec.camera("cam03").width == 1088
+    assert "cam01: 1080x1920" in res.output and "scaled by 0.99265" in res.output
+
+    res = CliRunner().invoke(cli.app, ["import-calibration", str(qca), "--format", "qualisys", "--capture", "other",
+                                       "--store", s.url])
+    assert isinstance(res.exception, cli.CommandError) and "give --frames and --fps" in str(res.exception)
+    res = CliRunner().invoke(cli.app, ["import-calibration", str(qca), "--format", "colmap", "--capture", "single",
+                                       "--store", s.url])
+    assert isinstance(res.exception, cli.CommandError) and "--format colmap reads a folder" in str(res.exception)
