@@ -458,7 +458,7 @@ def import_calibration_cmd(source: Annotated[Path, typer.Argument(exists=True, h
                            metres_per_unit: Annotated[float, typer.Option("--metres-per-unit", help="COLMAP/OpenCV translations' unit in metres (0.001 for mm); Qualisys is mm by definition")] = 1.0,
                            store: StoreOpt = DEFAULT_STORE, json_out: JsonOpt = False) -> None:
     """Store a studio's calibration as a Calibration record, named imported-calibrations/NAME, and
-    print its ref (use it as `volcap reconstruct --calibration REF`). A camera of a stored capture
+    print its ref (a Calibration ref, as `export-colmap` takes). A camera of a stored capture
     whose frames were resampled since (another size) gets the intrinsics of its frames, scaled
     uniformly and centred (docs/calibration.md, "Importing a studio's calibration")."""
     from volcap_core.calibration import importers

@@ -109,7 +109,7 @@ def test_axis_convention_by_reprojection(qca):
             Ra = f(raw[cid])
             alt[cid] = (Ra, -Ra @ centres[cid], K, d)
         alt_errs = _leave_one_out_errors(alt)
-        assert np.median(alt_errs) > 150, (name, np.median(alt_errs))
+        assert np.median(alt_errs) > 100, (name, np.median(alt_errs))   # 160 px to behind the cameras
     # and the picks triangulate to a treadmill lying flat: the brackets on the floor frame's z = 0
     # within 3 cm, the post tops ~18 cm above, 0.6 m apart
     pts = {}
