@@ -449,6 +449,65 @@ def _replace_dir_atomic(path: Path, write) -> None:
         shutil.rmtree(old, ignore_errors=True)
 
 
+@app.command(name="import-calibration")
+def import_calibration_cmd(source: Annotated[Path, typer.Argument(exists=True, help="Qualisys .qca.txt, OpenCV YAML/JSON file, or COLMAP model folder")],
+                           fmt: Annotated[str, typer.Option("--format", help="qualisys, colmap or opencv")],
+                           capture: Annotated[str, typer.Option("--capture", help="the capture it calibrates; a stored captures/NAME gives frames, fps and frame sizes")],
+                           frames: Annotated[Optional[int], typer.Option("--frames", min=1, help="frame count (default: the stored capture's)")] = None,
+                           fps: Annotated[Optional[float], typer.Option("--fps", min=0.001, help="frame rate (default: the stored capture's)")] = None,
+                           metres_per_unit: Annotated[float, typer.Option("--metres-per-unit", help="COLMAP/OpenCV translations' unit in metres (0.001 for mm); Qualisys is mm by definition")] = 1.0,
+                           store: StoreOpt = DEFAULT_STORE, json_out: JsonOpt = False) -> None:
+    """Store a studio's calibration as a Calibration record, named imported-calibrations/NAME, and
+    print its ref (a Calibration ref, as `export-colmap` takes). A camera of a stored capture
+    whose frames were resampled since (another size) gets the intrinsics of its frames, scaled
+    uniformly and centred (docs/calibration.md, "Importing a studio's calibration")."""
+    from volcap_core.calibration import importers
+    from volcap_core.capture import Capture
+    from volcap_core.store import MissingRefError
+
+    if fmt not in ("qualisys", "colmap", "opencv"):
+        raise CommandError(f"--format {fmt!r}: one of qualisys, colmap, opencv")
+    if fmt == "qualisys" and metres_per_unit != 1.0:
+        raise CommandError("--metres-per-unit: a Qualisys calibration is in mm by definition")
+    if (fmt == "colmap") != source.is_dir():
+        raise CommandError(f"{source}: --format {fmt} reads {'a folder' if fmt == 'colmap' else 'a file'}")
+    s = _open(store)
+    try:
+        cap = s.get_record(s.get_ref(f"captures/{capture}"), Capture)
+    except MissingRefError:
+        cap = None
+    frames = frames if frames is not None else (cap.frame_count if cap else None)
+    fps = fps if fps is not None else (cap.fps if cap else None)
+    if frames is None or fps is None:
+        raise CommandError(f"no capture captures/{capture} in the store: give --frames and --fps")
+    sizes = {c.id: (c.width, c.height) for c in cap.cameras} if cap else {}   # the ingested frames'
+    kw = dict(capture=capture, frame_count=frames, fps=fps)
+    if fmt == "colmap":
+        read = lambda fs: importers.calibration_from_colmap(source, metres_per_unit=metres_per_unit, frame_sizes=fs, **kw)  # noqa: E731
+    elif fmt == "opencv":
+        read = lambda fs: importers.calibration_from_opencv(source.read_bytes(), source=str(source), metres_per_unit=metres_per_unit, frame_sizes=fs, **kw)  # noqa: E731
+    else:
+        read = lambda fs: importers.calibration_from_qualisys(source.read_bytes(), source=str(source), frame_sizes=fs, **kw)  # noqa: E731
+    ids = {c.id for c in read(None).cameras}
+    record = read({c: wh for c, wh in sizes.items() if c in ids})
+    ref = s.put_record(record)
+    s.set_ref(f"imported-calibrations/{capture}", ref)
+    lines = [f"calibration imported-calibrations/{capture}: {ref.digest}"]
+    for c in record.cameras:
+        fx, fy, cx, cy = c.intrinsics
+        note = f", frames {c.width}x{c.height} scaled by {c.quality['resample_scale']:.5f}" if "resample_scale" in c.quality else ""
+        lines.append(f"  {c.id}: {c.width}x{c.height}, fx {fx:.1f} fy {fy:.1f} cx {cx:.1f} cy {cy:.1f}, "
+                     f"{len(c.distortion)} distortion coefficients{note}")
+    if record.unregistered:
+        lines.append("  left out: " + "; ".join(f"{k}: {v}" for k, v in sorted(record.unregistered.items())))
+    missing = sorted(set(sizes) - ids)
+    if missing:
+        lines.append(f"  capture cameras without a calibration: {', '.join(missing)}")
+    _emit({"calibration": ref.model_dump(mode="json"), "name": f"imported-calibrations/{capture}",
+           "cameras": sorted(ids), "unregistered": record.unregistered, "capture_cameras_missing": missing},
+          json_out, "\n".join(lines))
+
+
 def _fmt(x: float | None, digits: int = 2) -> str:
     return "n/a" if x is None else f"{x:.{digits}f}"
 
