@@ -11,7 +11,7 @@ Roles (paper, "Hardware Setup of the Scene Rig"):
 - ``tracking-portrait``: portrait-oriented tracking cameras framing full/upper/lower body.
 
 Lens calibrations (optional): a static camera's ``intrinsics`` (:class:`MeasuredIntrinsics`, or its
-``lens_group``'s), a tracking camera's ``zoom_intrinsics`` (:class:`ZoomIntrinsics`: its distortion,
+``lens_group``'s; also read as OpenCV's distCoeffs vector or a COLMAP camera, ``hardware.lens_models``), a tracking camera's ``zoom_intrinsics`` (:class:`ZoomIntrinsics`: its distortion,
 and optionally its principal point, sampled over its focal in mm, linear in the focal in between).
 """
 
