@@ -83,13 +83,15 @@ def _finite(values: Sequence[float], what: str) -> tuple[float, ...]:
     return out
 
 
-def opencv_distortion(coeffs: Sequence[float]) -> tuple[str, tuple[float, ...]]:
-    """OpenCV's ``distCoeffs`` (4, 5, 8, 12 or 14 values, or none) -> ``(model, params)``: the
-    smallest of :data:`DISTORTION_MODELS` that holds them exactly (``(k1, k2, p1, p2, k3)`` with
-    ``k3 == 0`` is ``OPENCV``; with ``p1 == p2 == 0`` too, ``RADIAL``...).
+def opencv_distortion(coeffs: Sequence[float], model: str | None = None) -> tuple[str, tuple[float, ...]]:
+    """OpenCV's ``distCoeffs`` (4, 5, 8, 12 or 14 values, or none) -> ``(model, params)``: in
+    ``model`` (one of :data:`DISTORTION_MODELS`) when given, else the smallest model that holds
+    them exactly (``(k1, k2, p1, p2, k3)`` with ``k3 == 0`` is ``OPENCV``; with ``p1 == p2 == 0``
+    too, ``RADIAL``...).
 
-    Raises ``ValueError`` for another length, a non-finite value, or a non-zero thin-prism
-    (``s1..s4``) or tilt (``tauX``, ``tauY``) term, naming the term."""
+    Raises ``ValueError`` for another length, a non-finite value, a non-zero thin-prism
+    (``s1..s4``) or tilt (``tauX``, ``tauY``) term (naming the term), or a non-zero term
+    ``model`` does not hold."""
     c = _finite(coeffs, "OpenCV distortion coefficients")
     if len(c) not in OPENCV_LENGTHS:
         raise ValueError(f"OpenCV distortion has 4, 5, 8, 12 or 14 coefficients "
@@ -98,16 +100,35 @@ def opencv_distortion(coeffs: Sequence[float]) -> tuple[str, tuple[float, ...]]:
         if value != 0.0:
             raise ValueError(f"OpenCV distortion term {name} = {value:g} ({_NOT_APPLIED[name]}) is not applied by "
                              f"volcap (it applies k1-k6, p1, p2): calibrate without it, or give it as 0")
-    k1, k2, p1, p2, k3, k4, k5, k6 = (c + (0.0,) * 8)[:8]
-    if any((k3, k4, k5, k6)):
-        return "FULL_OPENCV", (k1, k2, p1, p2, k3, k4, k5, k6)
-    if p1 or p2:
-        return "OPENCV", (k1, k2, p1, p2)
-    if k2:
-        return "RADIAL", (k1, k2)
-    if k1:
-        return "SIMPLE_RADIAL", (k1,)
-    return "PINHOLE", ()
+    full = dict(zip(OPENCV_COEFFICIENTS[:8], (c + (0.0,) * 8)[:8]))
+    full["k"] = full["k1"]
+    if model is None:
+        model = smallest_model(full)
+    names = DISTORTION_MODELS.get(model)
+    if names is None:
+        raise ValueError(f"unknown distortion model {model!r}: one of {', '.join(DISTORTION_MODELS)}")
+    dropped = [n for n in OPENCV_COEFFICIENTS[:8] if full[n] and n not in names and not (n == "k1" and "k" in names)]
+    if dropped:
+        raise ValueError(f"distortion model {model} has no {', '.join(dropped)}: these OpenCV coefficients need "
+                         f"{smallest_model(full)}")
+    return model, tuple(full[n] for n in names)
+
+
+def smallest_model(coefficients: dict[str, float]) -> str:
+    """The smallest of :data:`DISTORTION_MODELS` whose parameters hold every non-zero one of
+    ``coefficients`` (OpenCV's names, k1..k6, p1, p2; absent ones are 0)."""
+    def nonzero(*names: str) -> bool:
+        return any(coefficients.get(n, 0.0) for n in names)
+
+    if nonzero("k3", "k4", "k5", "k6"):
+        return "FULL_OPENCV"
+    if nonzero("p1", "p2"):
+        return "OPENCV"
+    if nonzero("k2"):
+        return "RADIAL"
+    if nonzero("k1"):
+        return "SIMPLE_RADIAL"
+    return "PINHOLE"
 
 
 def colmap_intrinsics(model: str, params: Sequence[float]

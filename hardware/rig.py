@@ -192,7 +192,8 @@ class ZoomSample(BaseModel):
 class ZoomIntrinsics(BaseModel):
     """A zoom lens's distortion (and principal point) as a function of its focal length: a table of
     :class:`ZoomSample` in increasing focal, one distortion ``model`` for all of them (one of
-    :data:`DISTORTION_MODELS`).
+    :data:`DISTORTION_MODELS`). Samples may give OpenCV's distCoeffs vectors (``opencv``) in place
+    of ``params``: :meth:`_opencv_samples` holds them in one model.
 
     Between samples every parameter is **linear in the focal** (mm): :meth:`at`. For the OPENCV
     family without a rational term the distorted point is linear in the parameters, so this is the
@@ -207,6 +208,33 @@ class ZoomIntrinsics(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
     model: str = "OPENCV"
     samples: tuple[ZoomSample, ...]
+
+    @model_validator(mode="before")
+    @classmethod
+    def _opencv_samples(cls, data):
+        # samples written as OpenCV's distCoeffs (``opencv`` in place of ``params``), as a lens
+        # calibrated at each zoom setting gives them: one model for the table (the table's when
+        # given, else the smallest that holds every sample) and each sample's params in it
+        if not isinstance(data, dict) or not isinstance(data.get("samples"), (list, tuple)):
+            return data
+        samples = data["samples"]
+        vectors = [isinstance(smp, dict) and "opencv" in smp for smp in samples]
+        if not any(vectors):
+            return data
+        if not all(vectors) or any("params" in smp for smp in samples):
+            raise ValueError("give every sample's distortion as opencv (OpenCV's distCoeffs), or every sample's as "
+                             "params in the table's model, not a mix")
+
+        def read(smp: dict, model: str | None) -> tuple[str, tuple[float, ...]]:
+            try:
+                return opencv_distortion(smp["opencv"], model)
+            except ValueError as exc:
+                raise ValueError(f"the sample at {smp.get('focal_mm')} mm: {exc}") from None
+
+        order = list(DISTORTION_MODELS)
+        model = data.get("model") or max((read(smp, None)[0] for smp in samples), key=order.index)
+        out = [{**{k: v for k, v in smp.items() if k != "opencv"}, "params": read(smp, model)[1]} for smp in samples]
+        return {**data, "model": model, "samples": out}
 
     @model_validator(mode="after")
     def _table_is_consistent(self) -> "ZoomIntrinsics":

@@ -142,6 +142,37 @@ def test_opencv_form_refuses_a_second_distortion():
         Rig.model_validate(_rig(_camera(**both)))
 
 
+def _zoom_rig(table: dict) -> dict:
+    cam = _camera("Z0")
+    cam.update(role="tracking-landscape", lens={"focal_min_mm": 4.0, "focal_max_mm": 12.0}, nominal_focal_mm=6.0,
+               zoom_intrinsics=table)
+    return _rig(cam)
+
+
+def test_zoom_lens_table_takes_opencv_vectors_in_one_model():
+    wide, tele = [-0.31, 0.12, 0.0007, -0.0005, -0.021], [0.05, 0.0, 0.0004, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+    table = {"samples": [{"focal_mm": 4.0, "opencv": wide, "cx": 641.0, "cy": 359.0},
+                         {"focal_mm": 12.0, "opencv": tele, "cx": 640.0, "cy": 360.0}]}
+    z = Rig.model_validate(_zoom_rig(table)).camera("Z0").zoom_intrinsics
+    # the wide end needs k3: the whole table is FULL_OPENCV, each sample the same lens as its vector
+    assert z.model == "FULL_OPENCV"
+    assert Distortion(z.model, z.samples[0].params).opencv_full() == Distortion.from_opencv(wide).opencv_full()
+    assert Distortion(z.model, z.samples[1].params).opencv_full() == Distortion.from_opencv(tele).opencv_full()
+    assert z.samples[1].cx == 640.0
+    # a table's own model holds them when it can, and is refused by name when it cannot
+    assert Rig.model_validate(_zoom_rig({**table, "model": "FULL_OPENCV"})).camera("Z0").zoom_intrinsics == z
+    with pytest.raises(ValidationError, match=r"camera Z0: zoom_intrinsics: the sample at 4.0 mm: distortion model "
+                                              r"OPENCV has no k3: these OpenCV coefficients need FULL_OPENCV"):
+        Rig.model_validate(_zoom_rig({**table, "model": "OPENCV"}))
+    prism = {"samples": [{"focal_mm": 4.0, "opencv": wide}, {"focal_mm": 12.0, "opencv": tele[:8] + [0.0, 0.0, 2e-3, 0.0]}]}
+    with pytest.raises(ValidationError, match=r"camera Z0: zoom_intrinsics: the sample at 12.0 mm: OpenCV distortion "
+                                              r"term s3 = 0.002 \(thin prism\)"):
+        Rig.model_validate(_zoom_rig(prism))
+    mixed = {"samples": [{"focal_mm": 4.0, "opencv": wide}, {"focal_mm": 12.0, "params": [0.05, 0.0, 0.0004, 0.0]}]}
+    with pytest.raises(ValidationError, match="camera Z0: zoom_intrinsics: give every sample's distortion as opencv"):
+        Rig.model_validate(_zoom_rig(mixed))
+
+
 #: COLMAP cameras (cameras.txt's model and params, COLMAP pixels) of the webcam's lens
 COLMAP_CAMERAS = {
     "SIMPLE_PINHOLE": [905.3, 647.7, 357.3],
