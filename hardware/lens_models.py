@@ -73,10 +73,12 @@ COLMAP_REFUSED: dict[str, str] = {
 
 
 def _finite(values: Sequence[float], what: str) -> tuple[float, ...]:
+    if isinstance(values, (str, bytes)):
+        raise ValueError(f"{what}: expected a list of numbers, got {values!r}")
     try:
         out = tuple(float(v) for v in values)
     except (TypeError, ValueError):
-        raise ValueError(f"{what}: expected numbers, got {list(values)!r}") from None
+        raise ValueError(f"{what}: expected a list of numbers, got {values!r}") from None
     bad = [v for v in out if not math.isfinite(v)]
     if bad:
         raise ValueError(f"{what}: non-finite values {bad}")

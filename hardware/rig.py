@@ -11,9 +11,10 @@ Roles (paper, "Hardware Setup of the Scene Rig"):
 - ``tracking-portrait``: portrait-oriented tracking cameras framing full/upper/lower body.
 
 Lens calibrations (optional): a static camera's ``intrinsics`` (:class:`MeasuredIntrinsics`, or its
-``lens_group``'s; also read as OpenCV's distCoeffs vector or a COLMAP camera, ``hardware.lens_models``), a tracking camera's ``zoom_intrinsics`` (:class:`ZoomIntrinsics`: its distortion,
-and optionally its principal point, sampled over its focal in mm, linear in the focal in between).
-"""
+``lens_group``'s), a tracking camera's ``zoom_intrinsics`` (:class:`ZoomIntrinsics`: its distortion,
+and optionally its principal point, sampled over its focal in mm, linear in the focal in between);
+either also read as calibration tools write lenses (OpenCV's distCoeffs vectors, COLMAP cameras:
+``hardware.lens_models``)."""
 
 from __future__ import annotations
 
@@ -126,10 +127,7 @@ class MeasuredIntrinsics(BaseModel):
             if taken:
                 raise ValueError(f"give the distortion as opencv or as model + params, not both (got opencv and "
                                  f"{' and '.join(taken)})")
-            coeffs = data.pop("opencv")
-            if not isinstance(coeffs, (list, tuple)):
-                raise ValueError(f"opencv: OpenCV's distCoeffs as a list of numbers, got {coeffs!r}")
-            data["model"], data["params"] = opencv_distortion(coeffs)
+            data["model"], data["params"] = opencv_distortion(data.pop("opencv"))
             return data
         camera = data.pop("colmap")
         if not isinstance(camera, dict) or set(camera) != {"model", "params"}:
