@@ -140,6 +140,9 @@ def test_opencv_form_refuses_a_second_distortion():
     both = {**_opencv_intrinsics(WEBCAM), "model": "OPENCV", "params": WEBCAM[:4]}
     with pytest.raises(ValidationError, match="camera C0: intrinsics: give the distortion as opencv or as model"):
         Rig.model_validate(_rig(_camera(**both)))
+    with pytest.raises(ValidationError, match="camera C0: intrinsics: OpenCV distortion coefficients: expected a list "
+                                              "of numbers, got 3.0"):
+        Rig.model_validate(_rig(_camera(**{**_opencv_intrinsics([]), "opencv": 3.0})))
 
 
 def _zoom_rig(table: dict) -> dict:
