@@ -12,8 +12,9 @@ Roles (paper, "Hardware Setup of the Scene Rig"):
 
 Lens calibrations (optional): a static camera's ``intrinsics`` (:class:`MeasuredIntrinsics`, or its
 ``lens_group``'s), a tracking camera's ``zoom_intrinsics`` (:class:`ZoomIntrinsics`: its distortion,
-and optionally its principal point, sampled over its focal in mm, linear in the focal in between).
-"""
+and optionally its principal point, sampled over its focal in mm, linear in the focal in between);
+either also read as calibration tools write lenses (OpenCV's distCoeffs vectors, COLMAP cameras:
+``hardware.lens_models``)."""
 
 from __future__ import annotations
 
@@ -28,7 +29,9 @@ from typing import Iterable, Literal
 from pydantic import (BaseModel, ConfigDict, Field, SerializerFunctionWrapHandler, ValidationError, model_serializer,
                       model_validator)
 
+from hardware.lens_models import DISTORTION_MODELS, colmap_intrinsics, opencv_distortion
 from hardware.serialization import omit_unset
+from hardware.validation_errors import format_loc, format_validation_error
 
 
 class CameraRole(str, Enum):
@@ -86,22 +89,20 @@ class Mount(BaseModel):
     roll_deg: float = 0.0
 
 
-#: lens distortion models (COLMAP's names) -> their parameters in order; the same table as
-#: ``volcap_core.calibration.distortion.MODELS`` (a test keeps them equal)
-DISTORTION_MODELS: dict[str, tuple[str, ...]] = {
-    "PINHOLE": (),
-    "SIMPLE_RADIAL": ("k",),
-    "RADIAL": ("k1", "k2"),
-    "OPENCV": ("k1", "k2", "p1", "p2"),
-    "FULL_OPENCV": ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"),
-}
-
-
 class MeasuredIntrinsics(BaseModel):
     """A lens calibration of one camera (or of a lens group): pixels at the camera's
     ``sensor.width_px`` x ``height_px``, OpenCV convention (centre of the top-left pixel at (0, 0));
-    ``model`` one of :data:`DISTORTION_MODELS` with its ``params`` in that order (COLMAP's order,
-    also OpenCV's ``distCoeffs`` order)."""
+    ``model`` one of :data:`~hardware.lens_models.DISTORTION_MODELS` with its ``params`` in that
+    order (COLMAP's order, also OpenCV's ``distCoeffs`` order).
+
+    Two more forms are read, as calibration tools write them, and held in this one
+    (:meth:`_studio_forms`; ``hardware.lens_models`` maps them exactly or refuses them):
+
+    - ``fx, fy, cx, cy`` and ``opencv``: OpenCV's ``distCoeffs`` vector of 4, 5, 8, 12 or 14
+      values (thin-prism and tilt terms only as zeros);
+    - ``colmap``: ``{"model": ..., "params": [...]}``, a COLMAP camera (a ``cameras.txt`` line's
+      model and parameters, COLMAP's order and pixels: principal point +0.5) at the camera's
+      resolution; ``fx, fy, cx, cy`` come from it."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
     fx: float = Field(gt=0)
@@ -111,14 +112,46 @@ class MeasuredIntrinsics(BaseModel):
     model: str = "PINHOLE"
     params: tuple[float, ...] = ()
 
+    @model_validator(mode="before")
+    @classmethod
+    def _studio_forms(cls, data):
+        # ``opencv`` / ``colmap`` -> model + params (and fx..cy): stored, serialised and applied as
+        # the canonical form, so a rig reads the same however its lens was written
+        if not isinstance(data, dict) or not ({"opencv", "colmap"} & set(data)):
+            return data
+        data = dict(data)
+        if "opencv" in data and "colmap" in data:
+            raise ValueError("give the lens as one of opencv or colmap, not both")
+        taken = sorted({"model", "params"} & set(data))
+        if "opencv" in data:
+            if taken:
+                raise ValueError(f"give the distortion as opencv or as model + params, not both (got opencv and "
+                                 f"{' and '.join(taken)})")
+            data["model"], data["params"] = opencv_distortion(data.pop("opencv"))
+            return data
+        camera = data.pop("colmap")
+        if not isinstance(camera, dict) or set(camera) != {"model", "params"}:
+            raise ValueError(f"colmap: a COLMAP camera as {{\"model\": NAME, \"params\": [...]}}, got {camera!r}")
+        taken = sorted({"fx", "fy", "cx", "cy", "model", "params"} & set(data))
+        if taken:
+            raise ValueError(f"a COLMAP camera carries its own focal, principal point and distortion: give colmap "
+                             f"without {', '.join(taken)}")
+        (fx, fy, cx, cy), model, params = colmap_intrinsics(camera["model"], camera["params"])
+        data.update(fx=fx, fy=fy, cx=cx, cy=cy, model=model, params=params)
+        return data
+
     @model_validator(mode="after")
     def _params_fit_model(self) -> "MeasuredIntrinsics":
         names = DISTORTION_MODELS.get(self.model)
         if names is None:
             raise ValueError(f"unknown distortion model {self.model!r}: one of {', '.join(DISTORTION_MODELS)}")
         if len(self.params) != len(names):
+            hint = ""
+            if self.model in ("OPENCV", "FULL_OPENCV"):
+                hint = (": OpenCV's distCoeffs vector (4, 5, 8, 12 or 14 coefficients) goes in as it is in "
+                        "opencv, in place of model and params")
             raise ValueError(f"distortion model {self.model} takes {len(names)} parameters "
-                             f"({', '.join(names) or 'none'}), got {len(self.params)}")
+                             f"({', '.join(names) or 'none'}), got {len(self.params)}{hint}")
         return self
 
     def check_against(self, cam_id: str, sensor: Sensor, lens: Lens) -> None:
@@ -157,7 +190,8 @@ class ZoomSample(BaseModel):
 class ZoomIntrinsics(BaseModel):
     """A zoom lens's distortion (and principal point) as a function of its focal length: a table of
     :class:`ZoomSample` in increasing focal, one distortion ``model`` for all of them (one of
-    :data:`DISTORTION_MODELS`).
+    :data:`DISTORTION_MODELS`). Samples may give OpenCV's distCoeffs vectors (``opencv``) in place
+    of ``params``: :meth:`_opencv_samples` holds them in one model.
 
     Between samples every parameter is **linear in the focal** (mm): :meth:`at`. For the OPENCV
     family without a rational term the distorted point is linear in the parameters, so this is the
@@ -172,6 +206,33 @@ class ZoomIntrinsics(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
     model: str = "OPENCV"
     samples: tuple[ZoomSample, ...]
+
+    @model_validator(mode="before")
+    @classmethod
+    def _opencv_samples(cls, data):
+        # samples written as OpenCV's distCoeffs (``opencv`` in place of ``params``), as a lens
+        # calibrated at each zoom setting gives them: one model for the table (the table's when
+        # given, else the smallest that holds every sample) and each sample's params in it
+        if not isinstance(data, dict) or not isinstance(data.get("samples"), (list, tuple)):
+            return data
+        samples = data["samples"]
+        vectors = [isinstance(smp, dict) and "opencv" in smp for smp in samples]
+        if not any(vectors):
+            return data
+        if not all(vectors) or any("params" in smp for smp in samples):
+            raise ValueError("give every sample's distortion as opencv (OpenCV's distCoeffs), or every sample's as "
+                             "params in the table's model, not a mix")
+
+        def read(smp: dict, model: str | None) -> tuple[str, tuple[float, ...]]:
+            try:
+                return opencv_distortion(smp["opencv"], model)
+            except ValueError as exc:
+                raise ValueError(f"the sample at {smp.get('focal_mm')} mm: {exc}") from None
+
+        order = list(DISTORTION_MODELS)
+        model = data.get("model") or max((read(smp, None)[0] for smp in samples), key=order.index)
+        out = [{**{k: v for k, v in smp.items() if k != "opencv"}, "params": read(smp, model)[1]} for smp in samples]
+        return {**data, "model": model, "samples": out}
 
     @model_validator(mode="after")
     def _table_is_consistent(self) -> "ZoomIntrinsics":
@@ -277,19 +338,17 @@ class RigCamera(BaseModel):
     @model_validator(mode="wrap")
     @classmethod
     def _name_the_camera(cls, data, handler):
-        # a zoom lens table's own errors (order, parameter counts...) are raised inside the nested
-        # model, where the camera is not known: name it
+        # a lens's own errors (a zoom table's order, parameter counts, an OpenCV term volcap does not
+        # apply...) are raised inside the nested model, where the camera is not known: name it
         try:
             return handler(data)
         except ValidationError as exc:
             cam_id = data.get("id") if isinstance(data, dict) else getattr(data, "id", None)
-            zoom = [e for e in exc.errors() if e["loc"][:1] == ("zoom_intrinsics",)]
-            if cam_id is None or not zoom:
+            lines = format_validation_error(exc, describe_loc=lambda loc: ".".join(str(x) for x in loc))
+            lens = [line for line in lines if line.startswith(("intrinsics", "zoom_intrinsics"))]
+            if cam_id is None or not lens:
                 raise
-            e = zoom[0]
-            where = ".".join(str(x) for x in e["loc"])
-            msg = e["msg"].removeprefix("Value error, ")
-            raise ValueError(f"camera {cam_id}: {where}: {msg}") from None
+            raise ValueError(f"camera {cam_id}: {lens[0]}") from None
 
     @model_validator(mode="after")
     def _focal_in_range(self) -> "RigCamera":
@@ -504,6 +563,31 @@ def load_rig(reference: str | Path, base: str | Path = ".") -> Rig:
                              "(a rig file's name ends in .json)")
         text, where = res.read_text(), f"built-in rig {reference}"
     try:
-        return Rig.model_validate(json.loads(text))
+        data = json.loads(text)
+        return Rig.model_validate(data)
+    except ValidationError as exc:
+        raise ValueError(f"{where}: invalid rig: {rig_problems(exc, data)}") from exc
     except ValueError as exc:
         raise ValueError(f"{where}: invalid rig: {exc}") from exc
+
+
+def rig_problems(exc: ValidationError, data, shown: int = 3) -> str:
+    """A rig's validation errors on one line: the first ``shown`` of them, each naming its camera
+    (by id) or lens group and the field, with pydantic's or the validator's reason; ``; `` between
+    them and ``(and N more)`` after. ``data``: the rig as validated (the camera ids are read from it)."""
+    cameras = data.get("cameras") if isinstance(data, dict) else None
+
+    def describe(loc: tuple) -> str:
+        if loc[:1] == ("cameras",) and len(loc) >= 2 and isinstance(loc[1], int):
+            cam = cameras[loc[1]] if isinstance(cameras, list) and loc[1] < len(cameras) else None
+            name = f"camera {cam['id']}" if isinstance(cam, dict) and "id" in cam else f"camera #{loc[1]}"
+            # a camera's own validators already name it
+            return f"{name}: {format_loc(loc[2:])}" if len(loc) > 2 else ""
+        if loc[:1] in (("lens_groups",), ("zoom_lens_groups",)) and len(loc) >= 2:
+            kind = "lens group" if loc[0] == "lens_groups" else "zoom lens group"
+            return f"{kind} {loc[1]!r}" + (f": {format_loc(loc[2:])}" if len(loc) > 2 else "")
+        return format_loc(loc) if loc else ""   # the rig's own validators name the rig
+
+    lines = format_validation_error(exc, describe_loc=describe)
+    text = "; ".join(lines[:shown])
+    return text + (f" (and {len(lines) - shown} more)" if len(lines) > shown else "")

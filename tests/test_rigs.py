@@ -143,7 +143,7 @@ def test_distorted_demo_rig_carries_measured_intrinsics():
     from volcap_core.calibration.distortion import MODELS
     from volcap_core.calibration.sfm import Intrinsics
 
-    from hardware.rig import DISTORTION_MODELS
+    from hardware.lens_models import DISTORTION_MODELS
 
     assert DISTORTION_MODELS == MODELS
     rig = load_rig("demo_scene_distorted")

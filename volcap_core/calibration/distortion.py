@@ -10,7 +10,9 @@ A camera maps a point ``X_cam = (X, Y, Z)`` (OpenCV axes) to the normalized coor
     u = fx x_d + cx,   v = fy y_d + cy          (OpenCV pixels: top-left pixel centre at (0, 0))
 
 Models (names as COLMAP's ``CameraModelId``; parameters in COLMAP's order, which is also the order
-of OpenCV's ``distCoeffs`` vector ``(k1, k2, p1, p2[, k3[, k4, k5, k6]])``; the missing ones are 0):
+of OpenCV's ``distCoeffs`` vector ``(k1, k2, p1, p2[, k3[, k4, k5, k6[, s1..s4[, tauX, tauY]]]])``;
+the missing ones are 0; OpenCV's thin-prism and tilt terms are not applied and read only as zeros,
+:meth:`Distortion.from_opencv`):
 
 =================  =================================  ==================================
 model              params                             OpenCV distCoeffs
@@ -59,6 +61,8 @@ from dataclasses import dataclass
 from typing import Any, NamedTuple, Protocol
 
 import numpy as np
+
+from hardware.lens_models import colmap_intrinsics, opencv_distortion
 
 #: model name -> parameter names, in COLMAP's (and OpenCV's) order
 MODELS: dict[str, tuple[str, ...]] = {
@@ -109,22 +113,12 @@ class Distortion:
 
     @staticmethod
     def from_opencv(coeffs) -> "Distortion":
-        """OpenCV's ``distCoeffs`` (4, 5, 8 values; 12 or 14 refused: thin-prism/tilt are not
-        modelled) -> the smallest model that holds them exactly."""
-        c = [float(v) for v in np.asarray(coeffs, np.float64).reshape(-1)]
-        if len(c) not in (0, 4, 5, 8):
-            raise ValueError(f"OpenCV distortion with {len(c)} coefficients: 4, 5 or 8 supported")
-        c = (c + [0.0] * 8)[:8]
-        k1, k2, p1, p2, k3, k4, k5, k6 = c
-        if any((k3, k4, k5, k6)):
-            return Distortion("FULL_OPENCV", tuple(c))
-        if p1 or p2:
-            return Distortion("OPENCV", (k1, k2, p1, p2))
-        if k2:
-            return Distortion("RADIAL", (k1, k2))
-        if k1:
-            return Distortion("SIMPLE_RADIAL", (k1,))
-        return Distortion.none()
+        """OpenCV's ``distCoeffs`` as ``cv2.calibrateCamera`` writes them (4, 5, 8, 12 or 14
+        values, or none; any shape) -> the smallest model that holds them exactly
+        (``hardware.lens_models.opencv_distortion``). Thin-prism (s1..s4) and tilt (tauX, tauY)
+        terms are accepted as zeros; a non-zero one is refused by name (``ValueError``)."""
+        model, params = opencv_distortion(np.asarray(coeffs, np.float64).reshape(-1).tolist())
+        return Distortion(model, params)
 
     @property
     def is_none(self) -> bool:
@@ -290,21 +284,12 @@ def colmap_camera(fx: float, fy: float, cx: float, cy: float, distortion: Distor
 
 
 def from_colmap_camera(model_name: str, params) -> tuple[tuple[float, float, float, float], Distortion]:
-    """Inverse of :func:`colmap_camera`: ``((fx, fy, cx, cy) OpenCV pixels, Distortion)``."""
-    from volcap_core.calibration.geometry import COLMAP_PIXEL_OFFSET
-
-    p = [float(v) for v in params]
-    name = str(model_name).split(".")[-1].upper()
-    if name in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL"):
-        f, cx, cy, rest = p[0], p[1], p[2], p[3:]
-        fx = fy = f
-        model = "PINHOLE" if name == "SIMPLE_PINHOLE" else name
-    elif name in ("PINHOLE", "OPENCV", "FULL_OPENCV"):
-        fx, fy, cx, cy, rest = p[0], p[1], p[2], p[3], p[4:]
-        model = name
-    else:
-        raise ValueError(f"COLMAP camera model {name} is not supported (fisheye and others)")
-    return (fx, fy, cx - COLMAP_PIXEL_OFFSET, cy - COLMAP_PIXEL_OFFSET), Distortion(model, tuple(rest))
+    """A COLMAP camera (model name, params in COLMAP's order and pixels) -> ``((fx, fy, cx, cy)
+    OpenCV pixels, Distortion)``: the inverse of :func:`colmap_camera`, and the reading of any
+    COLMAP camera volcap can apply (``hardware.lens_models.colmap_intrinsics``; fisheye and the
+    other models are refused by name)."""
+    intrinsics, model, rest = colmap_intrinsics(model_name, [float(v) for v in params])
+    return intrinsics, Distortion(model, rest)
 
 
 def undistort_maps(intrinsics: PinholeLike, distortion: Distortion, out_intrinsics: PinholeLike | None = None

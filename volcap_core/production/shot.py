@@ -50,10 +50,10 @@ import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from hardware.validation_errors import format_validation_error
 from volcap_core.calibration.geometry import look_at_rotation
 from volcap_core.chromaticities import WORKING_CHROMATICITIES
 from volcap_core.imageio.write import HALF_MAX, to_half
-from volcap_core.production._errors import format_validation_error
 from volcap_core.production.performance import Performance, gaussians_in_volume, render_performance, segments_at
 from volcap_core.records import ArtifactRef
 from volcap_core.splat.camera import Camera

@@ -36,7 +36,7 @@ from pydantic import (
     model_validator,
 )
 
-from volcap_core.production._errors import clean_loc, format_validation_error
+from hardware.validation_errors import clean_loc, format_validation_error
 from volcap_core.production.presets import PRESETS, QualityPreset
 from volcap_core.production.segments import Segment, SegmentPlan
 from volcap_core.production.shot import Shot, ShotError, load_shot

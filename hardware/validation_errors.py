@@ -1,4 +1,7 @@
-"""Turn pydantic validation errors into one readable message per problem: field path and value."""
+"""Turn pydantic validation errors into one readable message per problem: field path and value.
+
+In the bottom layer (pydantic only) so that the rigs (``hardware.rig.load_rig``) and the
+production spec and shots (``volcap_core.production``) word their refusals the same way."""
 
 from __future__ import annotations
 
@@ -38,7 +41,8 @@ def format_validation_error(exc: ValidationError, *,
     """One line per error: ``<path>: <message> (got <value>)``.
 
     ``describe_loc`` may turn a location into something friendlier (e.g. ``keyframe 2 (frame
-    130)``); by default the dotted path. Pydantic's "Value error, " prefix is dropped; the value is
+    130)``); by default the dotted path. Where it returns ``""`` the line is the message alone
+    (a validator's message that already names what it is about). Pydantic's "Value error, " prefix is dropped; the value is
     left out when it is a whole object (a model validator's message names what is wrong).
     """
     lines = []
@@ -56,7 +60,7 @@ def format_validation_error(exc: ValidationError, *,
         for prefix in ("Value error, ", "Assertion failed, "):
             if msg.startswith(prefix):
                 msg = msg[len(prefix):]
-        line = f"{where}: {msg}"
+        line = f"{where}: {msg}" if where else msg
         value = err.get("input")
         if err.get("type") != "missing" and "input" in err and not isinstance(value, (dict, list)):
             line += f" (got {_short(value)})"
