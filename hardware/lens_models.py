@@ -45,8 +45,8 @@ OPENCV_LENGTHS: tuple[int, ...] = (0, 4, 5, 8, 12, 14)
 _NOT_APPLIED = {"s1": "thin prism", "s2": "thin prism", "s3": "thin prism", "s4": "thin prism",
                 "tauX": "sensor tilt", "tauY": "sensor tilt"}
 
-#: COLMAP's pixel centres are at +0.5 of OpenCV's (COLMAP: the top-left pixel's corner at (0, 0));
-#: the same value as ``volcap_core.calibration.geometry.COLMAP_PIXEL_OFFSET`` (a test keeps them equal)
+#: COLMAP pixel coordinates = OpenCV pixel coordinates + 0.5 (COLMAP: the top-left pixel's corner at
+#: (0, 0), OpenCV: its centre); the one definition, for rigs and the calibration alike
 COLMAP_PIXEL_OFFSET = 0.5
 
 #: COLMAP camera models volcap applies -> (their parameters in COLMAP's order, the distortion model

@@ -6,7 +6,6 @@ camera and the reason, through the `volcap` command too."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import cv2  # before pycolmap (docs: a zlib clash the other way round)
 import numpy as np
@@ -16,7 +15,6 @@ from pydantic import ValidationError
 from hardware.lens_models import COLMAP_MODELS, COLMAP_PIXEL_OFFSET, COLMAP_REFUSED, DISTORTION_MODELS
 from hardware.rig import Rig, load_rig
 from volcap_core.calibration.distortion import MODELS, Distortion, from_colmap_camera
-from volcap_core.calibration.geometry import COLMAP_PIXEL_OFFSET as GEOMETRY_COLMAP_OFFSET
 from volcap_core.calibration.sfm import Intrinsics
 
 W, H = 1280, 720
@@ -72,7 +70,6 @@ def _rays(dist: np.ndarray) -> np.ndarray:
 
 def test_the_tables_agree_with_the_library():
     assert DISTORTION_MODELS == MODELS
-    assert COLMAP_PIXEL_OFFSET == GEOMETRY_COLMAP_OFFSET
     assert not set(COLMAP_MODELS) & set(COLMAP_REFUSED)
 
 

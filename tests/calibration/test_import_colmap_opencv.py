@@ -116,7 +116,7 @@ def test_opencv_json_and_errors(tmp_path):
         calibration_from_opencv(json.dumps(bad).encode(), "j", 1, 1.0, source="calib.json")
     bad = json.loads(json.dumps(doc))
     bad["cameras"]["camA"]["dist"] = [0.1] * 6
-    with pytest.raises(CalibrationInputError, match=r"calib\.json: camera camA: distortion: OpenCV distortion with 6"):
+    with pytest.raises(CalibrationInputError, match=r"calib\.json: camera camA: distortion: OpenCV distortion has 4, 5, 8, 12 or 14 coefficients .*got 6"):
         calibration_from_opencv(json.dumps(bad).encode(), "j", 1, 1.0, source="calib.json")
     bad = json.loads(json.dumps(doc))
     bad["cameras"]["camA"]["R"] = (2 * np.eye(3)).tolist()

@@ -19,8 +19,8 @@ import cv2  # noqa: F401  (before pycolmap)
 import numpy as np
 import pycolmap
 
+from hardware.lens_models import COLMAP_PIXEL_OFFSET
 from volcap_core.calibration.distortion import Distortion
-from volcap_core.calibration.geometry import COLMAP_PIXEL_OFFSET
 from volcap_core.calibration.record import Calibration, TrackingFrames, camera_at, frame_camera
 from volcap_core.colour import srgb_encode
 

@@ -27,7 +27,7 @@ model              params                             OpenCV distCoeffs
 COLMAP's ``SIMPLE_RADIAL`` and ``RADIAL`` cameras have one focal (``f, cx, cy, k...``):
 :func:`colmap_camera` writes them only for square pixels and falls back to the exact equivalent
 ``OPENCV`` camera (``fx, fy, cx, cy, k1, k2, p1, p2``) otherwise. COLMAP's pixel centres are at
-+0.5 (:data:`~volcap_core.calibration.geometry.COLMAP_PIXEL_OFFSET`); :func:`colmap_camera` adds it.
++0.5 (:data:`hardware.lens_models.COLMAP_PIXEL_OFFSET`); :func:`colmap_camera` adds it.
 
 :meth:`Distortion.undistort` inverts the model by Newton's method with the analytic 2x2 Jacobian,
 started at the distorted point: for |k1| ≤ 0.3 over a 16:9 image at ~50-75° of horizontal field of
@@ -62,7 +62,7 @@ from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
-from hardware.lens_models import colmap_intrinsics, opencv_distortion
+from hardware.lens_models import COLMAP_PIXEL_OFFSET, colmap_intrinsics, opencv_distortion
 
 #: model name -> parameter names, in COLMAP's (and OpenCV's) order
 MODELS: dict[str, tuple[str, ...]] = {
@@ -270,7 +270,6 @@ def colmap_camera(fx: float, fy: float, cx: float, cy: float, distortion: Distor
     distortion's own model when COLMAP has it with these focals (one focal for ``SIMPLE_RADIAL`` /
     ``RADIAL`` / ``SIMPLE_PINHOLE``), else ``PINHOLE`` / ``OPENCV`` / ``FULL_OPENCV``. ``cx, cy``
     get COLMAP's +0.5."""
-    from volcap_core.calibration.geometry import COLMAP_PIXEL_OFFSET
 
     ccx, ccy = cx + COLMAP_PIXEL_OFFSET, cy + COLMAP_PIXEL_OFFSET
     square = abs(fx - fy) < 1e-9

@@ -13,7 +13,7 @@ import cv2  # noqa: F401  (must come before pycolmap)
 import numpy as np
 import pycolmap
 
-from volcap_core.calibration.geometry import COLMAP_PIXEL_OFFSET
+from hardware.lens_models import COLMAP_PIXEL_OFFSET
 
 
 @dataclass(frozen=True)

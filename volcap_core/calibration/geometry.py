@@ -7,7 +7,8 @@ Conventions (everywhere in ``volcap_core.calibration``):
 - camera: OpenCV axes (x right, y down, z forward); ``x_cam = R @ x_world + t`` and the
   world-to-camera matrix is ``[[R, t], [0, 1]]``; the camera centre is ``C = -R^T t``;
 - pixels: OpenCV, the centre of the top-left pixel is (0, 0). COLMAP puts it at (0.5, 0.5):
-  :data:`COLMAP_PIXEL_OFFSET` is added when going to COLMAP and subtracted when coming back.
+  :data:`hardware.lens_models.COLMAP_PIXEL_OFFSET` is added when going to COLMAP and subtracted
+  when coming back.
 """
 
 from __future__ import annotations
@@ -15,9 +16,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-
-#: COLMAP pixel coordinates = OpenCV pixel coordinates + 0.5.
-COLMAP_PIXEL_OFFSET = 0.5
 
 
 #: ``|cos|`` of the angle between the optical axis and ``up`` above which :func:`look_at_rotation`

@@ -36,9 +36,9 @@ from pathlib import Path
 import cv2  # noqa: F401  (before pycolmap)
 import numpy as np
 
+from hardware.lens_models import COLMAP_PIXEL_OFFSET
 from volcap_core.calibration.distortion import Distortion
 from volcap_core.calibration.errors import CalibrationInputError
-from volcap_core.calibration.geometry import COLMAP_PIXEL_OFFSET
 from volcap_core.calibration.record import Calibration, CameraCalibration, matrix4
 
 #: Qualisys writes focal lengths and principal points in 1/64 pixel

@@ -30,9 +30,10 @@ import cv2
 import numpy as np
 import pycolmap
 
+from hardware.lens_models import COLMAP_PIXEL_OFFSET
 from volcap_core.calibration.distortion import Distortion, colmap_camera, from_colmap_camera
 from volcap_core.calibration.features import SiftOptions
-from volcap_core.calibration.geometry import COLMAP_PIXEL_OFFSET, Similarity, pose_matrix
+from volcap_core.calibration.geometry import Similarity, pose_matrix
 from volcap_core.calibration.images import to_uint8_gray
 
 log = logging.getLogger(__name__)
