@@ -29,12 +29,13 @@ CODES = [(16, 128, 128), (235, 128, 128), (126, 128, 128), (63, 102, 240), (180,
 
 
 def write_video(path: Path, codes=CODES, *, width: int = W, height: int = H, fps: int = 24,
-                color_range: int | None = None) -> Path:
+                color_range: int | None = None, faststart: bool = False) -> Path:
     """An H.264 MP4 with one flat Y'CbCr colour per frame, lossless (x264 qp 0), 4:2:0.
-    ``color_range``: FFmpeg's range tag (1 limited, 2 full), none when None."""
+    ``color_range``: FFmpeg's range tag (1 limited, 2 full), none when None. ``faststart``: the
+    index (moov) before the pictures, as streaming encoders write it."""
     import av
 
-    with av.open(str(path), "w") as out:
+    with av.open(str(path), "w", options={"movflags": "faststart"} if faststart else {}) as out:
         stream = out.add_stream("libx264", rate=Fraction(fps))
         stream.width, stream.height, stream.pix_fmt = width, height, "yuv420p"
         stream.options = {"qp": "0", "preset": "ultrafast"}
@@ -156,6 +157,8 @@ def test_video_frames_decode_to_the_standards_linear_values(video_capture, tmp_p
         np.testing.assert_allclose(pixels[i].reshape(-1, 3), np.broadcast_to(want, (H * W, 3)),
                                    atol=2e-3, rtol=2e-3)
     np.testing.assert_allclose(pixels[0], 1.0, atol=1e-3)  # Y' 235 is reference white
+    # the folder reader's load: the same frame before its transfer is undone
+    np.testing.assert_allclose(folder.load("V0", 2)[0, 0], bt709_oetf(expected_linear(*CODES[3])), atol=1e-4)
     (tmp_path / "f.exr").write_bytes(stored[2])
     header = read_exr_header(tmp_path / "f.exr")
     assert header["volcap.source_video"] == "cam01.mp4" and header["volcap.source_frame"] == "3"
@@ -211,6 +214,22 @@ def test_a_truncated_video_is_refused_naming_the_file(tmp_path):
     write_capture(root, {"V0": "videos/cut.mp4"}, {"V0": (W, H)})
     with pytest.raises(IngestError, match=r"camera V0: .*cut\.mp4: not a readable video"):
         CaptureFolder.open(root).video_info("V0")
+
+
+def test_a_video_cut_after_its_index_is_refused_at_the_frame_that_does_not_decode(tmp_path):
+    root = tmp_path / "capture"
+    (root / "videos").mkdir(parents=True)
+    path = write_video(root / "videos" / "cut.mp4", CODES * 8, faststart=True)
+    data = path.read_bytes()
+    path.write_bytes(data[: int(len(data) * 0.6)])
+    write_capture(root, {"V0": "videos/cut.mp4"}, {"V0": (W, H)})
+    folder = CaptureFolder.open(root)
+    info = folder.video_info("V0")
+    assert 0 < info.frame_count < len(CODES) * 8  # the demuxer stops where the bytes do
+    entries = ingest.fingerprint([ingest.RawFrame(0, 0, info.path)])
+    with pytest.raises(IngestError, match=r"camera V0: .*cut\.mp4: frame \d+ cannot be decoded"):
+        ingest.convert_video_camera(folder.camera("V0"), folder.rig.cameras[0], entries, 0, info.frame_count,
+                                    24.0, nan_policy="error", lens=None, put_frame=lambda data: None)
 
 
 def test_a_video_shorter_than_the_take_is_refused_with_its_frame_count(tmp_path):

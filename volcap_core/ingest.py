@@ -33,6 +33,12 @@ A source that already is such a frame (:func:`plain_frame_header`, scene-linear,
 primaries, no NaN/Inf) is restamped rather than converted: new header, the camera's compressed
 chunks copied, its pixels decoded once to prove they decode. Re-compressing costs ~3x a decode, so
 this is what keeps ingest near the cost of reading the footage (``bench/bench_ingest.py``).
+
+A video camera (its ``path`` a video file) is checked by :func:`check_video` (size, square pixels,
+frame rate, decodable colour tags) in place of step 4, and converted by
+:func:`convert_video_camera`: decoded frame by frame (:mod:`volcap_core.imageio.video`), its range
+and matrix expanded, its transfer undone and primaries converted as its
+:class:`~volcap_core.capture.VideoEncoding` says (``docs/capture-layout.md``).
 """
 
 from __future__ import annotations
