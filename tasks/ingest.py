@@ -16,9 +16,9 @@ RAW_MANIFEST_MEDIA = "application/vnd.volcap.raw-manifest+json"
 #: a converted frame's bytes depend on the decoder (OpenImageIO), the colour conversion
 #: (OpenColorIO, numpy) and the encoder's compression (OpenEXR)
 INGEST_LIBRARIES = ("OpenImageIO", "PyOpenColorIO", "OpenEXR", "numpy")
-#: a converted video frame's bytes depend on the decoder (PyAV's FFmpeg), the chroma upsampling
-#: (OpenCV), the transfer function (torch), primaries (OpenColorIO) and the encoder (OpenEXR)
-VIDEO_INGEST_LIBRARIES = ("av", "cv2", "torch", "PyOpenColorIO", "OpenEXR", "numpy")
+#: a converted video frame's bytes depend on the decoder (PyAV's FFmpeg), the transfer function
+#: (torch), primaries (OpenColorIO) and the encoder (OpenEXR)
+VIDEO_INGEST_LIBRARIES = ("av", "torch", "PyOpenColorIO", "OpenEXR", "numpy")
 
 
 @volcap_task(name="fingerprint-camera", version="1")

@@ -142,6 +142,15 @@ def test_bt709_oetf_inverse_is_the_standard_and_inverts():
     np.testing.assert_allclose(bt709_oetf(bt709_oetf_inverse(v)), v, atol=1e-6)
 
 
+def test_chroma_is_upsampled_at_the_default_h273_location():
+    """Chroma sample j sits on luma column 2j (co-sited) and between luma rows 2i and 2i + 1."""
+    from volcap_core.imageio.video import upsample_chroma
+
+    c = np.array([[0, 2, 4], [8, 10, 12]], np.uint8)
+    np.testing.assert_array_equal(upsample_chroma(c, 4, 6), [[0, 1, 2, 3, 4, 4], [2, 3, 4, 5, 6, 6],
+                                                             [6, 7, 8, 9, 10, 10], [8, 9, 10, 11, 12, 12]])
+
+
 def test_video_frames_decode_to_the_standards_linear_values(video_capture, tmp_path):
     folder = CaptureFolder.open(video_capture)
     info = folder.video_info("V0")
@@ -178,6 +187,19 @@ def test_range_and_transfer_overrides_change_the_result_as_stated(tmp_path):
         np.testing.assert_allclose(pixels[i][0, 0], want, atol=2e-3, rtol=2e-3)
     # white (Y' 235) is no longer 1 in full range: 235/255 through the sRGB curve
     assert abs(float(pixels[0][0, 0, 0]) - ((235 / 255 + 0.055) / 1.055) ** 2.4) < 2e-3
+
+
+def test_bt2020_primaries_are_converted_to_the_working_space(tmp_path):
+    root = tmp_path / "capture"
+    (root / "videos").mkdir(parents=True)
+    write_video(root / "videos" / "a.mp4")
+    write_capture(root, {"V0": "videos/a.mp4"}, {"V0": (W, H)}, extra={"V0": {"video": {"primaries": "bt2020"}}})
+    _, pixels, _ = convert(root)
+    grey, red = pixels[1][0, 0], pixels[2][0, 0]
+    np.testing.assert_allclose(grey, expected_linear(*CODES[2]), atol=2e-3)  # same D65 white: grey stays
+    as_709 = expected_linear(*CODES[3])
+    # BT.2020's red lies outside Rec.709's: in Rec.709 terms it is redder, with negative green
+    assert red[0] > as_709[0] + 0.05 and red[1] < as_709[1] - 0.02
 
 
 def test_the_streams_own_range_tag_is_read(tmp_path):

@@ -11,8 +11,8 @@ Decoding is exact where the standards are: Y'CbCr code values are read from the 
 (8 to 16 bits), the range expanded (limited: ``Y' = (Y - 16·2^(b-8)) / (219·2^(b-8))``,
 ``Cb, Cr = (C - 128·2^(b-8)) / (224·2^(b-8))``; full: ``Y' = Y / (2^b - 1)``,
 ``Cb, Cr = (C - 2^(b-1)) / (2^b - 1)``) and the matrix of ITU-R BT.709, BT.601 or BT.2020 (non-
-constant luminance) applied. Subsampled chroma (4:2:0, 4:2:2) is upsampled bilinearly with
-centred sample positions. Values outside ``[0, 1]`` (limited range's foot- and head-room) are kept.
+constant luminance) applied. Subsampled chroma (4:2:0, 4:2:2) is upsampled linearly at H.273's
+default chroma location (:func:`upsample_chroma`). Values outside ``[0, 1]`` (limited range's foot- and head-room) are kept.
 Linearising (the transfer function) and primaries are the caller's: ``volcap_core.ingest``.
 """
 
@@ -35,6 +35,7 @@ __all__ = [
     "is_video_path",
     "iter_video_frames",
     "probe_video",
+    "upsample_chroma",
     "ycbcr_to_rgb",
 ]
 
@@ -177,9 +178,38 @@ def ycbcr_to_rgb(y: np.ndarray, cb: np.ndarray, cr: np.ndarray, bits: int, signa
     return np.stack([r, g, b], axis=-1).astype(np.float32, copy=False)
 
 
-def _frame_rgb(frame, info: VideoInfo, signal_range: SignalRange, matrix: Matrix) -> np.ndarray:
-    import cv2
+def _resample_axis(c: np.ndarray, n_out: int, step: int, cosited: bool, axis: int) -> np.ndarray:
+    """Linear interpolation of chroma ``c`` (float32) to ``n_out`` luma samples along ``axis``:
+    chroma sample ``j`` sits on luma sample ``step·j`` (``cosited``) or midway between the ``step``
+    luma samples it covers; edges repeat."""
+    n_in = c.shape[axis]
+    x = np.arange(n_out, dtype=np.float64)
+    pos = x / step if cosited else (x - (step - 1) / 2.0) / step
+    pos = np.clip(pos, 0.0, n_in - 1)
+    i0 = np.floor(pos).astype(np.intp)
+    i1 = np.minimum(i0 + 1, n_in - 1)
+    f = (pos - i0).astype(np.float32)
+    shape = [1, 1]
+    shape[axis] = n_out
+    f = f.reshape(shape)
+    return np.take(c, i0, axis=axis) * (1.0 - f) + np.take(c, i1, axis=axis) * f
 
+
+def upsample_chroma(c: np.ndarray, height: int, width: int) -> np.ndarray:
+    """A subsampled chroma plane ``[h, w]`` → float32 ``[height, width]`` by linear interpolation at
+    the sample positions of ITU-T H.273's default chroma location (type 0, as MPEG-2, H.264 and
+    HEVC assume when a stream says nothing, and BT.709/BT.2020 specify for 4:2:2): horizontally
+    co-sited with the even luma columns, vertically midway between the two luma rows. A plane at
+    luma size is returned as float32 unchanged."""
+    out = c.astype(np.float32)
+    if out.shape[1] != width:
+        out = _resample_axis(out, width, -(-width // out.shape[1]), True, axis=1)
+    if out.shape[0] != height:
+        out = _resample_axis(out, height, -(-height // out.shape[0]), False, axis=0)
+    return out
+
+
+def _frame_rgb(frame, info: VideoInfo, signal_range: SignalRange, matrix: Matrix) -> np.ndarray:
     if frame.format.name != info.pix_fmt:
         raise ImageReadError(info.path, f"frame changes pixel format to {frame.format.name} "
                                         f"(the stream is {info.pix_fmt})")
@@ -189,10 +219,7 @@ def _frame_rgb(frame, info: VideoInfo, signal_range: SignalRange, matrix: Matrix
     dtype = np.dtype(np.uint8 if info.bits == 8 else "<u2")
     y, cb, cr = (_plane_array(p, dtype) for p in frame.planes[:3])
     h, w = y.shape
-    if cb.shape != y.shape:  # centred bilinear upsampling, in float (cv2 keeps integer inputs integer)
-        cb = cv2.resize(cb.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
-        cr = cv2.resize(cr.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
-    return ycbcr_to_rgb(y, cb, cr, info.bits, signal_range, matrix)
+    return ycbcr_to_rgb(y, upsample_chroma(cb, h, w), upsample_chroma(cr, h, w), info.bits, signal_range, matrix)
 
 
 def iter_video_frames(info: VideoInfo, first: int, count: int, *, signal_range: SignalRange,
