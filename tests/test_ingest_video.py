@@ -29,7 +29,7 @@ CODES = [(16, 128, 128), (235, 128, 128), (126, 128, 128), (63, 102, 240), (180,
 
 
 def write_video(path: Path, codes=CODES, *, width: int = W, height: int = H, fps: int = 24,
-                color_range: int | None = None, faststart: bool = False) -> Path:
+                color_range: int | None = None, color_trc: int | None = None, faststart: bool = False) -> Path:
     """An H.264 MP4 with one flat Y'CbCr colour per frame, lossless (x264 qp 0), 4:2:0.
     ``color_range``: FFmpeg's range tag (1 limited, 2 full), none when None. ``faststart``: the
     index (moov) before the pictures, as streaming encoders write it."""
@@ -41,6 +41,8 @@ def write_video(path: Path, codes=CODES, *, width: int = W, height: int = H, fps
         stream.options = {"qp": "0", "preset": "ultrafast"}
         if color_range is not None:
             stream.codec_context.color_range = color_range
+        if color_trc is not None:
+            stream.codec_context.color_trc = color_trc
         for i, (y, cb, cr) in enumerate(codes):
             frame = av.VideoFrame(width, height, "yuv420p")
             for plane, value in zip(frame.planes, (y, cb, cr)):
@@ -227,6 +229,22 @@ def test_ingest_flow_stores_video_frames_and_a_rerun_decodes_nothing(prefect_api
     assert (again.tasks_run, again.tasks_failed) == (0, 0) and again.result == first.result
 
 
+def test_a_transfer_volcap_does_not_decode_is_refused_until_the_capture_overrides_it(tmp_path):
+    root = tmp_path / "capture"
+    (root / "videos").mkdir(parents=True)
+    write_video(root / "videos" / "a.mp4", color_trc=16)  # SMPTE ST 2084 (PQ)
+    write_capture(root, {"V0": "videos/a.mp4"}, {"V0": (W, H)})
+    folder = CaptureFolder.open(root)
+    with pytest.raises(IngestError, match=r"camera V0: .*a\.mp4 is tagged with transfer characteristics 16 "
+                                          r"\(H\.273 code\), which volcap does not decode; set \"video\": "
+                                          r"\{\"transfer\": \.\.\.\}"):
+        ingest.check_video(folder.camera("V0"), folder.rig.cameras[0], folder.video_info("V0"), folder.fps)
+    write_capture(root, {"V0": "videos/a.mp4"}, {"V0": (W, H)}, extra={"V0": {"video": {"transfer": "bt709"}}})
+    record, pixels, _ = convert(root)
+    assert record.source_video.transfer == "bt709"
+    np.testing.assert_allclose(pixels[0], 1.0, atol=1e-3)
+
+
 def test_a_truncated_video_is_refused_naming_the_file(tmp_path):
     root = tmp_path / "capture"
     (root / "videos").mkdir(parents=True)
@@ -278,6 +296,16 @@ def test_a_video_of_another_size_than_the_rig_camera_is_refused(tmp_path):
     write_capture(root, {"V0": "videos/a.mp4"}, {"V0": (W, H + 2)})
     folder = CaptureFolder.open(root)
     with pytest.raises(IngestError, match=rf"camera V0: .*a\.mp4 is {W}x{H} \(h264\), the rig says {W}x{H + 2}"):
+        ingest.check_video(folder.camera("V0"), folder.rig.cameras[0], folder.video_info("V0"), folder.fps)
+
+
+def test_a_video_at_another_frame_rate_than_the_capture_is_refused(tmp_path):
+    root = tmp_path / "capture"
+    (root / "videos").mkdir(parents=True)
+    write_video(root / "videos" / "a.mp4", fps=25)
+    write_capture(root, {"V0": "videos/a.mp4"}, {"V0": (W, H)}, fps=24)
+    folder = CaptureFolder.open(root)
+    with pytest.raises(IngestError, match=r"camera V0: .*a\.mp4 runs at 25 fps, the capture at 24 fps"):
         ingest.check_video(folder.camera("V0"), folder.rig.cameras[0], folder.video_info("V0"), folder.fps)
 
 

@@ -171,7 +171,7 @@ class CameraSource(BaseModel):
         return self.encoding is Encoding.video
 
     @model_validator(mode="after")
-    def _ocio_needs_colorspace(self) -> "CameraSource":
+    def _check(self) -> "CameraSource":
         if self.encoding is Encoding.ocio and not self.ocio_colorspace:
             raise ValueError(f"camera {self.id}: encoding 'ocio' needs 'ocio_colorspace'")
         video_path = is_video_path(self.path)

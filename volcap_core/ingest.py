@@ -491,10 +491,14 @@ VIDEO_PRIMARIES: dict[str, Chromaticities] = {
 }
 
 
+#: relative frame-rate difference a video may have from the capture's: 30000/1001 is 0.1 % off 30
+FPS_TOLERANCE = 2e-3
+
+
 def check_video(cam: CameraSource, rig_cam: RigCamera, info: VideoInfo, fps: float) -> VideoEncoding:
     """A video camera's probed file against the rig and the capture: picture size the rig sensor's,
-    square pixels, a frame rate within 0.1 % of the capture's, colour tags it can decode (or
-    overridden). Returns the decoding it will use (:func:`volcap_core.capture.video_encoding`)."""
+    square pixels, a frame rate within 0.2 % of the capture's (NTSC's 30000/1001 footage is a 30 fps
+    capture, as its non-drop timecode counts it), colour tags it can decode (or overridden). Returns the decoding it will use (:func:`volcap_core.capture.video_encoding`)."""
     where = f"camera {cam.id}: {info.path}"
     want = (rig_cam.sensor.width_px, rig_cam.sensor.height_px)
     if (info.width, info.height) != want:
@@ -502,7 +506,7 @@ def check_video(cam: CameraSource, rig_cam: RigCamera, info: VideoInfo, fps: flo
     if abs(info.sample_aspect_ratio - 1.0) > PIXEL_ASPECT_TOLERANCE:
         raise IngestError(f"{where} has sample aspect ratio {info.sample_aspect_ratio:g}; the rig's cameras have "
                           "square pixels: resample the footage to square pixels first")
-    if info.fps > 0 and abs(info.fps - fps) > 1e-3 * fps:
+    if info.fps > 0 and abs(info.fps - fps) > FPS_TOLERANCE * fps:
         raise IngestError(f"{where} runs at {info.fps:g} fps, the capture at {fps:g} fps")
     return video_encoding(cam, info)
 

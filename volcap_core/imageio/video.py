@@ -94,7 +94,8 @@ class VideoInfo:
     full_range_format: bool
 
 
-def _tag(value: int, table: dict[int, str], name) -> str | None:
+def _tag(value: int, table: dict[int, str], name: str) -> str | None:
+    """A colour tag as this module names it; None when unspecified; "unsupported:<name>" otherwise."""
     if value in table:
         return table[value]
     if value in _UNSPECIFIED:
@@ -141,10 +142,10 @@ def probe_video(path: str | Path) -> VideoInfo:
         path=path, codec=info_args["codec"], width=info_args["width"], height=info_args["height"],
         frame_count=frames, fps=info_args["fps"], pix_fmt=info_args["pix_fmt"], bits=bits,
         sample_aspect_ratio=info_args["sample_aspect_ratio"],
-        tag_transfer=_tag(info_args["trc"], _TRC_TAGS, f"transfer {info_args['trc']}"),
-        tag_range=_tag(info_args["rng"], _RANGE_TAGS, f"range {info_args['rng']}"),
-        tag_matrix=_tag(info_args["matrix"], _MATRIX_TAGS, f"matrix {info_args['matrix']}"),
-        tag_primaries=_tag(info_args["primaries"], _PRIMARIES_TAGS, f"primaries {info_args['primaries']}"),
+        tag_transfer=_tag(info_args["trc"], _TRC_TAGS, f"transfer characteristics {info_args['trc']} (H.273 code)"),
+        tag_range=_tag(info_args["rng"], _RANGE_TAGS, f"range {info_args['rng']} (FFmpeg code)"),
+        tag_matrix=_tag(info_args["matrix"], _MATRIX_TAGS, f"matrix coefficients {info_args['matrix']} (H.273 code)"),
+        tag_primaries=_tag(info_args["primaries"], _PRIMARIES_TAGS, f"colour primaries {info_args['primaries']} (H.273 code)"),
         full_range_format=full_format)
 
 
