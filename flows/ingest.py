@@ -7,7 +7,7 @@ from pathlib import Path
 
 from prefect import flow, get_run_logger, unmapped
 
-from tasks.ingest import fingerprint_camera, ingest_camera, record_capture
+from tasks.ingest import fingerprint_camera, ingest_camera, ingest_video_camera, record_capture
 from volcap_core import ingest
 from volcap_core.capture import CaptureFolder, IngestError
 from volcap_core.records import ArtifactRef
@@ -39,7 +39,12 @@ def ingest_flow(store: str, capture_dir: str, nan_policy: str = "error", set_ref
             log.info("camera %s: %d recorded frame(s) outside the take left out", c.id, outside)
     lenses = {c.id: ingest.lens_for_take(desc, c, rig_cams[c.id]) for c in desc.cameras}
     for c in desc.cameras:
-        ingest.check_headers(c, rig_cams[c.id], scans[c.id])
+        if c.is_video:
+            used = ingest.check_video(c, rig_cams[c.id], capture.video_info(c.id), desc.fps)
+            log.info("camera %s: %s decoded as transfer %s, %s range, matrix %s, primaries %s", c.id,
+                     capture.video_info(c.id).path, used.transfer, used.range, used.matrix, used.primaries)
+        else:
+            ingest.check_headers(c, rig_cams[c.id], scans[c.id])
     lidar_file = ingest.check_lidar(capture)
     ocio_ref = None
     if desc.ocio_config:
@@ -48,18 +53,37 @@ def ingest_flow(store: str, capture_dir: str, nan_policy: str = "error", set_ref
             raise IngestError(f"{capture.description_path}: ocio_config {ocio_file} does not exist")
         ocio_ref = s.put_file(ocio_file, "application/x-ocio", check_first=True)
 
-    # 2. Fingerprint and convert, one task per camera.
-    files = [[str(f.path) for f in scans[c.id]] for c in desc.cameras]
+    # 2. Fingerprint and convert, one task per camera (a video camera's one file, once).
+    files = [[str(capture.video_info(c.id).path)] if c.is_video else [str(f.path) for f in scans[c.id]]
+             for c in desc.cameras]
     stats = [[_stat(p) for p in fs] for fs in files]
     # Every fingerprint first (hashing: quick beside a conversion), then the conversions on their
     # results: handed futures, each ingest-camera run asked the API for its upstream run's state
     # (0.1-0.2 s a camera while the server records events), and a cached rerun waited for that.
     manifests = [m.result() for m in
                  fingerprint_camera.map(unmapped(store), [c.id for c in desc.cameras], files, stats)]
-    cameras = ingest_camera.map(
-        unmapped(store), unmapped(str(folder)), desc.cameras, [rig_cams[c.id] for c in desc.cameras],
-        manifests, [desc.take_offset(c) for c in desc.cameras], unmapped(desc.take.frame_count),
-        unmapped(ocio_ref), unmapped(nan_policy), [lenses[c.id] for c in desc.cameras])
+    images = [i for i, c in enumerate(desc.cameras) if not c.is_video]
+    videos = [i for i, c in enumerate(desc.cameras) if c.is_video]
+
+    def pick(values: list, which: list[int]) -> list:
+        return [values[i] for i in which]
+
+    cams = list(desc.cameras)
+    rig_list = [rig_cams[c.id] for c in cams]
+    offsets = [desc.take_offset(c) for c in cams]
+    lens_list = [lenses[c.id] for c in cams]
+    futures = {}
+    if images:
+        futures.update(zip(images, ingest_camera.map(
+            unmapped(store), unmapped(str(folder)), pick(cams, images), pick(rig_list, images),
+            pick(manifests, images), pick(offsets, images), unmapped(desc.take.frame_count),
+            unmapped(ocio_ref), unmapped(nan_policy), pick(lens_list, images))))
+    if videos:
+        futures.update(zip(videos, ingest_video_camera.map(
+            unmapped(store), unmapped(str(folder)), pick(cams, videos), pick(rig_list, videos),
+            pick(manifests, videos), pick(offsets, videos), unmapped(desc.take.frame_count),
+            unmapped(desc.fps), unmapped(nan_policy), pick(lens_list, videos))))
+    cameras = [futures[i] for i in range(len(cams))]
 
     ground_truth = None
     gt = capture.ground_truth_path

@@ -16,6 +16,9 @@ RAW_MANIFEST_MEDIA = "application/vnd.volcap.raw-manifest+json"
 #: a converted frame's bytes depend on the decoder (OpenImageIO), the colour conversion
 #: (OpenColorIO, numpy) and the encoder's compression (OpenEXR)
 INGEST_LIBRARIES = ("OpenImageIO", "PyOpenColorIO", "OpenEXR", "numpy")
+#: a converted video frame's bytes depend on the decoder (PyAV's FFmpeg), the transfer function
+#: (torch), primaries (OpenColorIO) and the encoder (OpenEXR)
+VIDEO_INGEST_LIBRARIES = ("av", "torch", "PyOpenColorIO", "OpenEXR", "numpy")
 
 
 @volcap_task(name="fingerprint-camera", version="1")
@@ -53,6 +56,22 @@ def ingest_camera(store: str, capture_dir: str, camera: CameraSource, rig_camera
     return ingest.convert_camera(camera, rig_camera, ingest.parse_raw_manifest(s.get_bytes(raw_manifest)),
                                  take_offset, frame_count, ocio_config=ocio_path, nan_policy=nan_policy, lens=lens,
                                  put_frame=lambda data: s.put_bytes(data, MEDIA_EXR))
+
+
+@volcap_task(name="ingest-video-camera", version="1", locations=("capture_dir",), libraries=VIDEO_INGEST_LIBRARIES)
+def ingest_video_camera(store: str, capture_dir: str, camera: CameraSource, rig_camera: RigCamera,
+                        raw_manifest: ArtifactRef, take_offset: int, frame_count: int, fps: float,
+                        nan_policy: str, lens: list[LensSample] | None) -> CaptureCamera:
+    """Decode one video camera's take to scene-linear half EXR in the store.
+
+    The key holds the video file's digest (``raw_manifest``), the camera's decoding settings
+    (``camera.video``), which frames (``take_offset``, ``frame_count``) and the decoder's release:
+    an unchanged video is not decoded again, wherever it is mounted.
+    """
+    s = ArtifactStore(store)
+    return ingest.convert_video_camera(camera, rig_camera, ingest.parse_raw_manifest(s.get_bytes(raw_manifest)),
+                                       take_offset, frame_count, fps, nan_policy=nan_policy, lens=lens,
+                                       put_frame=lambda data: s.put_bytes(data, MEDIA_EXR))
 
 
 @volcap_task(name="record-capture", version="2")

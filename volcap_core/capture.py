@@ -6,6 +6,8 @@ On-disk layout (documented for users in ``docs/capture-layout.md``)::
       capture.json                  CaptureDescription (below)
       <camera path>/<NNNNNN>.<ext>  one image per frame; NNNNNN = the camera's own frame number,
                                     0 at the camera's start timecode. ext: exr, dpx, tif, tiff, png
+      <camera path>.mp4|mov|m4v|mkv or a camera's video file instead: its frame number n is the n-th
+                                    picture decoded, 0 at the camera's start timecode
       <lidar>.ply                   optional: the rig's lidar scan of the static stage (stage frame,
                                     metres), named by ``CaptureDescription.lidar``; calibration input
       ground_truth/                 optional (synthetic captures): cameras per frame, geometry,
@@ -30,10 +32,22 @@ from pathlib import Path
 from typing import ClassVar
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, model_serializer, model_validator
 
 from hardware.rig import Rig, load_rig
+from volcap_core.imageio.errors import ImageReadError
 from volcap_core.imageio.read import read_image
+from volcap_core.imageio.video import (
+    VIDEO_EXTENSIONS,
+    Matrix,
+    Primaries,
+    SignalRange,
+    Transfer,
+    VideoInfo,
+    is_video_path,
+    iter_video_frames,
+    probe_video,
+)
 from volcap_core.records import ArtifactRef, Record
 
 CAPTURE_FORMAT = "volcap-capture/1"
@@ -73,6 +87,33 @@ class Encoding(str, Enum):
     linear = "linear"   # scene-linear already (EXR from a debayer to linear)
     srgb = "srgb"       # IEC 61966-2-1 transfer function (8/16-bit PNG, TIFF)
     ocio = "ocio"       # a camera log curve, converted by an OpenColorIO config (``ocio_colorspace``)
+    video = "video"     # a video file's Y'CbCr, decoded as its ``VideoEncoding`` says (the camera's ``video``)
+
+
+#: what an untagged video stream is taken to be: HD consumer and broadcast video (H.264, HEVC, VP9
+#: from cameras and phones) is ITU-R BT.709 (its OETF, its Y'CbCr matrix, its primaries) in limited
+#: range (8-bit Y' 16-235, Cb/Cr 16-240), as BT.709 and FFmpeg's own HD convention have it
+DEFAULT_VIDEO_TRANSFER: Transfer = "bt709"
+DEFAULT_VIDEO_RANGE: SignalRange = "limited"
+DEFAULT_VIDEO_MATRIX: Matrix = "bt709"
+DEFAULT_VIDEO_PRIMARIES: Primaries = "bt709"
+
+
+class VideoEncoding(BaseModel):
+    """How a camera's video file encodes light; each field None = the stream's own tag, else the
+    default above. In ``capture.json`` (a camera's ``video``) it overrides the stream; in the
+    Capture record (``source_video``) every field is set to what ingest used.
+
+    ``transfer``: ``bt709`` (the BT.709 OETF, undone to scene-linear; also what BT.601 and BT.2020
+    specify), ``srgb`` (IEC 61966-2-1) or ``linear``. ``range``: ``limited`` (8-bit Y' 16-235) or
+    ``full`` (0-255). ``matrix``: the Y'CbCr matrix. ``primaries``: converted to the working
+    primaries (Rec.709/D65) when they differ."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    transfer: Transfer | None = None
+    range: SignalRange | None = None
+    matrix: Matrix | None = None
+    primaries: Primaries | None = None
 
 
 class LensSample(BaseModel):
@@ -85,9 +126,15 @@ class LensSample(BaseModel):
 
 
 class CameraSource(BaseModel):
+    """One camera of ``capture.json``: where its footage is and how it encodes light.
+
+    ``path`` is a folder of frame files, or a video file (ending ``.mp4``, ``.mov``, ``.m4v``,
+    ``.mkv``): its encoding is then ``video`` (the default for a video path; any other is refused)
+    and ``video`` may override the stream's colour tags (:class:`VideoEncoding`)."""
+
     model_config = ConfigDict(extra="forbid", frozen=True)
     id: str
-    path: str = Field(description="folder of this camera's frames, relative to the capture folder")
+    path: str = Field(description="folder of this camera's frames, or its video file, relative to the capture folder")
     start_timecode: str = Field(description="timecode of the camera's frame number 0")
     encoding: Encoding = Encoding.linear
     ocio_colorspace: str | None = None
@@ -100,14 +147,66 @@ class CameraSource(BaseModel):
                                  description="EXR part name (the part's 'name' attribute) holding this camera")
     exr_view: str | None = Field(default=None, min_length=1,
                                  description="EXR view name ('multiView' / a part's 'view') holding this camera")
+    video: VideoEncoding | None = Field(default=None, description="a video camera's transfer, range, matrix "
+                                                                  "and primaries, overriding the stream's tags")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _video_path_is_video(cls, data):
+        if isinstance(data, dict) and "encoding" not in data and is_video_path(str(data.get("path", ""))):
+            data = {**data, "encoding": Encoding.video}
+        return data
+
+    @model_serializer(mode="wrap")
+    def _without_absent_video(self, handler):
+        # a camera without video settings serialises as it did before the field existed, so the
+        # cache keys of image-sequence ingests stay what they were
+        out = handler(self)
+        if self.video is None and isinstance(out, dict):
+            out.pop("video", None)
+        return out
+
+    @property
+    def is_video(self) -> bool:
+        return self.encoding is Encoding.video
 
     @model_validator(mode="after")
-    def _ocio_needs_colorspace(self) -> "CameraSource":
+    def _check(self) -> "CameraSource":
         if self.encoding is Encoding.ocio and not self.ocio_colorspace:
             raise ValueError(f"camera {self.id}: encoding 'ocio' needs 'ocio_colorspace'")
+        video_path = is_video_path(self.path)
+        if video_path != (self.encoding is Encoding.video):
+            raise ValueError(f"camera {self.id}: path {self.path!r} is "
+                             + ("a video file, its encoding must be 'video' (or left out)" if video_path else
+                                f"not a video file ({', '.join(VIDEO_EXTENSIONS)}); encoding 'video' needs one"))
+        if self.video is not None and not video_path:
+            raise ValueError(f"camera {self.id}: 'video' settings need a video file path")
+        if video_path and (self.exr_part or self.exr_view):
+            raise ValueError(f"camera {self.id}: exr_part/exr_view do not apply to a video file")
         if self.path.startswith("/") or ".." in self.path.split("/"):
             raise ValueError(f"camera {self.id}: path {self.path!r} must stay inside the capture folder")
         return self
+
+
+def video_encoding(camera: CameraSource, info: VideoInfo) -> VideoEncoding:
+    """How ``camera``'s video is decoded, every field set: its ``video`` override, else the stream's
+    tag, else the default (:data:`DEFAULT_VIDEO_TRANSFER` …). FFmpeg's ``yuvj*`` formats are full
+    range. :class:`IngestError` when the stream is tagged with something volcap does not decode
+    and the capture does not override it."""
+    override = camera.video or VideoEncoding()
+    tag_range = "full" if info.full_range_format else info.tag_range
+    chosen = {}
+    for name, tag, default in (("transfer", info.tag_transfer, DEFAULT_VIDEO_TRANSFER),
+                               ("range", tag_range, DEFAULT_VIDEO_RANGE),
+                               ("matrix", info.tag_matrix, DEFAULT_VIDEO_MATRIX),
+                               ("primaries", info.tag_primaries, DEFAULT_VIDEO_PRIMARIES)):
+        value = getattr(override, name)
+        if value is None and tag is not None and tag.startswith("unsupported:"):
+            raise IngestError(f"camera {camera.id}: {info.path} is tagged with {tag.split(':', 1)[1]}, which "
+                              f"volcap does not decode; set \"video\": {{\"{name}\": ...}} in its capture.json "
+                              "entry if the footage is in fact one of the supported encodings")
+        chosen[name] = value if value is not None else tag if tag is not None else default
+    return VideoEncoding(**chosen)
 
 
 class Take(BaseModel):
@@ -174,6 +273,16 @@ class CaptureCamera(BaseModel):
     source_part: str | None = None
     source_view: str | None = None
     source_chromaticities: tuple[float, float, float, float, float, float, float, float] | None = None
+    #: a video camera's decoding as used (every field set); None for image files, and then left
+    #: out of the record's JSON, so records of image-sequence captures keep their bytes
+    source_video: VideoEncoding | None = None
+
+    @model_serializer(mode="wrap")
+    def _without_absent_video(self, handler):
+        out = handler(self)
+        if self.source_video is None and isinstance(out, dict):
+            out.pop("source_video", None)
+        return out
 
 
 class Capture(Record):
@@ -219,6 +328,7 @@ class CaptureFolder:
     description: CaptureDescription
     rig: Rig
     _files: dict[str, dict[int, Path]] = field(default_factory=dict, repr=False, compare=False)
+    _videos: dict[str, VideoInfo] = field(default_factory=dict, repr=False, compare=False)
 
     @classmethod
     def open(cls, root: str | Path) -> "CaptureFolder":
@@ -293,14 +403,40 @@ class CaptureFolder:
         gt = self.description.ground_truth
         return self.root / gt if gt else None
 
+    def video_info(self, camera_id: str) -> VideoInfo:
+        """A video camera's file probed (:func:`volcap_core.imageio.video.probe_video`: size, frame
+        count, colour tags); :class:`IngestError` naming camera and file when it is missing or
+        unreadable, ``ValueError`` for a camera whose path is not a video."""
+        if camera_id in self._videos:
+            return self._videos[camera_id]
+        cam = self.camera(camera_id)
+        if not cam.is_video:
+            raise ValueError(f"camera {cam.id}: {cam.path} is not a video file")
+        path = self.root / cam.path
+        if not path.is_file():
+            raise IngestError(f"camera {cam.id}: video file {path} does not exist")
+        try:
+            info = probe_video(path.resolve())
+        except ImageReadError as exc:
+            raise IngestError(f"camera {cam.id}: {exc}") from exc
+        self._videos[camera_id] = info
+        return info
+
     def frame_files(self, camera_id: str) -> dict[int, Path]:
         """Every frame file of a camera by take index (some may lie outside the take), resolved.
+        A video camera's frames all map to its video file (its frame number ``n`` at take index
+        ``n + offset``, for every frame the file holds).
 
         Refuses a missing or empty camera folder, a file not named as a frame and two files of one
         frame number (``000012.exr`` and ``12.exr``)."""
         if camera_id in self._files:
             return self._files[camera_id]
         cam = self.camera(camera_id)
+        if cam.is_video:
+            info = self.video_info(camera_id)
+            offset = self.offsets[cam.id]
+            self._files[camera_id] = {n + offset: info.path for n in range(info.frame_count)}
+            return self._files[camera_id]
         folder = self.root / cam.path
         if not folder.is_dir():
             raise IngestError(f"camera {cam.id}: folder {folder} does not exist")
@@ -334,6 +470,19 @@ class CaptureFolder:
     def load(self, camera_id: str, take_index: int) -> np.ndarray:
         """A camera's frame at ``take_index`` as stored, not converted: float32 ``[H, W, 3]`` R,G,B
         of the file's first part (:func:`volcap_core.imageio.read_image`). Scene-linear for linear
-        footage, as synthetic captures are; ingest converts every other encoding."""
-        img, _ = read_image(self.frame_path(camera_id, take_index))
+        footage, as synthetic captures are; ingest converts every other encoding. A video camera's
+        frame is decoded (from the start of the file) to non-linear R'G'B' with its range and matrix
+        (:func:`video_encoding`), its transfer function not undone."""
+        path = self.frame_path(camera_id, take_index)
+        cam = self.camera(camera_id)
+        if cam.is_video:
+            info = self.video_info(camera_id)
+            enc = video_encoding(cam, info)
+            try:
+                for _, rgb in iter_video_frames(info, take_index - self.offsets[camera_id], 1,
+                                                signal_range=enc.range, matrix=enc.matrix):
+                    return rgb
+            except ImageReadError as exc:
+                raise IngestError(f"camera {cam.id}: {exc}") from exc
+        img, _ = read_image(path)
         return np.asarray(img[..., :3], np.float32)

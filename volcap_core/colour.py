@@ -1,6 +1,7 @@
 """Colour transfer functions (torch, differentiable).
 
-Two families, both IEC 61966-2-1 (sRGB) piecewise curves:
+Two families of IEC 61966-2-1 (sRGB) piecewise curves, and the ITU-R BT.709 OETF pair
+(:func:`bt709_oetf` / :func:`bt709_oetf_inverse`) that video footage is decoded with:
 
 * :func:`srgb_encode` / :func:`srgb_decode` — the standard display transfer function on its domain
   ``[0, 1]``. Inputs outside ``[0, 1]`` are clamped first (zero gradient there): this is the pair
@@ -40,6 +41,8 @@ __all__ = [
     "srgb_decode_unbounded",
     "srgb_encode",
     "srgb_encode_unbounded",
+    "bt709_oetf",
+    "bt709_oetf_inverse",
 ]
 
 #: Break point of the encoded curve: encoded values at or below it are on the linear segment.
@@ -144,3 +147,50 @@ def srgb_decode(encoded: T) -> T:
     """
     t, dtype, is_numpy = _as_float_tensor(encoded)
     return _back(_decode(t.clamp(0.0, 1.0)), dtype, is_numpy)
+
+
+#: ITU-R BT.709-6 item 1.2: ``V = 4.5 L`` for ``L < 0.018``, ``V = 1.099 L^0.45 - 0.099`` above.
+BT709_LINEAR_BREAK = 0.018
+#: the encoded value at the break, ``4.5 * 0.018``: the inverse's linear segment ends here
+BT709_ENCODED_BREAK = 0.081
+_BT709_SLOPE = 4.5
+_BT709_ALPHA = 1.099
+_BT709_BETA = 0.099
+_BT709_EXPONENT = 0.45
+
+
+def bt709_oetf(linear: T) -> T:
+    """ITU-R BT.709 opto-electronic transfer function: scene-linear ``L`` -> video signal ``V``.
+
+    Extended to all of R as :func:`srgb_encode_unbounded` is: the linear segment continues below 0
+    (limited-range video carries foot-room below black), the power segment above 1 (head-room).
+
+    Args:
+        linear: scene-linear values ``[...]`` (1.0 = the camera's reference white).
+    Returns:
+        ``V`` ``[...]``, same dtype (numpy in, numpy out); ``0 -> 0``, ``1 -> 1``, ``0.01 -> 0.045``.
+    """
+    import torch
+
+    t, dtype, is_numpy = _as_float_tensor(linear)
+    power = _BT709_ALPHA * t.clamp(min=BT709_LINEAR_BREAK).pow(_BT709_EXPONENT) - _BT709_BETA
+    return _back(torch.where(t < BT709_LINEAR_BREAK, _BT709_SLOPE * t, power), dtype, is_numpy)
+
+
+def bt709_oetf_inverse(encoded: T) -> T:
+    """Inverse of the BT.709 OETF: video signal ``V`` (R', G' or B' in ``[0, 1]`` at nominal black
+    and white) -> scene-linear ``L``. This is what "linear light" means for camera video: the
+    light the camera saw, relative to its reference white, not the display light of BT.1886.
+
+    Unbounded like :func:`bt709_oetf`: ``V < 0`` -> ``V / 4.5``; ``V > 1`` follows the power segment.
+
+    Args:
+        encoded: signal values ``[...]`` (e.g. limited-range codes expanded: ``(Y - 16) / 219``).
+    Returns:
+        scene-linear values ``[...]``, same dtype (numpy in, numpy out); ``0.045 -> 0.01``, ``1 -> 1``.
+    """
+    import torch
+
+    t, dtype, is_numpy = _as_float_tensor(encoded)
+    power = ((t.clamp(min=BT709_ENCODED_BREAK) + _BT709_BETA) / _BT709_ALPHA).pow(1.0 / _BT709_EXPONENT)
+    return _back(torch.where(t < BT709_ENCODED_BREAK, t / _BT709_SLOPE, power), dtype, is_numpy)

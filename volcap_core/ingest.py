@@ -33,6 +33,12 @@ A source that already is such a frame (:func:`plain_frame_header`, scene-linear,
 primaries, no NaN/Inf) is restamped rather than converted: new header, the camera's compressed
 chunks copied, its pixels decoded once to prove they decode. Re-compressing costs ~3x a decode, so
 this is what keeps ingest near the cost of reading the footage (``bench/bench_ingest.py``).
+
+A video camera (its ``path`` a video file) is checked by :func:`check_video` (size, square pixels,
+frame rate, decodable colour tags) in place of step 4, and converted by
+:func:`convert_video_camera`: decoded frame by frame (:mod:`volcap_core.imageio.video`), its range
+and matrix expanded, its transfer undone and primaries converted as its
+:class:`~volcap_core.capture.VideoEncoding` says (``docs/capture-layout.md``).
 """
 
 from __future__ import annotations
@@ -55,14 +61,18 @@ from volcap_core.capture import (
     Encoding,
     IngestError,
     LensSample,
+    VideoEncoding,
+    video_encoding,
 )
 from volcap_core.chromaticities import (
     EXR_DEFAULT_CHROMATICITIES,
+    REC709_D65,
+    Chromaticities,
     convert_to_working,
     needs_conversion,
     to_working_matrix,
 )
-from volcap_core.colour import srgb_decode
+from volcap_core.colour import bt709_oetf_inverse, srgb_decode, srgb_decode_unbounded
 from volcap_core.digest import digest_bytes, digest_file
 from volcap_core.imageio.errors import ImageReadError, SourceChoiceError
 from volcap_core.imageio.parts import ColourSource, PartHeader, window_overlap
@@ -73,6 +83,7 @@ from volcap_core.imageio.plain_frame import (
     restamp_exr,
 )
 from volcap_core.imageio.read import ImageInfo, probe_footage, read_footage
+from volcap_core.imageio.video import VideoInfo, iter_video_frames, probe_video
 from volcap_core.imageio.write import HALF_MAX, encode_exr
 
 NanPolicy = Literal["error", "repair"]
@@ -121,6 +132,8 @@ def select_take(desc: CaptureDescription, cam: CameraSource, files: dict[int, Pa
             return frames_to_timecode(tc0 + i, desc.fps)
         msg = (f"camera {cam.id}: the take {tc(0)}-{tc(n - 1)} is out of the camera's recording "
                f"{tc(lo)}-{tc(hi)} (camera frames {lo - offset}-{hi - offset})")
+        if cam.encoding is Encoding.video:
+            msg += f" ({files[lo]} holds {hi - lo + 1} frames)"
         if common is not None:
             msg += (f"; the common timecode range of all cameras is {tc(common[0])}-{tc(common[1])}"
                     if common[0] <= common[1] else "; the cameras share no common timecode range")
@@ -465,3 +478,102 @@ def convert_camera(camera: CameraSource, rig_camera: RigCamera, entries: list[di
                          lens_encoder=tuple(lens) if lens is not None else None,
                          source_part=source.part_name, source_view=source.view,
                          source_chromaticities=tuple(chroma) if chroma is not None else None)
+
+
+
+#: the primaries a video's ``primaries`` names (ITU-R BT.709, BT.601 625- and 525-line, BT.2020;
+#: all D65)
+VIDEO_PRIMARIES: dict[str, Chromaticities] = {
+    "bt709": REC709_D65,
+    "bt601-625": Chromaticities(0.64, 0.33, 0.29, 0.60, 0.15, 0.06, 0.3127, 0.3290),
+    "bt601-525": Chromaticities(0.630, 0.340, 0.310, 0.595, 0.155, 0.070, 0.3127, 0.3290),
+    "bt2020": Chromaticities(0.708, 0.292, 0.170, 0.797, 0.131, 0.046, 0.3127, 0.3290),
+}
+
+
+#: relative frame-rate difference a video may have from the capture's: 30000/1001 is 0.1 % off 30
+FPS_TOLERANCE = 2e-3
+
+
+def check_video(cam: CameraSource, rig_cam: RigCamera, info: VideoInfo, fps: float) -> VideoEncoding:
+    """A video camera's probed file against the rig and the capture: picture size the rig sensor's,
+    square pixels, a frame rate within 0.2 % of the capture's (NTSC's 30000/1001 footage is a 30 fps
+    capture, as its non-drop timecode counts it), colour tags it can decode (or overridden). Returns the decoding it will use (:func:`volcap_core.capture.video_encoding`)."""
+    where = f"camera {cam.id}: {info.path}"
+    want = (rig_cam.sensor.width_px, rig_cam.sensor.height_px)
+    if (info.width, info.height) != want:
+        raise IngestError(f"{where} is {info.width}x{info.height} ({info.codec}), the rig says {want[0]}x{want[1]}")
+    if abs(info.sample_aspect_ratio - 1.0) > PIXEL_ASPECT_TOLERANCE:
+        raise IngestError(f"{where} has sample aspect ratio {info.sample_aspect_ratio:g}; the rig's cameras have "
+                          "square pixels: resample the footage to square pixels first")
+    if info.fps > 0 and abs(info.fps - fps) > FPS_TOLERANCE * fps:
+        raise IngestError(f"{where} runs at {info.fps:g} fps, the capture at {fps:g} fps")
+    return video_encoding(cam, info)
+
+
+def video_to_scene_linear(rgb: np.ndarray, encoding: VideoEncoding) -> np.ndarray:
+    """Non-linear R'G'B' ``[H, W, 3]`` (nominal black 0, white 1) → scene-linear float32 in the
+    working primaries: the transfer function undone (unbounded, so limited range's foot- and
+    head-room survive), then the primaries converted when they are not Rec.709."""
+    if encoding.transfer == "bt709":
+        lin = bt709_oetf_inverse(rgb)
+    elif encoding.transfer == "srgb":
+        lin = srgb_decode_unbounded(rgb)
+    else:
+        lin = rgb
+    chroma = VIDEO_PRIMARIES[encoding.primaries]
+    if needs_conversion(chroma, None):
+        lin = convert_to_working(np.clip(lin, -HALF_MAX, HALF_MAX), chroma, None)
+    return np.ascontiguousarray(lin, dtype=np.float32)
+
+
+def video_frame_attributes(cam: CameraSource, take_index: int, camera_frame: int, info: VideoInfo,
+                           encoding: VideoEncoding) -> dict[str, str]:
+    """The stored frame's ``volcap.*`` header for a video frame: camera, take index, the file, its
+    frame number and the decoding used."""
+    window = _window_text((0, 0, info.width - 1, info.height - 1))
+    return {"volcap.camera": cam.id, "volcap.take_index": str(take_index),
+            "volcap.source_encoding": Encoding.video.value, "volcap.source_data_window": window,
+            "volcap.source_display_window": window, "volcap.source_video": info.path.name,
+            "volcap.source_frame": str(camera_frame), "volcap.source_codec": f"{info.codec} {info.pix_fmt}",
+            "volcap.source_transfer": encoding.transfer, "volcap.source_range": encoding.range,
+            "volcap.source_matrix": encoding.matrix, "volcap.source_primaries": encoding.primaries}
+
+
+def convert_video_camera(camera: CameraSource, rig_camera: RigCamera, entries: list[dict], take_offset: int,
+                         frame_count: int, fps: float, *, nan_policy: NanPolicy,
+                         lens: list[LensSample] | None, put_frame) -> CaptureCamera:
+    """A video camera's take converted to scene-linear half EXRs, each handed to
+    ``put_frame(bytes) -> ArtifactRef`` as it is decoded (one picture in memory at a time).
+
+    ``entries``: the fingerprint manifest of the video file (one entry). Take index ``i`` is the
+    video's frame ``i - take_offset``. Refuses a file whose bytes changed since it was fingerprinted
+    (the cache key would lie), one that ends before the take does, and every check of
+    :func:`check_video`; each error names the camera, the file and the frame."""
+    if len(entries) != 1:
+        raise IngestError(f"camera {camera.id}: a video camera's manifest holds one file, got {len(entries)}")
+    path = Path(entries[0]["file"])
+    digest, _ = digest_file(path)
+    if digest != entries[0]["digest"]:
+        raise IngestError(f"camera {camera.id}: {path} changed during ingest (was {entries[0]['digest']}, "
+                          f"now {digest}); rerun")
+    try:
+        info = probe_video(path)
+    except ImageReadError as exc:
+        raise IngestError(f"camera {camera.id}: {exc}") from exc
+    encoding = check_video(camera, rig_camera, info, fps)
+    first = -take_offset
+    frames = []
+    try:
+        for n, rgb in iter_video_frames(info, first, frame_count, signal_range=encoding.range,
+                                        matrix=encoding.matrix):
+            where = f"camera {camera.id}, frame {n} of {path}"
+            lin, _ = apply_nan_policy(video_to_scene_linear(rgb, encoding), nan_policy, where)
+            attrs = video_frame_attributes(camera, n + take_offset, n, info, encoding)
+            frames.append(put_frame(encode_exr(lin, ("R", "G", "B"), pixel_type="half", compression="zip",
+                                               attributes=attrs)))
+    except ImageReadError as exc:
+        raise IngestError(f"camera {camera.id}: {exc}") from exc
+    return CaptureCamera(id=camera.id, width=info.width, height=info.height, channels=("R", "G", "B"),
+                         source_encoding=Encoding.video, frames=tuple(frames),
+                         lens_encoder=tuple(lens) if lens is not None else None, source_video=encoding)

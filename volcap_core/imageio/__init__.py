@@ -1,4 +1,4 @@
-"""Image files in and out: EXR (all flavours ingest meets), PNG, TIFF and DPX.
+"""Image files in and out: EXR (all flavours ingest meets), PNG, TIFF and DPX; video files in.
 
 Modules, one concern each, each importing only those above it in this list:
 
@@ -14,6 +14,8 @@ Modules, one concern each, each importing only those above it in this list:
   recognised, restamped with a new header without re-encoding, decoded from memory.
 - :mod:`~volcap_core.imageio.read` — probing and decoding through OpenImageIO: ``read_footage``,
   ``probe_footage``, ``read_image``, ``decode_exr`` and the native readers.
+- :mod:`~volcap_core.imageio.video` — video files through PyAV: ``probe_video`` (size, frame
+  count, colour tags) and ``iter_video_frames`` (streaming decode to non-linear R'G'B').
 
 Conventions
 -----------
