@@ -25,8 +25,8 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-#: lens distortion models (COLMAP's names) -> their parameters in order; the same table as
-#: ``volcap_core.calibration.distortion.MODELS`` (a test keeps them equal)
+#: lens distortion models (COLMAP's names) -> their parameters in COLMAP's (and OpenCV's) order: the
+#: models a rig's lens is held in and the calibration applies
 DISTORTION_MODELS: dict[str, tuple[str, ...]] = {
     "PINHOLE": (),
     "SIMPLE_RADIAL": ("k",),

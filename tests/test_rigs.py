@@ -140,12 +140,8 @@ def _intrinsics(**kw) -> dict:
 
 
 def test_distorted_demo_rig_carries_measured_intrinsics():
-    from volcap_core.calibration.distortion import MODELS
     from volcap_core.calibration.sfm import Intrinsics
 
-    from hardware.lens_models import DISTORTION_MODELS
-
-    assert DISTORTION_MODELS == MODELS
     rig = load_rig("demo_scene_distorted")
     plain = load_rig("demo_scene")
     assert [c.id for c in rig.cameras] == [c.id for c in plain.cameras]

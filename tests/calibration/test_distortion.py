@@ -7,7 +7,8 @@ import numpy as np
 import pycolmap
 import pytest
 
-from volcap_core.calibration.distortion import (MODELS, Distortion, colmap_camera, from_colmap_camera,
+from hardware.lens_models import DISTORTION_MODELS
+from volcap_core.calibration.distortion import (Distortion, colmap_camera, from_colmap_camera,
                                                 undistort_image, undistort_maps, undistort_valid_mask)
 from volcap_core.calibration.sfm import Intrinsics
 
@@ -96,7 +97,7 @@ def test_conversions_and_validation():
     with pytest.raises(ValueError, match="unknown distortion model"):
         Distortion("FISHEYE", (0.1,))
     assert Distortion.from_json(d.to_json()) == d and Distortion.from_json(None).is_none
-    assert set(MODELS) >= {"SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV"}
+    assert set(DISTORTION_MODELS) >= {"SIMPLE_RADIAL", "RADIAL", "OPENCV", "FULL_OPENCV"}
 
 
 def test_undistort_image_matches_the_model():

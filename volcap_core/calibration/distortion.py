@@ -62,16 +62,8 @@ from typing import Any, NamedTuple, Protocol
 
 import numpy as np
 
-from hardware.lens_models import COLMAP_PIXEL_OFFSET, colmap_intrinsics, opencv_distortion
+from hardware.lens_models import COLMAP_PIXEL_OFFSET, DISTORTION_MODELS, colmap_intrinsics, opencv_distortion
 
-#: model name -> parameter names, in COLMAP's (and OpenCV's) order
-MODELS: dict[str, tuple[str, ...]] = {
-    "PINHOLE": (),
-    "SIMPLE_RADIAL": ("k",),
-    "RADIAL": ("k1", "k2"),
-    "OPENCV": ("k1", "k2", "p1", "p2"),
-    "FULL_OPENCV": ("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"),
-}
 #: COLMAP cameras that carry one focal (f, cx, cy, ...) for these models
 _COLMAP_SINGLE_FOCAL = {"SIMPLE_RADIAL": "SIMPLE_RADIAL", "RADIAL": "RADIAL", "PINHOLE": "SIMPLE_PINHOLE"}
 
@@ -87,7 +79,7 @@ class PinholeLike(Protocol):
 
 @dataclass(frozen=True)
 class Distortion:
-    """A lens distortion: ``model`` (a key of :data:`MODELS`) and its ``params`` in that model's
+    """A lens distortion: ``model`` (a key of :data:`DISTORTION_MODELS`) and its ``params`` in that model's
     order. ``Distortion.none()`` is the pinhole (no distortion)."""
 
     model: str = "PINHOLE"
@@ -95,12 +87,12 @@ class Distortion:
 
     def __post_init__(self) -> None:
         model = str(self.model).upper()
-        if model not in MODELS:
-            raise ValueError(f"unknown distortion model {self.model!r}: one of {', '.join(MODELS)}")
+        if model not in DISTORTION_MODELS:
+            raise ValueError(f"unknown distortion model {self.model!r}: one of {', '.join(DISTORTION_MODELS)}")
         params = tuple(float(p) for p in self.params)
-        if len(params) != len(MODELS[model]):
-            raise ValueError(f"distortion model {model} takes {len(MODELS[model])} parameters "
-                             f"({', '.join(MODELS[model]) or 'none'}), got {len(params)}")
+        if len(params) != len(DISTORTION_MODELS[model]):
+            raise ValueError(f"distortion model {model} takes {len(DISTORTION_MODELS[model])} parameters "
+                             f"({', '.join(DISTORTION_MODELS[model]) or 'none'}), got {len(params)}")
         if not all(np.isfinite(params)):
             raise ValueError(f"distortion model {model}: non-finite parameters {params}")
         object.__setattr__(self, "model", model)
@@ -153,7 +145,7 @@ class Distortion:
         model = model.upper()
         c = self.opencv_full()
         k1, k2, p1, p2, k3, k4, k5, k6 = c
-        names = MODELS.get(model)
+        names = DISTORTION_MODELS.get(model)
         if names is None:
             raise ValueError(f"unknown distortion model {model!r}")
         full = dict(zip(("k1", "k2", "p1", "p2", "k3", "k4", "k5", "k6"), c))

@@ -11,8 +11,9 @@ from typing import Callable, Mapping, Sequence
 
 import numpy as np
 
+from hardware.lens_models import DISTORTION_MODELS
 from hardware.rig import CameraRole, Rig, RigCamera, ZoomIntrinsics, load_rig, rig_file
-from volcap_core.calibration.distortion import MODELS, Distortion
+from volcap_core.calibration.distortion import Distortion
 from volcap_core.calibration.geometry import look_at_rotation
 from volcap_core.capture import (CameraSource, CaptureDescription, Encoding, LensSample, Take,
                                  frames_to_timecode, timecode_to_frames)
@@ -199,7 +200,7 @@ def _true_lens(m, r: np.random.Generator, e: Mapping[str, float] = LENS_CALIBRAT
     coeff = dict(zip(names, full))
     coeff["k"] = coeff["k1"]
     # the model keeps its own parameters (a RADIAL lens stays RADIAL: its error is in k1, k2 only)
-    params = tuple(float(coeff[n]) for n in MODELS[d.model])
+    params = tuple(float(coeff[n]) for n in DISTORTION_MODELS[d.model])
     return float(m.fx * scale), float(m.fy * scale), float(cx), float(cy), Distortion(d.model, params)
 
 
@@ -208,7 +209,7 @@ def _true_zoom(z: ZoomIntrinsics, sensor, r: np.random.Generator) -> ZoomIntrins
     :data:`ZOOM_CALIBRATION_ERROR` (its own draw per sample)."""
     e = ZOOM_CALIBRATION_ERROR
     h2 = (sensor.width_mm / 2) ** 2 + (sensor.height_mm / 2) ** 2
-    names = MODELS[z.model]
+    names = DISTORTION_MODELS[z.model]
     samples = []
     for smp in z.samples:
         r2 = h2 / smp.focal_mm ** 2           # the image corner's normalized radius, squared
