@@ -35,6 +35,7 @@ DEFAULT_STORE = "./.volcap/store"
 
 
 from flows.cli_output import OUTPUT, CommandError  # noqa: E402 - stdout/stderr contract, --verbose
+from flows.cancellation import CANCEL  # noqa: E402 - SIGINT/SIGTERM: exit 130/143 and one line
 
 
 @app.callback()
@@ -51,6 +52,8 @@ def _store_url(url: str) -> str:
 
 
 def _emit(obj: dict[str, Any], as_json: bool, human: str | None = None) -> None:
+    if not CANCEL.finished():  # a SIGINT/SIGTERM is ending the command: no result line
+        CANCEL.wait_if_cancelling()
     if human:
         typer.echo(human)
     if as_json:
@@ -80,7 +83,7 @@ def _run(flow: Any, **params: Any) -> RunSummary:
     from flows.runtime import run_flow
     OUTPUT.route_logging()  # Prefect's console logs to stdout; an expected failure's traceback to DEBUG
     try:
-        summary = run_flow(flow, **params)
+        summary = run_flow(flow, on_running=CANCEL.flow_run_started, **params)
     except Exception as exc:
         summary = getattr(exc, "run_summary", None)
         if summary is not None:
@@ -717,6 +720,17 @@ def _split_verbose(argv: list[str]) -> tuple[list[str], bool]:
     return head + argv[end:], len(head) < end or env
 
 
+def _command_words(args: list[str]) -> str:
+    """What a cancellation line names: the command and its leading arguments (``calibrate
+    captures/NAME``, ``store verify``), up to the first option."""
+    words = []
+    for a in args:
+        if a.startswith("-") or len(words) == 3:
+            break
+        words.append(a)
+    return " ".join(words) or "volcap"
+
+
 def main() -> None:
     """Entry point: stderr is one line (the cause) for failed work, exit 1; flows/cli_output.py.
 
@@ -725,8 +739,15 @@ def main() -> None:
     reproducible_cpu_defaults()
     args, verbose = _split_verbose(sys.argv[1:])
     OUTPUT.start(verbose)
+    from flows.runtime import stop_temporary_api
+
+    CANCEL.install(_command_words(args), OUTPUT.cancelled)  # SIGINT/SIGTERM: exit 130/143, one line
+    CANCEL.before_exit(stop_temporary_api)
     try:
-        app(args=args, standalone_mode=False)
+        code = app(args=args, standalone_mode=False)
+        CANCEL.wait_if_cancelling()
+        if isinstance(code, int) and code:  # typer returns (not raises) the code of an Exit
+            sys.exit(code)
     except typer.Exit as exc:
         sys.exit(exc.exit_code)
     except typer.Abort:
@@ -736,7 +757,12 @@ def main() -> None:
         if hasattr(exc, "show") and isinstance(getattr(exc, "exit_code", None), int):
             exc.show()  # a click/typer usage or parameter error: exit 2, click's own message
             sys.exit(exc.exit_code)
+        # a run Crashed by the signal reaches here while the watcher is still ending the process
+        CANCEL.wait_if_cancelling(grace_s=1.0 if type(exc).__name__ == "CrashedRun" else 0.0)
         sys.exit(OUTPUT.report(exc))
+    except BaseException:  # Prefect's TerminationSignal on SIGTERM: the watcher ends the process
+        CANCEL.wait_if_cancelling(grace_s=1.0)
+        raise
     finally:
         OUTPUT.finish()  # Prefect's shutdown messages stay off the console (unless --verbose)
 
