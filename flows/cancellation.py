@@ -59,7 +59,9 @@ class Cancellation:
 
     def install(self, command: str, report: Callable[[str], None] | None = None) -> bool:
         """Handle SIGINT and SIGTERM from now on (main thread only; False elsewhere, or on a
-        platform without wakeup descriptors). ``report(message)`` prints the one line."""
+        platform without wakeup descriptors). ``report(message)`` prints the one line. A signal
+        the process was started with ignored (a background job of a non-interactive shell
+        ignores SIGINT) stays ignored."""
         self.command = command
         if report is not None:
             self._report = report
@@ -70,7 +72,8 @@ class Cancellation:
         reader, writer = socket.socketpair()
         writer.setblocking(False)
         for sig in EXIT_CODES:
-            signal.signal(sig, _let_through)
+            if signal.getsignal(sig) is not signal.SIG_IGN:  # ignored at start (nohup, `cmd &`): stays so
+                signal.signal(sig, _let_through)
         signal.set_wakeup_fd(writer.fileno(), warn_on_full_buffer=False)
         self._sockets = (reader, writer)  # kept alive with the process
         threading.Thread(target=self._watch, args=(reader,), name="volcap-cancel", daemon=True).start()

@@ -1,7 +1,8 @@
 """The ``volcap`` command.
 
 Exit codes: 0 success; 1 the work failed (stderr is exactly one line saying why: file, camera,
-frame, ref or digest; no traceback unless ``--verbose``: flows/cli_output.py); 2 bad usage. Commands that produce artifacts take ``--json`` and then print their output
+frame, ref or digest; no traceback unless ``--verbose``: flows/cli_output.py); 2 bad usage;
+130 / 143 cancelled by SIGINT / SIGTERM (one ``volcap: error: cancelled: …`` line: flows/cancellation.py). Commands that produce artifacts take ``--json`` and then print their output
 references as one JSON object on the last line of stdout. Every flow run ends with a one-line
 summary (tasks run / cached / failed, wall time); the same counts are in the ``--json`` object.
 """
@@ -741,8 +742,9 @@ def main() -> None:
     OUTPUT.start(verbose)
     from flows.runtime import stop_temporary_api
 
-    CANCEL.install(_command_words(args), OUTPUT.cancelled)  # SIGINT/SIGTERM: exit 130/143, one line
-    CANCEL.before_exit(stop_temporary_api)
+    if args[:1] != ["worker"]:  # the worker becomes Prefect's (exec): its own signal handling
+        CANCEL.install(_command_words(args), OUTPUT.cancelled)  # SIGINT/SIGTERM: exit 130/143, one line
+        CANCEL.before_exit(stop_temporary_api)
     try:
         code = app(args=args, standalone_mode=False)
         CANCEL.wait_if_cancelling()
