@@ -29,6 +29,7 @@ ignored: the work is done and the process is about to exit 0.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import signal
@@ -36,7 +37,7 @@ import socket
 import sys
 import threading
 import time
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 #: Exit code of a command stopped by each signal: 128 + the signal's number, as a shell reports it.
 EXIT_CODES = {signal.SIGINT: 130, signal.SIGTERM: 143}
@@ -52,6 +53,7 @@ class Cancellation:
         self.flow_run: tuple[str, str] | None = None   # (id, name) of the command's flow run
         self.signal: int | None = None
         self._finished = False
+        self._nested = 0
         self._lock = threading.Lock()
         self._installed = False
         self._before_exit: list[Callable[[], None]] = []
@@ -94,13 +96,24 @@ class Cancellation:
             self.flow_run = (str(flow_run.id), str(flow_run.name))
 
     def finished(self) -> bool:
-        """The command is about to print its result: from now on a signal is ignored. False when
-        a cancellation has already begun (the caller then prints nothing and waits to be ended)."""
+        """The command is about to print its result: from now on a signal is ignored (not while
+        :meth:`nested`). False when a cancellation has already begun (the caller then prints
+        nothing and waits to be ended)."""
         with self._lock:
             if self.signal is not None:
                 return False
-            self._finished = True
+            self._finished = self._finished or self._nested == 0
             return True
+
+    @contextlib.contextmanager
+    def nested(self) -> Iterator[None]:
+        """A command run as a step of another (``volcap demo`` renders its capture with
+        ``synth``): its result line is not the end of the work."""
+        self._nested += 1
+        try:
+            yield
+        finally:
+            self._nested -= 1
 
     def wait_if_cancelling(self, grace_s: float = 0.0) -> None:
         """In the main thread, on its way out: if the watcher is ending the process (or starts to

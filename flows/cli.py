@@ -158,7 +158,8 @@ def demo(store: StoreOpt = DEFAULT_STORE,
 
     capture_dir = out / "capture"
     if not (capture_dir / "capture.json").exists():
-        synth(capture_dir, rig="demo_scene", seed=0, frames=frames, depth=True, json_out=False)
+        with CANCEL.nested():  # its line is not the demo's result: a signal still cancels
+            synth(capture_dir, rig="demo_scene", seed=0, frames=frames, depth=True, json_out=False)
     summary = _run(demo_flow, store=_store_url(store), capture_dir=str(capture_dir.resolve()),
                    out_dir=str(out.resolve()))
     refs = summary.result
