@@ -12,7 +12,8 @@ How: :meth:`Cancellation.install` (``flows.cli.main``, before a command runs) gi
 SIGTERM a Python handler that does nothing but let the signal through, and points the
 interpreter's wakeup file descriptor at a socket that a watcher thread reads. The C-level signal
 handler writes the signal's number there at once, even while the main thread is inside a long
-native call (pycolmap, torch) that defers Python-level handlers. The watcher then marks the
+native call that defers Python-level handlers (one that releases the GIL, as pycolmap's SfM does:
+SIGTERM during ``calibrate-static`` ended the command in 0.6 s). The watcher then marks the
 command's flow run and its sub-flow and task runs that are not final **Cancelled** (bounded to a
 few seconds; skipped if the API does not answer), flushes stdout, prints the one line and ends
 the process with ``os._exit`` (exit handlers and running threads are not waited for).

@@ -2,7 +2,8 @@
 
 Exit codes: 0 success; 1 the work failed (stderr is exactly one line saying why: file, camera,
 frame, ref or digest; no traceback unless ``--verbose``: flows/cli_output.py); 2 bad usage;
-130 / 143 cancelled by SIGINT / SIGTERM (one ``volcap: error: cancelled: …`` line: flows/cancellation.py). Commands that produce artifacts take ``--json`` and then print their output
+130 / 143 cancelled by SIGINT / SIGTERM (one ``volcap: error: cancelled: …`` line:
+flows/cancellation.py). Commands that produce artifacts take ``--json`` and then print their output
 references as one JSON object on the last line of stdout. Every flow run ends with a one-line
 summary (tasks run / cached / failed, wall time); the same counts are in the ``--json`` object.
 """
@@ -763,6 +764,8 @@ def main() -> None:
         # a run Crashed by the signal reaches here while the watcher is still ending the process
         CANCEL.wait_if_cancelling(grace_s=1.0 if type(exc).__name__ == "CrashedRun" else 0.0)
         sys.exit(OUTPUT.report(exc))
+    except SystemExit:
+        raise
     except BaseException:  # Prefect's TerminationSignal on SIGTERM: the watcher ends the process
         CANCEL.wait_if_cancelling(grace_s=1.0)
         raise

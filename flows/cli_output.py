@@ -212,7 +212,6 @@ class CliOutput:
         print(line, file=sys.stderr, flush=True)
         return 1
 
-
     def cancelled(self, message: str) -> None:
         """The one line of a command stopped by SIGINT/SIGTERM (flows/cancellation.py, from its
         watcher thread, just before the process ends): ``volcap: error: cancelled: …``; when
