@@ -1,7 +1,9 @@
 """The ``volcap`` command.
 
 Exit codes: 0 success; 1 the work failed (stderr is exactly one line saying why: file, camera,
-frame, ref or digest; no traceback unless ``--verbose``: flows/cli_output.py); 2 bad usage. Commands that produce artifacts take ``--json`` and then print their output
+frame, ref or digest; no traceback unless ``--verbose``: flows/cli_output.py); 2 bad usage;
+130 / 143 cancelled by SIGINT / SIGTERM (one ``volcap: error: cancelled: …`` line:
+flows/cancellation.py). Commands that produce artifacts take ``--json`` and then print their output
 references as one JSON object on the last line of stdout. Every flow run ends with a one-line
 summary (tasks run / cached / failed, wall time); the same counts are in the ``--json`` object.
 """
@@ -35,6 +37,7 @@ DEFAULT_STORE = "./.volcap/store"
 
 
 from flows.cli_output import OUTPUT, CommandError  # noqa: E402 - stdout/stderr contract, --verbose
+from flows.cancellation import CANCEL  # noqa: E402 - SIGINT/SIGTERM: exit 130/143 and one line
 
 
 @app.callback()
@@ -51,6 +54,8 @@ def _store_url(url: str) -> str:
 
 
 def _emit(obj: dict[str, Any], as_json: bool, human: str | None = None) -> None:
+    if not CANCEL.finished():  # a SIGINT/SIGTERM is ending the command: no result line
+        CANCEL.wait_if_cancelling()
     if human:
         typer.echo(human)
     if as_json:
@@ -80,7 +85,7 @@ def _run(flow: Any, **params: Any) -> RunSummary:
     from flows.runtime import run_flow
     OUTPUT.route_logging()  # Prefect's console logs to stdout; an expected failure's traceback to DEBUG
     try:
-        summary = run_flow(flow, **params)
+        summary = run_flow(flow, on_running=CANCEL.flow_run_started, **params)
     except Exception as exc:
         summary = getattr(exc, "run_summary", None)
         if summary is not None:
@@ -154,7 +159,8 @@ def demo(store: StoreOpt = DEFAULT_STORE,
 
     capture_dir = out / "capture"
     if not (capture_dir / "capture.json").exists():
-        synth(capture_dir, rig="demo_scene", seed=0, frames=frames, depth=True, json_out=False)
+        with CANCEL.nested():  # its line is not the demo's result: a signal still cancels
+            synth(capture_dir, rig="demo_scene", seed=0, frames=frames, depth=True, json_out=False)
     summary = _run(demo_flow, store=_store_url(store), capture_dir=str(capture_dir.resolve()),
                    out_dir=str(out.resolve()))
     refs = summary.result
@@ -776,6 +782,17 @@ def _split_verbose(argv: list[str]) -> tuple[list[str], bool]:
     return head + argv[end:], len(head) < end or env
 
 
+def _command_words(args: list[str]) -> str:
+    """What a cancellation line names: the command and its leading arguments (``calibrate
+    captures/NAME``, ``store verify``), up to the first option."""
+    words = []
+    for a in args:
+        if a.startswith("-") or len(words) == 3:
+            break
+        words.append(a)
+    return " ".join(words) or "volcap"
+
+
 def main() -> None:
     """Entry point: stderr is one line (the cause) for failed work, exit 1; flows/cli_output.py.
 
@@ -784,8 +801,16 @@ def main() -> None:
     reproducible_cpu_defaults()
     args, verbose = _split_verbose(sys.argv[1:])
     OUTPUT.start(verbose)
+    from flows.runtime import stop_temporary_api
+
+    if args[:1] != ["worker"]:  # the worker becomes Prefect's (exec): its own signal handling
+        CANCEL.install(_command_words(args), OUTPUT.cancelled)  # SIGINT/SIGTERM: exit 130/143, one line
+        CANCEL.before_exit(stop_temporary_api)
     try:
-        app(args=args, standalone_mode=False)
+        code = app(args=args, standalone_mode=False)
+        CANCEL.wait_if_cancelling()
+        if isinstance(code, int) and code:  # typer returns (not raises) the code of an Exit
+            sys.exit(code)
     except typer.Exit as exc:
         sys.exit(exc.exit_code)
     except typer.Abort:
@@ -795,7 +820,14 @@ def main() -> None:
         if hasattr(exc, "show") and isinstance(getattr(exc, "exit_code", None), int):
             exc.show()  # a click/typer usage or parameter error: exit 2, click's own message
             sys.exit(exc.exit_code)
+        # a run Crashed by the signal reaches here while the watcher is still ending the process
+        CANCEL.wait_if_cancelling(grace_s=1.0 if type(exc).__name__ == "CrashedRun" else 0.0)
         sys.exit(OUTPUT.report(exc))
+    except SystemExit:
+        raise
+    except BaseException:  # Prefect's TerminationSignal on SIGTERM: the watcher ends the process
+        CANCEL.wait_if_cancelling(grace_s=1.0)
+        raise
     finally:
         OUTPUT.finish()  # Prefect's shutdown messages stay off the console (unless --verbose)
 

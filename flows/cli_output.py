@@ -18,6 +18,8 @@ The contract (README, after the table of commands; docs/operations.md, 8.):
   at exit) is captured (volcap_core.native_stderr); the line about the file an error names is
   folded into that error's message. The failed decode's objects are released before exit (the
   traceback's frames cleared), so nanobind has no leak to report.
+- SIGINT / SIGTERM: exit 130 / 143 and one line ``volcap: error: cancelled: <command>: flow run
+  '<name>' (running <task runs>) (SIGINT)``, no ``--json`` line (flows/cancellation.py).
 - ``volcap --verbose``: DEBUG logs on the console (the demoted tracebacks included), fd 2 not
   captured, and the failure's traceback on stderr before the ``volcap: error:`` line.
 
@@ -209,6 +211,19 @@ class CliOutput:
                 line += " (volcap --verbose shows the traceback)"
         print(line, file=sys.stderr, flush=True)
         return 1
+
+    def cancelled(self, message: str) -> None:
+        """The one line of a command stopped by SIGINT/SIGTERM (flows/cancellation.py, from its
+        watcher thread, just before the process ends): ``volcap: error: cancelled: …``; when
+        verbose, first where the main thread was (its stack), as a failure's traceback."""
+        if self.verbose:
+            import threading
+
+            frame = sys._current_frames().get(threading.main_thread().ident)
+            if frame is not None:
+                print("main thread when cancelled (most recent call last):", file=sys.stderr)
+                traceback.print_stack(frame, file=sys.stderr)
+        print(f"volcap: error: {message}", file=sys.stderr, flush=True)
 
 
 def _to_stdout(handler: logging.StreamHandler) -> None:

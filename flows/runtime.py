@@ -183,6 +183,22 @@ def start_api_early() -> None:
     _set_api_url(api.url)
 
 
+def stop_temporary_api(grace_s: float = 2.0) -> None:
+    """Stop this command's temporary API server now (volcap's early one, or Prefect's own
+    fallback), for a process about to end by ``os._exit`` (a cancelled command), which runs no
+    exit handler. Prefect's server may outlive its parent otherwise (docs: shared NOTES)."""
+    if _API is not None:
+        _API.stop(grace_s=grace_s)
+    import sys
+
+    server = sys.modules.get("prefect.server.api.server")
+    for instance in list(getattr(getattr(server, "SubprocessASGIServer", None), "_instances", {}).values()):
+        try:
+            instance.stop()
+        except Exception:  # noqa: BLE001 - best effort on the way out
+            pass
+
+
 def _set_api_url(url: str | None) -> None:
     from prefect.context import refresh_global_settings_context
 
@@ -280,13 +296,18 @@ def count_task_runs(flow_run_id: UUID | str) -> tuple[int, int, int]:
     return counts["run"], counts["cached"], counts["failed"]
 
 
-def run_flow(flow: Any, **parameters: Any) -> RunSummary:
+def run_flow(flow: Any, *, on_running: Any = None, **parameters: Any) -> RunSummary:
     """Run ``flow(**parameters)`` in this process; raise its exception after summarising it.
 
     The summary (with the exception's message) is attached as ``exc.run_summary``.
+    ``on_running(flow, flow_run, state)``: called (as a Prefect ``on_running`` hook, after the
+    flow's own) when the flow run starts; the command line learns its flow run from it, to mark it
+    Cancelled on SIGINT/SIGTERM (flows/cancellation.py).
     """
     _wait_for_early_api()
     _heartbeats_without_join()
+    if on_running is not None:
+        flow = flow.with_options(on_running=[*flow.on_running_hooks, on_running])
     t0 = time.perf_counter()
     state = flow(**parameters, return_state=True)
     wall = time.perf_counter() - t0
