@@ -74,10 +74,11 @@ class Cancellation:
             return False
         reader, writer = socket.socketpair()
         writer.setblocking(False)
+        # the wakeup descriptor first, so that a signal arriving as the handlers go in is not lost
+        signal.set_wakeup_fd(writer.fileno(), warn_on_full_buffer=False)
         for sig in EXIT_CODES:
             if signal.getsignal(sig) is not signal.SIG_IGN:  # ignored at start (nohup, `cmd &`): stays so
                 signal.signal(sig, _let_through)
-        signal.set_wakeup_fd(writer.fileno(), warn_on_full_buffer=False)
         self._sockets = (reader, writer)  # kept alive with the process
         threading.Thread(target=self._watch, args=(reader,), name="volcap-cancel", daemon=True).start()
         logging.getLogger("prefect.engine").addFilter(_QuietHook())

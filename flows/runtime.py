@@ -104,7 +104,11 @@ class _TemporaryApi:
             [sys.executable, "-c", _SERVER_BOOT, str(os.getpid()),
              "--app-dir", os.path.dirname(os.path.dirname(spec.origin)),
              "--factory", "prefect.server.api.server:create_app", "--host", "127.0.0.1", "--port", str(port),
-             "--log-level", "error", "--lifespan", "on"], env=env)
+             "--log-level", "error", "--lifespan", "on"], env=env,
+            # its own process group: a terminal's Ctrl-C (sent to the whole foreground group) must not
+            # stop the server before the cancelled command has marked its flow run Cancelled in it;
+            # the parent-death signal (_SERVER_BOOT) still ends it with the command
+            start_new_session=True)
 
     def wait(self, timeout_s: float) -> bool:
         import urllib.request

@@ -42,8 +42,9 @@ def ingest_camera(store: str, capture_dir: str, camera: CameraSource, rig_camera
                   lens: list[LensSample] | None) -> CaptureCamera:
     """Convert one camera's frames to scene-linear half EXR in the store.
 
-    The key holds the raw files' digests (``raw_manifest``), never their location
-    (``capture_dir``): the same bytes ingested from another mount are a cache hit.
+    The key holds the raw files' manifest (``raw_manifest``: each file's digest and its path), not
+    the folder parameter (``capture_dir``): the same files ingested again are a cache hit; the same
+    bytes under another path are converted again (the manifest names the path).
     Version 2: frames are display-window sized, converted to the working primaries from the
     files' ``chromaticities``, taken from the part/view the camera chooses, and say so in
     their headers and the CaptureCamera record.
@@ -66,7 +67,7 @@ def ingest_video_camera(store: str, capture_dir: str, camera: CameraSource, rig_
 
     The key holds the video file's digest (``raw_manifest``), the camera's decoding settings
     (``camera.video``), which frames (``take_offset``, ``frame_count``) and the decoder's release:
-    an unchanged video is not decoded again, wherever it is mounted.
+    an unchanged video at the same path is not decoded again (the manifest names the path).
     """
     s = ArtifactStore(store)
     return ingest.convert_video_camera(camera, rig_camera, ingest.parse_raw_manifest(s.get_bytes(raw_manifest)),

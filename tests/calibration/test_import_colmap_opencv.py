@@ -64,7 +64,7 @@ def test_colmap_scale_and_errors(tmp_path):
     parts = text[i].split()
     text[i] = " ".join([parts[0], "SIMPLE_RADIAL_FISHEYE", parts[2], parts[3], "900", "640", "360", "0.01"])
     (tmp_path / "m" / "cameras.txt").write_text("\n".join(text) + "\n")
-    with pytest.raises(CalibrationInputError, match=r"image camA\.png \(camera camA\): COLMAP model SIMPLE_RADIAL_FISHEYE"):
+    with pytest.raises(CalibrationInputError, match=r"image camA\.png \(camera camA\): COLMAP camera model SIMPLE_RADIAL_FISHEYE is not supported: a fisheye"):
         calibration_from_colmap(tmp_path / "m", "x", 1, 1.0)
 
 

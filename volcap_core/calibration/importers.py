@@ -36,8 +36,7 @@ from pathlib import Path
 import cv2  # noqa: F401  (before pycolmap)
 import numpy as np
 
-from hardware.lens_models import COLMAP_PIXEL_OFFSET
-from volcap_core.calibration.distortion import Distortion
+from volcap_core.calibration.distortion import Distortion, from_colmap_camera
 from volcap_core.calibration.errors import CalibrationInputError
 from volcap_core.calibration.record import Calibration, CameraCalibration, matrix4
 
@@ -45,15 +44,6 @@ from volcap_core.calibration.record import Calibration, CameraCalibration, matri
 QUALISYS_SUBPIXELS = 64.0
 #: Qualisys camera axes (x right, y up, z backward) -> OpenCV's (x right, y down, z forward)
 QUALISYS_TO_OPENCV = np.diag([1.0, -1.0, -1.0])
-#: COLMAP camera models and how their parameters split into (fx, fy, cx, cy) and OpenCV's distCoeffs
-_COLMAP_MODELS = {
-    "SIMPLE_PINHOLE": lambda p: ((p[0], p[0], p[1], p[2]), ()),
-    "PINHOLE": lambda p: ((p[0], p[1], p[2], p[3]), ()),
-    "SIMPLE_RADIAL": lambda p: ((p[0], p[0], p[1], p[2]), (p[3], 0.0, 0.0, 0.0)),
-    "RADIAL": lambda p: ((p[0], p[0], p[1], p[2]), (p[3], p[4], 0.0, 0.0)),
-    "OPENCV": lambda p: ((p[0], p[1], p[2], p[3]), tuple(p[4:8])),
-    "FULL_OPENCV": lambda p: ((p[0], p[1], p[2], p[3]), (*p[4:8], p[8], p[9], p[10], p[11])),
-}
 
 
 # ------------------------------------------------------------------------------------------ shared
@@ -161,6 +151,10 @@ def calibration_from_qualisys(xml_bytes: bytes, capture: str, frame_count: int, 
         if node.get("active", "1").strip() not in ("1", "true"):
             inactive[cid] = "inactive in the Qualisys calibration"
             continue
+        if node.get("viewrotation", "0").strip() not in ("0", "0.0"):
+            # a camera mounted turned by 90/180/270 degrees: its image axes are not the ones read here
+            raise CalibrationInputError(f"{where}: viewrotation {node.get('viewrotation')} is not imported "
+                                        "(only cameras with viewrotation 0)")
         fov, intr, tr = node.find("fov_video"), node.find("intrinsic"), node.find("transform")
         for name, el in (("fov_video", fov), ("intrinsic", intr), ("transform", tr)):
             if el is None:
@@ -201,8 +195,9 @@ def calibration_from_colmap(folder: str | Path, capture: str, frame_count: int, 
     ``.bin``, read by pycolmap): one camera per registered image, named by the image's file stem
     (``cam03.png`` -> ``cam03``, as :mod:`~volcap_core.calibration.colmap_export` writes them);
     COLMAP's pixel centres (+0.5) back to OpenCV's; the model's units times ``metres_per_unit``.
-    Models SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV and FULL_OPENCV; another is an
-    error naming the image and its model."""
+    Models SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV and FULL_OPENCV, read as a rig's
+    ``colmap`` lens is (:func:`~volcap_core.calibration.distortion.from_colmap_camera`); another is an
+    error naming the image, its model and why. An image without a pose is listed in ``unregistered``."""
     import pycolmap
 
     folder = Path(folder)
@@ -217,24 +212,22 @@ def calibration_from_colmap(folder: str | Path, capture: str, frame_count: int, 
         rec = pycolmap.Reconstruction(str(folder))
     except Exception as exc:  # noqa: BLE001 - pycolmap raises its own types for unreadable models
         raise CalibrationInputError(f"{source}: COLMAP cannot read the model: {exc}") from None
-    cams = []
+    cams, unposed = [], {}
     for image_id in sorted(rec.images):
         image = rec.images[image_id]
         cid = Path(image.name).stem
         if not image.has_pose:
+            unposed[cid] = "no pose in the COLMAP model"
             continue
         cam = rec.cameras[image.camera_id]
-        model = cam.model.name
-        split = _COLMAP_MODELS.get(model)
-        if split is None:
-            raise CalibrationInputError(f"{source}: image {image.name} (camera {cid}): COLMAP model {model} is not "
-                                        f"imported (one of {', '.join(_COLMAP_MODELS)})")
-        (fx, fy, cx, cy), dist = split([float(v) for v in cam.params])
+        try:   # COLMAP's parameter order and pixel centres, read as rigs read them
+            intrinsics, dist = from_colmap_camera(cam.model.name, cam.params)
+        except ValueError as exc:
+            raise CalibrationInputError(f"{source}: image {image.name} (camera {cid}): {exc}") from None
         m = np.asarray(image.cam_from_world().matrix(), np.float64)
-        cams.append(_camera(source, cid, cam.width, cam.height,
-                            (fx, fy, cx - COLMAP_PIXEL_OFFSET, cy - COLMAP_PIXEL_OFFSET), dist,
+        cams.append(_camera(source, cid, cam.width, cam.height, intrinsics, dist.opencv(),
                             m[:3, :3], m[:3, 3] * metres_per_unit))
-    return _record(source, _fit_all(source, cams, frame_sizes), capture, frame_count, fps, stage_size_m)
+    return _record(source, _fit_all(source, cams, frame_sizes), capture, frame_count, fps, stage_size_m, unposed)
 
 
 # ------------------------------------------------------------------------------------------ OpenCV
@@ -320,8 +313,8 @@ def calibration_from_opencv(data: bytes, capture: str, frame_count: int, fps: fl
                             stage_size_m: tuple[float, float, float] | None = None) -> Calibration:
     """The Calibration record of OpenCV calibrations: YAML (or XML) as ``cv2.FileStorage`` writes it,
     or JSON; either a map camera id -> ``{K, dist, R, t, width, height}`` (also under ``cameras``),
-    or one camera's map (named by the file's stem). ``K`` 3x3; ``dist`` OpenCV's 4, 5 or 8
-    ``distCoeffs`` (absent: none); ``R`` 3x3 or a Rodrigues 3-vector and ``t`` with
+    or one camera's map (named by the file's stem). ``K`` 3x3; ``dist`` OpenCV's 4, 5, 8, 12 or 14
+    ``distCoeffs`` (absent: none; thin-prism and tilt terms must be 0: ``docs/rigs.md``); ``R`` 3x3 or a Rodrigues 3-vector and ``t`` with
     ``x_cam = R x + t`` (world to camera, OpenCV axes), ``t`` in units of ``metres_per_unit``
     metres; the size as ``width``/``height`` or ``size: [w, h]`` (aliases: ``camera_matrix``,
     ``distortion_coefficients``, ``rvec``, ``tvec``, ``image_width``...)."""

@@ -124,7 +124,8 @@ def probe_video(path: str | Path) -> VideoInfo:
                 raise ImageReadError(path, "holds no video stream")
             stream = container.streams.video[0]
             cc = stream.codec_context
-            frames = sum(1 for packet in container.demux(stream) if packet.size)
+            # an edit list's cut packets are demuxed flagged as discard and never decoded
+            frames = sum(1 for packet in container.demux(stream) if packet.size and not packet.is_discard)
             rate = stream.average_rate or stream.guessed_rate or Fraction(0)
             sar = stream.sample_aspect_ratio
             info_args = dict(codec=cc.name, width=cc.width, height=cc.height, pix_fmt=cc.pix_fmt or "",
