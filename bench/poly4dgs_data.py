@@ -40,7 +40,6 @@ import numpy as np
 import torch
 
 from hardware.rig import CameraRole
-from volcap_core.calibration.lidar import LidarScan
 from volcap_core.imageio.read import read_image
 from volcap_core.splat.camera import Camera
 from volcap_core.splat.train import PointsAtTime, SegmentData, View

@@ -15,8 +15,6 @@ from typing import Any, ClassVar, TypeVar
 
 from pydantic import BaseModel, ConfigDict, field_validator
 
-from hardware.serialization import omit_unset  # noqa: F401  (records' optional fields: one way)
-
 DIGEST_RE = re.compile(r"^blake3:[0-9a-f]{64}$")
 
 #: Media types used across volcap. A ref's media type says how to decode its bytes.

@@ -20,7 +20,7 @@ from tests.calibration.test_calib_tracking import tracking_observations
 from volcap_core.calibration.distortion import Distortion, rectified_valid, rectify_frame
 from volcap_core.calibration.geometry import look_at_rotation, rotation_angle_deg
 from volcap_core.calibration.record import (Calibration, CameraCalibration, TrackingFrames, camera_at,
-                                            decode_tracking_frames, encode_tracking_frames, frame_camera, matrix4,
+                                            decode_tracking_frames, encode_tracking_frames, frame_camera,
                                             tracking_frames_ref)
 from volcap_core.calibration.tracking.calibrate import TrackingProblem, solve_tracking
 from volcap_core.calibration.tracking.lens import frame_undistorter, lens_corner_shift_px, smooth_encoder_focal, zoom_lens

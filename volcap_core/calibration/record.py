@@ -31,7 +31,8 @@ from pydantic import BaseModel, ConfigDict, Field, SerializerFunctionWrapHandler
 from safetensors.numpy import load as st_load
 from safetensors.numpy import save as st_save
 
-from volcap_core.records import MEDIA_SAFETENSORS, ArtifactRef, Record, omit_unset
+from hardware.serialization import omit_unset
+from volcap_core.records import MEDIA_SAFETENSORS, ArtifactRef, Record
 
 Matrix3 = tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]
 Matrix4 = tuple[tuple[float, float, float, float], ...]

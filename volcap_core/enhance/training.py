@@ -68,6 +68,7 @@ import torch.nn.functional as F
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_serializer, model_validator
 from torch import nn
 
+from hardware.serialization import omit_unset
 from volcap_core.checkpoint import (
     AdamState,
     adam_step,
@@ -91,7 +92,6 @@ from volcap_core.enhance.model import (
     shift_sigma,
 )
 from volcap_core.enhance.lora import add_lora, merge_lora
-from volcap_core.records import omit_unset
 
 __all__ = [
     "EnhancerTrainConfig",
