@@ -8,14 +8,16 @@ capture's frames through its ground truth), the field through ingest, and the re
 
 The captures: the demo scene rig's two head-tracking cameras (S008 follows actor 1, S009 actor 0),
 1 frame; the face rig's side camera F002 (the frontal F003 sees the colour chart in front of the
-face at the start), 2 frames; one sample per pixel. ~5 s to render both, ~10 s for the ingest
-(plus the session's Prefect server).
-"""
+face at the start), 2 frames; one sample per pixel. ~3 s to render both, ~3 s for the ingest
+(plus the session's Prefect server, ~25 s when this file starts it), ~10 s for the command line
+(five ``volcap synth`` processes, one rendering the whole face rig for one frame)."""
 
 from __future__ import annotations
 
 import json
 import shutil
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -190,3 +192,24 @@ def test_a_scene_json_the_rebuild_does_not_match_is_refused(captures, tmp_path):
     path.write_text(json.dumps(gt))
     with pytest.raises(ValueError, match=r"actor 0 rebuilt .*frames\[0\]\.parts\[3\]\.centre_m\[2\]"):
         scene_actors_of(path)
+
+
+def test_volcap_synth_actor_of(captures, tmp_path):
+    """``volcap synth OUT --rig demo_face --actor-of DIR:N``; a bad one is one line on stderr."""
+    repo = Path(__file__).resolve().parents[1]
+
+    def volcap(*args):
+        return subprocess.run([sys.executable, "-m", "flows.cli", "synth", *args], capture_output=True, text=True,
+                              cwd=repo)
+
+    out = tmp_path / "face"
+    done = volcap(str(out), "--rig", "demo_face", "--frames", "1", "--actor-of", f"{captures['scene']}:{ACTOR}")
+    assert done.returncode == 0, done.stderr
+    assert json.loads((out / "capture.json").read_text())["performer"] == {"capture": SCENE, "actor": ACTOR}
+    for bad, says in ((f"{captures['scene']}:7", "no actor 7"), (str(captures["scene"]), "SCENE_CAPTURE_DIR:N"),
+                      (f"{tmp_path / 'nowhere'}:0", "no capture description")):
+        failed = volcap(str(tmp_path / "bad"), "--rig", "demo_face", "--actor-of", bad)
+        lines = failed.stderr.strip().splitlines()
+        assert failed.returncode == 1 and len(lines) == 1 and says in lines[0], failed.stderr
+    failed = volcap(str(tmp_path / "bad"), "--actor-of", f"{captures['scene']}:0")      # the scene rig
+    assert failed.returncode == 1 and "--actor-of is for face rigs" in failed.stderr
