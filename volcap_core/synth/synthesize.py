@@ -258,7 +258,7 @@ def _face_actor(seed: int) -> Actor:
     return a
 
 
-def face_rig_head_height(rig: Rig) -> float:
+def _face_rig_head_height(rig: Rig) -> float:
     """Where a Face Rig's cameras look, as a height (metres): the median z of their ``look_at_m``."""
     return float(np.median([c.mount.look_at_m[2] for c in rig.cameras]))
 
@@ -456,7 +456,7 @@ def _synthesize(out_dir: Path, rig_name: str | Path, seed: int, frames: int, kin
         shutil.copyfile(source_file, out_dir / "rig.json")
         rig_ref = "rig.json"
     if performer is not None:
-        performer = {**performer, "head_height_m": round(face_rig_head_height(rig), 6)}
+        performer = {**performer, "head_height_m": round(_face_rig_head_height(rig), 6)}
     if kind == "face":
         stage = build_face_stage(rig, _rng(seed, "stage"))
         actors = [_face_performer(performer, seed) if performer is not None else _face_actor(seed)]
@@ -585,7 +585,7 @@ def synthesize_face_capture(out_dir: Path, rig: str = "demo_face", seed: int = 0
     ``actor_of=(scene_capture_dir, n)``: the actor is actor ``n`` of that synthetic Scene Rig
     capture (its ``ground_truth/scene.json`` rebuilds and checks it): the same person (scale,
     colours, textures, freckles) on a riser at the rig's centre facing +x, the rest head centre
-    where the rig's cameras look (:func:`face_rig_head_height`), with its own performance from
+    where the rig's cameras look (the median height of their ``look_at_m``), with its own performance from
     ``seed``. capture.json then records ``performer: {capture, actor}`` and scene.json a
     ``performer`` block. ``ValueError`` (one line, naming the folder) for a folder that is not a
     synthetic Scene Rig capture or has no actor ``n``. Without it: the capture's own actor, the
