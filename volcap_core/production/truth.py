@@ -20,8 +20,6 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 
-import numpy as np
-
 from volcap_core.capture import Capture
 from volcap_core.production.shot import Shot, camera_at, encode_shot_exr
 from volcap_core.splat.camera import Camera
@@ -68,7 +66,7 @@ def render_truth_frame(shot: Shot, world: World, frame: int, *, supersample: int
     camera = camera_at(shot, frame)
     truth = render_truth(world, shot_pinhole(camera), shot.time_at(frame), content=shot.content,
                          supersample=supersample)
-    return encode_shot_exr(np.nan_to_num(truth.rgba), camera, shot, frame,
+    return encode_shot_exr(truth.rgba, camera, shot, frame,
                            extra={"content": shot.content, "truth": TRUTH_KIND, "truthSupersample": int(supersample)})
 
 
