@@ -119,3 +119,53 @@ def test_sheet_rows_first_middle_last():
     assert "face PSNR 200.0 dB" in rows[0].label
     sheet = contact_sheet(rows, title="close-up")
     assert sheet.dtype == np.uint8 and sheet.shape[0] > 6 * H
+
+
+def test_score_shot_exrs_finds_the_face_through_the_render_frames_cameras():
+    """From EXR bytes: the render-shot frames' cameras and times place the actor's head; a render
+    equal to the truth scores perfectly on the face, and the sheet is drawn."""
+    from volcap_core.imageio.write import encode_exr
+    from volcap_core.production.closeup import score_shot_exrs
+    from volcap_core.production.shot import camera_at, encode_shot_exr, load_shot
+
+    shot = load_shot({"name": "cu", "performance": "p", "frames": [0, 3], "fps": 24, "resolution": [96, 64],
+                      "sensor_mm": 36.0, "keyframes": [{"frame": 0, "position": [1.2, 0.0, 1.6],
+                                                        "look_at": [0.0, 0.0, 1.6], "focal_mm": 50}]})
+    head = {"name": "head", "kind": "ellipsoid", "centre_m": [0.0, 0.0, 1.6], "rotation": np.eye(3).tolist(),
+            "semi_axes_m": [0.1, 0.08, 0.115]}
+    scene = {"actors": [{"index": 0, "frames": [{"take_index": k, "time_s": k / 24, "parts": [head]}
+                                                for k in range(3)]}]}
+    truth, render = [], []
+    rng = np.random.default_rng(0)
+    for f in shot.frame_numbers():
+        cam = camera_at(shot, f)
+        rgba = np.zeros((64, 96, 4), np.float32)
+        rgba[8:56, 20:76, :3] = 0.2 + 0.1 * rng.random((48, 56, 3))      # the performer, textured
+        rgba[8:56, 20:76, 3] = 1.0
+        name = f"{f:06d}.exr"
+        truth.append((name, encode_exr(rgba, ("R", "G", "B", "A"), pixel_type="float")))
+        flow = np.zeros((64, 96, 2), np.float32) if f > 0 else None
+        render.append((name, encode_shot_exr(rgba, cam, shot, f, flow=flow)))
+    scores, sheet = score_shot_exrs(truth, render, scene, enhanced=render)
+    assert scores["shot_frames"] == [0, 1, 2]
+    face = scores["rows"]["render"]["face"]
+    assert face["views"] == 3 and face["psnr"] > 60 and face["detail"] == pytest.approx(1.0, abs=1e-3)
+    # the head (0.23 m tall at 1.2 m, 50 mm on 36 mm: ~25 px) is a part of the performer's 48x56 px
+    assert scores["rows"]["render"]["performers"]["views"] == 3
+    assert scores["temporal"]["render"]["warp_error"] is not None
+    assert sheet.dtype == np.uint8 and sheet.ndim == 3
+    with pytest.raises(ValueError, match="the render frames"):
+        score_shot_exrs(truth, render[:2], scene)
+
+
+def test_score_shot_task_key():
+    """The score-shot task reruns when any input frame set, the capture or the face choice changes."""
+    import tasks.production as production_tasks
+    from tests.test_cache_keys import assert_key_behaviour, ref
+
+    base = dict(truth=ref("a"), render=ref("b"), capture=ref("c"))
+    assert_key_behaviour(production_tasks.score_shot, base,
+                         misses={"truth": {"truth": ref("d")}, "render": {"render": ref("e")},
+                                 "capture": {"capture": ref("f")}, "enhanced": {"enhanced": ref("1")},
+                                 "actors": {"actors": [1]}, "margin": {"margin_m": 0.05}},
+                         hits={"the default margin, spelled out": {"margin_m": 0.03}})

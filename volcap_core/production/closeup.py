@@ -1,8 +1,10 @@
 """Scoring a close-up shot against its truth: what the product delivers, beside its floors.
 
 A synthetic capture knows what a camera at any pose would have seen (the truth renderer,
-``volcap_core.production.truth``). :func:`score_closeup` compares a shot's frames with it, and
-:func:`closeup_sheet_rows` draws them (``docs/shots.md``, "Scoring a shot").
+``volcap_core.production.truth``). :func:`score_closeup` compares a shot's frames (arrays) with
+it, :func:`closeup_sheet_rows` draws them, and :func:`score_shot_exrs` does both from the shot's
+EXR frames and the capture's ``scene.json`` (what the ``score-shot`` task runs; ``docs/shots.md``,
+"Scoring a shot").
 
 Rows (each scored by the same code on the same pixels):
 
@@ -29,18 +31,22 @@ are what a perfect output would score (occlusions and shading changes are not er
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import Any
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from volcap_core.contact_sheet import SheetRow
+from volcap_core.contact_sheet import SheetRow, contact_sheet
 from volcap_core.enhance.metrics import temporal_flickering, warp_error
+from volcap_core.enhance.production import read_shot_frame
 from volcap_core.enhance.temporal import to_display
+from volcap_core.imageio.read import decode_exr
 from volcap_core.splat.scoring import mean_region_scores, score_region
+from volcap_core.synth.ground_truth import FACE_MARGIN_M, face_region
 
-__all__ = ["BICUBIC_FACTOR", "bicubic_floor", "closeup_sheet_rows", "score_closeup"]
+__all__ = ["BICUBIC_FACTOR", "bicubic_floor", "closeup_sheet_rows", "score_closeup", "score_shot_exrs"]
 
 #: The bicubic floor's downsampling factor (a quarter of the shot's resolution per axis).
 BICUBIC_FACTOR = 4
@@ -196,3 +202,55 @@ def closeup_sheet_rows(truth: Sequence[np.ndarray], render: Sequence[np.ndarray]
 
 def _fmt(x: float | None, digits: int = 1) -> str:
     return "-" if x is None else f"{x:.{digits}f}"
+
+
+def score_shot_exrs(truth: Sequence[tuple[str, bytes]], render: Sequence[tuple[str, bytes]],
+                    scene: Mapping[str, Any], *, enhanced: Sequence[tuple[str, bytes]] | None = None,
+                    actors: Sequence[int] | None = None, margin_m: float = FACE_MARGIN_M,
+                    sheet_width: int = 1600) -> tuple[dict, np.ndarray]:
+    """Score a shot's EXR frames against the truth's and draw the sheet.
+
+    Args:
+        truth: ``(name, EXR bytes)`` per shot frame, in frame order: premultiplied linear RGBA
+            over the whole frame (decoded with :func:`volcap_core.imageio.read.decode_exr`).
+        render: the render-shot frames of the same names (cropped RGBA with the camera
+            ``volcap.K``, ``volcap.worldToCamera``, ``volcap.time``, ``volcap.frame`` and the flow
+            in their headers; :func:`volcap_core.enhance.production.read_shot_frame`).
+        scene: the capture's ``ground_truth/scene.json``: the face masks are
+            :func:`~volcap_core.synth.ground_truth.face_region` of ``actors`` (None: all) in each
+            frame's camera at its time, grown by ``margin_m``.
+        enhanced: the enhanced frames of the same names, or None.
+    Returns:
+        (:func:`score_closeup`'s dict plus ``"shot_frames"`` (the frames' numbers), the contact
+        sheet ``uint8 [H, W, 3]``).
+    """
+    names = [n for n, _ in truth]
+    for label, frames in (("render", render), ("enhanced", enhanced)):
+        if frames is not None and [n for n, _ in frames] != names:
+            raise ValueError(f"score-shot: the {label} frames ({', '.join(n for n, _ in frames)}) are not the "
+                             f"truth's ({', '.join(names)})")
+    truth_px, render_px, flows, faces, numbers = [], [], [], [], []
+    for (name, t_bytes), (_, r_bytes) in zip(truth, render):
+        header, rgba, flow = read_shot_frame(r_bytes, with_flow=True)
+        t, channels = decode_exr(t_bytes, name=f"truth {name}")
+        if t.shape[:2] != rgba.shape[:2] or t.shape[2] != 4:
+            raise ValueError(f"truth {name}: {t.shape[1]}x{t.shape[0]} {''.join(channels)}, the render's frame is "
+                             f"{rgba.shape[1]}x{rgba.shape[0]} RGBA (the truth must be the whole frame, with alpha)")
+        try:
+            K = np.asarray(header["volcap.K"], np.float64).reshape(3, 3)
+            w2c = np.asarray(header["volcap.worldToCamera"], np.float64).reshape(4, 4)
+            time_s = float(np.asarray(header["volcap.time"]).reshape(-1)[0])
+        except KeyError as exc:
+            raise ValueError(f"render {name}: no {exc.args[0]} in its header (not a render-shot frame)") from None
+        h, w = rgba.shape[:2]
+        faces.append(face_region(scene, time_s, K, w2c, w, h, actors=actors, margin_m=margin_m))
+        truth_px.append(t)
+        render_px.append(rgba)
+        flows.append(flow)
+        numbers.append(int(header.get("volcap.frame", len(numbers))))
+    enhanced_px = None if enhanced is None else [read_shot_frame(b)[1] for _, b in enhanced]
+    scores = score_closeup(truth_px, render_px, faces, enhanced=enhanced_px, flows=flows)
+    scores["shot_frames"] = numbers
+    rows = closeup_sheet_rows(truth_px, render_px, faces, scores, enhanced=enhanced_px, frame_numbers=numbers)
+    title = f"close-up: truth | {'render, enhanced' if enhanced is not None else 'render'} | error (face outlined)"
+    return scores, contact_sheet(rows, title=title, max_width=sheet_width)
