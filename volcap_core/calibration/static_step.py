@@ -16,10 +16,11 @@ from dataclasses import dataclass, replace
 from typing import Any, ClassVar
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, SerializerFunctionWrapHandler, model_serializer
 from safetensors.numpy import load as st_load
 from safetensors.numpy import save as st_save
 
+from hardware.serialization import omit_unset
 from volcap_core.calibration import scale
 from volcap_core.calibration.errors import CalibrationInputError, KnownDistanceError, UnsupportedCameraError
 from volcap_core.calibration.inputs import FrameSource
@@ -69,6 +70,14 @@ class StaticCalibrationRecord(Record):
     unregistered_reasons: dict[str, str] = Field(default_factory=dict)
     reference: ArtifactRef | None = None
     stats: dict[str, float] = Field(default_factory=dict)
+    #: what the user must know of it (:attr:`StaticCalibration.warnings`: a step that did not run
+    #: and why, a camera's sigma that cannot be trusted); left out of the JSON when there is none
+    warnings: tuple[str, ...] = ()
+
+    @model_serializer(mode="wrap")
+    def _omit_unset(self, handler: SerializerFunctionWrapHandler):
+        # a record without warnings serialises (and digests) as before they existed
+        return omit_unset(handler(self), ("warnings",))
 
 
 def reference_frame(frame_count: int, options: StaticCalibrationOptions) -> int:
@@ -256,7 +265,7 @@ def static_record(cap_name: str, step: StaticStep, reference: ArtifactRef | None
                                    unregistered=tuple(static.unregistered),
                                    unregistered_reasons={c: static.reasons.get(c, "not registered")
                                                          for c in static.unregistered},
-                                   reference=reference, stats=stats)
+                                   reference=reference, stats=stats, warnings=tuple(static.warnings))
 
 
 def static_calibration(rec: StaticCalibrationRecord) -> StaticCalibration:
@@ -288,4 +297,4 @@ def static_calibration(rec: StaticCalibrationRecord) -> StaticCalibration:
                              reasons={c: rec.unregistered_reasons.get(c, "not registered") for c in rec.unregistered},
                              raw_intrinsics=raw,
                              scene_depth={c.id: c.scene_depth_m for c in rec.cameras if c.scene_depth_m is not None},
-                             support={c: v for c, v in support.items() if v})
+                             support={c: v for c, v in support.items() if v}, warnings=list(rec.warnings))
