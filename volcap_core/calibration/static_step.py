@@ -174,7 +174,8 @@ def calibrate_static_step(cap_name: str, rig, static_ids: Sequence[str], trackin
                 f"fewer than {need} of {len(static_ids)} static cameras would be left")
         raise CalibrationInputError(
             f"capture {cap_name}, frame {ref_frame}: static camera{'s' if many else ''} {', '.join(names)} "
-            f"cannot be calibrated: {why}; check {'their' if many else 'its'} footage and mount, or {hint}") from exc
+            f"cannot be calibrated: {why}; check {'their' if many else 'its'} footage and mount, or {hint}"
+            f"{_sparse_stage_hint(options)}") from exc
     except KnownDistanceError as exc:   # e.g. a camera of the known distance was left out
         raise CalibrationInputError(f"capture {cap_name}, frame {ref_frame}: {exc}") from exc
     except RuntimeError as exc:  # the SfM registered no / too few cameras
@@ -203,6 +204,21 @@ def calibrate_static_step(cap_name: str, rig, static_ids: Sequence[str], trackin
         reference = build_static_reference({c: _plate_in_pinhole(plates[c], static, c) for c in static.camera_ids},
                                            static.K, static.world_to_camera, scan)
     return StaticStep(static, ref_frame, plate_idx, plates, reference)
+
+
+def _sparse_stage_hint(options: StaticCalibrationOptions) -> str:
+    """The settings to try when static cameras are refused for what their views give (too few
+    observations, too uncertain a pose): on a bare or repetitive stage, more instants pooled and a
+    relaxed pair threshold (issue 31: a dome's repetitive panels calibrated at 640x360 with
+    ``--min-pair-inliers 20``, a swept dark stage with ``--instants 4``); those already set are not
+    named again. '' when both are."""
+    tries = []
+    if options.instants < 4 and options.instant_frames is None:
+        tries.append("--instants 4 (instants pooled: texture moving through the stage)")
+    if options.sfm.min_pair_inliers > 20:
+        tries.append(f"--min-pair-inliers 20 (a camera pair needs {options.sfm.min_pair_inliers} verified matches "
+                     "by default: too many for bare or repetitive views and wide baselines)")
+    return "; on a bare or repetitive stage try " + " or ".join(tries) if tries else ""
 
 
 def _plate_in_pinhole(plate: np.ndarray, static: StaticCalibration, camera: str) -> np.ndarray:
