@@ -29,14 +29,18 @@ output:
 6. optionally, direct photometric refinement against the lidar
    (:mod:`volcap_core.calibration.photometric`): every textured background pixel seen by two cameras
    votes (off by default: it did not improve the demo capture) (:func:`_photometric_refinement`);
-7. the sparse points re-triangulated from the final cameras (:func:`_final_model`) and each
-   camera's support measured under them (:func:`_final_support`).
+7. the sparse points re-triangulated from the final cameras (:func:`_final_model`), each
+   camera's support measured under them (:func:`_final_support`), and a camera whose final sigma
+   exceeds the bounds refused or left out (:func:`_refuse_uncertain`).
+
+A step that did not run (step 5 turned off, or without a surface to guide it) is said in
+:attr:`StaticCalibration.warnings` and logged.
 
 Every camera's support is measured on the SfM's observations (step 2) and on the inliers of step 4's
 adjustment (:func:`camera_support`: observation count, and the pose's standard deviation with the
 points held fixed, a lower bound); after step 5 the standard deviations reported are step 5's
 covariance, which counts what the principal point leaves open
-(:attr:`~volcap_core.calibration.bundle.BundleResult.sigma`). A camera below
+(:attr:`~volcap_core.calibration.bundle.BundleResult.sigma`), or step 4's when step 5 did not run. A camera below
 ``options.min_observations`` or above the uncertainty bounds is unsupported: with
 ``options.allow_unregistered`` it is left out (listed in ``unregistered`` with the reason), otherwise
 :class:`UnsupportedCameraError` names it. A seeded camera without observations is never returned as
