@@ -233,7 +233,8 @@ def calibrate_flow(store: str, capture: str, frames: tuple[int, int] | None = No
 
     Returns JSON: ``calibration`` and ``points`` (ref dumps), ``errors`` (the error table of
     ``volcap_core.calibration.metrics`` when the capture carries ground truth, else None),
-    ``unregistered`` (camera id -> reason). Also names the results ``calibrations/<capture name>``
+    ``unregistered`` (camera id -> reason), ``warnings`` (the Calibration's: a step that did not run and
+    why, a camera whose sigma cannot be trusted; each also logged as a warning). Also names the results ``calibrations/<capture name>``
     and ``points/<capture name>`` in the store.
 
     ``stage_frame``: for a capture without a lidar scan, how its stage frame and scale were set
@@ -271,6 +272,8 @@ def calibrate_flow(store: str, capture: str, frames: tuple[int, int] | None = No
         log.info("capture %s: known points: %s", cap.name, known_points_text(stage_frame, cap.lidar is not None))
     for cam, why in unregistered.items():
         log.warning("capture %s: camera %s left out of the calibration: %s", cap.name, cam, why)
+    for line in calib.warnings:
+        log.warning("capture %s: %s", cap.name, line)
     points_ref = point_cloud_for_frames(store, capture_ref, calib_ref, list(range(a, b)))
     errors = None
     if cap.ground_truth is not None:
@@ -285,4 +288,5 @@ def calibrate_flow(store: str, capture: str, frames: tuple[int, int] | None = No
     s.set_ref(f"points/{cap.name}", points_ref)
     return {"capture": capture_ref.model_dump(mode="json"), "calibration": calib_ref.model_dump(mode="json"),
             "points": points_ref.model_dump(mode="json"), "frames": [a, b], "tracking_cameras": trackers,
-            "errors": errors, "unregistered": dict(unregistered), "colour": colour, "stage_frame": stage_frame}
+            "errors": errors, "unregistered": dict(unregistered), "warnings": list(calib.warnings), "colour": colour,
+            "stage_frame": stage_frame}

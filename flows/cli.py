@@ -321,6 +321,7 @@ def calibrate(capture: Annotated[str, typer.Argument(help="capture ref name (cap
     out = summary.result
     lines = [f"calibration: {out['calibration']['digest']}", f"points: {out['points']['digest']}"]
     lines += [f"left out (unregistered): {cam}: {why}" for cam, why in out["unregistered"].items()]
+    lines += [f"warning: {line}" for line in out.get("warnings", [])]
     sf = out.get("stage_frame") or {}
     if "mount_residual_rms_m" in sf:
         from flows.calibrate import scale_source_text

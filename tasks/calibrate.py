@@ -52,7 +52,7 @@ ERRORS_MEDIA = "application/vnd.volcap.calibration-errors+json"
 CALIBRATION_LIBRARIES = ("pycolmap", "cv2", "kornia", "torch", "numpy", "scipy")
 
 
-@volcap_task(name="calibrate-static", version="10", libraries=CALIBRATION_LIBRARIES)
+@volcap_task(name="calibrate-static", version="11", libraries=CALIBRATION_LIBRARIES)
 def calibrate_static(store: str, capture: ArtifactRef,
                      options: StaticCalibrationOptions = StaticCalibrationOptions(),
                      known_points: KnownPoints | None = None) -> ArtifactRef:
@@ -87,7 +87,7 @@ def calibrate_tracking_camera(store: str, capture: ArtifactRef, static: Artifact
     return s.put_record(tracking_record(cap.name, camera, sol, frames))
 
 
-@volcap_task(name="assemble-calibration", version="6")
+@volcap_task(name="assemble-calibration", version="7")
 def assemble_calibration(store: str, capture: ArtifactRef, static: ArtifactRef,
                          tracking: list[ArtifactRef]) -> ArtifactRef:
     """The Calibration record (and its tracking-frames blob) from the static and per-camera results,

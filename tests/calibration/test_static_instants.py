@@ -1,7 +1,9 @@
 """Static calibration pooling several instants of the take (issue 13): a dark stage lit by a light
 that sweeps it, so that each instant shows only a 1 m slab of the set. One instant leaves two
 cameras with nothing to hold them (0 observations: an error naming them); four instants, spread
-over the take and pooled into one SfM with one pose per camera, calibrate every camera.
+over the take and pooled into one SfM with one pose per camera, calibrate every camera. (Since
+two-view tracks are kept when needed, the two dark cameras match each other, and are refused for
+their pose's sigma instead.)
 
 The capture: the demo rig's 8 static cameras, 8 frames at 1 sample per pixel with depth maps
 (~6 s to render); the "lit" frames are made from the rendered ones and the true depth (a pixel is
@@ -72,10 +74,18 @@ def test_instant_frames_are_spread_over_the_take_with_the_reference_first():
 
 def test_one_instant_of_a_swept_dark_stage_is_not_enough(swept):
     cap, _, load = swept
-    # measured (2026-11-24): S006 and S007 see nothing lit at frame 4 (0 observations), the others 43-99
+    # measured (2026-11-24): S006 and S007 see nothing lit at frame 4 (0 observations), the others
+    # 43-99. Since two-view tracks are kept when a camera has too few observations without them
+    # (2026-11-27), the two dark views match each other: 66 observations each, whose pose they
+    # hold to 8.8° only (step 4's covariance): refused all the same
     scan = LidarScan.from_ply_bytes(cap.lidar_path.read_bytes())
-    with pytest.raises(CalibrationInputError, match=r"frame 4: static cameras S006, S007 .*0 observations"):
+    with pytest.raises(CalibrationInputError,
+                       match=r"frame 4: static cameras S006, S007 cannot be calibrated: S006: "
+                             r"(0 observations|after the final adjustment, its rotation is determined to)") as err:
         calibrate_static_step(cap.name, cap.rig, STATIC, [], FRAMES, load, scan, OPTIONS)
+    # the error names the settings to try, the first of which calibrates this stage (next test)
+    assert "on a bare or repetitive stage try --instants 4" in str(err.value), str(err.value)
+    assert "--min-pair-inliers 20" in str(err.value)
 
 
 def test_four_instants_pooled_calibrate_every_camera(swept):

@@ -74,7 +74,8 @@ def build_record(capture_name: str, rig: Rig, static: StaticCalibration, trackin
                        stage_size_m=tuple(rig.stage_size_m), cameras=tuple(cams),
                        tracking_frames=tracking_frames_ref(blob) if blob is not None else None, stats=rec_stats,
                        unregistered={**{c: static.reasons.get(c, "not registered") for c in static.unregistered},
-                                     **left_out})
+                                     **left_out},
+                       warnings=tuple(static.warnings))
 
 
 def tracking_blob(sols: Mapping[str, TrackingSolution]) -> bytes | None:

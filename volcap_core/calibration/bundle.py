@@ -40,7 +40,7 @@ Rotations are updated on the left (``R <- exp(w) R``, kornia's axis-angle map). 
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Sequence
 
 import numpy as np
@@ -66,6 +66,11 @@ class BundleOptions:
     #: corrections to the radial k1, k2 of the cameras given a ``lens`` with this prior sigma around
     #: zero (a lens calibration's accuracy in k1 and k2)
     distortion_sigma: float | None = None
+    #: the covariance (``BundleResult.sigma``) counts the observations at the robust spread of their
+    #: inliers' residuals (1.4826 MAD per coordinate, at least 0.05 px) instead of ``pixel_sigma``:
+    #: for an adjustment whose ``pixel_sigma`` is a loose weighting (step 4's 1 px, against
+    #: residuals of ~0.1-0.4 px), so that its sigma say what the data and the priors hold
+    sigma_from_residuals: bool = False
     iterations: int = 15
     #: after each round, observations reprojecting worse than this (px) are dropped
     outlier_px: tuple[float, ...] = (8.0, 4.0, 3.0, 2.0)
@@ -97,6 +102,10 @@ class CameraSigma:
     focal_rel: np.ndarray
     #: the largest standard deviation of the principal point over x, y (px)
     principal_px: np.ndarray
+    #: directions of the cameras that the observations and priors leave undetermined (two cameras
+    #: without a scan: their turn about the baseline, which only the seed poses hold), left out of
+    #: the sigma above (:func:`_covariance`)
+    undetermined: int = 0
 
 
 @dataclass(frozen=True)
@@ -370,7 +379,12 @@ def bundle_adjust(world_to_camera: np.ndarray, focal: np.ndarray, principal: np.
                 if lam > 1e8:
                     break
         history.append(float(cost))
-    sigma = _camera_sigma(state, prob, oc, op, uv, plane_n, plane_d, on_lidar, pairs, ncam, npt)
+    sigma_prob = prob
+    if prob.options.sigma_from_residuals:
+        r = _residual_px(state, prob, oc, op, uv).reshape(-1)
+        spread = max(1.4826 * float((r - r.median()).abs().median()), 0.05) if len(r) else prob.options.pixel_sigma
+        sigma_prob = replace(prob, options=replace(prob.options, pixel_sigma=spread))
+    sigma = _camera_sigma(state, sigma_prob, oc, op, uv, plane_n, plane_d, on_lidar, pairs, ncam, npt)
     Rn, Cn = state.R, state.C
     out_w2c = torch.eye(4, **f64).repeat(ncam, 1, 1)
     out_w2c[:, :3, :3] = Rn
@@ -503,11 +517,12 @@ def _camera_sigma(state, prob: _Problem, oc, op, uv, plane_n, plane_d, on_lidar,
         pairs = _observation_pairs(op, npt)
     S, *_ = _reduced_system(state, prob, oc, op, uv, plane_n, plane_d, on_lidar, pairs, 0.0, ncam, npt)
     n = prob.params.per_camera
+    free, alone = 0, np.zeros(ncam, bool)
     if prob.params.shared:   # on the shared unknowns, mapped back to each camera's parameters
         idx = torch.as_tensor(prob.params.index, dtype=torch.long, device=S.device)
         cov = torch.linalg.inv(_on_unknowns(S, prob.params))[idx][:, idx]
     else:
-        cov = torch.linalg.inv(S)
+        cov, free, alone = _covariance(S, ncam)
     ar = torch.arange(ncam, device=S.device)
     blocks = cov.view(ncam, n, ncam, n)[ar, :, ar, :]                               # [C, n, n]
 
@@ -516,9 +531,37 @@ def _camera_sigma(state, prob: _Problem, oc, op, uv, plane_n, plane_d, on_lidar,
         return torch.where(top >= 0, top.clamp(min=0).sqrt(), torch.full_like(top, float("inf"))).cpu().numpy()
 
     nan = np.full(ncam, np.nan)
-    return CameraSigma(rotation_deg=np.degrees(largest(blocks[:, :3, :3])), centre_m=largest(blocks[:, 3:6, 3:6]),
+    inf = np.where(alone, np.inf, 1.0)     # a camera with a direction of its own undetermined
+    return CameraSigma(undetermined=free,
+                       rotation_deg=inf * np.degrees(largest(blocks[:, :3, :3])), centre_m=inf * largest(blocks[:, 3:6, 3:6]),
                        focal_rel=nan if prob.fix_focal else largest(blocks[:, 6:7, 6:7]),
                        principal_px=nan if prob.options.principal_sigma_px is None else largest(blocks[:, 7:9, 7:9]))
+
+
+#: a direction of the reduced camera system whose information is below this fraction of the
+#: largest is undetermined (:func:`_covariance`): two cameras without a scan turning together about
+#: their baseline gave 6e-16 (Pose2Sim cam01-cam02: only the 1e-12 damping held it), every
+#: determined direction measured so far 1e-7 or more (the centre priors')
+UNDETERMINED_RCOND = 1e-12
+
+
+def _covariance(S: torch.Tensor, ncam: int) -> tuple[torch.Tensor, int, np.ndarray]:
+    """The inverse of the reduced camera system ``S`` [C n, C n] on the directions the observations
+    and priors determine (information above :data:`UNDETERMINED_RCOND` of the largest). An
+    undetermined direction that moves several cameras together (two cameras without a scan turning
+    about their baseline) is left out of the covariance and counted (the second value): stating it
+    as a sigma of thousands of degrees would hide what the data do hold. One that moves a single
+    camera (a camera nothing observes) marks that camera (the third value, [C] bool): its sigma is
+    inf. Full rank: ``inv(S)``, 0, none marked."""
+    ev, V = torch.linalg.eigh(S)
+    keep = ev > UNDETERMINED_RCOND * ev[-1]
+    alone = np.zeros(ncam, bool)
+    if bool(keep.all()):
+        return torch.linalg.inv(S), 0, alone
+    share = (V[:, ~keep] ** 2).reshape(ncam, -1, int((~keep).sum())).sum(1).cpu().numpy()     # [C, k]
+    together = (share > 0.05).sum(0) >= 2
+    alone[np.unique(share[:, ~together].argmax(0))] = True
+    return (V[:, keep] / ev[keep]) @ V[:, keep].T, int(together.sum()), alone
 
 
 def _reduced_system(state, prob: _Problem, oc, op, uv, plane_n, plane_d, on_lidar, pairs, lam, ncam, npt):

@@ -113,6 +113,15 @@ class Calibration(Record):
     unregistered: dict[str, str] = Field(
         default_factory=dict, description="capture cameras left out of the calibration (the user allowed it), "
         "with the reason; training leaves them out")
+    warnings: tuple[str, ...] = Field(
+        default=(), description="what a user of the calibration must know, one line each: a step that did not "
+        "run and why (a setting turned it off, or it had nothing to work on), a camera whose stated sigma "
+        "cannot be trusted and why")
+
+    @model_serializer(mode="wrap")
+    def _omit_unset(self, handler: SerializerFunctionWrapHandler):
+        # a calibration without warnings serialises (and digests) as before they existed
+        return omit_unset(handler(self), ("warnings",))
 
     def camera(self, camera_id: str) -> CameraCalibration:
         for c in self.cameras:

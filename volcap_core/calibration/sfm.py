@@ -119,6 +119,14 @@ class StaticSfmOptions:
     #: adjustment between rounds (none after the last: the lidar-constrained one follows)
     seeded_rounds: int = 1
     triangulation_max_angle_deg: float = 4.0
+    #: two-view tracks (a point matched in exactly two images) in the seeded triangulation. COLMAP
+    #: ignores them by default, which leaves a rig whose cameras only overlap in pairs (Pose2Sim's
+    #: four cameras: only cam01-cam02 share a view) with no points at all. None (default): ignored,
+    #: unless that leaves a camera with fewer than ``two_view_min_observations`` observations; then
+    #: the points are triangulated again with them (stats ``two_view_tracks`` 1, and a warning
+    #: naming the cameras). True / False: always / never
+    two_view_tracks: bool | None = None
+    two_view_min_observations: int = 25
     triangulation_max_error_px: float = 8.0
     #: refine the focal lengths in the final bundle adjustment (the paper keeps them fixed)
     refine_focal: bool = False
@@ -368,9 +376,11 @@ def reconstruct_static(images: Mapping[str, np.ndarray], intrinsics: Mapping[str
                if pooled else None, work)
         t2 = time.perf_counter()
         if initial_poses is not None:
-            rec = _seeded(db_path, {c: initial_poses[c] for c in ids if c in initial_poses})
+            seeds = {c: initial_poses[c] for c in ids if c in initial_poses}
+            two_view = _two_view_tracks(db_path, img_dir, work, seeds, options)
+            rec = _seeded(db_path, seeds)
             for i in range(options.seeded_rounds):
-                rec = _triangulate(rec, db_path, img_dir, work, options)
+                rec = _triangulate(rec, db_path, img_dir, work, options, two_view)
                 if i + 1 < options.seeded_rounds:
                     _final_bundle_adjustment(rec, options)
                     if pooled:
@@ -386,6 +396,8 @@ def reconstruct_static(images: Mapping[str, np.ndarray], intrinsics: Mapping[str
         t3 = time.perf_counter()
         kps, descs = _read_features(db_path)
     model = _model_from_reconstruction(rec, ids, instants, kps, descs)
+    if initial_poses is not None:
+        model.stats["two_view_tracks"] = float(two_view)
     model.stats.update({"time_features_s": t1 - t0, "time_matching_s": t2 - t1,
                         "time_reconstruction_s": t3 - t2, "num_models": n_models,
                         "method": "seeded" if initial_poses is not None else "incremental",
@@ -553,9 +565,33 @@ def _seeded(db_path: Path, poses: Mapping[str, np.ndarray]) -> pycolmap.Reconstr
     return rec
 
 
-def _triangulate(rec, db_path: Path, img_dir: Path, work: Path, options: StaticSfmOptions):
+def _two_view_tracks(db_path: Path, img_dir: Path, work: Path, seeds: Mapping[str, np.ndarray],
+                     options: StaticSfmOptions) -> bool:
+    """Whether the seeded triangulation keeps two-view tracks (``options.two_view_tracks``; None:
+    only when, without them, a camera is left with fewer than ``options.two_view_min_observations``
+    observations: its overlap with the others is pairwise, say so in a warning)."""
+    if options.two_view_tracks is not None:
+        return options.two_view_tracks
+    rec = _triangulate(_seeded(db_path, seeds), db_path, img_dir, work, options, False)
+    counts = {c: 0 for c in seeds}
+    for iid in rec.reg_image_ids():
+        counts[_split_stem(rec.images[iid].name[:-4])[0]] += rec.images[iid].num_points3D
+    few = {c: n for c, n in counts.items() if n < options.two_view_min_observations}
+    if few:
+        import logging
+
+        logging.getLogger("volcap.calibrate").warning(
+            "static SfM: with COLMAP's two-view tracks ignored, camera(s) %s have too few observations (%s; "
+            "needs %d): their views overlap the others' in pairs only, so the points are triangulated again "
+            "with two-view tracks (StaticSfmOptions.two_view_tracks)", ", ".join(sorted(few)),
+            ", ".join(f"{c} {n}" for c, n in sorted(few.items())), options.two_view_min_observations)
+    return bool(few)
+
+
+def _triangulate(rec, db_path: Path, img_dir: Path, work: Path, options: StaticSfmOptions, two_view: bool):
     po = pycolmap.IncrementalPipelineOptions()
     po.num_threads = options.num_threads
+    po.triangulation.ignore_two_view_tracks = not two_view
     po.triangulation.create_max_angle_error = options.triangulation_max_angle_deg
     po.mapper.filter_max_reproj_error = options.triangulation_max_error_px
     out = work / "triangulated"

@@ -29,14 +29,18 @@ output:
 6. optionally, direct photometric refinement against the lidar
    (:mod:`volcap_core.calibration.photometric`): every textured background pixel seen by two cameras
    votes (off by default: it did not improve the demo capture) (:func:`_photometric_refinement`);
-7. the sparse points re-triangulated from the final cameras (:func:`_final_model`) and each
-   camera's support measured under them (:func:`_final_support`).
+7. the sparse points re-triangulated from the final cameras (:func:`_final_model`), each
+   camera's support measured under them (:func:`_final_support`), and a camera whose final sigma
+   exceeds the bounds refused or left out (:func:`_refuse_uncertain`).
+
+A step that did not run (step 5 turned off, or without a surface to guide it) is said in
+:attr:`StaticCalibration.warnings` and logged.
 
 Every camera's support is measured on the SfM's observations (step 2) and on the inliers of step 4's
 adjustment (:func:`camera_support`: observation count, and the pose's standard deviation with the
 points held fixed, a lower bound); after step 5 the standard deviations reported are step 5's
 covariance, which counts what the principal point leaves open
-(:attr:`~volcap_core.calibration.bundle.BundleResult.sigma`). A camera below
+(:attr:`~volcap_core.calibration.bundle.BundleResult.sigma`), or step 4's when step 5 did not run. A camera below
 ``options.min_observations`` or above the uncertainty bounds is unsupported: with
 ``options.allow_unregistered`` it is left out (listed in ``unregistered`` with the reason), otherwise
 :class:`UnsupportedCameraError` names it. A seeded camera without observations is never returned as
@@ -75,7 +79,9 @@ class StaticCalibrationOptions:
     sfm: StaticSfmOptions = StaticSfmOptions()
     #: seed the SfM with the rig's nominal mount poses (False: COLMAP's incremental mapper alone)
     seeded: bool = True
-    bundle: BundleOptions = BundleOptions(focal_sigma_rel=0.03, centre_sigma_m=0.03)
+    #: step 4's adjustment; its covariance (the sigma stated when step 5 does not run) counts the
+    #: observations at their residuals' spread, not at the 1 px weighting (``sigma_from_residuals``)
+    bundle: BundleOptions = BundleOptions(focal_sigma_rel=0.03, centre_sigma_m=0.03, sigma_from_residuals=True)
     #: lidar-guided patch matching after the first adjustment (None skips it and the second one)
     guided: GuidedMatchOptions | None = GuidedMatchOptions()
     #: the adjustment on the guided tracks: observations weighted as what they are (NCC matches
@@ -121,6 +127,9 @@ class StaticCalibrationOptions:
     #: (:func:`surface_from_plates`) instead of the scan, the centres held by the mounts (step 4's
     #: ``centre_sigma_m``) and no lidar prior; False: steps 1-4 only
     surface_without_scan: bool = True
+    #: the stand-in surface (:func:`surface_from_plates`) needs at least this many fused points to
+    #: guide step 5; fewer, and step 5 does not run (said in the calibration's ``warnings``)
+    surface_min_points: int = 2000
     #: without a lidar scan: a camera whose adjusted centre is further than this from its mount
     #: after the similarity onto the mounts is named in a warning (the mounts are surveyed to a few
     #: cm; metres). The residual is in the stats (``frame.mount_residual_*``)
@@ -171,7 +180,10 @@ class StaticCalibration:
     #: per calibrated camera, its view of the scene (:func:`scene_depths`): where its dense points
     #: sweep; kept by the records when ``model`` is not
     scene_depth: dict[str, tuple[float, float, float]] = field(default_factory=dict)
-
+    #: what the user must know of this calibration, one line each: a step that did not run (a
+    #: setting turned it off, or it had nothing to work on) and what that leaves. Also logged as
+    #: warnings, and carried into the records (``warnings``)
+    warnings: list[str] = field(default_factory=list)
 
 
 
@@ -221,18 +233,33 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
     """
     t0 = time.perf_counter()
     stats: dict = {}
+    warnings: list[str] = []
     priors = _rig_priors(rig, sorted(images))                                                               # 1
     model, views, reasons = _sparse_model(images, plates, priors, options, more_instants, stats)            # 2
+    if stats["sfm"].get("two_view_tracks") and options.sfm.two_view_tracks is None:
+        warnings.append("the sparse SfM kept two-view tracks (points seen by two cameras only): without them a "
+                        "camera had too few observations, its view overlapping the others' in pairs only; each "
+                        "pair's points then rest on that one pair's matches")
     t1 = time.perf_counter()
     model = _into_stage_frame(model, priors.mounts, scan, options, stats)                                   # 3
     model, first, cams = _first_adjustment(model, views, priors, scan, options, reasons, stats)             # 4
     t2 = time.perf_counter()
-    cams = _guided_adjustment(cams, views, priors, rig, scan, options, stats)                               # 5
+    cams = _guided_adjustment(cams, views, priors, rig, scan, options, stats, warnings)                     # 5
     t_guided = time.perf_counter()
     cams = _photometric_refinement(cams, views, priors, scan, options, stats)                               # 6
     t3 = time.perf_counter()
     model = _final_model(model, first, cams, views)                                                         # 7
-    support = _final_support(model, first.inlier, cams)
+    support = _final_support(model, first, cams)
+    stated = cams.guided_sigma if cams.guided_observations is not None else first.sigma
+    if stated is not None and stated.undetermined:
+        warnings.append(f"the final adjustment leaves {stated.undetermined} direction(s) of the cameras undetermined "
+                        "by the footage and the priors (e.g. two cameras without a scan turning together about their "
+                        "baseline): each camera's sigma leaves them out; along them the cameras are where their "
+                        "mounts' aims put them")
+        import logging
+
+        logging.getLogger("volcap.calibrate").warning("%s", warnings[-1])
+    model, cams, support = _refuse_uncertain(model, cams, support, options, reasons)
     stats["support"] = support
     stats["time_s"] = {"sfm": t1 - t0, "bundle": t2 - t1, "guided": t_guided - t2, "photometric": t3 - t_guided,
                        "total": time.perf_counter() - t0}
@@ -240,7 +267,7 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
     return StaticCalibration(camera_ids=reg, K=K, world_to_camera=cams.world_to_camera,
                              size={c: (views.intrinsics[c].width, views.intrinsics[c].height) for c in reg},
                              model=model, unregistered=sorted(reasons), stats=stats,
-                             reasons=dict(sorted(reasons.items())), support=support,
+                             reasons=dict(sorted(reasons.items())), support=support, warnings=warnings,
                              raw_intrinsics={c: raw_from_rectified(K[c], cams.lenses[c]) for c in reg
                                              if c in cams.lenses})
 
@@ -392,7 +419,11 @@ def _first_adjustment(model: SparseModel, views: _Views, priors: _RigPriors, sca
         drop = [c for c in reg if c in reasons]
         kept = np.array([c not in reasons for c in reg])
         keep_obs = kept[model.obs_camera]
-        res = replace(res, inlier=inl[keep_obs], world_to_camera=res.world_to_camera[kept], focal=res.focal[kept])
+        sg = res.sigma
+        res = replace(res, inlier=inl[keep_obs], world_to_camera=res.world_to_camera[kept], focal=res.focal[kept],
+                      sigma=None if sg is None else CameraSigma(sg.rotation_deg[kept], sg.centre_m[kept],
+                                                                sg.focal_rel[kept], sg.principal_px[kept],
+                                                                sg.undetermined))
         model = _without_cameras(model, drop, min_views=0)  # observations stay aligned with keep_obs
         reg = model.camera_ids
         if len(reg) < 2:
@@ -410,23 +441,33 @@ def _first_adjustment(model: SparseModel, views: _Views, priors: _RigPriors, sca
 
 
 def _guided_adjustment(cams: _Cameras, views: _Views, priors: _RigPriors, rig: Rig, scan: LidarScan | None,
-                       options: StaticCalibrationOptions, stats: dict) -> _Cameras:
+                       options: StaticCalibrationOptions, stats: dict, warnings: list[str]) -> _Cameras:
     """5. Patch matching of the background between the cameras of step 4, guided through the
     scan (without one, through a plane-sweep surface of the plates: :func:`surface_from_plates`),
     and a second adjustment on those tracks: principal points refined, a rectified camera's radial
     k1, k2 corrected, the centres left to the data (with no scan, held by the mounts as in step 4:
     they are the frame, taken again after it). The cameras unchanged when ``options.guided`` is
-    None or there is nothing to guide the matching."""
+    None or there is nothing to guide the matching; then why is appended to ``warnings`` and logged
+    (:func:`_skipped_step5`)."""
     reg, K, w2c = cams.ids, cams.K, cams.world_to_camera
     intr, mounts, background = views.intrinsics, priors.mounts, views.background
     guide, guided_bundle = scan, options.guided_bundle
     if scan is None and options.guided is not None and options.surface_without_scan:
         # no scan: step 5 warps its templates through a plane-sweep surface of the plates instead,
         # with no lidar prior and the centres held by the mounts as in step 4 (they are the frame)
-        guide, stats["surface"] = surface_from_plates({c: background[c] for c in reg}, K, w2c)
+        guide, stats["surface"] = surface_from_plates({c: background[c] for c in reg}, K, w2c,
+                                                      min_points=options.surface_min_points)
         guided_bundle = replace(guided_bundle, centre_sigma_m=options.bundle.centre_sigma_m)
-    if guide is None or options.guided is None:
-        return cams
+    if options.guided is None:
+        return _skipped_step5(cams, "turned off (StaticCalibrationOptions.guided is None)", warnings, stats)
+    if guide is None and not options.surface_without_scan:
+        return _skipped_step5(cams, "no lidar scan, and the stand-in surface is turned off "
+                              "(StaticCalibrationOptions.surface_without_scan=False)", warnings, stats)
+    if guide is None:
+        got = int(stats["surface"].get("points", 0))
+        return _skipped_step5(cams, f"no lidar scan, and the stand-in surface of the background plates got {got} "
+                              f"points (needs {options.surface_min_points}): the plates are too bare, or too alike "
+                              "between the cameras, for the plane sweep", warnings, stats)
     # the tracks' cameras come in ``reg`` order, the order of the dict passed; a rectified view's
     # pixels without footage (a pincushion lens's black corners) take no part in the matching
     lenses = views.lenses
@@ -446,7 +487,7 @@ def _guided_adjustment(cams: _Cameras, views: _Views, priors: _RigPriors, rig: R
     K = {c: np.array([[g.focal[i], 0, g.principal[i, 0]], [0, g.focal[i], g.principal[i, 1]],
                       [0, 0, 1.0]]) for i, c in enumerate(reg)}
     w2c = {c: g.world_to_camera[i] for i, c in enumerate(reg)}
-    stats["guided"] = {**tracks.stats, "bundle": g.stats, "inliers": int(g.inlier.sum()),
+    stats["guided"] = {"ran": 1, **tracks.stats, "bundle": g.stats, "inliers": int(g.inlier.sum()),
                        "median_reprojection_px": float(np.median(g.reprojection_px[g.inlier])),
                        "through": "lidar scan" if scan is not None else "plane-sweep surface"}
     calibrated = dict(cams.lenses)
@@ -463,6 +504,19 @@ def _guided_adjustment(cams: _Cameras, views: _Views, priors: _RigPriors, rig: R
     return _Cameras(reg, K, w2c, calibrated, guided_observations=np.bincount(tracks.obs_camera[g.inlier],
                                                                              minlength=len(reg)),
                     guided_sigma=g.sigma)
+
+
+def _skipped_step5(cams: _Cameras, why: str, warnings: list[str], stats: dict) -> _Cameras:
+    """Step 5 did not run: ``why`` (and what it leaves) appended to ``warnings`` and logged, and
+    ``stats["guided"]["ran"] = 0`` (1 when it ran). Returns ``cams`` unchanged."""
+    import logging
+
+    msg = (f"step 5 (the guided matching and the final adjustment) did not run: {why}; the cameras are "
+           "step 4's, from the sparse SfM alone, and each camera's sigma is step 4's adjustment covariance")
+    warnings.append(msg)
+    stats["guided"] = {"ran": 0}
+    logging.getLogger("volcap.calibrate").warning("%s", msg)
+    return cams
 
 
 def _photometric_refinement(cams: _Cameras, views: _Views, priors: _RigPriors, scan: LidarScan | None,
@@ -494,12 +548,23 @@ def _final_model(model: SparseModel, first: BundleResult, cams: _Cameras, views:
                                              intr[c].height) for c in reg})
 
 
-def _final_support(model: SparseModel, inlier: np.ndarray, cams: _Cameras) -> dict[str, dict]:
+def _final_support(model: SparseModel, first: BundleResult, cams: _Cameras) -> dict[str, dict]:
     """7. Each camera's support (:func:`camera_support`): the sparse model's observations (step 4's
-    inliers) under the final cameras; after step 5, its standard deviations are step 5's."""
-    reg = cams.ids
+    inliers) under the final cameras; its standard deviations are step 5's covariance, or step 4's
+    when step 5 did not run (``guided_ran`` 0)."""
+    reg, inlier = cams.ids, first.inlier
     support = camera_support(cams.K, cams.world_to_camera, reg, model.points, model.obs_camera[inlier],
                              model.obs_point[inlier], model.obs_xy[inlier])
+    for c in reg:   # whether step 5 refined it (0: see the calibration's warnings for why not)
+        support[c]["guided_ran"] = float(cams.guided_observations is not None)
+    if cams.guided_observations is None and first.sigma is not None:
+        # step 4's adjustment covariance (points eliminated, the mount and focal priors in), not the
+        # pose-only bound with the points held: that bound misses the cameras and points turning
+        # together, which only the priors hold when few cameras share the points (two cameras of
+        # the demo rig: 0.0035° stated, 0.63-0.73° off; step 4's covariance 0.46-0.48°)
+        for i, c in enumerate(reg):
+            support[c].update(rotation_sigma_deg=float(first.sigma.rotation_deg[i]),
+                              centre_sigma_m=float(first.sigma.centre_m[i]))
     if cams.guided_observations is not None:
         # how well step 5 knows each camera: its adjustment's covariance, the points eliminated and
         # the principal point, focal and lens corrections unknown under their priors (a
@@ -515,6 +580,36 @@ def _final_support(model: SparseModel, inlier: np.ndarray, cams: _Cameras) -> di
                               principal_sigma_px=known * float(sigma.principal_px[i]),
                               focal_sigma_pct=known * 100 * float(sigma.focal_rel[i]))
     return support
+
+
+def _refuse_uncertain(model: SparseModel, cams: _Cameras, support: dict[str, dict], options: StaticCalibrationOptions,
+                      reasons: dict[str, str]) -> tuple[SparseModel, _Cameras, dict[str, dict]]:
+    """7. The final support held to the same bounds as step 4's (``options.max_rotation_sigma_deg``,
+    ``max_centre_sigma_m``), now on the final sigma (step 5's covariance when it ran): a camera above
+    them is unsupported, added to ``reasons``, and left out (:class:`UnsupportedCameraError` unless
+    ``options.allow_unregistered``). Never kept with a sigma above the bound (the webcams of issue 31:
+    4.6° against the 1° bound, all returned as calibrated)."""
+    bad = {}
+    for c in cams.ids:
+        why = _unsupported(support[c], options)
+        if why:
+            bad[c] = "after the final adjustment, " + why + (
+                " (step 5's guided matching found none of its background plate in the other cameras' views)"
+                if support[c].get("guided_observations", 1) == 0 else "")
+    if not bad:
+        return model, cams, support
+    reasons.update(bad)
+    keep = [c for c in cams.ids if c not in bad]
+    if not options.allow_unregistered or len(keep) < 2:
+        raise UnsupportedCameraError(reasons)
+    kept = np.array([c in keep for c in cams.ids])
+    cams = _Cameras(keep, {c: cams.K[c] for c in keep}, {c: cams.world_to_camera[c] for c in keep},
+                    {c: v for c, v in cams.lenses.items() if c in keep},
+                    None if cams.guided_observations is None else cams.guided_observations[kept],
+                    None if cams.guided_sigma is None else CameraSigma(*(a[kept] for a in (
+                        cams.guided_sigma.rotation_deg, cams.guided_sigma.centre_m, cams.guided_sigma.focal_rel,
+                        cams.guided_sigma.principal_px)), undetermined=cams.guided_sigma.undetermined))
+    return _without_cameras(model, list(bad)), cams, {c: support[c] for c in keep}
 
 
 def _radial_lens(rect: Intrinsics, raw: Intrinsics | None) -> tuple[float, ...] | None:

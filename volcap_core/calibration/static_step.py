@@ -16,10 +16,11 @@ from dataclasses import dataclass, replace
 from typing import Any, ClassVar
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, SerializerFunctionWrapHandler, model_serializer
 from safetensors.numpy import load as st_load
 from safetensors.numpy import save as st_save
 
+from hardware.serialization import omit_unset
 from volcap_core.calibration import scale
 from volcap_core.calibration.errors import CalibrationInputError, KnownDistanceError, UnsupportedCameraError
 from volcap_core.calibration.inputs import FrameSource
@@ -69,6 +70,14 @@ class StaticCalibrationRecord(Record):
     unregistered_reasons: dict[str, str] = Field(default_factory=dict)
     reference: ArtifactRef | None = None
     stats: dict[str, float] = Field(default_factory=dict)
+    #: what the user must know of it (:attr:`StaticCalibration.warnings`: a step that did not run
+    #: and why, a camera's sigma that cannot be trusted); left out of the JSON when there is none
+    warnings: tuple[str, ...] = ()
+
+    @model_serializer(mode="wrap")
+    def _omit_unset(self, handler: SerializerFunctionWrapHandler):
+        # a record without warnings serialises (and digests) as before they existed
+        return omit_unset(handler(self), ("warnings",))
 
 
 def reference_frame(frame_count: int, options: StaticCalibrationOptions) -> int:
@@ -165,7 +174,8 @@ def calibrate_static_step(cap_name: str, rig, static_ids: Sequence[str], trackin
                 f"fewer than {need} of {len(static_ids)} static cameras would be left")
         raise CalibrationInputError(
             f"capture {cap_name}, frame {ref_frame}: static camera{'s' if many else ''} {', '.join(names)} "
-            f"cannot be calibrated: {why}; check {'their' if many else 'its'} footage and mount, or {hint}") from exc
+            f"cannot be calibrated: {why}; check {'their' if many else 'its'} footage and mount, or {hint}"
+            f"{_sparse_stage_hint(options)}") from exc
     except KnownDistanceError as exc:   # e.g. a camera of the known distance was left out
         raise CalibrationInputError(f"capture {cap_name}, frame {ref_frame}: {exc}") from exc
     except RuntimeError as exc:  # the SfM registered no / too few cameras
@@ -194,6 +204,21 @@ def calibrate_static_step(cap_name: str, rig, static_ids: Sequence[str], trackin
         reference = build_static_reference({c: _plate_in_pinhole(plates[c], static, c) for c in static.camera_ids},
                                            static.K, static.world_to_camera, scan)
     return StaticStep(static, ref_frame, plate_idx, plates, reference)
+
+
+def _sparse_stage_hint(options: StaticCalibrationOptions) -> str:
+    """The settings to try when static cameras are refused for what their views give (too few
+    observations, too uncertain a pose): on a bare or repetitive stage, more instants pooled and a
+    relaxed pair threshold (issue 31: a dome's repetitive panels calibrated at 640x360 with
+    ``--min-pair-inliers 20``, a swept dark stage with ``--instants 4``); those already set are not
+    named again. '' when both are."""
+    tries = []
+    if options.instants < 4 and options.instant_frames is None:
+        tries.append("--instants 4 (instants pooled: texture moving through the stage)")
+    if options.sfm.min_pair_inliers > 20:
+        tries.append(f"--min-pair-inliers 20 (a camera pair needs {options.sfm.min_pair_inliers} verified matches "
+                     "by default: too many for bare or repetitive views and wide baselines)")
+    return "; on a bare or repetitive stage try " + " or ".join(tries) if tries else ""
 
 
 def _plate_in_pinhole(plate: np.ndarray, static: StaticCalibration, camera: str) -> np.ndarray:
@@ -256,7 +281,7 @@ def static_record(cap_name: str, step: StaticStep, reference: ArtifactRef | None
                                    unregistered=tuple(static.unregistered),
                                    unregistered_reasons={c: static.reasons.get(c, "not registered")
                                                          for c in static.unregistered},
-                                   reference=reference, stats=stats)
+                                   reference=reference, stats=stats, warnings=tuple(static.warnings))
 
 
 def static_calibration(rec: StaticCalibrationRecord) -> StaticCalibration:
@@ -288,4 +313,4 @@ def static_calibration(rec: StaticCalibrationRecord) -> StaticCalibration:
                              reasons={c: rec.unregistered_reasons.get(c, "not registered") for c in rec.unregistered},
                              raw_intrinsics=raw,
                              scene_depth={c.id: c.scene_depth_m for c in rec.cameras if c.scene_depth_m is not None},
-                             support={c: v for c, v in support.items() if v})
+                             support={c: v for c, v in support.items() if v}, warnings=list(rec.warnings))
