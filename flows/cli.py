@@ -456,8 +456,8 @@ def _replace_dir_atomic(path: Path, write) -> None:
 
 
 @app.command(name="import-calibration")
-def import_calibration_cmd(source: Annotated[Path, typer.Argument(exists=True, help="Qualisys .qca.txt, OpenCV YAML/JSON file, or COLMAP model folder")],
-                           fmt: Annotated[str, typer.Option("--format", help="qualisys, colmap or opencv")],
+def import_calibration_cmd(source: Annotated[str, typer.Argument(help="Qualisys .qca.txt, OpenCV YAML/JSON file, COLMAP model folder, or (--format record) a stored Calibration's ref")],
+                           fmt: Annotated[str, typer.Option("--format", help="qualisys, colmap, opencv, or record (a calibration in the store, solved or imported, applied to this capture's frames)")],
                            capture: Annotated[str, typer.Option("--capture", help="the capture it calibrates; a stored captures/NAME gives frames, fps and frame sizes")],
                            frames: Annotated[Optional[int], typer.Option("--frames", min=1, help="frame count (default: the stored capture's)")] = None,
                            fps: Annotated[Optional[float], typer.Option("--fps", min=0.001, help="frame rate (default: the stored capture's)")] = None,
@@ -465,19 +465,26 @@ def import_calibration_cmd(source: Annotated[Path, typer.Argument(exists=True, h
                            store: StoreOpt = DEFAULT_STORE, json_out: JsonOpt = False) -> None:
     """Store a studio's calibration as a Calibration record, named imported-calibrations/NAME, and
     print its ref (a Calibration ref, as `export-colmap` takes). A camera of a stored capture
-    whose frames were resampled since (another size) gets the intrinsics of its frames, scaled
-    uniformly and centred (docs/calibration.md, "Importing a studio's calibration")."""
+    whose frames were resampled since (another size) gets the intrinsics of its frames: resized, or
+    scaled uniformly and centred (docs/calibration.md, "Importing a studio's calibration").
+    `--format record`: SOURCE is a Calibration already in the store (a solved one of the full-size
+    footage), applied to the capture's frames the same way."""
     from volcap_core.calibration import importers
+    from volcap_core.calibration.record import Calibration
     from volcap_core.capture import Capture
     from volcap_core.store import MissingRefError
 
-    if fmt not in ("qualisys", "colmap", "opencv"):
-        raise CommandError(f"--format {fmt!r}: one of qualisys, colmap, opencv")
-    if fmt == "qualisys" and metres_per_unit != 1.0:
-        raise CommandError("--metres-per-unit: a Qualisys calibration is in mm by definition")
-    if (fmt == "colmap") != source.is_dir():
-        raise CommandError(f"{source}: --format {fmt} reads {'a folder' if fmt == 'colmap' else 'a file'}")
+    if fmt not in ("qualisys", "colmap", "opencv", "record"):
+        raise CommandError(f"--format {fmt!r}: one of qualisys, colmap, opencv, record")
+    if fmt in ("qualisys", "record") and metres_per_unit != 1.0:
+        raise CommandError(f"--metres-per-unit: a {'Qualisys calibration is in mm by definition' if fmt == 'qualisys' else 'stored calibration is in metres'}")
     s = _open(store)
+    if fmt != "record":
+        source = Path(source)
+        if not source.exists():
+            raise CommandError(f"{source}: no such file or folder")
+        if (fmt == "colmap") != source.is_dir():
+            raise CommandError(f"{source}: --format {fmt} reads {'a folder' if fmt == 'colmap' else 'a file'}")
     try:
         cap = s.get_record(s.get_ref(f"captures/{capture}"), Capture)
     except MissingRefError:
@@ -492,16 +499,31 @@ def import_calibration_cmd(source: Annotated[Path, typer.Argument(exists=True, h
         read = lambda fs: importers.calibration_from_colmap(source, metres_per_unit=metres_per_unit, frame_sizes=fs, **kw)  # noqa: E731
     elif fmt == "opencv":
         read = lambda fs: importers.calibration_from_opencv(source.read_bytes(), source=str(source), metres_per_unit=metres_per_unit, frame_sizes=fs, **kw)  # noqa: E731
-    else:
+    elif fmt == "qualisys":
         read = lambda fs: importers.calibration_from_qualisys(source.read_bytes(), source=str(source), frame_sizes=fs, **kw)  # noqa: E731
+    else:
+        try:
+            stored = s.get_record(s.resolve(source), Calibration)
+        except MissingRefError:
+            raise CommandError(f"{source}: no such calibration in the store (a digest or a name such as "
+                               f"calibrations/NAME)") from None
+        except (ValueError, TypeError) as exc:
+            raise CommandError(f"{source}: not a Calibration record: {exc}") from None
+        read = lambda fs: importers.fit_calibration(stored, fs, source=source, **kw)  # noqa: E731
     ids = {c.id for c in read(None).cameras}
     record = read({c: wh for c, wh in sizes.items() if c in ids})
     ref = s.put_record(record)
     s.set_ref(f"imported-calibrations/{capture}", ref)
     lines = [f"calibration imported-calibrations/{capture}: {ref.digest}"]
     for c in record.cameras:
+        if c.intrinsics is None:
+            lines.append(f"  {c.id}: {c.width}x{c.height}, tracking camera (intrinsics per frame)")
+            continue
         fx, fy, cx, cy = c.intrinsics
-        note = f", frames {c.width}x{c.height} scaled by {c.quality['resample_scale']:.5f}" if "resample_scale" in c.quality else ""
+        note = ""
+        if "resample_scale" in c.quality:
+            sx, sy = c.quality["resample_scale"], c.quality.get("resample_scale_y", c.quality["resample_scale"])
+            note = f", frames {c.width}x{c.height} scaled by {sx:.5f}" + (f" x {sy:.5f}" if sy != sx else "")
         lines.append(f"  {c.id}: {c.width}x{c.height}, fx {fx:.1f} fy {fy:.1f} cx {cx:.1f} cy {cy:.1f}, "
                      f"{len(c.distortion)} distortion coefficients{note}")
     if record.unregistered:
