@@ -7,7 +7,7 @@ Through ``volcap import-calibration FILE --format opencv --capture NAME --refine
 The capture: the demo rig's 8 static cameras, 1 frame at 1 sample per pixel (~2 s to render).
 Measured (2026-11-27, 2 busy cores): the refinement ~10-30 s per call; every refined camera
 0.22-0.42° from the truth after starting 1° or 2° off (and after starting exact), its stated
-rotation σ 0.65°, the grey camera kept. ~60 s in all.
+rotation σ 0.65°, the grey camera kept. 25-40 s in all.
 """
 
 from __future__ import annotations
