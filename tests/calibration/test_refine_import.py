@@ -95,6 +95,18 @@ def test_a_frame_of_another_size_and_too_few_cameras_are_refused(knocked):
         refine_imported(studio, [{"S000": frames["S000"]}])
 
 
+def test_nothing_to_refine_against_keeps_every_camera_and_says_so(knocked):
+    # two cameras, one of them grey: neither can be refined; the others have no frames here
+    _, studio, frames = knocked
+    refined, report = refine_imported(studio, [{"S000": frames["S000"], BLANK: frames[BLANK]}])
+    assert report.cameras == {} and set(report.kept) == set(CAMERAS)
+    assert report.kept["S001"] == "no frames of it to refine against"
+    assert report.kept["S000"].startswith("0 observations shared")
+    for c in CAMERAS:
+        assert refined.camera(c).world_to_camera == studio.camera(c).world_to_camera
+        assert refined.camera(c).quality["refine_kept_imported"] == 1.0
+
+
 def test_cli_import_refined(knocked, tmp_path):
     """``import-calibration --refine``: the stored capture's frames, the refined record stored and
     named, each camera's move and σ printed, the kept camera named with why."""

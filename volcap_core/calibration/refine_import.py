@@ -114,6 +114,8 @@ def refine_imported(calibration: Calibration, frames: Sequence[Mapping[str, np.n
     if len(active) >= 2:
         updated, report, more_kept = _adjust([ids[i] for i in active], cams, obs_c, obs_p, obs_xy, active, options)
         kept.update(more_kept)
+    else:   # one camera cannot be adjusted alone: every camera keeps the file's values, and says so
+        kept.update({ids[i]: "no other camera left to refine it against" for i in active})
     out = []
     for cam in calibration.cameras:
         if cam.id in updated and cam.id not in kept:
