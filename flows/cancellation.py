@@ -26,6 +26,19 @@ same command reports them cached; a training segment resumes from its last check
 
 A signal that arrives after the command printed its result (:meth:`Cancellation.finished`) is
 ignored: the work is done and the process is about to exit 0.
+
+A worker's flow run (a cancel from the Prefect UI): the worker sets nothing of the above up (its
+flow-run process is Prefect's engine, not a ``volcap`` command). On Cancel the run goes
+Cancelling; the worker records a "cancel" intent on the run's control channel, sends the process
+SIGTERM and waits 30 s before SIGKILL; Prefect's engine stops the flow's main thread, but a task
+running in the thread pool (a training segment) kept the process alive until the kill (measured:
+docs/operations.md). :func:`stop_flow_run_on_signal`, called first thing by the production
+flows, watches for that SIGTERM in the process (the wakeup descriptor alone: Prefect's own
+handlers stay) and, **when the runner's intent is "cancel"**, ends it the same way: within
+seconds, its runs marked Cancelled, a line in the worker's log. Any other SIGTERM (a pod
+eviction, rescheduled by ``PREFECT_FLOW_RUN_EXECUTE_SIGTERM_BEHAVIOR=reschedule``) and SIGINT are
+left to Prefect. Runs of deployments a cancelled run started (a production's segment runs on GPU
+workers) that are running are set Cancelling, so that their own workers stop them the same way.
 """
 
 from __future__ import annotations
@@ -59,6 +72,8 @@ class Cancellation:
         self._installed = False
         self._before_exit: list[Callable[[], None]] = []
         self._report: Callable[[str], None] = lambda line: print(line, file=sys.stderr, flush=True)
+        #: which signals the watcher acts on (a flow run's process: a runner's cancel only)
+        self._acts_on: Callable[[signal.Signals], bool] = lambda sig: True
 
     def install(self, command: str, report: Callable[[str], None] | None = None) -> bool:
         """Handle SIGINT and SIGTERM from now on (main thread only; False elsewhere, or on a
@@ -84,6 +99,33 @@ class Cancellation:
         logging.getLogger("prefect.engine").addFilter(_QuietHook())
         self._installed = True
         return True
+
+    def watch_flow_run(self, command: str, flow_run: tuple[str, str], report: Callable[[str], None],
+                       acts_on: Callable[[signal.Signals], bool]) -> bool:
+        """In a flow run's process (:func:`stop_flow_run_on_signal`): the watcher alone, woken by the
+        wakeup descriptor, acting on the signals ``acts_on`` accepts; the process's Python-level
+        handlers (Prefect's) stay as they are. False off the main thread, when a wakeup descriptor
+        is in use already, or once installed."""
+        if self._installed or threading.current_thread() is not threading.main_thread():
+            return False
+        reader, writer = socket.socketpair()
+        writer.setblocking(False)
+        if signal.set_wakeup_fd(writer.fileno(), warn_on_full_buffer=False) != -1:
+            signal.set_wakeup_fd(-1)        # someone else's: left alone (their descriptor is not ours to restore)
+            reader.close()
+            writer.close()
+            return False
+        self.command, self._report, self._acts_on, self.flow_run = command, report, acts_on, flow_run
+        self._sockets = (reader, writer)
+        threading.Thread(target=self._watch, args=(reader,), name="volcap-cancel", daemon=True).start()
+        self._installed = True
+        return True
+
+    @property
+    def installed(self) -> bool:
+        """Whether this process handles SIGINT/SIGTERM (a ``volcap`` command, or a flow run's
+        process after :func:`stop_flow_run_on_signal`)."""
+        return self._installed
 
     def before_exit(self, fn: Callable[[], None]) -> None:
         """Run ``fn`` (bounded by the API grace) before the cancelled process ends: e.g. stopping
@@ -135,7 +177,7 @@ class Cancellation:
             except OSError:
                 return
             for signum in data:
-                if signum in EXIT_CODES:
+                if signum in EXIT_CODES and self._acts_on(signal.Signals(signum)):
                     self._cancel(signal.Signals(signum))
 
     def _cancel(self, sig: signal.Signals) -> None:
@@ -191,13 +233,56 @@ def bounded(fn: Callable[[], Any], timeout_s: float) -> None:
     t.join(timeout_s)
 
 
+def stop_flow_run_on_signal() -> bool:
+    """In a flow run's own process, one a worker started (no ``volcap`` command around it): a
+    SIGTERM that the runner sends to **cancel** the run (a cancel from the UI: its control
+    channel's intent is "cancel") ends the process as a command's cancel does
+    (:class:`Cancellation`): the run, its sub-flow and task runs marked Cancelled, one line
+    ``volcap: error: cancelled: FLOW: flow run 'NAME' (running …) (SIGTERM)`` on stderr (the
+    worker's log), the process ended at once (exit 143), a task in the thread pool included.
+    Any other signal is Prefect's to handle, as before. Called first thing in a flow's body (main
+    thread). Only in a process started to run this flow run (``PREFECT__FLOW_RUN_ID``, which
+    Prefect's runner and workers set): nothing inside a ``volcap`` command (which handles its
+    signals already), in a program or test that calls the flow itself, or off the main thread;
+    True when it installed the watcher."""
+    from prefect.context import FlowRunContext
+
+    if CANCEL.installed:
+        return False
+    ctx = FlowRunContext.get()
+    if ctx is None or ctx.flow_run is None or os.environ.get("PREFECT__FLOW_RUN_ID") != str(ctx.flow_run.id):
+        return False
+    return CANCEL.watch_flow_run(ctx.flow.name if ctx.flow is not None else "flow",
+                                 (str(ctx.flow_run.id), str(ctx.flow_run.name)),
+                                 lambda line: print(f"volcap: error: {line}", file=sys.stderr, flush=True),
+                                 lambda sig: sig == signal.SIGTERM and runner_intent() == "cancel")
+
+
+def runner_intent() -> str | None:
+    """The intent the runner that started this flow-run process recorded before signalling it
+    ("cancel", "reschedule", "relinquish"), None without one (a plain SIGTERM) or where this
+    Prefect has no control channel (3.8's ``prefect._internal.control_listener``, private: read
+    defensively, so that another Prefect falls back to its own handling)."""
+    try:
+        from prefect._internal.control_listener import get_intent
+    except ImportError:
+        return None
+    try:
+        return get_intent()
+    except Exception:  # noqa: BLE001 - a private API: any failure means "no intent known"
+        return None
+
+
 def mark_cancelled(flow_run_id: str, message: str) -> list[str]:
     """Set the flow run, its sub-flow runs and their task runs that are not final to Cancelled in
-    Prefect's API (what the UI shows); the names of the task runs that were running."""
+    Prefect's API (what the UI shows); the names of the task runs that were running. A sub-flow
+    run of a deployment that is running (a segment run on a GPU worker) is set Cancelling
+    instead: its worker stops its process (which, with :func:`stop_flow_run_on_signal`, marks it
+    Cancelled itself); Cancelled would leave that process training."""
     from prefect.client.orchestration import get_client
     from prefect.client.schemas.filters import FlowRunFilter, FlowRunFilterId
     from prefect.client.schemas.objects import StateType
-    from prefect.states import Cancelled
+    from prefect.states import Cancelled, Cancelling
 
     from flows.runtime import flow_run_family
 
@@ -213,7 +298,13 @@ def mark_cancelled(flow_run_id: str, message: str) -> list[str]:
             # the second pass: on SIGTERM Prefect's own handler (its flow engine's, in the main
             # thread) may have marked the run Crashed meanwhile; the cancellation is the cause
             for run in client.read_flow_runs(flow_run_filter=FlowRunFilter(id=FlowRunFilterId(any_=ids))):
-                if run.state is not None and (not run.state.is_final() or run.state.is_crashed()):
+                if run.state is None:
+                    continue
+                if run.id != ids[0] and run.deployment_id is not None and run.state.type in (StateType.RUNNING,
+                                                                                            StateType.CANCELLING):
+                    if run.state.type == StateType.RUNNING:     # its worker stops it
+                        client.set_flow_run_state(run.id, Cancelling(message=message), force=True)
+                elif not run.state.is_final() or run.state.is_crashed():
                     client.set_flow_run_state(run.id, Cancelled(message=message), force=True)
             time.sleep(0.2 * (1 - attempt))
     return sorted(running)

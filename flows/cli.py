@@ -465,28 +465,41 @@ def _replace_dir_atomic(path: Path, write) -> None:
 
 
 @app.command(name="import-calibration")
-def import_calibration_cmd(source: Annotated[Path, typer.Argument(exists=True, help="Qualisys .qca.txt, OpenCV YAML/JSON file, or COLMAP model folder")],
-                           fmt: Annotated[str, typer.Option("--format", help="qualisys, colmap or opencv")],
+def import_calibration_cmd(source: Annotated[str, typer.Argument(help="Qualisys .qca.txt, OpenCV YAML/JSON file, COLMAP model folder, or (--format record) a stored Calibration's ref")],
+                           fmt: Annotated[str, typer.Option("--format", help="qualisys, colmap, opencv, or record (a calibration in the store, solved or imported, applied to this capture's frames)")],
                            capture: Annotated[str, typer.Option("--capture", help="the capture it calibrates; a stored captures/NAME gives frames, fps and frame sizes")],
                            frames: Annotated[Optional[int], typer.Option("--frames", min=1, help="frame count (default: the stored capture's)")] = None,
                            fps: Annotated[Optional[float], typer.Option("--fps", min=0.001, help="frame rate (default: the stored capture's)")] = None,
                            metres_per_unit: Annotated[float, typer.Option("--metres-per-unit", help="COLMAP/OpenCV translations' unit in metres (0.001 for mm); Qualisys is mm by definition")] = 1.0,
+                           refine: Annotated[bool, typer.Option("--refine", help="refine the poses against the stored capture's footage (bundle adjustment; the file's world frame and lenses kept)")] = False,
+                           refine_intrinsics: Annotated[bool, typer.Option("--refine-intrinsics", help="with --refine: focal lengths and principal points too, around the file's")] = False,
+                           refine_instants: Annotated[int, typer.Option("--refine-instants", min=1, help="with --refine: instants of the take pooled (the middle frame first)")] = 1,
                            store: StoreOpt = DEFAULT_STORE, json_out: JsonOpt = False) -> None:
     """Store a studio's calibration as a Calibration record, named imported-calibrations/NAME, and
     print its ref (a Calibration ref, as `export-colmap` takes). A camera of a stored capture
-    whose frames were resampled since (another size) gets the intrinsics of its frames, scaled
-    uniformly and centred (docs/calibration.md, "Importing a studio's calibration")."""
+    whose frames were resampled since (another size) gets the intrinsics of its frames: resized, or
+    scaled uniformly and centred (docs/calibration.md, "Importing a studio's calibration").
+    `--format record`: SOURCE is a Calibration already in the store (a solved one of the full-size
+    footage), applied to the capture's frames the same way. `--refine`: the poses (and with
+    `--refine-intrinsics` the focal lengths and principal points) refined against the capture's
+    frames; each camera's move and σ printed, a camera that shares nothing with the others kept
+    as imported (docs/calibration.md, "Refining an imported calibration")."""
     from volcap_core.calibration import importers
+    from volcap_core.calibration.record import Calibration
     from volcap_core.capture import Capture
     from volcap_core.store import MissingRefError
 
-    if fmt not in ("qualisys", "colmap", "opencv"):
-        raise CommandError(f"--format {fmt!r}: one of qualisys, colmap, opencv")
-    if fmt == "qualisys" and metres_per_unit != 1.0:
-        raise CommandError("--metres-per-unit: a Qualisys calibration is in mm by definition")
-    if (fmt == "colmap") != source.is_dir():
-        raise CommandError(f"{source}: --format {fmt} reads {'a folder' if fmt == 'colmap' else 'a file'}")
+    if fmt not in ("qualisys", "colmap", "opencv", "record"):
+        raise CommandError(f"--format {fmt!r}: one of qualisys, colmap, opencv, record")
+    if fmt in ("qualisys", "record") and metres_per_unit != 1.0:
+        raise CommandError(f"--metres-per-unit: a {'Qualisys calibration is in mm by definition' if fmt == 'qualisys' else 'stored calibration is in metres'}")
     s = _open(store)
+    if fmt != "record":
+        source = Path(source)
+        if not source.exists():
+            raise CommandError(f"{source}: no such file or folder")
+        if (fmt == "colmap") != source.is_dir():
+            raise CommandError(f"{source}: --format {fmt} reads {'a folder' if fmt == 'colmap' else 'a file'}")
     try:
         cap = s.get_record(s.get_ref(f"captures/{capture}"), Capture)
     except MissingRefError:
@@ -501,25 +514,64 @@ def import_calibration_cmd(source: Annotated[Path, typer.Argument(exists=True, h
         read = lambda fs: importers.calibration_from_colmap(source, metres_per_unit=metres_per_unit, frame_sizes=fs, **kw)  # noqa: E731
     elif fmt == "opencv":
         read = lambda fs: importers.calibration_from_opencv(source.read_bytes(), source=str(source), metres_per_unit=metres_per_unit, frame_sizes=fs, **kw)  # noqa: E731
-    else:
+    elif fmt == "qualisys":
         read = lambda fs: importers.calibration_from_qualisys(source.read_bytes(), source=str(source), frame_sizes=fs, **kw)  # noqa: E731
+    else:
+        try:
+            stored = s.get_record(s.resolve(source), Calibration)
+        except MissingRefError:
+            raise CommandError(f"{source}: no such calibration in the store (a digest or a name such as "
+                               f"calibrations/NAME)") from None
+        except (ValueError, TypeError) as exc:
+            raise CommandError(f"{source}: not a Calibration record: {exc}") from None
+        read = lambda fs: importers.fit_calibration(stored, fs, source=source, **kw)  # noqa: E731
+    if (refine_intrinsics or refine_instants != 1) and not refine:
+        raise CommandError("--refine-intrinsics and --refine-instants go with --refine")
+    if refine and cap is None:
+        raise CommandError(f"--refine: no capture captures/{capture} in the store to refine against (ingest it first)")
     ids = {c.id for c in read(None).cameras}
     record = read({c: wh for c, wh in sizes.items() if c in ids})
+    refined = None
+    if refine:
+        from volcap_core.calibration.inputs import frame_loader
+        from volcap_core.calibration.refine_import import RefineOptions, refine_imported
+        from volcap_core.calibration.static import StaticCalibrationOptions, instant_frames
+
+        load = frame_loader(s.get_bytes, cap)
+        shared = [c for c in sorted(ids) if c in sizes]
+        instants = instant_frames(cap.frame_count, cap.frame_count // 2, StaticCalibrationOptions(instants=refine_instants))
+        record, refined = refine_imported(record, [{c: load(c, k) for c in shared} for k in instants],
+                                          RefineOptions(intrinsics=refine_intrinsics))
     ref = s.put_record(record)
     s.set_ref(f"imported-calibrations/{capture}", ref)
     lines = [f"calibration imported-calibrations/{capture}: {ref.digest}"]
     for c in record.cameras:
+        if c.intrinsics is None:
+            lines.append(f"  {c.id}: {c.width}x{c.height}, tracking camera (intrinsics per frame)")
+            continue
         fx, fy, cx, cy = c.intrinsics
-        note = f", frames {c.width}x{c.height} scaled by {c.quality['resample_scale']:.5f}" if "resample_scale" in c.quality else ""
+        note = ""
+        if "resample_scale" in c.quality:
+            sx, sy = c.quality["resample_scale"], c.quality.get("resample_scale_y", c.quality["resample_scale"])
+            note = f", frames {c.width}x{c.height} scaled by {sx:.5f}" + (f" x {sy:.5f}" if sy != sx else "")
         lines.append(f"  {c.id}: {c.width}x{c.height}, fx {fx:.1f} fy {fy:.1f} cx {cx:.1f} cy {cy:.1f}, "
                      f"{len(c.distortion)} distortion coefficients{note}")
+        if refined is not None and c.id in refined.cameras:
+            r = refined.cameras[c.id]
+            lines.append(f"    refined: moved {r['rotation_moved_deg']:.3f}° and {100 * r['centre_moved_m']:.1f} cm "
+                         f"(σ {_fmt(r.get('rotation_sigma_deg'), 3)}° and {_fmt(100 * r['centre_sigma_m'] if 'centre_sigma_m' in r else None, 1)} cm), "
+                         f"{r['observations']:.0f} observations at {r['reprojection_px']:.2f} px median"
+                         + (f", focal {100 * r['focal_moved_rel']:+.2f} %" if "focal_moved_rel" in r else ""))
+        elif refined is not None and c.id in refined.kept:
+            lines.append(f"    kept as imported: {refined.kept[c.id]}")
     if record.unregistered:
         lines.append("  left out: " + "; ".join(f"{k}: {v}" for k, v in sorted(record.unregistered.items())))
     missing = sorted(set(sizes) - ids)
     if missing:
         lines.append(f"  capture cameras without a calibration: {', '.join(missing)}")
     _emit({"calibration": ref.model_dump(mode="json"), "name": f"imported-calibrations/{capture}",
-           "cameras": sorted(ids), "unregistered": record.unregistered, "capture_cameras_missing": missing},
+           "cameras": sorted(ids), "unregistered": record.unregistered, "capture_cameras_missing": missing,
+           **({"refined": refined.cameras, "kept_imported": refined.kept} if refined is not None else {})},
           json_out, "\n".join(lines))
 
 

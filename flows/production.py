@@ -40,6 +40,7 @@ from prefect import flow, get_run_logger, task, unmapped
 from prefect.cache_policies import NO_CACHE
 
 from flows.calibrate import calibrate_capture, point_cloud_for_frames
+from flows.cancellation import stop_flow_run_on_signal
 from flows.ingest import ingest_flow
 from tasks import calibrate as calibrate_tasks
 from tasks.contract import cached_output, task_identity
@@ -391,6 +392,7 @@ def train_segment_flow(store: str, capture: dict, calibration: dict, points: dic
     (which resumes from the segment's last checkpoint in the store). Returns the SegmentModel digest."""
     from prefect.concurrency.sync import concurrency
 
+    stop_flow_run_on_signal()  # a cancel (the UI's, or its production's) ends the training within seconds
     store_credentials_from_block()
     job = SegmentJob(capture=ArtifactRef.model_validate(capture), calibration=ArtifactRef.model_validate(calibration),
                      points=ArtifactRef.model_validate(points), frames=(frames[0], frames[1]),
@@ -684,6 +686,7 @@ def production_flow(spec: str, store: str | None = None, shots: list[str] | None
     ``shots``: deliver only these (default all); ``segment_runs``: ``auto`` | ``local`` |
     ``deployment`` (module doc). Returns the refs of every step's outputs and of each shot's frames.
     """
+    stop_flow_run_on_signal()  # a worker's run: a cancel (the UI's) ends it within seconds, thread-pool tasks too
     log = get_run_logger()
     store_credentials_from_block()
     prod = open_production(spec, store, shots)  # refuses an enhancer it cannot build before anything runs

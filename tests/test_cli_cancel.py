@@ -205,3 +205,55 @@ def test_a_sigint_ignored_at_start_stays_ignored(tmp_path):
     stdout, stderr = proc.communicate(timeout=120)
     assert proc.returncode == 0, stderr
     assert json.loads(stdout.strip().splitlines()[-1])["capture_json"] == str(out / "capture.json")
+
+
+def test_a_cancelled_run_sets_its_running_deployment_runs_cancelling(prefect_api):
+    """A production's segment runs are runs of the train-segment deployment on GPU workers:
+    Cancelled would leave their processes training; Cancelling makes their workers stop them.
+    The run itself ends Cancelled, and so does a deployment run that never started."""
+    from prefect import task
+    from prefect.client.orchestration import get_client
+    from prefect.states import Running
+
+    from flows.cancellation import mark_cancelled
+
+    @task(name="segment-run")
+    def segment_run() -> None:
+        """The task that waits on the deployment run (run_deployment)."""
+
+    with get_client(sync_client=True) as client:
+        flow_id = client.create_flow_from_name("cancel-test-production")
+        parent = client.create_flow_run_from_deployment(
+            client.create_deployment(flow_id, "cancel-test-production"), state=Running())
+        # (a run created under a task run gives that task run its own state: one task run each)
+        waiting = client.create_task_run(segment_run, parent.id, "0", name="segment-run-0")
+        waiting_too = client.create_task_run(segment_run, parent.id, "1", name="segment-run-1")
+        seg_dep = client.create_deployment(client.create_flow_from_name("cancel-test-segment"), "cancel-test-segment")
+        child = client.create_flow_run_from_deployment(seg_dep, parent_task_run_id=waiting.id, state=Running())
+        queued = client.create_flow_run_from_deployment(seg_dep, parent_task_run_id=waiting_too.id)   # Scheduled
+        client.set_task_run_state(waiting.id, Running(), force=True)
+
+    assert mark_cancelled(str(parent.id), "cancelled by SIGTERM") == ["segment-run-0"]
+    with get_client(sync_client=True) as client:
+        assert client.read_flow_run(parent.id).state.type.value == "CANCELLED"
+        # the task run waiting on the segment run follows that run's state (Prefect mirrors a
+        # sub-flow's state onto its parent task run): Cancelled, or Cancelling while its run stops
+        assert client.read_task_run(waiting.id).state.type.value in ("CANCELLED", "CANCELLING")
+        assert client.read_flow_run(child.id).state.type.value == "CANCELLING"    # its worker stops it
+        assert client.read_flow_run(queued.id).state.type.value == "CANCELLED"    # never started: nothing to stop
+
+
+def test_a_flow_called_in_process_keeps_the_callers_signals(prefect_api):
+    """stop_flow_run_on_signal acts only in a process started to run that flow run (a worker's):
+    a program or a test calling the flow itself keeps its own SIGINT handling."""
+    from prefect import flow
+
+    from flows.cancellation import CANCEL, stop_flow_run_on_signal
+
+    @flow
+    def called_here() -> bool:
+        return stop_flow_run_on_signal()
+
+    before = signal.getsignal(signal.SIGINT)
+    assert called_here() is False
+    assert not CANCEL.installed and signal.getsignal(signal.SIGINT) is before

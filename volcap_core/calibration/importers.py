@@ -19,10 +19,12 @@ axes in the world with the camera's y up and z backward, and ``x, y, z`` the cam
 ``R = diag(1, -1, -1) @ [r_ij]``, ``t = -R @ centre``. Inactive cameras are left out and listed in
 ``unregistered``.
 
-Frames resampled after calibration: :func:`fit_to_frames` gives a camera the intrinsics of frames
-scaled uniformly to fit ``width x height`` and centred there (letterbox or pillarbox padding), as
-Pose2Sim's SinglePerson cam01/cam02 were re-encoded (1088x1920 -> 1080x1920: scale 1080/1088,
-7 px bars top and bottom).
+Frames resampled after calibration: :func:`fit_to_frames` gives a camera the intrinsics of its
+frames at another size: a resize (each axis to its rounded size, as a 2x downsampling) or a
+uniform scale centred with padding (letterbox or pillarbox), as Pose2Sim's SinglePerson
+cam01/cam02 were re-encoded (1088x1920 -> 1080x1920: scale 1080/1088, 7 px bars top and bottom).
+:func:`fit_calibration` applies it to a whole record: the importers' ``frame_sizes`` and a solved
+calibration reused on a resampled capture both go through it.
 """
 
 from __future__ import annotations
@@ -100,33 +102,68 @@ def _record(source: str, cameras: list[CameraCalibration], capture: str, frame_c
 
 
 def fit_to_frames(camera: CameraCalibration, width: int, height: int) -> CameraCalibration:
-    """``camera`` for frames that are its own scaled uniformly by ``s = min(width / W, height / H)``
-    and centred in ``width x height`` (padding on the other axis: letterbox or pillarbox): fx, fy
-    times s, the principal point ``s (c + 0.5) - 0.5`` plus the padding (OpenCV pixel centres);
-    the lens (on normalized coordinates) and the pose are unchanged. ``quality`` gains
-    ``resample_scale`` and ``resample_pad_x_px`` / ``resample_pad_y_px``. The same size returns
-    the camera as it is."""
+    """``camera`` for frames that are its own ``W x H`` frames resampled to ``width x height``; the
+    lens (on normalized coordinates) and the pose are unchanged, the same size returns the camera
+    as it is. Two resamplings, told apart by the sizes:
+
+    - a **resize** (both axes scaled to their rounded sizes: ``s W`` and ``s H`` within a pixel of
+      ``width`` and ``height``, ``s = min(width / W, height / H)``; what ``cv2.resize`` or an area
+      downsampling by 2 gives): each axis by its own factor ``s_x = width / W``,
+      ``s_y = height / H``, pixel edges onto pixel edges;
+    - a **fit** (uniform scale ``s`` and centred padding on the other axis: letterbox or pillarbox,
+      as Pose2Sim's 1088x1920 -> 1080x1920 re-encodes): ``s_x = s_y = s`` plus the padding.
+
+    fx, fy times ``s_x``, ``s_y``; the principal point ``s (c + 0.5) - 0.5`` (OpenCV pixel centres)
+    plus the padding. ``quality`` gains ``resample_scale`` (``s_x``), ``resample_scale_y`` and
+    ``resample_pad_x_px`` / ``resample_pad_y_px``. A tracking camera (intrinsics per frame, in the
+    tracking blob) is refused at another size."""
     W, H = camera.width, camera.height
     if (width, height) == (W, H):
         return camera
     if width <= 0 or height <= 0:
         raise CalibrationInputError(f"camera {camera.id}: frames of {width}x{height} pixels")
+    if camera.intrinsics is None:
+        raise CalibrationInputError(f"camera {camera.id}: a tracking camera (intrinsics per frame) cannot be "
+                                    f"fitted to frames of {width}x{height} (it was calibrated at {W}x{H})")
     s = min(width / W, height / H)
-    pad_x, pad_y = (width - s * W) / 2, (height - s * H) / 2
+    if abs(s * W - width) < 1 and abs(s * H - height) < 1:      # a resize: each axis to its rounded size
+        sx, sy, pad_x, pad_y = width / W, height / H, 0.0, 0.0
+    else:                                                         # a fit: uniform scale, centred
+        sx = sy = s
+        pad_x, pad_y = (width - s * W) / 2, (height - s * H) / 2
     fx, fy, cx, cy = camera.intrinsics
-    intr = (fx * s, fy * s, s * (cx + 0.5) - 0.5 + pad_x, s * (cy + 0.5) - 0.5 + pad_y)
-    q = {**camera.quality, "resample_scale": s, "resample_pad_x_px": pad_x, "resample_pad_y_px": pad_y}
+    intr = (fx * sx, fy * sy, sx * (cx + 0.5) - 0.5 + pad_x, sy * (cy + 0.5) - 0.5 + pad_y)
+    q = {**camera.quality, "resample_scale": sx, "resample_scale_y": sy,
+         "resample_pad_x_px": pad_x, "resample_pad_y_px": pad_y}
     return camera.model_copy(update={"width": int(width), "height": int(height), "intrinsics": intr, "quality": q})
 
 
-def _fit_all(source: str, cameras: list[CameraCalibration],
-             frame_sizes: Mapping[str, tuple[int, int]] | None) -> list[CameraCalibration]:
+def fit_calibration(calibration: Calibration, frame_sizes: Mapping[str, tuple[int, int]] | None, *,
+                    source: str = "calibration", capture: str | None = None, frame_count: int | None = None,
+                    fps: float | None = None) -> Calibration:
+    """``calibration`` applied to footage of the same cameras whose frames are ``frame_sizes``
+    (camera id -> (width, height); cameras not named keep their size): every camera through
+    :func:`fit_to_frames`. The one path an imported record (the importers' ``frame_sizes``) and a
+    solved one reused on a resampled capture (``volcap import-calibration REF --format record``)
+    take. ``capture``, ``frame_count``, ``fps``: the record's, when given (the capture it is
+    applied to). A size for a camera the record lacks is an error naming ``source``."""
     sizes = dict(frame_sizes or {})
-    unknown = sorted(set(sizes) - {c.id for c in cameras})
+    ids = [c.id for c in calibration.cameras]
+    unknown = sorted(set(sizes) - set(ids))
     if unknown:
         raise CalibrationInputError(f"{source}: frame sizes given for camera(s) {', '.join(unknown)}, "
-                                    f"which the file does not have (it has {', '.join(c.id for c in cameras)})")
-    return [fit_to_frames(c, *sizes[c.id]) if c.id in sizes else c for c in cameras]
+                                    f"which the calibration does not have (it has {', '.join(ids)})")
+    cams = []
+    for c in calibration.cameras:
+        try:
+            cams.append(fit_to_frames(c, *sizes[c.id]) if c.id in sizes else c)
+        except CalibrationInputError as exc:
+            raise CalibrationInputError(f"{source}: {exc}") from None
+    update = {"cameras": tuple(cams)}
+    for key, value in (("capture", capture), ("frame_count", frame_count), ("fps", fps)):
+        if value is not None:
+            update[key] = value
+    return calibration.model_copy(update=update)
 
 
 # ---------------------------------------------------------------------------------------- Qualisys
@@ -183,7 +220,7 @@ def calibration_from_qualisys(xml_bytes: bytes, capture: str, frame_count: int, 
         if node.get("avg-residual") is not None:
             q["qualisys_avg_residual"] = num(node, "avg-residual")
         cams.append(_camera(source, cid, width, height, k, dist, R, -R @ centre, q))
-    return _record(source, _fit_all(source, cams, frame_sizes), capture, frame_count, fps, stage_size_m, inactive)
+    return fit_calibration(_record(source, cams, capture, frame_count, fps, stage_size_m, inactive), frame_sizes, source=source)
 
 
 # ------------------------------------------------------------------------------------------ COLMAP
@@ -227,7 +264,7 @@ def calibration_from_colmap(folder: str | Path, capture: str, frame_count: int, 
         m = np.asarray(image.cam_from_world().matrix(), np.float64)
         cams.append(_camera(source, cid, cam.width, cam.height, intrinsics, dist.opencv(),
                             m[:3, :3], m[:3, 3] * metres_per_unit))
-    return _record(source, _fit_all(source, cams, frame_sizes), capture, frame_count, fps, stage_size_m, unposed)
+    return fit_calibration(_record(source, cams, capture, frame_count, fps, stage_size_m, unposed), frame_sizes, source=source)
 
 
 # ------------------------------------------------------------------------------------------ OpenCV
@@ -337,4 +374,4 @@ def calibration_from_opencv(data: bytes, capture: str, frame_count: int, fps: fl
         finally:
             fs.release()
     cams = [_opencv_camera(source, cid, entry, metres_per_unit) for cid, entry in _opencv_entries(source, parsed).items()]
-    return _record(source, _fit_all(source, cams, frame_sizes), capture, frame_count, fps, stage_size_m)
+    return fit_calibration(_record(source, cams, capture, frame_count, fps, stage_size_m), frame_sizes, source=source)
