@@ -108,6 +108,7 @@ def synth(out_dir: Annotated[Path, typer.Argument(help="folder to write the capt
           depth: Annotated[bool, typer.Option("--depth/--no-depth", help="also write ground-truth depth maps")] = False,
           lidar: Annotated[bool, typer.Option("--lidar/--no-lidar", help="give the capture its lidar scan (--no-lidar: none, as a studio without a scanner; scene rigs)")] = True,
           static_only: Annotated[bool, typer.Option("--static-only", help="render the rig's static cameras only (no tracking cameras)")] = False,
+          actor_of: Annotated[Optional[str], typer.Option("--actor-of", metavar="SCENE_CAPTURE_DIR:N", help="face rigs: film actor N of that synthetic Scene Rig capture (same person, own expressions)")] = None,
           json_out: JsonOpt = False) -> None:
     """Render a synthetic capture (scene or face rig) in the layout ingest reads."""
     from hardware.rig import load_rig
@@ -123,6 +124,13 @@ def synth(out_dir: Annotated[Path, typer.Argument(help="folder to write the capt
         if kind == "face":
             raise CommandError("--no-lidar is for scene rigs (the face synthesizer always writes its scan)")
         extra["lidar"] = False
+    if actor_of is not None:
+        if kind != "face":
+            raise CommandError(f"--actor-of is for face rigs (rig {the_rig.name} is a {kind} rig)")
+        folder, _, index = actor_of.rpartition(":")
+        if not folder or not index.isdigit():
+            raise CommandError(f"--actor-of {actor_of!r}: expected SCENE_CAPTURE_DIR:N (N an actor index, 0, 1, ...)")
+        extra["actor_of"] = (Path(folder), int(index))
     progress, update = _progress(f"rendering {rig}")
     with progress:
         fn = synthetic.synthesize_face_capture if kind == "face" else synthetic.synthesize_capture

@@ -95,7 +95,8 @@ def ingest_flow(store: str, capture_dir: str, nan_policy: str = "error", set_ref
 
     # 3. Only when every camera converted: the record, then its name.
     capture_ref = record_capture(store, desc.name, rig, desc.fps, desc.take.start_timecode,
-                                 desc.take.frame_count, [c.result() for c in cameras], ground_truth, lidar)
+                                 desc.take.frame_count, [c.result() for c in cameras], ground_truth, lidar,
+                                 desc.performer)
     if set_ref:
         s.set_ref(f"captures/{desc.name}", capture_ref)
     log.info("capture %s: %d cameras x %d frames -> %s", desc.name, len(desc.cameras),

@@ -8,7 +8,7 @@ from pathlib import Path
 from hardware.rig import Rig, RigCamera
 from tasks.contract import volcap_task
 from volcap_core import ingest
-from volcap_core.capture import CameraSource, Capture, CaptureCamera, LensSample
+from volcap_core.capture import CameraSource, Capture, CaptureCamera, LensSample, Performer
 from volcap_core.records import MEDIA_EXR, ArtifactRef
 from volcap_core.store import ArtifactStore
 
@@ -75,14 +75,16 @@ def ingest_video_camera(store: str, capture_dir: str, camera: CameraSource, rig_
                                        put_frame=lambda data: s.put_bytes(data, MEDIA_EXR))
 
 
-@volcap_task(name="record-capture", version="2")
+@volcap_task(name="record-capture", version="3")
 def record_capture(store: str, name: str, rig: Rig, fps: float, start_timecode: str, frame_count: int,
                    cameras: list[CaptureCamera], ground_truth: ArtifactRef | None,
-                   lidar: ArtifactRef | None = None) -> ArtifactRef:
+                   lidar: ArtifactRef | None = None, performer: Performer | None = None) -> ArtifactRef:
     """Assemble and store the Capture record (only once every camera converted).
 
     ``lidar``: the stored lidar scan (PLY) of the static stage, the calibration's input (version 2:
-    the record gained the field)."""
+    the record gained the field). ``performer``: whose actor the capture films, as its
+    capture.json says (version 3: the record gained the field; a record without one keeps its
+    bytes)."""
     capture = Capture(name=name, rig=rig, fps=fps, start_timecode=start_timecode, frame_count=frame_count,
-                      cameras=tuple(cameras), ground_truth=ground_truth, lidar=lidar)
+                      cameras=tuple(cameras), ground_truth=ground_truth, lidar=lidar, performer=performer)
     return ArtifactStore(store).put_record(capture)

@@ -35,6 +35,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_serializer, model_validator
 
 from hardware.rig import Rig, load_rig
+from hardware.serialization import omit_unset
 from volcap_core.imageio.errors import ImageReadError
 from volcap_core.imageio.read import read_image
 from volcap_core.imageio.video import (
@@ -215,6 +216,18 @@ class Take(BaseModel):
     frame_count: int = Field(gt=0)
 
 
+class Performer(BaseModel):
+    """Whose actor a capture films: actor ``actor`` of the capture named ``capture``. A Face Rig
+    capture of a Scene Rig performer says so, so a production can check that an actor's face
+    capture is of that actor (``docs/production-spec.md``). ``actor`` is the actor's index in
+    that capture's ground truth (``ground_truth/scene.json`` ``actors``) for synthetic captures,
+    the capture's own numbering otherwise."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+    capture: str = Field(pattern=r"^[A-Za-z0-9_.-]+$", description="the capture's name (its capture.json 'name')")
+    actor: int = Field(ge=0, description="the actor's index in that capture")
+
+
 class CaptureDescription(BaseModel):
     """``capture.json``: what a capture folder holds."""
 
@@ -229,6 +242,13 @@ class CaptureDescription(BaseModel):
     ground_truth: str | None = Field(default=None, description="ground-truth folder, relative path")
     lidar: str | None = Field(default=None, description="lidar scan of the static stage: a PLY file, relative "
                                                         "path (stage frame, metres); calibration input")
+    performer: Performer | None = Field(default=None, description="whose actor the capture films (a Face Rig "
+                                                                   "capture of a Scene Rig capture's actor)")
+
+    @model_serializer(mode="wrap")
+    def _omit_unset(self, handler):
+        # a capture that names no performer serialises as it did before the field existed
+        return omit_unset(handler(self), ("performer",))
 
     @model_validator(mode="after")
     def _check(self) -> "CaptureDescription":
@@ -298,6 +318,13 @@ class Capture(Record):
     ground_truth: ArtifactRef | None = None
     #: the lidar scan of the static stage (PLY bytes as captured): what calibration registers to
     lidar: ArtifactRef | None = None
+    #: whose actor the capture films, as capture.json says (None: it does not say; then left out
+    #: of the record's JSON, so records of captures without it keep their bytes)
+    performer: Performer | None = None
+
+    @model_serializer(mode="wrap")
+    def _omit_unset(self, handler):
+        return omit_unset(handler(self), ("performer",))
 
     def camera(self, camera_id: str) -> CaptureCamera:
         for cam in self.cameras:

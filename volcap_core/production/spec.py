@@ -37,6 +37,7 @@ from pydantic import (
 )
 
 from hardware.validation_errors import clean_loc, format_validation_error
+from volcap_core.capture import Performer
 from volcap_core.production.presets import PRESETS, QualityPreset
 from volcap_core.production.segments import Segment, SegmentPlan
 from volcap_core.production.shot import Shot, ShotError, load_shot
@@ -51,6 +52,7 @@ __all__ = [
     "ProductionSpec",
     "SpecError",
     "capture_info_from_folder",
+    "check_face_capture",
     "largest_image",
     "load_spec",
     "needed_steps",
@@ -105,6 +107,9 @@ class ActorSpec(BaseModel):
     name: str = Field(pattern=NAME)
     captures: tuple[str, ...] = Field(min_length=1, description="scene captures the actor is in")
     face_capture: str | None = Field(None, description="Face Rig capture for the enhancer")
+    index: int | None = Field(None, ge=0, description="the actor's index in its captures (a synthetic "
+                              "capture's ground_truth/scene.json actors); a face capture that names its "
+                              "performer must then name this index")
     prompt: str | None = Field(None, description="the enhancer's text prompt for this actor's group "
                                "(embedded once when the FLUX.1 text encoders are there; else zeros)")
 
@@ -328,7 +333,9 @@ class CaptureInfo(BaseModel):
     ``width``/``height``: the largest camera image, long side by short side (for the segment
     memory estimate; a portrait camera counts as its landscape size, so a folder's rig sensors and
     the ingested capture's images give the same figures: :func:`largest_image`).
-    ``segment_plan``: the plan to use; None plans from the spec's quality preset."""
+    ``segment_plan``: the plan to use; None plans from the spec's quality preset.
+    ``name``: the capture's name as recorded (capture.json's, the record's); ``performer``: whose
+    actor it films, when it says (:class:`~volcap_core.capture.Performer`). None: not known."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
     has_tracking_cameras: bool
@@ -337,6 +344,8 @@ class CaptureInfo(BaseModel):
     width: int = Field(3840, gt=0)
     height: int = Field(2160, gt=0)
     segment_plan: SegmentPlan | None = None
+    name: str | None = None
+    performer: Performer | None = None
 
     @classmethod
     def from_capture(cls, capture, segment_plan: SegmentPlan | None = None) -> "CaptureInfo":
@@ -345,7 +354,8 @@ class CaptureInfo(BaseModel):
         tracking = any(capture.rig.camera(c.id).role.tracks for c in capture.cameras)
         width, height = largest_image((c.width, c.height) for c in capture.cameras)
         return cls(has_tracking_cameras=tracking, fps=capture.fps, frame_count=capture.frame_count,
-                   width=width, height=height, segment_plan=segment_plan)
+                   width=width, height=height, segment_plan=segment_plan, name=capture.name,
+                   performer=capture.performer)
 
 
 def largest_image(sizes: Iterable[tuple[int, int]]) -> tuple[int, int]:
@@ -363,7 +373,32 @@ def capture_info_from_folder(folder: str | Path) -> CaptureInfo:
     cams = [c for c in capture.rig.cameras if c.id in listed] or list(capture.rig.cameras)
     width, height = largest_image((c.sensor.width_px, c.sensor.height_px) for c in cams)
     return CaptureInfo(has_tracking_cameras=any(c.role.tracks for c in cams), fps=capture.fps,
-                       frame_count=capture.frame_count, width=width, height=height)
+                       frame_count=capture.frame_count, width=width, height=height, name=capture.name,
+                       performer=capture.description.performer)
+
+
+def check_face_capture(spec: ProductionSpec, actor: ActorSpec, capture_info: Mapping[str, CaptureInfo]) -> None:
+    """An actor's face capture must film that actor: when the face capture names its performer
+    (``CaptureInfo.performer``, from its capture.json or record), the performer's capture must be
+    one of the actor's ``captures`` (compared by the names the captures record) and, when the
+    actor sets ``index``, the performer's actor that index. A face capture that names no
+    performer (real captures) is accepted, as is one whose facts are not known here.
+    ``ValueError``, one line naming the actor, the face capture and whose actor it films."""
+    fc = actor.face_capture
+    face = capture_info.get(fc) if fc is not None else None
+    if face is None or face.performer is None:
+        return
+    i = spec.actors.index(actor)
+    p = face.performer
+    names = {c: capture_info[c].name for c in actor.captures if c in capture_info and capture_info[c].name}
+    whose = f"actor {p.actor} of the capture named {p.capture!r}"
+    if p.capture not in names.values():
+        known = ", ".join(f"{c} ({names[c]!r})" if c in names else f"{c} (name not known)" for c in actor.captures)
+        raise ValueError(f"actors[{i}].face_capture: {fc!r} films {whose}, which is not one of actor "
+                         f"{actor.name!r}'s captures: {known}")
+    if actor.index is not None and p.actor != actor.index:
+        raise ValueError(f"actors[{i}].face_capture: {fc!r} films {whose}, but actor {actor.name!r} is "
+                         f"actor {actor.index} there (actors[{i}].index)")
 
 
 def segment_plan_for(spec: ProductionSpec, capture: str, info: CaptureInfo) -> SegmentPlan:
@@ -443,6 +478,8 @@ def needed_steps(spec: ProductionSpec, capture_info: Mapping[str, CaptureInfo], 
     enhanced = [s for s in requested if s.enhance]
     enhance_actors = sorted({a.name for s in enhanced for a in spec.shot_actors(s)})
     face_captures = {a: spec.actor(a).face_capture for a in enhance_actors}
+    for actor in spec.actors:
+        check_face_capture(spec, actor, capture_info)
 
     steps: list[Step] = []
     calibrated: dict[str, str] = {}

@@ -14,6 +14,10 @@ import numpy as np
 
 from volcap_core.synth import textures as tx
 
+#: the head centre's height over the actor's root at rest, per unit of ``Actor.scale`` (metres):
+#: pelvis 0.95 + chest 0.29 + neck 0.18 + 0.12 + head 0.08 (``Actor._pose``)
+HEAD_CENTRE_HEIGHT = 1.62
+
 
 def rot_x(a):
     c, s = math.cos(a), math.sin(a)
@@ -88,6 +92,17 @@ def _smooth_track(rng, n_terms=3, f_lo=0.2, f_hi=0.9):
     return f
 
 
+def _motion_tracks(rng: np.random.Generator) -> dict:
+    """An actor's smooth head, face and sway tracks (each a function of time in seconds) and its
+    blink timing (period, phase in seconds): its performance, apart from the walk."""
+    tracks: dict = {}
+    for key in ("yaw", "pitch", "roll", "mouth", "smile", "brow", "gaze_x", "gaze_y", "sway"):
+        tracks[key] = _smooth_track(rng, f_lo=0.25 if key != "mouth" else 0.6,
+                                    f_hi=0.8 if key != "mouth" else 2.0)
+    tracks["blink"] = (float(rng.uniform(2.0, 3.5)), float(rng.uniform(0, 3.0)))
+    return tracks
+
+
 @dataclass
 class Actor:
     index: int
@@ -105,6 +120,9 @@ class Actor:
     _tracks: dict = field(default_factory=dict, repr=False)
     _pose_cache: dict = field(default_factory=dict, repr=False)
     expressive: float = 1.0
+    #: height of what the actor stands on (metres): the root is at this z, not on the floor. The
+    #: Face Rig stands a Scene Rig actor on a riser so the head is where its cameras look.
+    riser_m: float = 0.0
 
     STRIDE = 1.4   # metres per gait cycle
 
@@ -131,10 +149,20 @@ class Actor:
         nf = int(rng.integers(6, 12))
         a.freckles = np.stack([rng.uniform(-1.2, 1.2, nf), rng.uniform(-0.6, 0.35, nf),
                                rng.uniform(0.012, 0.03, nf)], 1)
-        for key in ("yaw", "pitch", "roll", "mouth", "smile", "brow", "gaze_x", "gaze_y", "sway"):
-            a._tracks[key] = _smooth_track(rng, f_lo=0.25 if key != "mouth" else 0.6,
-                                           f_hi=0.8 if key != "mouth" else 2.0)
-        a._tracks["blink"] = (float(rng.uniform(2.0, 3.5)), float(rng.uniform(0, 3.0)))
+        a._tracks = _motion_tracks(rng)
+        return a
+
+    def restaged(self, index: int, rng: np.random.Generator, centre, *, expressive: float,
+                 riser_m: float = 0.0) -> "Actor":
+        """The same person in another take: this actor's identity (scale, colours, textures,
+        freckles: the same arrays) standing still at ``centre`` (x, y metres) facing +x on a riser
+        ``riser_m`` high, with head turns, expressions, blinks and sway of its own, drawn from
+        ``rng`` (how :meth:`random` draws them). ``index``: its place in the new world's actors."""
+        a = Actor(index=index, scale=self.scale, colours=self.colours,
+                  path_centre=tuple(float(c) for c in centre), path_radii=(0.0, 0.0), path_phase=0.0,
+                  path_dir=1.0, speed=0.0, walking=False, textures=self.textures, freckles=self.freckles,
+                  expressive=expressive, riser_m=float(riser_m))
+        a._tracks = _motion_tracks(rng)
         return a
 
     # ---- motion
@@ -147,10 +175,11 @@ class Actor:
         cx, cy = self.path_centre
         if not self.walking:
             s = self._tracks["sway"](t)
-            return np.array([cx + 0.02 * s, cy + 0.015 * self._tracks["roll"](t + 3.0), 0.0]), self.facing
+            return (np.array([cx + 0.02 * s, cy + 0.015 * self._tracks["roll"](t + 3.0), self.riser_m]),
+                    self.facing)
         rx, ry = self.path_radii
         ang = self.path_phase + self.path_dir * self._omega() * t
-        p = np.array([cx + rx * math.cos(ang), cy + ry * math.sin(ang), 0.0])
+        p = np.array([cx + rx * math.cos(ang), cy + ry * math.sin(ang), self.riser_m])
         tangent = self.path_dir * np.array([-rx * math.sin(ang), ry * math.cos(ang)])
         return p, math.atan2(tangent[1], tangent[0])
 
@@ -265,13 +294,16 @@ class Actor:
         raise AssertionError("no head")
 
     def describe(self) -> dict:
-        return {"index": self.index, "height_scale": round(self.scale, 6),
-                "nominal_height_m": round(1.86 * self.scale, 4),
-                "colours_linear": {k: np.round(v, 6).tolist() for k, v in self.colours.items()},
-                "walking": self.walking,
-                "path": {"kind": "ellipse", "centre_m": list(self.path_centre),
-                         "radii_m": list(self.path_radii), "phase_rad": round(self.path_phase, 6),
-                         "direction": self.path_dir, "speed_mps": round(self.speed, 6)}}
+        d = {"index": self.index, "height_scale": round(self.scale, 6),
+             "nominal_height_m": round(1.86 * self.scale, 4),
+             "colours_linear": {k: np.round(v, 6).tolist() for k, v in self.colours.items()},
+             "walking": self.walking,
+             "path": {"kind": "ellipse", "centre_m": list(self.path_centre),
+                      "radii_m": list(self.path_radii), "phase_rad": round(self.path_phase, 6),
+                      "direction": self.path_dir, "speed_mps": round(self.speed, 6)}}
+        if self.riser_m:      # (absent on the floor: scene.json files stay as they were)
+            d["riser_m"] = round(self.riser_m, 6)
+        return d
 
     # ---- appearance
     def albedo(self, prim: Prim, local: np.ndarray, footprint: np.ndarray) -> np.ndarray:

@@ -2,12 +2,13 @@
 
 from __future__ import annotations
 
+import json
 import math
 import shutil
 import zlib
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
@@ -15,10 +16,10 @@ from hardware.lens_models import DISTORTION_MODELS
 from hardware.rig import CameraRole, Rig, RigCamera, ZoomIntrinsics, load_rig, rig_file
 from volcap_core.calibration.distortion import Distortion
 from volcap_core.calibration.geometry import look_at_rotation
-from volcap_core.capture import (CameraSource, CaptureDescription, Encoding, LensSample, Take,
-                                 frames_to_timecode, timecode_to_frames)
+from volcap_core.capture import (CameraSource, CaptureDescription, CaptureFolder, Encoding, IngestError, LensSample,
+                                 Performer, Take, frames_to_timecode, timecode_to_frames)
 from volcap_core.synth import io as sio
-from volcap_core.synth.actors import Actor
+from volcap_core.synth.actors import HEAD_CENTRE_HEIGHT, Actor
 from volcap_core.synth.geometry import PinholeCamera
 from volcap_core.synth.render import World, background, render
 from volcap_core.synth.sensor import EncoderModel, SensorModel, smooth_zoom
@@ -27,6 +28,9 @@ from volcap_core.synth.stage import build_face_stage, build_room_stage
 TAKE_START = "01:00:00:00"
 FRAMES_DIR = "frames"
 GT_DIR = "ground_truth"
+SCENE_FORMAT = "volcap-synth-scene/1"
+#: how much larger a Face Rig actor's expressions are than a Scene Rig actor's (``Actor.expressive``)
+FACE_EXPRESSIVE = 1.6
 #: the rig's lidar scan of the static set, a capture input (calibration reads it); the same bytes are
 #: kept in ground_truth/lidar.ply for evaluation
 LIDAR_FILE = "lidar.ply"
@@ -228,8 +232,10 @@ def _true_zoom(z: ZoomIntrinsics, sensor, r: np.random.Generator) -> ZoomIntrins
 
 # --------------------------------------------------------------------------- actors
 
-def _scene_actors(rig: Rig, seed: int, n: int) -> list[Actor]:
-    sx, sy, _ = rig.stage_size_m
+def _scene_actors(stage_size_m: Sequence[float], seed: int, n: int) -> list[Actor]:
+    """The ``n`` walking actors of a Scene Rig capture of ``seed`` on a stage ``stage_size_m``
+    (x, y, z metres): the same arguments draw the same people on the same loops."""
+    sx, sy, _ = stage_size_m
     r0 = 0.3 * min(sx, sy)
     actors = []
     for i in range(n):
@@ -245,9 +251,144 @@ def _scene_actors(rig: Rig, seed: int, n: int) -> list[Actor]:
 
 
 def _face_actor(seed: int) -> Actor:
-    a = Actor.random(0, _rng(seed, "face-actor"), (0.0, 0.0), (0.0, 0.0), walking=False, expressive=1.6)
-    a.scale = 1.7 / 1.62 * float(_rng(seed, "face-scale").uniform(0.99, 1.01))
+    """A Face Rig capture's own actor (one drawn for it, in no Scene Rig capture), scaled so the
+    head is at about 1.7 m."""
+    a = Actor.random(0, _rng(seed, "face-actor"), (0.0, 0.0), (0.0, 0.0), walking=False, expressive=FACE_EXPRESSIVE)
+    a.scale = 1.7 / HEAD_CENTRE_HEIGHT * float(_rng(seed, "face-scale").uniform(0.99, 1.01))
     return a
+
+
+def _face_rig_head_height(rig: Rig) -> float:
+    """Where a Face Rig's cameras look, as a height (metres): the median z of their ``look_at_m``."""
+    return float(np.median([c.mount.look_at_m[2] for c in rig.cameras]))
+
+
+def _face_performer(source: Mapping[str, Any], seed: int) -> Actor:
+    """A Face Rig capture's actor when it films a Scene Rig capture's actor: actor
+    ``source["actor"]`` of the scene capture ``source`` describes (its seed, stage size and actor
+    count rebuild it), the same person at the same scale, standing at the Face Rig's centre facing
+    +x on a riser that puts the rest head centre at ``source["head_height_m"]``, with a
+    performance of its own drawn from the face capture's ``seed`` (larger expressions and head
+    turns than when walking)."""
+    scene = _scene_actors(source["stage_size_m"], int(source["seed"]), int(source["actors"]))[int(source["actor"])]
+    riser = float(source["head_height_m"]) - HEAD_CENTRE_HEIGHT * scene.scale
+    return scene.restaged(0, _rng(seed, "face-performance"), (0.0, 0.0), expressive=FACE_EXPRESSIVE, riser_m=riser)
+
+
+def _actor_frame(a: Actor, k: int, t: float) -> dict:
+    """scene.json's record of actor ``a`` at take index ``k`` (time ``t`` seconds)."""
+    root, yaw = a.root(t)
+    prims = a.pose(t)
+    head = next(p for p in prims if p.name == "head")
+    return {"take_index": k, "time_s": round(t, 6), "root_m": np.round(root, 6).tolist(),
+            "yaw_rad": round(yaw, 6), "head_centre_m": np.round(head.centre, 6).tolist(),
+            "head_rotation": np.round(head.R, 6).tolist(),
+            "expression": {k2: round(v, 6) for k2, v in head.expression.items()},
+            "parts": [p.to_json() for p in prims]}
+
+
+def _mismatch(recorded: Any, rebuilt: Any, path: str = "") -> str | None:
+    """The first place (a JSON path) where two scene.json values differ (numbers beyond 1e-6),
+    None when they agree."""
+    if isinstance(recorded, dict) and isinstance(rebuilt, dict):
+        for k in sorted(set(recorded) | set(rebuilt)):
+            if k not in recorded or k not in rebuilt:
+                return f"{path}.{k}" + (" is not recorded" if k not in recorded else " is recorded, not rebuilt")
+            where = _mismatch(recorded[k], rebuilt[k], f"{path}.{k}")
+            if where:
+                return where
+        return None
+    if isinstance(recorded, list) and isinstance(rebuilt, list):
+        if len(recorded) != len(rebuilt):
+            return f"{path} has {len(recorded)} entries recorded, {len(rebuilt)} rebuilt"
+        for i, (a, b) in enumerate(zip(recorded, rebuilt)):
+            where = _mismatch(a, b, f"{path}[{i}]")
+            if where:
+                return where
+        return None
+    numbers = (int, float)
+    if isinstance(recorded, numbers) and isinstance(rebuilt, numbers) and not isinstance(recorded, bool):
+        return None if abs(recorded - rebuilt) <= 1e-6 else f"{path} is {recorded} recorded, {rebuilt} rebuilt"
+    return None if recorded == rebuilt else f"{path} is {recorded!r} recorded, {rebuilt!r} rebuilt"
+
+
+def scene_actors_of(scene_json: Path | str | Mapping[str, Any]) -> list[Actor]:
+    """The actors of a synthetic capture, rebuilt from its ``ground_truth/scene.json`` (a path or
+    the parsed file) and checked against what that file records.
+
+    A Scene Rig capture's actors are drawn from (seed, stage size, actor count); a Face Rig
+    capture's actor is its own (from its seed) or, when scene.json names a ``performer``, that
+    Scene Rig actor restaged (:func:`synthesize_face_capture` ``actor_of``). Every rebuilt actor
+    must describe itself as recorded (scale, colours, path, riser) and pose its parts, head and
+    expression at take index 0 as recorded; ``ValueError`` naming the file, the actor and the
+    first value that differs otherwise (a capture synthesized by another version of volcap).
+    Returns the actors in scene.json's order; each one's ``index`` is its place in that list."""
+    where = str(scene_json) if isinstance(scene_json, (str, Path)) else "scene.json"
+    if isinstance(scene_json, (str, Path)):
+        try:
+            d = json.loads(Path(scene_json).read_text())
+        except (OSError, ValueError) as exc:
+            raise ValueError(f"{where}: cannot read a synthetic scene description: {exc}") from None
+    else:
+        d = dict(scene_json)
+    if not isinstance(d, dict) or d.get("format") != SCENE_FORMAT:
+        raise ValueError(f"{where}: not a synthetic scene description (format "
+                         f"{d.get('format') if isinstance(d, dict) else None!r}, expected {SCENE_FORMAT!r})")
+    recorded = d.get("actors") or []
+    seed, kind = int(d["seed"]), d["kind"]
+    if kind == "scene":
+        actors = _scene_actors(d["stage"]["size_m"], seed, len(recorded))
+        how = f"seed {seed}, stage {d['stage']['size_m']} m, {len(recorded)} actor(s)"
+    elif kind == "face" and d.get("performer") is not None:
+        src = d["performer"]
+        actors = [_face_performer(src, seed)]
+        how = f"actor {src['actor']} of capture {src['capture']!r} (seed {src['seed']}), face seed {seed}"
+    elif kind == "face":
+        actors = [_face_actor(seed)]
+        how = f"face seed {seed}"
+    else:
+        raise ValueError(f"{where}: unknown capture kind {kind!r} (scene or face)")
+    if len(actors) != len(recorded):
+        raise ValueError(f"{where}: records {len(recorded)} actor(s), a {kind} capture has {len(actors)}")
+    for i, (a, rec) in enumerate(zip(actors, recorded)):
+        rebuilt = a.describe()
+        described = {k: v for k, v in rec.items() if k != "frames"}
+        if rec.get("frames"):
+            described["frames"] = rec["frames"][:1]
+            f0 = rec["frames"][0]
+            rebuilt["frames"] = [_actor_frame(a, int(f0["take_index"]), float(f0["time_s"]))]
+        diff = _mismatch(described, rebuilt, f"actors[{i}]")
+        if diff is not None:
+            raise ValueError(f"{where}: actor {i} rebuilt from ({how}) does not match what the file records: "
+                             f"{diff} (a capture synthesized by another version of volcap?)")
+    return actors
+
+
+def _performer_source(actor_of: tuple[str | Path, int]) -> dict[str, Any]:
+    """What a Face Rig capture records of the Scene Rig actor it films (scene.json's
+    ``performer``, less the head height): the scene capture's name and the actor's index, and
+    what rebuilds that actor (its seed, rig, stage size, actor count). The scene capture's actors
+    are rebuilt and checked first (:func:`scene_actors_of`); ``ValueError`` naming the folder
+    when it is not a synthetic Scene Rig capture or has no such actor."""
+    folder, index = actor_of
+    folder = Path(folder)
+    try:
+        capture = CaptureFolder.open(folder)
+    except IngestError as exc:
+        raise ValueError(f"actor_of: {exc}") from None
+    gt = capture.ground_truth_path
+    scene_file = gt / "scene.json" if gt is not None else None
+    if scene_file is None or not scene_file.is_file():
+        raise ValueError(f"actor_of: {folder} is not a synthetic capture (no {scene_file or 'ground_truth folder'}): "
+                         "its actors cannot be rebuilt")
+    d = json.loads(scene_file.read_text())
+    if d.get("kind") != "scene":
+        raise ValueError(f"actor_of: {folder} is a {d.get('kind')} capture, not a Scene Rig capture")
+    actors = scene_actors_of(scene_file)
+    if isinstance(index, bool) or not isinstance(index, int) or not 0 <= index < len(actors):
+        raise ValueError(f"actor_of: capture {capture.name} ({folder}) has actors 0..{len(actors) - 1}, no actor {index!r}")
+    return {"capture": capture.name, "actor": index, "seed": int(d["seed"]), "rig": d["rig"],
+            "stage_size_m": list(d["stage"]["size_m"]), "actors": len(actors)}
 
 
 # --------------------------------------------------------------------------- the writer
@@ -291,7 +432,8 @@ def _render_camera(plan: CameraPlan, world: World, fps: float, frames: int, seed
 def _synthesize(out_dir: Path, rig_name: str | Path, seed: int, frames: int, kind: str, n_actors: int,
                 ss: int, cameras: Sequence[str] | None, write_depth: bool, lidar_spacing_m: float,
                 progress: Progress | None, name: str | None, lidar: bool = True,
-                lens_error: Mapping[str, float] = LENS_CALIBRATION_ERROR) -> Path:
+                lens_error: Mapping[str, float] = LENS_CALIBRATION_ERROR,
+                performer: Mapping[str, Any] | None = None) -> Path:
     if frames < 1:
         raise ValueError("frames must be >= 1")
     if ss < 1:
@@ -313,12 +455,14 @@ def _synthesize(out_dir: Path, rig_name: str | Path, seed: int, frames: int, kin
     if source_file is not None:
         shutil.copyfile(source_file, out_dir / "rig.json")
         rig_ref = "rig.json"
+    if performer is not None:
+        performer = {**performer, "head_height_m": round(_face_rig_head_height(rig), 6)}
     if kind == "face":
         stage = build_face_stage(rig, _rng(seed, "stage"))
-        actors = [_face_actor(seed)]
+        actors = [_face_performer(performer, seed) if performer is not None else _face_actor(seed)]
     else:
         stage = build_room_stage(rig, _rng(seed, "stage"))
-        actors = _scene_actors(rig, seed, n_actors)
+        actors = _scene_actors(rig.stage_size_m, seed, n_actors)
     world = World(stage, actors)
     plans = _plans(rig, seed, [a.path_centre for a in actors], cameras, lens_error)
     fps = rig.fps
@@ -363,7 +507,8 @@ def _synthesize(out_dir: Path, rig_name: str | Path, seed: int, frames: int, kin
     desc = CaptureDescription(
         name=name or f"synth-{rig.name}-s{seed}", rig=rig_ref, fps=fps,
         take=Take(start_timecode=TAKE_START, frame_count=frames), cameras=sources, ground_truth=GT_DIR,
-        lidar=LIDAR_FILE if lidar else None)
+        lidar=LIDAR_FILE if lidar else None,
+        performer=Performer(capture=performer["capture"], actor=performer["actor"]) if performer else None)
     # ground truth
     convention = ("world: metres, z up, origin at the stage centre on the floor. world_to_camera: 4x4, "
                   "OpenCV camera axes (x right, y down, z forward). Pixels: OpenCV, centre of the "
@@ -379,25 +524,17 @@ def _synthesize(out_dir: Path, rig_name: str | Path, seed: int, frames: int, kin
         "convention": convention,
         "fps": fps, "take_start_timecode": TAKE_START, "frame_count": frames, "cameras": gt_cams})
     scene_gt = {
-        "format": "volcap-synth-scene/1", "seed": seed, "rig": rig.name, "kind": kind,
+        "format": SCENE_FORMAT, "seed": seed, "rig": rig.name, "kind": kind,
         "units": "metres, seconds; world z up, origin at the stage centre on the floor; colours linear Rec.709",
         "stage": {"size_m": list(stage.stage_size_m), "set": stage.background.describe()},
         "lighting": stage.lighting.to_json(), "emitters": stage.emitters,
         "chart": stage.chart, "targets": stage.targets, "props": stage.props,
         "actors": []}
+    if performer is not None:   # whose actor this is, and what rebuilds it (scene_actors_of)
+        scene_gt["performer"] = dict(performer)
     for a in actors:
         d = a.describe()
-        d["frames"] = []
-        for k in range(frames):
-            t = k / fps
-            root, yaw = a.root(t)
-            prims = a.pose(t)
-            head = next(p for p in prims if p.name == "head")
-            d["frames"].append({"take_index": k, "time_s": round(t, 6), "root_m": np.round(root, 6).tolist(),
-                                "yaw_rad": round(yaw, 6), "head_centre_m": np.round(head.centre, 6).tolist(),
-                                "head_rotation": np.round(head.R, 6).tolist(),
-                                "expression": {k2: round(v, 6) for k2, v in head.expression.items()},
-                                "parts": [p.to_json() for p in prims]})
+        d["frames"] = [_actor_frame(a, k, k / fps) for k in range(frames)]
         scene_gt["actors"].append(d)
     sio.write_json(gt_dir / "scene.json", scene_gt)
     pts, nrm = stage.lidar(_rng(seed, "lidar"), lidar_spacing_m)
@@ -441,7 +578,18 @@ def synthesize_capture(out_dir: Path, rig: str = "demo_scene", seed: int = 0, fr
 def synthesize_face_capture(out_dir: Path, rig: str = "demo_face", seed: int = 0, frames: int = 48, *,
                             progress: Progress | None = None, supersample: int = 2,
                             cameras: Sequence[str] | None = None, write_depth: bool = False,
-                            lidar_spacing_m: float = 0.03, name: str | None = None) -> Path:
-    """Render a Face Rig capture: one actor's head making expressions; returns capture.json's path."""
+                            lidar_spacing_m: float = 0.03, name: str | None = None,
+                            actor_of: tuple[str | Path, int] | None = None) -> Path:
+    """Render a Face Rig capture: one actor's head making expressions; returns capture.json's path.
+
+    ``actor_of=(scene_capture_dir, n)``: the actor is actor ``n`` of that synthetic Scene Rig
+    capture (its ``ground_truth/scene.json`` rebuilds and checks it): the same person (scale,
+    colours, textures, freckles) on a riser at the rig's centre facing +x, the rest head centre
+    where the rig's cameras look (the median height of their ``look_at_m``), with its own performance from
+    ``seed``. capture.json then records ``performer: {capture, actor}`` and scene.json a
+    ``performer`` block. ``ValueError`` (one line, naming the folder) for a folder that is not a
+    synthetic Scene Rig capture or has no actor ``n``. Without it: the capture's own actor, the
+    same bytes as before the option existed."""
+    performer = _performer_source(actor_of) if actor_of is not None else None
     return _synthesize(Path(out_dir), rig, seed, frames, "face", 1, supersample, cameras, write_depth,
-                       lidar_spacing_m, progress, name)
+                       lidar_spacing_m, progress, name, performer=performer)
