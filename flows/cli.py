@@ -757,6 +757,33 @@ def run_cmd(spec: SpecArg, store: SpecStoreOpt = None, shots: ShotsOpt = None,
 
 
 @app.command()
+def truth(spec: SpecArg,
+          shot: Annotated[str, typer.Option("--shot", help="the shot whose truth to render")],
+          out: Annotated[Optional[Path], typer.Option("--out", help="also write the frames' EXRs into this folder")] = None,
+          supersample: Annotated[int, typer.Option(min=1, help="samples per pixel side")] = 2,
+          store: SpecStoreOpt = None, json_out: JsonOpt = False) -> None:
+    """Render the truth of a shot over a synthetic capture: what its camera would have seen."""
+    from flows.production import open_production
+    from flows.truth import truth_capture, truth_flow
+
+    url = _store_url(store) if store else None
+    truth_capture(open_production(spec, url, [shot]), shot, spec)  # one line, before any flow runs
+    start_api_early()
+    summary = _run(truth_flow, spec=str(spec.resolve()), shot=shot, store=url, supersample=supersample)
+    result = dict(summary.result)
+    lines = [f"  truth of shot {shot}: {result['frames']} frames -> {result['ref']} ({result['truth']})"]
+    if out is not None:
+        s = _open(result["store"])
+        paths = []
+        for name, entry in sorted(s.get_tree(result["truth"]).items()):
+            _write_atomic(out / name, s.get_bytes(entry.digest))
+            paths.append(str(out / name))
+        result["out"] = paths
+        lines.append(f"  {len(paths)} EXR files in {out}")
+    _emit({**result, **summary.counts()}, json_out, "\n".join(lines))
+
+
+@app.command()
 def worker(pool: Annotated[str, typer.Option(help="work pool: gpu (segments) or control (productions)")],
            name: Annotated[Optional[str], typer.Option(help="worker name (default: Prefect's)")] = None,
            limit: Annotated[Optional[int], typer.Option(help="flow runs at once (1 per GPU)")] = None,

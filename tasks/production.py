@@ -1,4 +1,5 @@
-"""Production tasks: assembling a performance from trained segments, rendering a shot over it."""
+"""Production tasks: assembling a performance from trained segments, rendering a shot over it, and
+rendering a shot's truth from a synthetic capture."""
 
 from __future__ import annotations
 
@@ -7,6 +8,7 @@ from volcap_core import reconstruction
 from volcap_core.capture import Capture
 from volcap_core.production.performance import Performance, PerformanceSegment
 from volcap_core.production.shot import load_shot, render_shot_frames
+from volcap_core.production.truth import render_truth_frames, truth_world_of
 from volcap_core.records import MEDIA_EXR, ArtifactRef
 from volcap_core.stage import stage_volume
 from volcap_core.store import ArtifactStore
@@ -42,4 +44,18 @@ def render_shot(store: str, performance: ArtifactRef, shot: dict) -> ArtifactRef
                        for name, exr in render_shot_frames(load_shot(shot), perf, s.get_bytes, stage=stage)})
 
 
-__all__ = ["assemble_performance", "render_shot"]
+@volcap_task(name="render-truth", version="1", libraries=("numpy", "cv2", "OpenEXR"))
+def render_shot_truth(store: str, capture: ArtifactRef, shot: dict, supersample: int = 2) -> ArtifactRef:
+    """The truth of every frame of ``shot`` (a shot's JSON) from the synthetic ``capture``'s stored
+    ground truth (:mod:`volcap_core.production.truth`): a tree of ``<frame:06d>.exr`` named like the
+    shot's render frames, each encoded as they are (RGBA half, linear, premultiplied, cropped to its
+    alpha, the camera in the header), at ``supersample`` x ``supersample`` samples per pixel.
+    ``content: stage`` shots: the performers over nothing. A capture without synthetic ground truth
+    is refused (``capture X has no synthetic ground truth``)."""
+    s = ArtifactStore(store)
+    world = truth_world_of(s, s.get_record(capture, Capture))
+    return s.put_tree({name: s.put_bytes(exr, MEDIA_EXR)
+                       for name, exr in render_truth_frames(load_shot(shot), world, supersample=supersample)})
+
+
+__all__ = ["assemble_performance", "render_shot", "render_shot_truth"]

@@ -74,13 +74,26 @@ class SensorModel:
         blurred = cv2.resize(blurred, (w, h), interpolation=cv2.INTER_LINEAR)
         return (1 - self.glare) * rad + self.glare * blurred
 
-    def apply(self, rad: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    def apply(self, rad: np.ndarray, rng: np.random.Generator | None) -> np.ndarray:
+        """Radiance ``rad`` (H, W, 3) → the recorded values (H, W, 3) float32 (module doc).
+        ``rng=None``: without the noise (the expected recorded value: signal + black)."""
         h, w = rad.shape[:2]
         sig = self.veiling_glare(rad) * (self.gain * self.vignette(w, h))[..., None] \
             * np.asarray(self.channel_gain, np.float32)
-        std = np.sqrt(self.read_noise ** 2 + self.shot_noise * np.maximum(sig, 0))
-        out = sig + np.asarray(self.black, np.float32) + std * rng.standard_normal(sig.shape, np.float32)
+        out = sig + np.asarray(self.black, np.float32)
+        if rng is not None:
+            std = np.sqrt(self.read_noise ** 2 + self.shot_noise * np.maximum(sig, 0))
+            out = out + std * rng.standard_normal(sig.shape, np.float32)
         return out.astype(np.float32)
+
+    @staticmethod
+    def from_json(d: dict) -> "SensorModel":
+        """The inverse of :meth:`to_json` (a camera's ``photometric`` in ``ground_truth/cameras.json``)."""
+        return SensorModel(gain=float(d["gain"]), channel_gain=tuple(float(x) for x in d["channel_gain"]),
+                           black=tuple(float(x) for x in d["black_offset"]), vignette_k=float(d["vignette_k"]),
+                           gradient=tuple(float(x) for x in d["vignette_gradient"]),
+                           glare=float(d["glare_fraction"]), glare_sigma_frac=float(d["glare_sigma_px_per_max_side"]),
+                           read_noise=float(d["read_noise"]), shot_noise=float(d["shot_noise"]))
 
     def to_json(self) -> dict:
         return {"gain": self.gain, "channel_gain": list(self.channel_gain), "black_offset": list(self.black),

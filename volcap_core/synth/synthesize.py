@@ -593,3 +593,22 @@ def synthesize_face_capture(out_dir: Path, rig: str = "demo_face", seed: int = 0
     performer = _performer_source(actor_of) if actor_of is not None else None
     return _synthesize(Path(out_dir), rig, seed, frames, "face", 1, supersample, cameras, write_depth,
                        lidar_spacing_m, progress, name, performer=performer)
+
+
+def synthetic_world(scene: Mapping, rig: Rig | None = None) -> World:
+    """The World (set + actors) of a synthetic capture, rebuilt from its ``ground_truth/scene.json``
+    (parsed): the same seeded streams as :func:`_synthesize` for its ``seed``, ``kind`` and actor
+    count, so it renders the capture's truth from any camera at any time
+    (:mod:`volcap_core.synth.truth` checks the rebuild against the file). ``rig``: the capture's
+    rig (a capture folder's or store record's: a rig file is not found by name); None loads the
+    built-in rig ``scene["rig"]``. The actors are :func:`scene_actors_of`'s (a Face Rig capture's
+    own actor, or the Scene Rig actor it films)."""
+    rig = load_rig(scene["rig"]) if rig is None else rig
+    if rig.name != scene["rig"]:
+        raise ValueError(f"scene.json was rendered with rig {scene['rig']!r}, not {rig.name!r}")
+    seed, kind = int(scene["seed"]), scene["kind"]
+    if kind == "face":
+        return World(build_face_stage(rig, _rng(seed, "stage")), scene_actors_of(scene))
+    if kind == "scene":
+        return World(build_room_stage(rig, _rng(seed, "stage")), scene_actors_of(scene))
+    raise ValueError(f"scene.json: unknown kind {kind!r} (scene or face)")
