@@ -1,17 +1,22 @@
-"""Production tasks: assembling a performance from trained segments, rendering a shot over it, and
-rendering a shot's truth from a synthetic capture."""
+"""Production tasks: assembling a performance from trained segments, rendering a shot over it,
+rendering a shot's truth from a synthetic capture and scoring a shot against it."""
 
 from __future__ import annotations
+
+import json
 
 from tasks.contract import volcap_task
 from volcap_core import reconstruction
 from volcap_core.capture import Capture
+from volcap_core.contact_sheet import encode_png
+from volcap_core.production.closeup import score_shot_exrs
 from volcap_core.production.performance import Performance, PerformanceSegment
 from volcap_core.production.shot import load_shot, render_shot_frames
 from volcap_core.production.truth import render_truth_frames, truth_world_of
-from volcap_core.records import MEDIA_EXR, ArtifactRef
+from volcap_core.records import MEDIA_EXR, MEDIA_PNG, ArtifactRef
 from volcap_core.stage import stage_volume
 from volcap_core.store import ArtifactStore
+from volcap_core.synth.ground_truth import FACE_MARGIN_M
 
 
 @volcap_task(name="assemble-performance", version="1")
@@ -58,4 +63,35 @@ def render_shot_truth(store: str, capture: ArtifactRef, shot: dict, supersample:
                        for name, exr in render_truth_frames(load_shot(shot), world, supersample=supersample)})
 
 
-__all__ = ["assemble_performance", "render_shot", "render_shot_truth"]
+@volcap_task(name="score-shot", version="1", libraries=("torch", "numpy", "OpenEXR", "OpenImageIO", "cv2"))
+def score_shot(store: str, truth: ArtifactRef, render: ArtifactRef, capture: ArtifactRef,
+               enhanced: ArtifactRef | None = None, actors: list[int] | None = None,
+               margin_m: float = FACE_MARGIN_M) -> ArtifactRef:
+    """Score a shot of a synthetic capture against its truth
+    (:func:`volcap_core.production.closeup.score_shot_exrs`; ``docs/shots.md``, "Scoring a shot").
+
+    ``truth``, ``render``, ``enhanced``: trees of ``<frame:06d>.exr`` (the truth renderer's, the
+    render-shot task's, the enhancer's), the same names in each; ``capture``: the capture record,
+    whose ground truth's ``scene.json`` gives the faces (``actors``: their indices, None = all).
+    Returns the JSON of the scores with ``contact_sheet``, the ref of the PNG sheet
+    (truth | render | enhanced | errors at the first, middle and last frame)."""
+    s = ArtifactStore(store)
+    cap = s.get_record(capture, Capture)
+    if cap.ground_truth is None:
+        raise ValueError(f"capture {cap.name} is not synthetic: it has no truth to score a shot against")
+    gt = s.get_tree(cap.ground_truth)
+    if "scene.json" not in gt:
+        raise ValueError(f"capture {cap.name}: its ground truth has no scene.json")
+    scene = json.loads(s.get_bytes(gt["scene.json"].digest))
+
+    def frames(tree: ArtifactRef) -> list[tuple[str, bytes]]:
+        return [(name, s.get_bytes(e.digest)) for name, e in sorted(s.get_tree(tree).items())]
+
+    scores, sheet = score_shot_exrs(frames(truth), frames(render), scene,
+                                    enhanced=frames(enhanced) if enhanced is not None else None,
+                                    actors=actors, margin_m=margin_m)
+    scores["contact_sheet"] = s.put_bytes(encode_png(sheet), MEDIA_PNG).model_dump(mode="json")
+    return s.put_json(scores)
+
+
+__all__ = ["assemble_performance", "render_shot", "render_shot_truth", "score_shot"]

@@ -6,6 +6,7 @@ Each loads its records from the store, calls :mod:`volcap_core.segment` (or the 
 
 from __future__ import annotations
 
+import functools
 import json
 
 import numpy as np
@@ -82,7 +83,7 @@ def ground_truth_points(store: str, capture: ArtifactRef, calibration: ArtifactR
                                            method=f"ground-truth depth, {points_per_frame} per frame"))
 
 
-@volcap_task(name="train-segment", version="7", retries=1, libraries=RECONSTRUCTION_LIBRARIES)
+@volcap_task(name="train-segment", version="8", retries=1, libraries=RECONSTRUCTION_LIBRARIES)
 def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRef, points: ArtifactRef,
                        frames: list[int], config: TrainConfig, seed: int) -> ArtifactRef:
     """Train one Poly4DGS segment, score it against its floors and draw its contact sheet
@@ -95,6 +96,8 @@ def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRe
     Version 5: the record names the rasterizer back-end that trained it. Version 6: a camera
     calibrated with lens distortion trains on its frames rectified into the pinhole of its K, the
     pixels outside its source left out of the loss and the scores (before: raw frames as a pinhole).
+    Version 8: the scores add ``regions``, the performer- and face-region PSNR, SSIM and detail per
+    camera role beside the floors (a synthetic capture's; ``docs/poly4dgs.md``, "Evaluation").
     """
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
@@ -123,12 +126,14 @@ def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRe
                          mcmc["relocated"], mcmc["grown"], info["wall_s"])
 
     files = _ground_truth(s, cap) if cap.ground_truth is not None else None
+    scene = json.loads(files.read("scene.json")) if files is not None and "scene.json" in files else None
     fitted = fit_segment(cap, capture, s.get_record(calibration, Calibration), calibration,
                          s.get_record(points, PointCloudSequence), (a, b), config, seed,
                          get_bytes=s.get_bytes, put_bytes=s.put_bytes,
                          load_mask=ground_truth.mask_loader(files) if files is not None else None,
                          checkpoint=lambda blob, step: s.set_ref(ckpt_name, s.put_bytes(blob)),
-                         resume_from=resume, progress=progress)
+                         resume_from=resume, progress=progress,
+                         head_region=None if scene is None else functools.partial(ground_truth.face_region, scene))
     progress_artifact.finish()
     rec = fitted.record
     run_log.info("segment [%d, %d): rasterizer %s (%s)", a, b, rec.backend, rec.backend_reason)

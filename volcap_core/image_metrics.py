@@ -1,4 +1,4 @@
-"""Image similarity: PSNR and SSIM, the measures every stage of volcap reports.
+"""Image similarity: PSNR, SSIM and detail, the measures every stage of volcap reports.
 
 Both the Poly4DGS training loss and held-out scoring (``volcap_core.splat``) and the Detail
 Enhancer's evaluation (``volcap_core.enhance.metrics``) measure images with these two functions,
@@ -10,6 +10,24 @@ SSIM is Wang et al.'s with an 11×11 Gaussian window (σ = 1.5), population stat
 C1 = (0.01 L)², C2 = (0.03 L)². ``padding="valid"`` reproduces scikit-image's
 ``structural_similarity(gaussian_weights=True, sigma=1.5, use_sample_covariance=False)`` and
 kornia's ``ssim(..., padding="valid")``; ``padding="same"`` zero-pads like 3DGS's training loss.
+
+Region figures (a performer or face mask): :func:`region_psnr` is PSNR over the region's pixels,
+:func:`region_ssim` the mean of the ``padding="same"`` SSIM map over them (the windows still read
+the pixels around the region, so a silhouette's edge counts).
+
+**Detail** (:func:`detail`): how much of the truth's fine structure an output holds, the measure
+PSNR cannot give on a smooth close-up (a blurred face loses little PSNR). It is the ratio of
+gradient energies over a region::
+
+    detail = Σ_region |∇ output|² / Σ_region |∇ truth|²
+
+with ``∇`` the forward differences along x and along y of each channel (a difference counts when
+both of its pixels are in the region), summed over channels, on the images as given: the callers
+pass display sRGB (IEC 61966-2-1, clamped to [0, 1]) so that a shadow's texture weighs as the eye
+weighs it. 1 = as much detail as the truth; a blur gives < 1; added noise or ringing > 1 (it is
+energy, not correctness: read it beside PSNR/SSIM, which see the noise). No colour fit is part of
+the measure: a caller whose output and truth differ in exposure (a held-out camera's footage)
+applies its scoring protocol's transform first.
 """
 
 from __future__ import annotations
@@ -17,10 +35,11 @@ from __future__ import annotations
 import functools
 from typing import Literal
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
-__all__ = ["psnr", "ssim"]
+__all__ = ["detail", "gradient_energy", "psnr", "region_psnr", "region_ssim", "ssim"]
 
 
 @functools.lru_cache(maxsize=8)
@@ -116,3 +135,63 @@ def psnr(x: torch.Tensor, y: torch.Tensor, data_range: float = 1.0) -> torch.Ten
     """Peak signal-to-noise ratio in dB: ``10 log10(L² / MSE)``. Args: any equal shapes."""
     mse = torch.mean((x - y) ** 2)
     return 10.0 * torch.log10(data_range ** 2 / mse.clamp(min=1e-20))
+
+
+def _region(mask: torch.Tensor, shape: torch.Size) -> torch.Tensor:
+    m = mask if isinstance(mask, torch.Tensor) else torch.as_tensor(np.asarray(mask))
+    if m.dtype != torch.bool:
+        m = m >= 0.5
+    if tuple(m.shape) != tuple(shape[:2]):
+        raise ValueError(f"region mask {tuple(m.shape)} does not match the image {tuple(shape[:2])}")
+    return m
+
+
+def region_psnr(x: torch.Tensor, y: torch.Tensor, mask: torch.Tensor, data_range: float = 1.0) -> float | None:
+    """PSNR in dB over the pixels of a region. ``x``, ``y``: ``[H, W, C]``; ``mask``: ``[H, W]``
+    bool (or weights, region = ``>= 0.5``). None when the region is empty. Identical images give
+    200 dB at ``data_range = 1`` (MSE floored at 1e-20, as :func:`psnr`)."""
+    if x.shape != y.shape:
+        raise ValueError(f"shape mismatch {tuple(x.shape)} vs {tuple(y.shape)}")
+    m = _region(mask, x.shape).to(x.device)
+    if not bool(m.any()):
+        return None
+    mse = float(((x - y) ** 2)[m].mean())
+    return float(10.0 * np.log10(data_range ** 2 / max(mse, 1e-20)))
+
+
+def region_ssim(x: torch.Tensor, y: torch.Tensor, mask: torch.Tensor, data_range: float = 1.0) -> float | None:
+    """Mean of the ``padding="same"`` SSIM map (:func:`ssim`) over a region's pixels and channels.
+    ``x``, ``y``: ``[H, W, C]``; ``mask``: ``[H, W]``. None when the region is empty."""
+    if x.shape != y.shape:
+        raise ValueError(f"shape mismatch {tuple(x.shape)} vs {tuple(y.shape)}")
+    m = _region(mask, x.shape).to(x.device)
+    if not bool(m.any()):
+        return None
+    smap = ssim(x, y, data_range=data_range, padding="same", reduction="none")   # [H, W, C]
+    return float(smap[m].mean())
+
+
+def gradient_energy(x: torch.Tensor, mask: torch.Tensor | None = None) -> float:
+    """``Σ |∇x|²`` over a region: the squared forward differences along x and y of every channel of
+    ``x [H, W, C]``, each counted when both of its pixels are in ``mask [H, W]`` (None: all)."""
+    x = x.double()
+    dx = (x[:, 1:] - x[:, :-1]) ** 2
+    dy = (x[1:] - x[:-1]) ** 2
+    if mask is None:
+        return float(dx.sum() + dy.sum())
+    m = _region(mask, x.shape).to(x.device)
+    mx = (m[:, 1:] & m[:, :-1])[..., None]
+    my = (m[1:] & m[:-1])[..., None]
+    return float((dx * mx).sum() + (dy * my).sum())
+
+
+def detail(output: torch.Tensor, truth: torch.Tensor, mask: torch.Tensor | None = None) -> float | None:
+    """The detail measure of the module doc: ``gradient_energy(output) / gradient_energy(truth)``
+    over a region (``[H, W, C]`` images, display-encoded by the caller; ``mask [H, W]`` or None).
+    None when the truth has no gradient there (an empty or flat region)."""
+    if output.shape != truth.shape:
+        raise ValueError(f"shape mismatch {tuple(output.shape)} vs {tuple(truth.shape)}")
+    e_truth = gradient_energy(truth, mask)
+    if not e_truth > 0:
+        return None
+    return gradient_energy(output, mask) / e_truth

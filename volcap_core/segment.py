@@ -29,12 +29,15 @@ from volcap_core.pointcloud import PointCloudSequence
 from volcap_core.records import MEDIA_BYTES, MEDIA_PNG, ArtifactRef
 from volcap_core.splat import evaluate, load_model, render, save_model, train_segment
 from volcap_core.splat.report import SegmentScores, score_segment
-from volcap_core.splat.train import TrainConfig
+from volcap_core.splat.train import TrainConfig, View
 
 log = logging.getLogger("volcap.reconstruct")
 
 GetBytes = Callable[[ArtifactRef], bytes]
 PutBytes = Callable[[bytes, str], ArtifactRef]
+#: ``(time_s, K [3, 3], world_to_camera [4, 4], width, height) -> [height, width] bool``: where
+#: the performers' heads are in a camera at a take time
+HeadRegion = Callable[[float, np.ndarray, np.ndarray, int, int], np.ndarray]
 #: the UI copy of a contact sheet is this wide (px): a full-width sheet of noisy footage is several
 #: MB of PNG, too much to inline in a Prefect artifact
 UI_SHEET_WIDTH = 720
@@ -67,7 +70,7 @@ def fit_segment(cap: Capture, capture_ref: ArtifactRef, calib: Calibration, cali
                 put_bytes: PutBytes, load_mask: Callable[[str, int], np.ndarray | None] | None = None,
                 checkpoint: Callable[[bytes, int], None] | None = None, resume_from: bytes | None = None,
                 progress: Callable[[int, int, dict], None] | None = None,
-                device: str | None = None) -> FittedSegment:
+                device: str | None = None, head_region: HeadRegion | None = None) -> FittedSegment:
     """Train take frames [a, b) of a capture (``cap``, stored as ``capture_ref``; likewise the
     calibration), score the result against its floors (empty and
     untrained models, on the held-out views) and draw its contact sheet (footage | render | error).
@@ -75,7 +78,10 @@ def fit_segment(cap: Capture, capture_ref: ArtifactRef, calib: Calibration, cali
     ``checkpoint(blob, step)`` is called every ``config.checkpoint_every`` steps; ``resume_from``
     continues such a blob (on CPU the result is bit-identical to an uninterrupted run).
     ``load_mask(camera, take index)``: performer coverage for the performer-only scores (synthetic
-    captures). ``device``: None picks CUDA when present.
+    captures). ``device``: None picks CUDA when present. ``head_region(time_s, K, world_to_camera,
+    width, height)``: where the performers' heads are in a view (a synthetic capture's
+    :func:`~volcap_core.synth.ground_truth.face_region` without coverage), for the face figures of
+    the scores' ``regions``; the camera roles come from the calibration.
     """
     a, b = frames
     data = reconstruction.segment_data(cap, calib, tracking_frames(get_bytes, calib), (a, b),
@@ -86,7 +92,9 @@ def fit_segment(cap: Capture, capture_ref: ArtifactRef, calib: Calibration, cali
     with deterministic_torch(device):
         result = train_segment(data, init, config, checkpoint=checkpoint if config.checkpoint_every else None,
                                resume_from=resume_from, seed=seed, device=device, progress=progress)
-        report = score_segment(result.model, result.grids, data, init, config, seed=seed, device=device)
+        report = score_segment(result.model, result.grids, data, init, config, seed=seed, device=device,
+                               roles={c.id: "static" if c.static else "tracking" for c in calib.cameras},
+                               head_region=None if head_region is None else _view_head_region(head_region))
     title = f"{cap.name} frames {a}:{b}: footage | render | error"
     sheet_ref = put_bytes(encode_png(contact_sheet(report.sheet_rows, title=title)), MEDIA_PNG)
     sheet_ui = encode_jpeg(contact_sheet(report.sheet_rows, title=title, max_width=UI_SHEET_WIDTH))
@@ -106,6 +114,14 @@ def fit_segment(cap: Capture, capture_ref: ArtifactRef, calib: Calibration, cali
         backend=result.backend.name if result.backend else None,
         backend_reason=result.backend.reason if result.backend else None)
     return FittedSegment(record, report, sheet_ui)
+
+
+def _view_head_region(head_region: HeadRegion) -> Callable[[View], np.ndarray]:
+    def of_view(v: View) -> np.ndarray:
+        cam = v.camera
+        return head_region(v.time, cam.K.detach().cpu().numpy(), cam.world_to_camera.detach().cpu().numpy(),
+                           cam.width, cam.height)
+    return of_view
 
 
 def _finite(x: float | None) -> float | None:
@@ -148,4 +164,4 @@ def render_segment_exr(get_bytes: GetBytes, seg: reconstruction.SegmentModel, K:
     return encode_exr(rgba, ("R", "G", "B", "A"), pixel_type="half", attributes=attrs)
 
 
-__all__ = ["FittedSegment", "fit_segment", "ViewSpec", "render_segment_exr", "tracking_frames", "UI_SHEET_WIDTH"]
+__all__ = ["FittedSegment", "HeadRegion", "fit_segment", "ViewSpec", "render_segment_exr", "tracking_frames", "UI_SHEET_WIDTH"]

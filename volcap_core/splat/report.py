@@ -10,11 +10,19 @@ one (renders the background) and the untrained initial one (rebuilt from the sam
 and seed, so it is the model training started from). Training views are rendered with their
 camera's learned exposure/black-level grids and scored raw: they are the fit itself, a ceiling
 rather than a measure of generalisation.
+
+Where views carry performer masks (a synthetic capture), ``regions`` adds per camera role
+(``static``, ``tracking``) and view set (held out, training) the region figures of
+:func:`~volcap_core.splat.scoring.score_region` (PSNR, SSIM, detail) on the performers and on the
+face (a head region from the caller, intersected with the performers), for the trained model and
+its two floors on the same pixels: the held-out views under the held-out protocol (each model's
+own cross-fitted gain/offset), the training views with the trained model's grids and the floors'
+cross-fitted gain/offset (the floors learned no grids).
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -23,7 +31,16 @@ import torch
 from volcap_core.contact_sheet import SheetRow
 from volcap_core.splat.grids import ExposureGrids
 from volcap_core.splat.model import Poly4DGS
-from volcap_core.splat.scoring import Scores, ViewScore, cross_fitted_transforms, score_views, summarise
+from volcap_core.splat.scoring import (
+    ColourTransform,
+    Scores,
+    ViewScore,
+    cross_fitted_transforms,
+    mean_region_scores,
+    score_region,
+    score_views,
+    summarise,
+)
 from volcap_core.splat.train import (
     PointsAtTime,
     SegmentData,
@@ -43,17 +60,22 @@ class SegmentScores:
     """``held_out``: model name ("trained", "initial", "empty") -> :class:`Scores` on the same
     held-out views; ``training``: the trained model on training views with their grids;
     ``views``: the trained model's per-view held-out scores; ``sheet_rows``: contact-sheet rows
-    (held-out and training cameras at the segment's first, middle and last frame)."""
+    (held-out and training cameras at the segment's first, middle and last frame); ``regions``:
+    the region figures of the module doc (JSON-ready)."""
 
     held_out: dict[str, Scores]
     training: Scores
     views: list[ViewScore] = field(default_factory=list)
     sheet_rows: list[SheetRow] = field(default_factory=list)
+    regions: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
-        """What :attr:`volcap_core.reconstruction.SegmentModel.scores` keeps."""
+        """What :attr:`volcap_core.reconstruction.SegmentModel.scores` keeps. ``regions``: view set
+        (``held_out``, ``training``) -> camera role -> model (``trained``, ``empty``, ``initial``)
+        -> region (``performers``, ``face``) -> ``{psnr, ssim, detail, views}``; empty without
+        performer masks."""
         return {"held_out": {k: v.to_json() for k, v in self.held_out.items()},
-                "training": self.training.to_json()}
+                "training": self.training.to_json(), "regions": self.regions}
 
     def table(self) -> list[dict]:
         """One row per model and view set: what a coordinator reads (and the Prefect table)."""
@@ -79,7 +101,9 @@ def sheet_views(views: Sequence[View], cameras: Sequence[str]) -> list[View]:
 
 def score_segment(model: Poly4DGS, grids: ExposureGrids, data: SegmentData,
                   init_points: Sequence[PointsAtTime], config: TrainConfig, *, seed: int = 0,
-                  max_training_views: int = 12, device: torch.device | str = "cpu") -> SegmentScores:
+                  max_training_views: int = 12, device: torch.device | str = "cpu",
+                  roles: Mapping[str, str] | None = None,
+                  head_region: Callable[[View], np.ndarray | None] | None = None) -> SegmentScores:
     """Score a trained segment against its floors (see the module doc).
 
     Args:
@@ -87,6 +111,10 @@ def score_segment(model: Poly4DGS, grids: ExposureGrids, data: SegmentData,
         data, init_points, config, seed: what it was trained with (the initial model is rebuilt
             from them exactly as training built it).
         max_training_views: training views scored, spread over cameras and frames.
+        roles: camera id -> its role for the region figures (``"static"``, ``"tracking"``); a
+            camera not in it (or ``roles=None``) counts as ``"static"``.
+        head_region: view -> ``[H, W]`` bool, where the performers' heads are in that view (None:
+            no head in it); without it the region figures have no ``face``.
     Returns:
         :class:`SegmentScores`.
     """
@@ -103,19 +131,36 @@ def score_segment(model: Poly4DGS, grids: ExposureGrids, data: SegmentData,
     tfs = cross_fitted_transforms(held_renders, held_targets, held_ids, held_frames, held_valid)
     trained_views = score_views(held_renders, held_targets, held_ids, held_frames,
                                 [v.load_mask() for v in held_views], transforms=tfs, valid=held_valid)
-    held_out = {"trained": summarise(trained_views),
-                "initial": summarise(evaluate_held_out(initial, held_views, config, device=device)),
-                "empty": summarise(evaluate_held_out(None, held_views, config, device=device))}
-
     scored = _spread(train_views, max_training_views)
+    masks = [v.load_mask() for v in scored]
+    with_regions = any(v.load_mask() is not None for v in held_views) or any(m is not None for m in masks)
+    if with_regions:  # the floors' renders and transforms also serve the region figures
+        floors = {name: _floor(m, held_views, config, device) for name, m in (("initial", initial), ("empty", None))}
+        held_out = {"trained": summarise(trained_views),
+                    **{name: summarise(f[2]) for name, f in floors.items()}}
+    else:
+        held_out = {"trained": summarise(trained_views),
+                    "initial": summarise(evaluate_held_out(initial, held_views, config, device=device)),
+                    "empty": summarise(evaluate_held_out(None, held_views, config, device=device))}
+
     renders = [grids.apply(r, v.camera_id)
                for r, v in zip(render_views(model, scored, config, device=device), scored)]
     targets = [v.load()[..., :3].to(device) for v in scored]
-    masks = [v.load_mask() for v in scored]
     # the grids are the training fit: scored as they are, the "fitted" figure equals the raw one
     ident = score_views(renders, targets, [f"{v.camera_id}#{v.frame}" for v in scored],
                         [0] * len(scored), masks, valid=[v.load_valid() for v in scored])
     training = summarise(ident)
+
+    regions: dict = {}
+    if with_regions:
+        role_of = dict(roles or {})
+        held_outputs = {"trained": [t.apply(r) for t, r in zip(tfs, held_renders)],
+                        **{name: [t.apply(r) for t, r in zip(f[1], f[0])] for name, f in floors.items()}}
+        train_floors = {name: _floor(m, scored, config, device) for name, m in (("initial", initial), ("empty", None))}
+        train_outputs = {"trained": renders,
+                         **{name: [t.apply(r) for t, r in zip(f[1], f[0])] for name, f in train_floors.items()}}
+        regions = {"held_out": _regions(held_views, held_targets, held_outputs, role_of, head_region),
+                   "training": _regions(scored, targets, train_outputs, role_of, head_region)}
 
     rows = []
     held_cams = sorted(held)
@@ -135,7 +180,53 @@ def score_segment(model: Poly4DGS, grids: ExposureGrids, data: SegmentData,
         r = grids.apply(render_views(model, [v], config, device=device)[0], v.camera_id)
         p = score_views([r], [v.load()[..., :3].to(device)], ["x"], [0], valid=[v.load_valid()])[0].psnr
         rows.append(_row(f"{v.camera_id} frame {v.frame} training  PSNR {p:.1f} dB", v, r))
-    return SegmentScores(held_out, training, trained_views, rows)
+    return SegmentScores(held_out, training, trained_views, rows, regions)
+
+
+def _floor(model: Poly4DGS | None, views: Sequence[View], config: TrainConfig, device
+           ) -> tuple[list[torch.Tensor], list[ColourTransform], list[ViewScore]]:
+    """A floor model's renders of ``views``, their cross-fitted transforms and its scores: what
+    :func:`~volcap_core.splat.train.evaluate_held_out` computes, with the renders kept."""
+    if not views:
+        return [], [], []
+    renders = render_views(model, views, config, device=device)
+    targets = [v.load()[..., :3].to(renders[0]) for v in views]
+    ids, frames, valid = [v.camera_id for v in views], [v.frame for v in views], [v.load_valid() for v in views]
+    tfs = cross_fitted_transforms(renders, targets, ids, frames, valid)
+    return renders, tfs, score_views(renders, targets, ids, frames, [v.load_mask() for v in views],
+                                     transforms=tfs, valid=valid)
+
+
+def _regions(views: Sequence[View], targets: Sequence[torch.Tensor], outputs: Mapping[str, Sequence[torch.Tensor]],
+             role_of: Mapping[str, str], head_region: Callable[[View], np.ndarray | None] | None) -> dict:
+    """Role -> model -> region -> mean figures (:func:`mean_region_scores`) over ``views``."""
+    per_view = []
+    for v in views:
+        m = v.load_mask()
+        if m is None:
+            per_view.append(None)
+            continue
+        perf = m >= 0.5
+        valid = v.load_valid()
+        if valid is not None:
+            perf = perf & valid.to(perf.device)
+        regions = {"performers": perf}
+        if head_region is not None:
+            head = head_region(v)
+            regions["face"] = perf & torch.as_tensor(head, dtype=torch.bool).to(perf.device) \
+                if head is not None else torch.zeros_like(perf)
+        per_view.append(regions)
+    out: dict = {}
+    for role in sorted({role_of.get(v.camera_id, "static") for v in views}):
+        idx = [i for i, v in enumerate(views) if role_of.get(v.camera_id, "static") == role and per_view[i]]
+        if not idx:
+            continue
+        names = list(per_view[idx[0]])
+        out[role] = {"cameras": sorted({views[i].camera_id for i in idx}), **{
+            model: {region: mean_region_scores([score_region(outputs[model][i], targets[i], per_view[i][region])
+                                                for i in idx]) for region in names}
+            for model in outputs}}
+    return out
 
 
 def _row(label: str, view: View, output: torch.Tensor) -> SheetRow:

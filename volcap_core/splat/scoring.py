@@ -15,6 +15,9 @@ The held-out protocol (``docs/poly4dgs.md`` "Evaluation"):
   offsets) and the untrained initial model.
 * **Performers-only** figures restrict PSNR/SSIM to pixels where a ground-truth mask (a synthetic
   capture's) says a performer is: they are what a production is for.
+* **Region figures** (:func:`score_region`): PSNR, SSIM and detail
+  (:func:`volcap_core.image_metrics.detail`) on one region of a view (the performers, a face),
+  on the display encoding, after whatever transform the protocol gives the view.
 
 Metrics are on the display encoding (sRGB, clamped to [0, 1]) as a viewer sees it. LPIPS needs
 network weights that cannot be fetched here: it is left out rather than approximated.
@@ -33,10 +36,10 @@ import numpy as np
 import torch
 
 from volcap_core.colour import srgb_encode
-from volcap_core.image_metrics import psnr, ssim
+from volcap_core.image_metrics import detail, psnr, region_psnr, region_ssim, ssim
 
-__all__ = ["ColourTransform", "ViewScore", "Scores", "cross_fitted_transforms",
-           "fit_colour_transform", "score_views", "summarise"]
+__all__ = ["ColourTransform", "RegionScore", "ViewScore", "Scores", "cross_fitted_transforms",
+           "fit_colour_transform", "mean_region_scores", "score_region", "score_views", "summarise"]
 
 
 @dataclass(frozen=True)
@@ -134,11 +137,7 @@ def _display_scores(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor
         m = m & v
     if not bool(m.any()):
         return full_psnr, full_ssim, None, None
-    mse = float(((p - t) ** 2)[m].mean())
-    perf_psnr = float(10.0 * np.log10(1.0 / max(mse, 1e-20)))
-    ssim_map = ssim(p, t, padding="same", reduction="none")       # [H, W, 3]
-    perf_ssim = float(ssim_map[m].mean())
-    return full_psnr, full_ssim, perf_psnr, perf_ssim
+    return full_psnr, full_ssim, region_psnr(p, t, m), region_ssim(p, t, m)
 
 
 def score_views(renders: Sequence[torch.Tensor], targets: Sequence[torch.Tensor],
@@ -232,3 +231,47 @@ def summarise(scores: Sequence[ViewScore]) -> Scores:
 
     return Scores(len(scores), mean("psnr_raw"), mean("ssim_raw"), mean("psnr"), mean("ssim"),
                   mean("psnr_performers"), mean("ssim_performers"))
+
+
+@dataclass(frozen=True)
+class RegionScore:
+    """PSNR (dB), SSIM and detail of one view on one region, and the region's size in pixels;
+    the figures are None when the region is empty (or, for detail, flat in the truth)."""
+
+    psnr: float | None
+    ssim: float | None
+    detail: float | None
+    pixels: int
+
+
+def score_region(output: torch.Tensor, truth: torch.Tensor, region: torch.Tensor) -> RegionScore:
+    """Region figures of one view on the display encoding (sRGB, clamped to [0, 1]).
+
+    Args:
+        output, truth: ``[H, W, 3]`` linear RGB (the output already through its protocol's colour
+            transform, if any).
+        region: ``[H, W]`` bool (or coverage, region = ``>= 0.5``).
+    Returns:
+        :class:`RegionScore` (:func:`~volcap_core.image_metrics.region_psnr`,
+        :func:`~volcap_core.image_metrics.region_ssim`, :func:`~volcap_core.image_metrics.detail`).
+    """
+    p = srgb_encode(output.detach().float())
+    t = srgb_encode(truth.detach().float().to(p.device))
+    m = torch.as_tensor(region).to(p.device)
+    m = m if m.dtype == torch.bool else m >= 0.5
+    n = int(m.sum())
+    if n == 0:
+        return RegionScore(None, None, None, 0)
+    return RegionScore(region_psnr(p, t, m), region_ssim(p, t, m), detail(p, t, m), n)
+
+
+def mean_region_scores(scores: Sequence[RegionScore | None]) -> dict:
+    """``{"psnr", "ssim", "detail", "views"}``: each figure's mean over the views that have it
+    (PSNR averaged in dB; None when no view has it), ``views`` = views with a non-empty region."""
+    have = [s for s in scores if s is not None and s.pixels > 0]
+
+    def mean(name: str) -> float | None:
+        vals = [getattr(s, name) for s in have if getattr(s, name) is not None]
+        return round(float(np.mean(vals)), 4) if vals else None
+
+    return {"psnr": mean("psnr"), "ssim": mean("ssim"), "detail": mean("detail"), "views": len(have)}

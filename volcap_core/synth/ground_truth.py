@@ -1,5 +1,7 @@
 """Ground truth of a synthetic capture as pipeline records: the cameras as a :class:`Calibration`,
-dense per-frame points from the true depth maps, and the performer masks.
+dense per-frame points from the true depth maps, the performer masks, and the actors' face
+regions in any camera (:func:`face_region`: the head ellipsoid of ``scene.json`` cast into the
+camera's pixels, what the close-up scores measure on).
 
 Evaluation and the reconstruction tests use these to separate Poly4DGS's errors from calibration's
 (the Poly4DGS issue trains on them until estimated calibration is available). Formats:
@@ -8,7 +10,7 @@ Evaluation and the reconstruction tests use these to separate Poly4DGS's errors 
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -21,6 +23,11 @@ from volcap_core.calibration.record import (
     matrix4,
     tracking_frames_ref,
 )
+from volcap_core.synth.geometry import intersect_ellipsoid
+
+#: How far (metres) the face region grows the head ellipsoid by default: the nose (2.4 cm past
+#: the head's front at the synthetic actor's scale 1) and the ears' silhouette stay inside.
+FACE_MARGIN_M = 0.03
 
 
 def calibration(cameras_json: dict, capture_name: str, camera_ids: Sequence[str],
@@ -173,3 +180,102 @@ def mask_loader(files: GroundTruthFiles):
         return performer_mask(files.read(path)) if path in files else None
 
     return load
+
+
+def head_at(actor: Mapping, time_s: float) -> dict:
+    """An actor's head prim (``scene.json`` ``parts`` entry named ``head``: ``centre_m``,
+    ``rotation`` (columns: the ellipsoid's axes), ``semi_axes_m``) at ``time_s`` on the take's
+    clock: the centre interpolated linearly between the two take frames around it, the rotation
+    and semi-axes of the nearer one; held before the first and after the last frame."""
+    frames = actor.get("frames") or []
+    if not frames:
+        raise ValueError(f"scene.json actor {actor.get('index')}: no frames")
+    times = np.array([float(f["time_s"]) for f in frames])
+    j = int(np.searchsorted(times, time_s))
+    lo, hi = max(j - 1, 0), min(j, len(frames) - 1)
+    u = 0.0 if hi == lo else float(np.clip((time_s - times[lo]) / (times[hi] - times[lo]), 0.0, 1.0))
+
+    def head(k: int) -> Mapping:
+        for p in frames[k].get("parts") or ():
+            if p.get("name") == "head" and p.get("kind") == "ellipsoid":
+                return p
+        raise ValueError(f"scene.json actor {actor.get('index')} take frame {frames[k].get('take_index')}: "
+                         f"no 'head' ellipsoid in its parts")
+
+    a, b = head(lo), head(hi)
+    near = a if u < 0.5 else b
+    centre = (1.0 - u) * np.asarray(a["centre_m"], np.float64) + u * np.asarray(b["centre_m"], np.float64)
+    return {"name": "head", "kind": "ellipsoid", "centre_m": centre.tolist(),
+            "rotation": np.asarray(near["rotation"], np.float64).tolist(),
+            "semi_axes_m": np.asarray(near["semi_axes_m"], np.float64).tolist()}
+
+
+def head_region(head: Mapping, K: np.ndarray, world_to_camera: np.ndarray, width: int, height: int, *,
+                margin_m: float = 0.0) -> np.ndarray:
+    """Where a head ellipsoid is in a pinhole camera's image: ``[height, width]`` bool, True at the
+    pixels whose centre's ray (OpenCV pixel centres, top-left at (0, 0)) meets the ellipsoid
+    grown by ``margin_m`` along each semi-axis. Occlusion is not considered (intersect with a
+    coverage mask for what is visible: :func:`face_region`).
+
+    Args:
+        head: a :func:`head_at` prim (``centre_m``, ``rotation``, ``semi_axes_m``; metres, world).
+        K: ``[3, 3]`` intrinsics (pixels); world_to_camera: ``[4, 4]`` OpenCV axes.
+        width, height: the image size (pixels).
+    """
+    K = np.asarray(K, np.float64)
+    w2c = np.asarray(world_to_camera, np.float64)
+    if K.shape != (3, 3) or w2c.shape != (4, 4):
+        raise ValueError(f"head_region: K must be [3, 3] and world_to_camera [4, 4], got {K.shape} and {w2c.shape}")
+    centre = np.asarray(head["centre_m"], np.float64)
+    R_head = np.asarray(head["rotation"], np.float64)
+    semi = np.asarray(head["semi_axes_m"], np.float64) + float(margin_m)
+    out = np.zeros((int(height), int(width)), bool)
+    R, t = w2c[:3, :3], w2c[:3, 3]
+    # the pixels to test: the projection of the ellipsoid's bounding box (it contains the
+    # ellipsoid's when every corner is in front of the camera; else every pixel)
+    corners = centre + (np.array(np.meshgrid([-1, 1], [-1, 1], [-1, 1])).reshape(3, -1).T * semi) @ R_head.T
+    cam = corners @ R.T + t
+    if np.all(cam[:, 2] > 1e-6):
+        uv = (cam @ K.T)[:, :2] / cam[:, 2:3]
+        x0, y0 = np.floor(uv.min(0)).astype(int)
+        x1, y1 = np.ceil(uv.max(0)).astype(int)
+        x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, width - 1), min(y1, height - 1)
+        if x1 < x0 or y1 < y0:
+            return out
+    else:
+        x0, y0, x1, y1 = 0, 0, width - 1, height - 1
+    v, u = np.mgrid[y0:y1 + 1, x0:x1 + 1]
+    rays_cam = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones(u.shape)], axis=-1)
+    rays = rays_cam @ R                                       # Rᵀ d, as row vectors
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    origin = -R.T @ t
+    hit = np.isfinite(intersect_ellipsoid(origin.astype(np.float32), rays.astype(np.float32), centre, R_head, semi))
+    out[y0:y1 + 1, x0:x1 + 1] = hit
+    return out
+
+
+def face_region(scene: Mapping, time_s: float, K: np.ndarray, world_to_camera: np.ndarray, width: int,
+                height: int, *, coverage: np.ndarray | None = None, actors: Iterable[int] | None = None,
+                margin_m: float = FACE_MARGIN_M) -> np.ndarray:
+    """The performers' faces in a camera at ``time_s``: ``[height, width]`` bool, the union of the
+    actors' :func:`head_region` (grown by ``margin_m``) and, given the performers' ``coverage``
+    ``[H, W]`` (a ground-truth mask or a truth render's alpha), only where it is >= 0.5: the head
+    pixels where a performer is the visible surface.
+
+    Args:
+        scene: ``ground_truth/scene.json`` (its ``actors``).
+        time_s: seconds on the take's clock (take frame ``k`` is at ``k / fps``).
+        K, world_to_camera, width, height: the camera (pinhole, OpenCV axes).
+        actors: indices of the actors whose faces count (None: every actor).
+    """
+    wanted = None if actors is None else {int(a) for a in actors}
+    region = np.zeros((int(height), int(width)), bool)
+    for actor in scene.get("actors") or ():
+        if wanted is None or int(actor["index"]) in wanted:
+            region |= head_region(head_at(actor, time_s), K, world_to_camera, width, height, margin_m=margin_m)
+    if coverage is not None:
+        c = np.asarray(coverage)
+        if c.shape != region.shape:
+            raise ValueError(f"face_region: coverage {c.shape} does not match the camera's {region.shape}")
+        region &= c >= 0.5
+    return region
