@@ -37,7 +37,9 @@ from prefect import flow, get_run_logger
 from flows.ingest import ingest_flow
 from flows.production import open_production, production_flow
 from flows.reconstruct import reconstruct_flow
+from flows.truth import truth_flow
 from tasks.calibrate import calibration_errors
+from tasks.production import score_shot
 from tasks.reconstruct import render_views
 from volcap_core import reconstruction
 from volcap_core.capture import Capture
@@ -230,7 +232,7 @@ def closeup_spec(store: str, capture_ref: str, frames: tuple[int, int], face_fol
             "rigs": {"scene": "demo_scene", "face": "demo_face"},
             "captures": {"demo": {"ref": capture_ref, "rig": "scene", "frames": list(frames)},
                          "face": {"folder": face_folder, "rig": "face"}},
-            "actors": [{"name": actor, "captures": ["demo"], "face_capture": "face"}],
+            "actors": [{"name": actor, "captures": ["demo"], "index": ACTOR_INDEX, "face_capture": "face"}],
             "shots": [dict(shot)]}
 
 
@@ -287,9 +289,9 @@ def closeup_production(store: str, capture_dir: Path, out: Path, *, capture_ref,
     face_name = "face_capture" if enhancer == "demo" else f"face_capture_{enhancer}"
     face_dir = out / face_name
     if not (face_dir / "capture.json").exists():
-        # as many frames as the preset's Face Rig pairs take: its sub-sequences, end to end
-        # (with the performer masks: the pairs' alpha)
-        synthesize_face_capture(face_dir, rig="demo_face", seed=0,
+        # the demo actor in the Face Rig, as many frames as the preset's Face Rig pairs take (its
+        # sub-sequences end to end), with the performer masks (the pairs' alpha)
+        synthesize_face_capture(face_dir, rig="demo_face", seed=0, actor_of=(capture_dir, ACTOR_INDEX),
                                 frames=q.face_subsequences * q.face_subsequence_frames, write_depth=True)
     walls["face_capture_s"] = time.perf_counter() - t0
 
@@ -315,18 +317,59 @@ def closeup_production(store: str, capture_dir: Path, out: Path, *, capture_ref,
         log.warning("the production trained its own segment %s, not the demo's %s", result["steps"][step]["segment"],
                     segment_ref.digest)
     shot_out = result["shots"]["closeup"]
-    render_dir, enhanced_dir = out / "closeup" / "render", out / "closeup" / "enhanced"
-    s.get_directory(shot_out["frames"], render_dir)
-    s.get_directory(shot_out["enhanced"], enhanced_dir)
+
+    # what a camera at the shot's pose would have seen, and the scores against it
+    t0 = time.perf_counter()
+    truth = truth_flow(spec=str(spec_path), shot="closeup")
+    walls["truth_s"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    scored = s.get_json(score_shot(s.url, s.resolve(truth["truth"]), s.resolve(shot_out["frames"]), capture_ref,
+                                   enhanced=s.resolve(shot_out["enhanced"]), actors=[ACTOR_INDEX]))
+    walls["score_s"] = time.perf_counter() - t0
+    sheet = out / "closeup_sheet.png"
+    s.get_file(scored["contact_sheet"]["digest"], sheet)
+    scores_path = out / "closeup_scores.json"
+    scores_path.write_text(json.dumps(scored, indent=1, sort_keys=True))
+    closeup_dir = out / "closeup"
+    for what, ref in (("render", shot_out["frames"]), ("enhanced", shot_out["enhanced"]), ("truth", truth["truth"])):
+        s.get_directory(ref, closeup_dir / what)
     enh = s.get_record(s.resolve(result["steps"][f"train-enhancer:actor{ACTOR_INDEX}"]["enhancer"]),
                        EnhancerModel)
     budget = enhancer_budget(q, enh.wall_s)
     log.info("close-up: %s x %s px (the finest footage on the head: %.0f px/m), spec %s", *shot["resolution"],
              density, spec_path)
     log.info("%s", budget)
+    figures = closeup_figures(scored)
+    for region in ("face", "performers"):
+        log.info("close-up %s: %s", region, "; ".join(
+            f"{row} {f['psnr']} dB / SSIM {f['ssim']} / detail {f['detail']}" for row, f in figures[region].items()))
+    log.info("close-up sheet %s", sheet)
     return {"spec": str(spec_path), "face_capture": str(face_dir), "shot": "closeup",
             "resolution": shot["resolution"], "focal_mm": CLOSEUP_FOCAL_MM, "footage_px_per_m": round(density, 1),
-            "segment_reused": reused, "render_frames": str(render_dir), "enhanced_frames": str(enhanced_dir),
+            "segment_reused": reused, "sheet": str(sheet), "scores": str(scores_path),
+            "frames": {what: str(closeup_dir / what) for what in ("render", "enhanced", "truth")},
+            **figures,
             "enhancer_run": enhancer, "enhancer_budget": budget, "enhancer_train_s": round(enh.wall_s, 1),
-            "refs": {"frames": shot_out["frames"], "enhanced": shot_out["enhanced"]},
+            "refs": {"frames": shot_out["frames"], "enhanced": shot_out["enhanced"], "truth": truth["truth"],
+                     "sheet": scored["contact_sheet"]["digest"]},
             "wall_s": {k: round(v, 1) for k, v in walls.items()}}
+
+
+def closeup_figures(scores: Mapping[str, Any]) -> dict[str, Any]:
+    """The headline of a ``score-shot`` result: per region (``face``, ``performers``) each row's
+    PSNR (dB), SSIM and detail, the output rows (``render``, ``enhanced``) beside their floors
+    (``empty``, ``bicubic``; the render is the enhanced row's floor too), and the temporal
+    flickering and warp error per row and of the truth (``docs/shots.md``, "Scoring a shot")."""
+    def r(x, digits):
+        return None if x is None else round(float(x), digits)
+
+    rows = scores["rows"]
+    order = [k for k in ("render", "enhanced", "empty", "bicubic") if k in rows]
+    out: dict[str, Any] = {region: {row: {"psnr": r(rows[row][region]["psnr"], 2),
+                                          "ssim": r(rows[row][region]["ssim"], 3),
+                                          "detail": r(rows[row][region]["detail"], 3)} for row in order}
+                           for region in ("face", "performers")}
+    out["temporal"] = {row: {"flickering": r(v["flickering"], 4), "warp_error": r(v["warp_error"], 6)}
+                       for row, v in scores.get("temporal", {}).items()}
+    out["floors"] = scores.get("floors", {})
+    return out

@@ -42,7 +42,6 @@ from volcap_core.contact_sheet import SheetRow, contact_sheet
 from volcap_core.enhance.metrics import temporal_flickering, warp_error
 from volcap_core.enhance.production import read_shot_frame
 from volcap_core.enhance.temporal import to_display
-from volcap_core.imageio.read import decode_exr
 from volcap_core.splat.scoring import mean_region_scores, score_region
 from volcap_core.synth.ground_truth import FACE_MARGIN_M, face_region
 
@@ -212,7 +211,8 @@ def score_shot_exrs(truth: Sequence[tuple[str, bytes]], render: Sequence[tuple[s
 
     Args:
         truth: ``(name, EXR bytes)`` per shot frame, in frame order: premultiplied linear RGBA
-            over the whole frame (decoded with :func:`volcap_core.imageio.read.decode_exr`).
+            (the render-truth task's: cropped to its alpha like a render-shot frame, read with
+            :func:`volcap_core.enhance.production.read_shot_frame` over the display window).
         render: the render-shot frames of the same names (cropped RGBA with the camera
             ``volcap.K``, ``volcap.worldToCamera``, ``volcap.time``, ``volcap.frame`` and the flow
             in their headers; :func:`volcap_core.enhance.production.read_shot_frame`).
@@ -232,10 +232,10 @@ def score_shot_exrs(truth: Sequence[tuple[str, bytes]], render: Sequence[tuple[s
     truth_px, render_px, flows, faces, numbers = [], [], [], [], []
     for (name, t_bytes), (_, r_bytes) in zip(truth, render):
         header, rgba, flow = read_shot_frame(r_bytes, with_flow=True)
-        t, channels = decode_exr(t_bytes, name=f"truth {name}")
-        if t.shape[:2] != rgba.shape[:2] or t.shape[2] != 4:
-            raise ValueError(f"truth {name}: {t.shape[1]}x{t.shape[0]} {''.join(channels)}, the render's frame is "
-                             f"{rgba.shape[1]}x{rgba.shape[0]} RGBA (the truth must be the whole frame, with alpha)")
+        _, t = read_shot_frame(t_bytes)      # the truth is cropped to its alpha as the render is to its own
+        if t.shape[:2] != rgba.shape[:2]:
+            raise ValueError(f"truth {name}: a {t.shape[1]}x{t.shape[0]} frame, the render's is "
+                             f"{rgba.shape[1]}x{rgba.shape[0]} (the truth of another shot?)")
         try:
             K = np.asarray(header["volcap.K"], np.float64).reshape(3, 3)
             w2c = np.asarray(header["volcap.worldToCamera"], np.float64).reshape(4, 4)
