@@ -180,8 +180,11 @@ def demo(store: StoreOpt = DEFAULT_STORE,
     lines = [f"  {k}: {v['digest'] if isinstance(v, dict) and 'digest' in v else v}" for k, v in refs.items()
              if k != "closeup"]
     closeup = refs["closeup"]
-    lines += ["close-up:", *(f"  {k}: {closeup[k]}" for k in ("spec", "face_capture", "resolution",
-                                                              "render_frames", "enhanced_frames")),
+    face = closeup["face"]
+    lines += ["close-up:", *(f"  {k}: {closeup[k]}" for k in ("sheet", "scores", "spec", "face_capture", "resolution")),
+              *(f"  {k} frames: {v}" for k, v in closeup["frames"].items()),
+              "  face region (PSNR dB / SSIM / detail): " + "; ".join(
+                  f"{row} {f['psnr']} / {f['ssim']} / {f['detail']}" for row, f in face.items()),
               f"  {closeup['enhancer_budget']}"]
     _emit({**refs, **summary.counts()}, json_out,
           f"demo results in store {_store_url(store)} and {out}:\n" + "\n".join(lines))

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
@@ -270,6 +271,18 @@ def enhancer_budget(quality, train_wall_s: float | None) -> str:
     return line
 
 
+def _is_face_capture_of(folder: Path, capture: str, actor: int, frames: int) -> bool:
+    """Whether ``folder`` holds a complete Face Rig capture of actor ``actor`` of the capture named
+    ``capture``, ``frames`` frames long (capture.json is written last)."""
+    path = folder / "capture.json"
+    if not path.is_file():
+        return False
+    desc = json.loads(path.read_text())
+    performer = desc.get("performer") or {}
+    return (performer.get("capture"), performer.get("actor"), desc.get("take", {}).get("frame_count")) == \
+        (capture, actor, frames)
+
+
 def closeup_production(store: str, capture_dir: Path, out: Path, *, capture_ref, segment_ref, preset: str,
                        enhancer: str) -> dict[str, Any]:
     """The demo's production (module doc): the Face Rig capture, the spec, the production run,
@@ -288,11 +301,14 @@ def closeup_production(store: str, capture_dir: Path, out: Path, *, capture_ref,
     t0 = time.perf_counter()
     face_name = "face_capture" if enhancer == "demo" else f"face_capture_{enhancer}"
     face_dir = out / face_name
-    if not (face_dir / "capture.json").exists():
+    frames = q.face_subsequences * q.face_subsequence_frames
+    if not _is_face_capture_of(face_dir, record.name, ACTOR_INDEX, frames):
+        if face_dir.exists():   # another actor's, another length, or a run cut short: made again
+            shutil.rmtree(face_dir)
         # the demo actor in the Face Rig, as many frames as the preset's Face Rig pairs take (its
         # sub-sequences end to end), with the performer masks (the pairs' alpha)
         synthesize_face_capture(face_dir, rig="demo_face", seed=0, actor_of=(capture_dir, ACTOR_INDEX),
-                                frames=q.face_subsequences * q.face_subsequence_frames, write_depth=True)
+                                frames=frames, write_depth=True)
     walls["face_capture_s"] = time.perf_counter() - t0
 
     a, b = seg.frames
