@@ -224,13 +224,15 @@ def closeup_shot(heads: np.ndarray, facing: np.ndarray, frames: tuple[int, int],
 
 
 def closeup_spec(store: str, capture_ref: str, frames: tuple[int, int], face_folder: str,
-                 shot: Mapping[str, Any], quality: str | Mapping[str, Any]) -> dict[str, Any]:
+                 shot: Mapping[str, Any], quality: str | Mapping[str, Any],
+                 rigs: tuple[str, str] = ("demo_scene", "demo_face")) -> dict[str, Any]:
     """The demo's production spec (``docs/production-spec.md``): the demo capture by ref over
     ``frames`` (the demo segment's, so the production plans the same segment), the face capture
-    by folder (relative to the spec), the shot's actor in both, one close-up shot."""
+    by folder (relative to the spec), the shot's actor in both, one close-up shot; ``rigs``: the
+    scene and face captures' rigs (built-in names or rig JSON paths)."""
     actor = shot["actors"][0]
     return {"format": "volcap-production/1", "name": PRODUCTION, "store": store, "quality": quality,
-            "rigs": {"scene": "demo_scene", "face": "demo_face"},
+            "rigs": {"scene": str(rigs[0]), "face": str(rigs[1])},
             "captures": {"demo": {"ref": capture_ref, "rig": "scene", "frames": list(frames)},
                          "face": {"folder": face_folder, "rig": "face"}},
             "actors": [{"name": actor, "captures": ["demo"], "index": ACTOR_INDEX, "face_capture": "face"}],
@@ -284,9 +286,10 @@ def _is_face_capture_of(folder: Path, capture: str, actor: int, frames: int) -> 
 
 
 def closeup_production(store: str, capture_dir: Path, out: Path, *, capture_ref, segment_ref, preset: str,
-                       enhancer: str) -> dict[str, Any]:
-    """The demo's production (module doc): the Face Rig capture, the spec, the production run,
-    the frames copied out. Returns paths, refs, figures and wall times."""
+                       enhancer: str, face_rig: str | Path = "demo_face") -> dict[str, Any]:
+    """The demo's production (module doc): the Face Rig capture (of ``face_rig``, a built-in name
+    or a rig JSON path), the spec, the production run, the truth and the scores, the frames and
+    the sheet copied into ``out``. Returns paths, refs, figures and wall times."""
     from volcap_core.synth import synthesize_face_capture
 
     log = get_run_logger()
@@ -307,7 +310,7 @@ def closeup_production(store: str, capture_dir: Path, out: Path, *, capture_ref,
             shutil.rmtree(face_dir)
         # the demo actor in the Face Rig, as many frames as the preset's Face Rig pairs take (its
         # sub-sequences end to end), with the performer masks (the pairs' alpha)
-        synthesize_face_capture(face_dir, rig="demo_face", seed=0, actor_of=(capture_dir, ACTOR_INDEX),
+        synthesize_face_capture(face_dir, rig=face_rig, seed=0, actor_of=(capture_dir, ACTOR_INDEX),
                                 frames=frames, write_depth=True)
     walls["face_capture_s"] = time.perf_counter() - t0
 
@@ -321,8 +324,12 @@ def closeup_production(store: str, capture_dir: Path, out: Path, *, capture_ref,
     cap_ref = named if s.resolve(named).digest == capture_ref.digest else capture_ref.digest
     shot = closeup_shot(heads, facing, (a, b), record.fps, width, actor=f"actor{ACTOR_INDEX}", performance="demo")
     spec_path = out / "production.yaml"
-    spec_path.write_text(yaml.safe_dump(closeup_spec(s.url, cap_ref, (a, b), face_name, shot, quality),
-                                        sort_keys=False))
+    # the scene capture's rig as its capture.json names it: a built-in name or a file in its folder
+    scene_rig = json.loads((capture_dir / "capture.json").read_text())["rig"]
+    if (capture_dir / scene_rig).is_file():
+        scene_rig = str((capture_dir / scene_rig).resolve())
+    spec_path.write_text(yaml.safe_dump(closeup_spec(s.url, cap_ref, (a, b), face_name, shot, quality,
+                                                     rigs=(scene_rig, face_rig)), sort_keys=False))
     step = check_segment_reused(open_production(spec_path), seg, record, spec_path)
 
     t0 = time.perf_counter()
