@@ -269,7 +269,7 @@ def enhancer_budget(quality, train_wall_s: float | None) -> str:
             f"sub-sequences of {q.pair_resolution}-px Face Rig pairs ({trained})")
     if q.enhancer_steps < 1000:
         line += (": a smoke run of the machinery, not an enhancer that has learned (a CPU enhancer that learns "
-                 "needs ~50 min: docs/benchmarks.md 'Detail enhancer'; volcap demo --enhancer long)")
+                 "needs ~50 min: docs/benchmarks.md 'Detail enhancer'; volcap demo --enhancer-preset long)")
     return line
 
 
