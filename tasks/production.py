@@ -1,5 +1,5 @@
 """Production tasks: assembling a performance from trained segments, rendering a shot over it,
-rendering a shot's truth from a synthetic capture and scoring a shot against it."""
+rendering a shot's truth from a synthetic capture, and scoring a shot against that truth."""
 
 from __future__ import annotations
 

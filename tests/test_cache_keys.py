@@ -57,7 +57,7 @@ def all_tasks() -> list:
 def test_every_task_family_is_found():
     names = {t.cache_policy.task_name for t in all_tasks()}
     assert {"ingest-camera", "calibrate-static", "dense-points-frame", "train-segment", "render-shot"} <= names
-    assert len(names) == 22
+    assert len(names) == 23
 
 
 # ---------------------------------------------------------------------------------------------

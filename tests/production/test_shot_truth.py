@@ -172,3 +172,29 @@ def test_volcap_truth_refuses_a_capture_without_synthetic_ground_truth(capture, 
         f"volcap: error: {spec}: shot cu: capture tiny has no synthetic ground truth ({real / 'capture.json'} "
         "names no ground_truth folder): the truth is rendered only for synthetic captures (volcap synth)"]
     assert not ArtifactStore(str(tmp_path / "store")).list_refs()
+
+
+def test_a_truth_scored_against_itself_is_perfect_and_an_empty_render_sits_at_its_floor(capture, world):
+    """The truth renderer's cropped frames and the scorer meet: the same pixels, the same camera."""
+    from volcap_core.production.closeup import score_shot_exrs
+    from volcap_core.production.shot import camera_at, encode_shot_exr
+
+    scene = json.loads((capture / "ground_truth" / "scene.json").read_text())
+    head = np.asarray(scene["actors"][0]["frames"][0]["head_centre_m"])
+    shot = load_shot({"name": "cu", "performance": "demo", "frames": [0, 2], "fps": 24, "resolution": [96, 54],
+                      "sensor_mm": 36, "keyframes": [{"frame": 0, "position": (head + [1.2, 0.3, 0.05]).tolist(),
+                                                      "look_at": head.tolist(), "focal_mm": 60}]})
+    truth = [(f"{f:06d}.exr", render_truth_frame(shot, world, f, supersample=1)) for f in range(2)]
+    scores, sheet = score_shot_exrs(truth, truth, scene)
+    face = scores["rows"]["render"]["face"]
+    assert face["views"] == 2 and face["psnr"] == 200.0 and face["ssim"] == pytest.approx(1.0)
+    assert face["detail"] == pytest.approx(1.0)
+    # an empty render (a 1x1 data window, as render-shot writes a frame with nothing in it) keeps the truth's camera
+    empty = []
+    for f, (name, data) in enumerate(truth):
+        _, rgba = read_shot_frame(data)
+        empty.append((name, encode_shot_exr(np.zeros_like(rgba), camera_at(shot, f), shot, f)))
+    scores, _ = score_shot_exrs(truth, empty, scene)
+    for region in ("face", "performers"):
+        assert scores["rows"]["render"][region]["psnr"] == pytest.approx(scores["rows"]["empty"][region]["psnr"])
+    assert sheet.ndim == 3 and sheet.shape[2] == 3

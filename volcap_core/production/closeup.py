@@ -210,9 +210,9 @@ def score_shot_exrs(truth: Sequence[tuple[str, bytes]], render: Sequence[tuple[s
     """Score a shot's EXR frames against the truth's and draw the sheet.
 
     Args:
-        truth: ``(name, EXR bytes)`` per shot frame, in frame order: premultiplied linear RGBA
-            (the render-truth task's: cropped to its alpha like a render-shot frame, read with
-            :func:`volcap_core.enhance.production.read_shot_frame` over the display window).
+        truth: ``(name, EXR bytes)`` per shot frame, in frame order: premultiplied linear RGBA,
+            cropped to a data window or whole (the truth renderer's frames,
+            :mod:`volcap_core.production.truth`; read over the display window as the render's).
         render: the render-shot frames of the same names (cropped RGBA with the camera
             ``volcap.K``, ``volcap.worldToCamera``, ``volcap.time``, ``volcap.frame`` and the flow
             in their headers; :func:`volcap_core.enhance.production.read_shot_frame`).
@@ -232,10 +232,13 @@ def score_shot_exrs(truth: Sequence[tuple[str, bytes]], render: Sequence[tuple[s
     truth_px, render_px, flows, faces, numbers = [], [], [], [], []
     for (name, t_bytes), (_, r_bytes) in zip(truth, render):
         header, rgba, flow = read_shot_frame(r_bytes, with_flow=True)
-        _, t = read_shot_frame(t_bytes)      # the truth is cropped to its alpha as the render is to its own
+        try:
+            _, t = read_shot_frame(t_bytes)
+        except ValueError as exc:
+            raise ValueError(f"truth {name}: {exc}") from None
         if t.shape[:2] != rgba.shape[:2]:
             raise ValueError(f"truth {name}: a {t.shape[1]}x{t.shape[0]} frame, the render's is "
-                             f"{rgba.shape[1]}x{rgba.shape[0]} (the truth of another shot?)")
+                             f"{rgba.shape[1]}x{rgba.shape[0]} (not the same shot)")
         try:
             K = np.asarray(header["volcap.K"], np.float64).reshape(3, 3)
             w2c = np.asarray(header["volcap.worldToCamera"], np.float64).reshape(4, 4)

@@ -597,12 +597,11 @@ def synthesize_face_capture(out_dir: Path, rig: str = "demo_face", seed: int = 0
 
 def synthetic_world(scene: Mapping, rig: Rig | None = None) -> World:
     """The World (set + actors) of a synthetic capture, rebuilt from its ``ground_truth/scene.json``
-    (parsed): the same seeded streams as :func:`_synthesize` for its ``seed``, ``kind`` and actor
-    count, so it renders the capture's truth from any camera at any time
-    (:mod:`volcap_core.synth.truth` checks the rebuild against the file). ``rig``: the capture's
-    rig (a capture folder's or store record's: a rig file is not found by name); None loads the
-    built-in rig ``scene["rig"]``. The actors are :func:`scene_actors_of`'s (a Face Rig capture's
-    own actor, or the Scene Rig actor it films)."""
+    (parsed): the set from the same seeded stream as :func:`_synthesize`, the actors from
+    :func:`scene_actors_of` (which checks them against the file, a Face Rig capture of a Scene Rig
+    actor included), so it renders the capture's truth from any camera at any time. ``rig``: the
+    capture's rig (a capture folder's or store record's: a rig file is not found by name); None
+    loads the built-in rig ``scene["rig"]``."""
     rig = load_rig(scene["rig"]) if rig is None else rig
     if rig.name != scene["rig"]:
         raise ValueError(f"scene.json was rendered with rig {scene['rig']!r}, not {rig.name!r}")
