@@ -160,19 +160,32 @@ def ingest_cmd(capture_dir: Annotated[Path, typer.Argument(help="capture folder 
 def demo(store: StoreOpt = DEFAULT_STORE,
          out: Annotated[Path, typer.Option(help="where the demo capture folder is written")] = Path("./demo"),
          frames: Annotated[int, typer.Option(min=2)] = 24,
+         enhancer_preset: Annotated[str, typer.Option(help="the close-up's enhancer: demo (the demo preset's smoke run, seconds) or long (the enhancer bench's model and steps, about an hour on 2 cores)")] = "demo",
          json_out: JsonOpt = False) -> None:
-    """Make the built-in demo capture and run every stage that exists on it."""
+    """Make the built-in demo capture and run every stage that exists on it: the reconstruction, then
+    a production with an enhanced close-up of one actor."""
     start_api_early()
-    from flows.demo import demo_flow
+    from flows.demo import ENHANCER_RUNS, demo_flow
+
+    if enhancer_preset not in ENHANCER_RUNS:
+        raise typer.BadParameter(" or ".join(ENHANCER_RUNS), param_hint="--enhancer-preset")
 
     capture_dir = out / "capture"
     if not (capture_dir / "capture.json").exists():
         with CANCEL.nested():  # its line is not the demo's result: a signal still cancels
             synth(capture_dir, rig="demo_scene", seed=0, frames=frames, depth=True, json_out=False)
     summary = _run(demo_flow, store=_store_url(store), capture_dir=str(capture_dir.resolve()),
-                   out_dir=str(out.resolve()))
+                   out_dir=str(out.resolve()), enhancer=enhancer_preset)
     refs = summary.result
-    lines = [f"  {k}: {v['digest'] if isinstance(v, dict) and 'digest' in v else v}" for k, v in refs.items()]
+    lines = [f"  {k}: {v['digest'] if isinstance(v, dict) and 'digest' in v else v}" for k, v in refs.items()
+             if k != "closeup"]
+    closeup = refs["closeup"]
+    face = closeup["face"]
+    lines += ["close-up:", *(f"  {k}: {closeup[k]}" for k in ("sheet", "scores", "spec", "face_capture", "resolution")),
+              *(f"  {k} frames: {v}" for k, v in closeup["frames"].items()),
+              "  face region (PSNR dB / SSIM / detail): " + "; ".join(
+                  f"{row} {f['psnr']} / {f['ssim']} / {f['detail']}" for row, f in face.items()),
+              f"  {closeup['enhancer_budget']}"]
     _emit({**refs, **summary.counts()}, json_out,
           f"demo results in store {_store_url(store)} and {out}:\n" + "\n".join(lines))
 

@@ -522,11 +522,17 @@ def needed_steps(spec: ProductionSpec, capture_info: Mapping[str, CaptureInfo], 
         pair_ids = []
         for actor in enhance_actors:
             fc = face_captures[actor]
-            fci = info(fc, f"face capture of actor {actor!r}")
-            calib = calibrate(fc, fci)
-            ingest = (f"ingest:{fc}",) if spec.captures[fc].folder is not None else ()
+            info(fc, f"face capture of actor {actor!r}")
+            # the interim pairs read the ingested frames alone: no calibration of the face capture
+            # (the demo_face rig's 8 cameras, 45 degrees apart around a head, give the static SfM no
+            # matches at all); the Gaussian-splat pairs will add it as their input
+            ingest: tuple[str, ...] = ()
+            if spec.captures[fc].folder is not None:
+                ingest = (f"ingest:{fc}",)
+                if not any(st.id == ingest[0] for st in steps):
+                    steps.append(Step(id=ingest[0], parameters=Ingest(capture=fc, folder=spec.captures[fc].folder)))
             pid = f"face-pairs:{actor}"
-            steps.append(Step(id=pid, inputs=(*ingest, calib), parameters=FacePairs.for_actor(actor, fc, q)))
+            steps.append(Step(id=pid, inputs=ingest, parameters=FacePairs.for_actor(actor, fc, q)))
             pair_ids.append(pid)
         enhancer = "train-enhancer:" + "+".join(enhance_actors)
         steps.append(Step(id=enhancer, inputs=tuple(pair_ids), parameters=TrainEnhancer.for_actors(
