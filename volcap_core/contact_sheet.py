@@ -77,7 +77,7 @@ class SheetRow:
 
 
 def contact_sheet(rows: Sequence[SheetRow], *, title: str | None = None, max_width: int = 1600,
-                  error_scale: float = 0.25) -> np.ndarray:
+                  error_scale: float = 0.25, truth_label: str = "footage") -> np.ndarray:
     """Lay out ``footage | render | error`` for every row, with labels, on one RGB image.
 
     Args:
@@ -88,6 +88,8 @@ def contact_sheet(rows: Sequence[SheetRow], *, title: str | None = None, max_wid
         error_scale: sRGB difference (mean over channels, ``[0, 1]`` units) shown at full
             brightness; 0.25 makes a 1/4-of-full-range mistake saturate while a 0.01 one is still a
             visible dark purple.
+        truth_label: the first column's heading: ``footage`` (a camera's frames) or ``truth``
+            (a synthetic stage's render for a virtual camera).
 
     Returns:
         uint8 RGB image ``[H_sheet, W_sheet, 3]`` with ``W_sheet <= max_width``.
@@ -112,7 +114,7 @@ def contact_sheet(rows: Sequence[SheetRow], *, title: str | None = None, max_wid
     parts: list[np.ndarray] = []
     if title:
         parts.append(_text_strip(sheet_w, [(GAP, title)], _TITLE_SCALE, thickness=1))
-    headers = ["footage", "render", f"error (|sRGB diff| / {error_scale:g})"]
+    headers = [truth_label, "render", f"error (|sRGB diff| / {error_scale:g})"]
     parts.append(_text_strip(sheet_w, [(GAP + k * (panel_w + GAP), h) for k, h in enumerate(headers)],
                              _LABEL_SCALE, thickness=1, max_text_w=panel_w))
     for row, (truth, output, mask) in zip(rows, checked):

@@ -256,4 +256,4 @@ def score_shot_exrs(truth: Sequence[tuple[str, bytes]], render: Sequence[tuple[s
     scores["shot_frames"] = numbers
     rows = closeup_sheet_rows(truth_px, render_px, faces, scores, enhanced=enhanced_px, frame_numbers=numbers)
     title = f"close-up: truth | {'render, enhanced' if enhanced is not None else 'render'} | error (face outlined)"
-    return scores, contact_sheet(rows, title=title, max_width=sheet_width)
+    return scores, contact_sheet(rows, title=title, max_width=sheet_width, truth_label="truth")
