@@ -6,7 +6,12 @@
 #   3. the CUDA tests (pytest -m gpu): gsplat against the torch back-end (forward, gradients,
 #      rendered flow), Poly4DGS training through gsplat, RAFT with torchvision;
 #   4. bench/bench_rasterizer.py on CUDA, gsplat beside the torch back-end;
-#   5. bench/bench_poly4dgs_step.py: a Poly4DGS training step against a static 3DGS of the same count.
+#   5. bench/bench_poly4dgs_step.py: a Poly4DGS training step against a static 3DGS of the same count;
+#   6. with GPU_CLOSEUP=DIR (a folder from `python bench/gpu_closeup.py --prepare DIR`, its DIR/gpu
+#      carried): the demo's close-up rendered through gsplat and enhanced on CUDA, timed per frame
+#      (bench/gpu_closeup.py --run; its files come back to be scored with --score). CLOSEUP_ONLY=1
+#      runs it alone (after the gsplat build): $OUT then holds gpu.txt, closeup.log, timings.json
+#      and the parts closeup_exrs.tar.NN.
 # Results go to $OUT (default /tmp/volcap-gpu). Python packages the machine lacks can travel as
 # wheels in .whl/ (installed with --no-deps into /tmp/site). On 2026-11-26 an H200 image with torch
 # 2.11 (Python 3.12) lacked pydantic, pydantic_core, annotated_types, typing_inspection, diffusers
@@ -17,6 +22,7 @@
 # as a collection error, the GPU tests run regardless).
 #
 #   OUT=/tmp/gpu bash bench/gpu_checks.sh
+#   OUT=/tmp/gpu GPU_CLOSEUP=.gpu CLOSEUP_ONLY=1 bash bench/gpu_checks.sh   # the close-up alone
 set -u
 OUT=${OUT:-/tmp/volcap-gpu}
 mkdir -p "$OUT"
@@ -29,6 +35,22 @@ fi
 export PYTHONPATH=${PYTHONPATH:+$PYTHONPATH:}$PWD
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$OUT/gpu.txt"
 python3 -c "import torch, diffusers; print('torch', torch.__version__, 'cuda', torch.version.cuda, 'diffusers', diffusers.__version__)"
+
+# 6. the demo's close-up (issue 27): the extension built first, so no frame's time holds the build
+closeup() {
+    export MAX_JOBS=${MAX_JOBS:-14} TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0}
+    {
+        timeout "${GSPLAT_BUILD_S:-400}" python3 -c "
+import time; t = time.time()
+from gsplat.cuda._backend import _C
+print('gsplat extension:', _C, f'{time.time() - t:.0f} s')"
+        timeout "${CLOSEUP_S:-300}" python3 bench/gpu_closeup.py --run "$GPU_CLOSEUP" --out "$OUT" --device cuda
+    } 2>&1 | tee "$OUT/closeup.log" | tail -40
+}
+if [ -n "${GPU_CLOSEUP:-}" ] && [ -n "${CLOSEUP_ONLY:-}" ]; then
+    closeup
+    exit
+fi
 
 # 1. gsplat's extension, in the background (CPU-bound: it overlaps the GPU-bound enhancer bench)
 (
@@ -59,4 +81,7 @@ timeout "${RASTER_S:-120}" python3 bench/bench_rasterizer.py --device cuda --bac
 # 5. Poly4DGS's step against a static 3DGS's, through gsplat (the paper: "no visible overhead")
 timeout "${STEP_S:-150}" python3 bench/bench_poly4dgs_step.py --device cuda --frames 1 8 \
     --json "$OUT/poly4dgs_step.json" 2>&1 | tee "$OUT/poly4dgs_step.log"
+if [ -n "${GPU_CLOSEUP:-}" ]; then
+    closeup
+fi
 echo done
