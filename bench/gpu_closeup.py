@@ -32,6 +32,7 @@ import argparse
 import functools
 import io
 import json
+import shutil
 import sys
 import tarfile
 import time
@@ -52,12 +53,11 @@ def _sync(device: torch.device) -> None:
 def prepare(dst: Path, store_url: str, demo: Path, width: int, height: int, frames: int | None,
             supersample: int) -> None:
     """Part 1 (module doc)."""
-    import yaml
-
     from volcap_core.capture import Capture
     from volcap_core.enhance.production import EnhancerModel
     from volcap_core.production.performance import Performance
     from volcap_core.production.shot import load_shot
+    from volcap_core.production.spec import load_spec
     from volcap_core.production.truth import render_truth_frames, truth_world_of
     from volcap_core.stage import stage_volume
     from volcap_core.store import ArtifactStore
@@ -65,26 +65,24 @@ def prepare(dst: Path, store_url: str, demo: Path, width: int, height: int, fram
     spec_path = demo / "production.yaml"
     if not spec_path.is_file():
         raise SystemExit(f"{spec_path}: no production spec (is {demo} a finished demo's output folder?)")
-    spec = yaml.safe_load(spec_path.read_text())
-    shots = {sh["name"]: sh for sh in spec["shots"]}
+    spec = load_spec(spec_path)
+    shots = {sh.name: sh for sh in spec.shots}
     if CLOSEUP not in shots:
         raise SystemExit(f"{spec_path}: no shot named {CLOSEUP!r}")
-    shot_json = dict(shots[CLOSEUP], resolution=[width, height])
+    shot_json = dict(shots[CLOSEUP].model_dump(mode="json"), resolution=[width, height])
     if frames is not None:  # a shorter run (the CPU check): the first frames, the same camera path
         a, b = shot_json["frames"]
         shot_json["frames"] = [a, min(b, a + frames)]
     shot = load_shot(shot_json, where=f"{spec_path} shot {CLOSEUP}")
     s = ArtifactStore(store_url)
-    prod = spec["name"]
-    perf = s.get_record(s.resolve(f"productions/{prod}/performances/{CLOSEUP}"), Performance)
+    perf = s.get_record(s.resolve(f"productions/{spec.name}/performances/{CLOSEUP}"), Performance)
     capture = s.get_record(perf.capture, Capture)
-    enh = s.get_record(s.resolve(f"productions/{prod}/enhancer"), EnhancerModel)
-    step = s.get_json(s.resolve(f"productions/{prod}/steps/enhance-shot/{CLOSEUP}"))
-    p = step["fingerprint"]["parameters"]
-    # the production's EnhanceSettings (ProductionQuality.enhance_settings of the step's parameters)
-    settings = {"steps": p["enhancer_sampling_steps"], "strength": p["enhancer_strength"],
-                "tile": p["enhancer_tile"], "vae_tiling": p["enhancer_vae_tiling"], "flow": p["enhancer_flow"]}
+    enh = s.get_record(s.resolve(f"productions/{spec.name}/enhancer"), EnhancerModel)
+    # the production's enhance-shot call: its settings and prompt group (flows/production.py)
+    settings = spec.quality_preset().enhance_settings()
 
+    for old in (dst / "gpu", dst / "truth"):  # another demo's files would travel or be scored
+        shutil.rmtree(old, ignore_errors=True)
     gpu = dst / "gpu"
     (gpu / "models").mkdir(parents=True, exist_ok=True)
     for seg in perf.segments:
@@ -94,8 +92,8 @@ def prepare(dst: Path, store_url: str, demo: Path, width: int, height: int, fram
     (gpu / "stage.json").write_text(json.dumps(stage_volume(capture.rig.stage_size_m)))
     (gpu / "enhancer.safetensors").write_bytes(s.get_bytes(enh.model))
     (gpu / "enhancer.json").write_text(enh.model_dump_json(indent=1))
-    (gpu / "enhance.json").write_text(json.dumps({"settings": settings, "group": p["actors"][0],
-                                                  "model_digest": enh.model.digest}, indent=1))
+    enhance = {"settings": settings.model_dump(mode="json"), "group": shot.actors[0], "model_digest": enh.model.digest}
+    (gpu / "enhance.json").write_text(json.dumps(enhance, indent=1))
 
     tree = s.get_tree(capture.ground_truth)
     (dst / "scene.json").write_bytes(s.get_bytes(tree["scene.json"].digest))
@@ -140,8 +138,9 @@ def run(src: Path, out: Path, device: torch.device, backend_name: str, compare_b
     def model_of(ref):
         return load_model((gpu / "models" / f"{ref.digest.split(':')[-1]}.safetensors").read_bytes(), device)
 
-    timings: dict = {"device": str(device), "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
-                     "torch": torch.__version__, "backend": backend_name, "resolution": list(shot.resolution), "frames": list(shot.frames),
+    timings: dict = {"device": str(device), "torch": torch.__version__, "backend": backend_name,
+                     "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
+                     "resolution": list(shot.resolution), "frames": list(shot.frames),
                      "enhance_settings": settings.model_dump(), "render_s": {}, "enhance_s": {}}
 
     def render(frame: int, backend: str) -> tuple[bytes, float]:
