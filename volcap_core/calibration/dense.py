@@ -15,6 +15,12 @@ Fusion: a reference pixel's 3D point is kept when at least ``min_consistent`` ot
 it at the same depth (relative ``depth_tol``) where it projects. Colour: the reference camera's
 linear RGB. Everything in float32 torch (GPU when ``device="cuda"``).
 
+Bounded memory: each level keeps a running best over its hypotheses, evaluated in batches of
+planes and bands of rows within ``SWEEP_BUDGET_MB`` (:class:`_Sweep`), never the cost volume; a
+frame's images are read when needed (the matching images of every camera are kept, 5 bytes a
+working pixel, and its depth map, 4). The memory model and its measurement: docs/calibration.md,
+"Dense points: memory and time".
+
 OpenCV's ``stereoRectify`` failed on strongly converging cameras (NOTES); the plane sweep needs no
 rectification at all.
 """
@@ -150,7 +156,8 @@ class _Sweep:
             Wn = nb.world_to_camera
             A = nb.K @ Wn[:3, :3] @ Rr.T @ np.linalg.inv(ref.K)
             q = nb.K @ (Wn[:3, :3] @ Cr + Wn[:3, 3])
-            self.maps.append((torch.as_tensor(A, dtype=torch.float32), torch.as_tensor(q, dtype=torch.float32)))
+            self.maps.append((torch.as_tensor(A, dtype=torch.float32, device=ref.image.device),
+                              torch.as_tensor(q, dtype=torch.float32, device=ref.image.device)))
 
     def batches(self, n: int) -> list[tuple[int, int, int, int]]:
         """``(h0, h1, r0, r1)``: hypotheses [h0, h1) on output rows [r0, r1), covering ``n``
@@ -175,8 +182,8 @@ class _Sweep:
         lo, hi = r0 - a, r1 - a
         d = inv_depth(a, b).clamp(min=1e-6).reciprocal()
         D = d.shape[0]
-        v, u = torch.meshgrid(torch.arange(a, b, dtype=torch.float32), torch.arange(self.W, dtype=torch.float32),
-                              indexing="ij")
+        t32 = dict(dtype=torch.float32, device=self.ref.image.device)
+        v, u = torch.meshgrid(torch.arange(a, b, **t32), torch.arange(self.W, **t32), indexing="ij")
         ref = self.ref.image[:, :, a:b]
         mr = self.ref_mean[:, :, a:b]
         inv_sr = self.ref_var[:, :, a:b].rsqrt()
@@ -186,7 +193,7 @@ class _Sweep:
             # grid_sample's coordinates of pixel (x/z, y/z): 2 (x/z + 0.5) / w - 1, folded into the rows
             # of the homography so that each is one division: gx = (d Px + qx) / (d Pz + qz)
             Pz = A[2, 0] * u + A[2, 1] * v + A[2, 2]
-            grid = torch.empty((D, b - a, self.W, 2))
+            grid = torch.empty((D, b - a, self.W, 2), **t32)
             z = torch.addcmul(q[2].expand(1), d, Pz)
             zc = z.clamp(min=1e-6)
             for k, size in ((0, w), (1, h)):
