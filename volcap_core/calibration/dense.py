@@ -113,9 +113,10 @@ def _box(x: torch.Tensor, w: int) -> torch.Tensor:
     return F.avg_pool2d(x, w, stride=1, padding=w // 2, count_include_pad=False)
 
 
-#: bytes of the sweep's working set per hypothesis and reference pixel (the warp, the sampled
-#: neighbour, the NCC's windowed sums and the running best over the neighbours: measured,
-#: docs/calibration.md "Dense points: memory and time")
+#: bytes of the sweep's working set per hypothesis and reference pixel: the arrays alive at once in
+#: :meth:`_Sweep.cost` (the grid, the sampled neighbour, the NCC's windowed sums, the sum and worst
+#: over the neighbours), rounded up; the measured peaks agree (docs/calibration.md, "Dense points:
+#: memory and time")
 SWEEP_BYTES_PER_HYPOTHESIS_PIXEL = 96
 #: the sweep's working-set budget (MiB): planes are evaluated in batches, and the reference in bands
 #: of rows, so that a batch stays within it at any resolution
