@@ -22,6 +22,7 @@ from pydantic import ValidationError
 from tasks.calibrate import (assemble_calibration, calibrate_colour, calibrate_static, calibrate_tracking_camera,
                              calibration_errors, dense_points_frame, point_cloud_sequence)
 from volcap_core.calibration.colour_step import ChartView, ColourMatrixRecord
+from volcap_core.calibration.dense_points_step import dense_cameras
 from volcap_core.calibration.errors import CalibrationInputError, KnownPointsError
 from volcap_core.calibration.inputs import tracking_camera_ids
 from volcap_core.calibration.record import Calibration
@@ -101,20 +102,51 @@ def calibrate_capture(store: str, capture: ArtifactRef,
     return assemble_calibration(store, capture, static, tracking)
 
 
+#: dense-points frames in flight at once in :func:`point_cloud_for_frames` (each holds its own
+#: working set: docs/calibration.md, "Dense points: memory and time")
+DENSE_FRAMES_AT_ONCE = 1
+
+
 def point_cloud_for_frames(store: str, capture: ArtifactRef, calibration: ArtifactRef, frames: list[int],
                            max_points_per_frame: int | None = None, seed: int = 0, scale: float = 1.0,
                            exclude_cameras: list[str] | None = None) -> ArtifactRef:
     """The PointCloudSequence ref of ``frames`` (take indices): one dense-points task per frame
     (mapped), then the sequence record (``max_points_per_frame``: a training budget, see
     :func:`tasks.calibrate.point_cloud_sequence`); ``exclude_cameras``: held-out cameras, which
-    take no part. Call it inside a flow run (any)."""
+    take no part. Call it inside a flow run (any). The frames run ``DENSE_FRAMES_AT_ONCE`` at a
+    time, so the memory of a run is that of one frame whatever the frames.
+
+    The same points get the same task inputs (:func:`dense_points_inputs`), so ``volcap
+    reconstruct`` reuses the frames ``volcap calibrate`` made from the same cameras at the same
+    scale."""
     frames = sorted({int(f) for f in frames})
+    scale, exclude = dense_points_inputs(store, capture, calibration, scale, exclude_cameras)
     dense = []
-    if frames:
-        futures = dense_points_frame.map(unmapped(store), unmapped(capture), unmapped(calibration), frames,
-                                         unmapped(scale), unmapped(sorted(exclude_cameras or [])))
-        dense = [f.result() for f in futures]
-    return point_cloud_sequence(store, calibration, dense, max_points_per_frame, seed)
+    # Prefect's thread pool would run every frame at once, each with its own sweep, images and
+    # points (the issue's 11-14 GB for 12 frames at 640x360); a frame's sweep already uses every
+    # core through torch, so frames go DENSE_FRAMES_AT_ONCE at a time
+    for i in range(0, len(frames), DENSE_FRAMES_AT_ONCE):
+        futures = dense_points_frame.map(unmapped(store), unmapped(capture), unmapped(calibration),
+                                         frames[i:i + DENSE_FRAMES_AT_ONCE], unmapped(scale), unmapped(exclude))
+        dense += [f.result() for f in futures]
+    # without a budget the seed picks nothing: the sequence of the same frames is the same
+    return point_cloud_sequence(store, calibration, dense, max_points_per_frame,
+                                seed if max_points_per_frame is not None else 0)
+
+
+def dense_points_inputs(store: str, capture: ArtifactRef, calibration: ArtifactRef, scale: float,
+                        exclude_cameras: list[str] | None) -> tuple[float, list[str]]:
+    """The ``dense-points-frame`` inputs ``(scale, exclude_cameras)`` in one spelling for the same
+    points: the scale a float (``1`` and ``1.0`` are the same matching), and only the excluded
+    cameras that would take part (:func:`~volcap_core.calibration.dense_points_step.dense_cameras`:
+    a held-out tracking camera, or one the calibration left out, changes no point), sorted, an
+    empty list for none."""
+    s = ArtifactStore(store)
+    exclude = set(exclude_cameras or ())
+    if exclude:
+        used = dense_cameras(s.get_record(capture, Capture), s.get_record(calibration, Calibration))
+        exclude &= set(used)
+    return float(scale), sorted(exclude)
 
 
 #: the rigs a colour-charts spec names, and which one is mapped onto which by default

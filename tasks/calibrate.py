@@ -23,6 +23,8 @@ from __future__ import annotations
 
 import json
 
+from prefect import get_run_logger
+
 from tasks.contract import volcap_task
 from volcap_core.calibration.assemble import assemble_calibration_record
 from volcap_core.calibration.colour import ColourCalibrationOptions
@@ -104,18 +106,32 @@ def assemble_calibration(store: str, capture: ArtifactRef, static: ArtifactRef,
     return s.put_record(record)
 
 
-@volcap_task(name="dense-points-frame", version="3", libraries=CALIBRATION_LIBRARIES)
+@volcap_task(name="dense-points-frame", version="4", libraries=CALIBRATION_LIBRARIES)
 def dense_points_frame(store: str, capture: ArtifactRef, calibration: ArtifactRef, frame: int,
                        scale: float = 1.0, exclude_cameras: list[str] | None = None,
                        options: DenseOptions = DenseOptions()) -> ArtifactRef:
     """One frame's dense points from the calibrated static cameras but ``exclude_cameras`` (a
     reconstruction's held-out cameras); ``scale`` < 1 matches downscaled images (previews, tests).
     A distorted camera's frame is rectified into the pinhole of its record's K first; a calibration
-    with scene depths is swept around each camera's scene."""
+    with scene depths is swept around each camera's scene, one without around the stage volume.
+    Logs a line per camera swept (its planes, depth range, pixels with a depth, time so far) and
+    one for the frame. Version 4: the sweep in bounded memory (batches of planes, bands of rows,
+    frames loaded when read) with the warp as a per-pixel homography (the same depths to float
+    rounding) and a calibration without scene depths swept over the stage volume in each
+    camera's view (before: the fixed 1-14 m of ``DenseOptions``)."""
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)
+    run_log = get_run_logger()
+
+    def progress(done: int, total: int, info: dict) -> None:
+        run_log.info("capture %s, frame %d: dense points of camera %s (%d/%d): %d planes over %.2f-%.2f m, "
+                     "%d pixels with a depth, %.0f s so far", cap.name, frame, info["camera"], done, total,
+                     info["planes"], *info["depth_m"], info["pixels"], info["seconds"])
+
     out = dense_points_step(cap, s.get_record(calibration, Calibration), frame, frame_loader(s.get_bytes, cap),
-                            options, scale, exclude_cameras or ())
+                            options, scale, exclude_cameras or (), progress=progress)
+    run_log.info("capture %s, frame %d: %d dense points from %d cameras in %.0f s", cap.name, frame,
+                 len(out.positions), len(out.cameras), out.seconds)
     ref = s.put_bytes(encode_points(out.positions, out.colours), POINTS_MEDIA)
     return s.put_record(DensePointsFrame(calibration=calibration, frame=frame, time=cap.frame_time(frame),
                                          count=len(out.positions), points=ref, cameras=tuple(out.cameras),

@@ -15,6 +15,12 @@ Fusion: a reference pixel's 3D point is kept when at least ``min_consistent`` ot
 it at the same depth (relative ``depth_tol``) where it projects. Colour: the reference camera's
 linear RGB. Everything in float32 torch (GPU when ``device="cuda"``).
 
+Bounded memory: each level keeps a running best over its hypotheses, evaluated in batches of
+planes and bands of rows within ``SWEEP_BUDGET_MB`` (:class:`_Sweep`), never the cost volume; a
+frame's images are read when needed (the matching images of every camera are kept, 5 bytes a
+working pixel, and its depth map, 4). The memory model and its measurement: docs/calibration.md,
+"Dense points: memory and time".
+
 OpenCV's ``stereoRectify`` failed on strongly converging cameras (NOTES); the plane sweep needs no
 rectification at all.
 """
@@ -24,7 +30,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, replace
-from typing import Mapping
+from collections.abc import Callable, Mapping
 
 import numpy as np
 import torch
@@ -60,9 +66,9 @@ class DenseOptions:
 @dataclass
 class DepthMap:
     depth: np.ndarray       # [H, W] float32, 0 = invalid
-    ncc: np.ndarray         # [H, W]
-    K: np.ndarray
+    K: np.ndarray           # [3, 3] at the depth map's resolution
     world_to_camera: np.ndarray
+    planes: int = 0         # the coarse sweep's planes
 
 
 def choose_neighbours(cameras: Mapping[str, Camera], ref: str, n: int, min_angle_deg: float = 8.0,
@@ -85,14 +91,15 @@ def choose_neighbours(cameras: Mapping[str, Camera], ref: str, n: int, min_angle
     return [c for _, c in sorted(scored)[:n]]
 
 
-def _prep(img: np.ndarray, scale: float) -> np.ndarray:
+def _prep(img: np.ndarray, scales: tuple[float, ...]) -> list[np.ndarray]:
+    """The matching image of a view [H, W(, C)] at each downscale factor of ``scales``: the square
+    root of its exposure-normalised luminance (roughly perceptual, noise-flattened), float32."""
     import cv2
 
     g = luminance(exposure_normalise(np.asarray(img, np.float32)))
-    g = np.sqrt(np.clip(g, 0, None)).astype(np.float32)           # roughly perceptual, noise-flattened
-    if scale != 1.0:
-        g = cv2.resize(g, None, fx=1 / scale, fy=1 / scale, interpolation=cv2.INTER_AREA)
-    return g
+    g = np.sqrt(np.clip(g, 0, None)).astype(np.float32)
+    return [g if s == 1.0 else cv2.resize(g, None, fx=1 / s, fy=1 / s, interpolation=cv2.INTER_AREA)
+            for s in scales]
 
 
 def _scaled_K(K: np.ndarray, scale: float) -> np.ndarray:
@@ -102,169 +109,256 @@ def _scaled_K(K: np.ndarray, scale: float) -> np.ndarray:
 
 
 def _box(x: torch.Tensor, w: int) -> torch.Tensor:
+    """Mean over a ``w`` x ``w`` window of [B, 1, H, W] (the pixels inside the image only)."""
     return F.avg_pool2d(x, w, stride=1, padding=w // 2, count_include_pad=False)
 
 
-def _ncc(ref: torch.Tensor, warped: torch.Tensor, valid: torch.Tensor, w: int) -> torch.Tensor:
-    """Windowed NCC of ref [1, 1, H, W] with warped [D, 1, H, W] -> [D, H, W] (-1 where invalid)."""
-    mr = _box(ref, w)
-    vr = (_box(ref * ref, w) - mr * mr).clamp(min=1e-8)
-    mw = _box(warped, w)
-    vw = (_box(warped * warped, w) - mw * mw).clamp(min=1e-8)
-    cov = _box(ref * warped, w) - mr * mw
-    ncc = cov / torch.sqrt(vr * vw)
-    return torch.where(valid > 0.5, ncc, torch.full_like(ncc, -1.0))[:, 0]
+#: bytes of the sweep's working set per hypothesis and reference pixel: the arrays alive at once in
+#: :meth:`_Sweep.cost` (the grid, the sampled neighbour, the NCC's windowed sums, the sum and worst
+#: over the neighbours), rounded up; the measured peaks agree (docs/calibration.md, "Dense points:
+#: memory and time")
+SWEEP_BYTES_PER_HYPOTHESIS_PIXEL = 96
+#: the sweep's working-set budget (MiB): planes are evaluated in batches, and the reference in bands
+#: of rows, so that a batch stays within it at any resolution
+SWEEP_BUDGET_MB = 256
 
 
-def _warp(nb: torch.Tensor, Kr_inv: torch.Tensor, Rr: torch.Tensor, Cr: torch.Tensor, Kn: torch.Tensor,
-          Rn: torch.Tensor, tn: torch.Tensor, depth: torch.Tensor, rays: torch.Tensor):
-    """Sample neighbour image nb [1, 1, h, w] at the projections of reference pixels at depths
-    ``depth`` [D, H, W]; ``rays`` [H, W, 3] reference camera rays with z = 1."""
-    D, H, W = depth.shape
-    Xc = rays[None] * depth[..., None]                                     # [D, H, W, 3] ref camera
-    Xw = (Xc - 0) @ Rr + Cr                                                # world: R^T x + C
-    Xn = Xw @ Rn.T + tn
-    z = Xn[..., 2:3]
-    uv = Xn[..., :2] / z.clamp(min=1e-6) @ Kn[:2, :2].T + Kn[:2, 2]
-    h, w = nb.shape[-2:]
-    gx = 2 * (uv[..., 0] + 0.5) / w - 1
-    gy = 2 * (uv[..., 1] + 0.5) / h - 1
-    grid = torch.stack([gx, gy], -1)
-    out = F.grid_sample(nb.expand(D, -1, -1, -1), grid, mode="bilinear", padding_mode="zeros", align_corners=False)
-    valid = ((gx.abs() < 1) & (gy.abs() < 1) & (z[..., 0] > 0)).to(out.dtype)[:, None]
-    return out, valid
+@dataclass
+class _View:
+    """A camera at one level of the sweep: its matching image [1, 1, h, w], K at that level and
+    world_to_camera [4, 4]."""
+    image: torch.Tensor
+    K: np.ndarray
+    world_to_camera: np.ndarray
 
 
-def _sweep_setup(images, cameras, ref, neighbours, scale, t32):
-    gr = _prep(images[ref], scale)
-    H, W = gr.shape
-    Kr = _scaled_K(cameras[ref][0], scale)
-    Wr = cameras[ref][1]
-    Rr = torch.as_tensor(Wr[:3, :3], **t32)
-    Cr = torch.as_tensor(-Wr[:3, :3].T @ Wr[:3, 3], **t32)
-    v, u = np.mgrid[0:H, 0:W].astype(np.float32)
-    rays = torch.as_tensor(np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(Kr).T.astype(np.float32), **t32)
-    nbs = []
-    for nb in neighbours:
-        gn = _prep(images[nb], scale)
-        Kn = torch.as_tensor(_scaled_K(cameras[nb][0], scale), **t32)
-        Wn = cameras[nb][1]
-        nbs.append((torch.as_tensor(gn, **t32)[None, None], Kn, torch.as_tensor(Wn[:3, :3], **t32),
-                    torch.as_tensor(Wn[:3, 3], **t32)))
-    return torch.as_tensor(gr, **t32)[None, None], Kr, Wr, Rr, Cr, rays, nbs
+class _Sweep:
+    """The matching cost of a reference view against its neighbours for depth hypotheses, evaluated
+    in batches of hypotheses and bands of rows within ``budget_bytes``; the caller keeps what it
+    needs of each batch (a running minimum), never the whole cost volume.
 
+    A reference pixel at depth d lands in a neighbour at ``(d P + q)`` (homogeneous pixel), with
+    ``P = Kn Rn Rr^T K_r^-1 [u, v, 1]`` per pixel and ``q = Kn (Rn Cr + tn)``: three multiply-adds
+    a pixel and hypothesis. The cost of a hypothesis is ``1 - NCC`` averaged over the best
+    ``neighbours - 1`` neighbours (one may be occluded; all of them when there is one)."""
 
-def _cost_fn(ref_t, Rr, Cr, rays, nbs, window):
-    def cost(depths: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        nccs = []
-        for img, Kn, Rn, tn in nbs:
-            warped, valid = _warp(img, None, Rr, Cr, Kn, Rn, tn, depths, rays)
-            nccs.append(_ncc(ref_t, warped, valid, window))
-        ncc = torch.stack(nccs)                                            # [N, D, H, W]
-        k = max(1, len(nbs) - 1)
-        best = ncc.topk(k, dim=0).values.mean(0)
-        return 1 - best, best
-    return cost
+    def __init__(self, ref: _View, neighbours: list[_View], window: int, budget_bytes: int):
+        self.ref, self.nbs, self.window = ref, neighbours, window
+        _, _, self.H, self.W = ref.image.shape
+        self.halo = window // 2
+        self.budget = max(int(budget_bytes), 1)
+        mr = _box(ref.image, window)
+        self.ref_mean = mr
+        self.ref_var = (_box(ref.image * ref.image, window) - mr * mr).clamp(min=1e-8)
+        Wr = ref.world_to_camera
+        Rr, Cr = Wr[:3, :3], -Wr[:3, :3].T @ Wr[:3, 3]
+        self.maps = []
+        for nb in neighbours:
+            Wn = nb.world_to_camera
+            A = nb.K @ Wn[:3, :3] @ Rr.T @ np.linalg.inv(ref.K)
+            q = nb.K @ (Wn[:3, :3] @ Cr + Wn[:3, 3])
+            self.maps.append((torch.as_tensor(A, dtype=torch.float32, device=ref.image.device),
+                              torch.as_tensor(q, dtype=torch.float32, device=ref.image.device)))
 
+    def batches(self, n: int) -> list[tuple[int, int, int, int]]:
+        """``(h0, h1, r0, r1)``: hypotheses [h0, h1) on output rows [r0, r1), covering ``n``
+        hypotheses and every row, each batch within the budget (halo rows included)."""
+        per = SWEEP_BYTES_PER_HYPOTHESIS_PIXEL * self.W
+        depth = max(1, min(n, 16))
+        rows = self.budget // (per * depth) - 2 * self.halo
+        if rows >= self.H:
+            depth = max(1, min(n, self.budget // (per * self.H)))
+            rows = self.H
+        else:
+            depth = max(1, min(depth, self.budget // (per * (1 + 2 * self.halo + 1))))
+            rows = max(1, self.budget // (per * depth) - 2 * self.halo)
+        return [(h0, min(h0 + depth, n), r0, min(r0 + rows, self.H))
+                for r0 in range(0, self.H, rows) for h0 in range(0, n, depth)]
 
-def _chunked(cost, depths: torch.Tensor, chunk: int = 16) -> tuple[torch.Tensor, torch.Tensor]:
-    cs, ns = [], []
-    for i in range(0, len(depths), chunk):
-        c, n = cost(depths[i:i + chunk])
-        cs.append(c)
-        ns.append(n)
-    return torch.cat(cs), torch.cat(ns)
+    def cost(self, inv_depth: Callable[[int, int], torch.Tensor], r0: int, r1: int) -> torch.Tensor:
+        """The cost [D, r1 - r0, W] of the reference's rows [r0, r1) at inverse depths (1/m)
+        ``inv_depth(a, b)`` [D, b - a, W] (or [D, 1, 1]: planes) of rows [a, b): those rows and the
+        NCC window's halo."""
+        a, b = max(0, r0 - self.halo), min(self.H, r1 + self.halo)
+        lo, hi = r0 - a, r1 - a
+        d = inv_depth(a, b).clamp(min=1e-6).reciprocal()
+        D = d.shape[0]
+        t32 = dict(dtype=torch.float32, device=self.ref.image.device)
+        v, u = torch.meshgrid(torch.arange(a, b, **t32), torch.arange(self.W, **t32), indexing="ij")
+        ref = self.ref.image[:, :, a:b]
+        mr = self.ref_mean[:, :, a:b]
+        inv_sr = self.ref_var[:, :, a:b].rsqrt()
+        total = worst = None
+        for nb, (A, q) in zip(self.nbs, self.maps):
+            h, w = nb.image.shape[-2:]
+            # grid_sample's coordinates of pixel (x/z, y/z): 2 (x/z + 0.5) / w - 1, folded into the rows
+            # of the homography so that each is one division: gx = (d Px + qx) / (d Pz + qz)
+            Pz = A[2, 0] * u + A[2, 1] * v + A[2, 2]
+            grid = torch.empty((D, b - a, self.W, 2), **t32)
+            z = torch.addcmul(q[2].expand(1), d, Pz)
+            zc = z.clamp(min=1e-6)
+            for k, size in ((0, w), (1, h)):
+                c = 1 / size - 1
+                Pk = (A[k, 0] * u + A[k, 1] * v + A[k, 2]) * (2 / size) + c * Pz
+                torch.div(torch.addcmul((q[k] * (2 / size) + c * q[2]).expand(1), d, Pk), zc, out=grid[..., k])
+            del zc
+            valid = (grid.abs() < 1).all(-1) & (z > 0)
+            del z
+            warped = F.grid_sample(nb.image.expand(D, -1, -1, -1), grid, mode="bilinear", padding_mode="zeros",
+                                   align_corners=False)
+            del grid
+            mw = _box(warped, self.window)
+            cov = _box(ref * warped, self.window).sub_(mr * mw)
+            warped.mul_(warped)
+            vw = _box(warped, self.window).sub_(mw.mul_(mw)).clamp_(min=1e-8)
+            del warped, mw
+            ncc = cov.mul_(vw.rsqrt_()).mul_(inv_sr)[:, 0]
+            del vw
+            ncc = ncc.masked_fill_(~valid, -1.0)[:, lo:hi]
+            total = ncc.clone() if total is None else total.add_(ncc)
+            worst = ncc if worst is None else torch.minimum(worst, ncc)
+        n = len(self.nbs)
+        # the mean of the best n - 1: all but the worst
+        best = total if n == 1 else total.sub_(worst).div_(n - 1)
+        return best.neg_().add_(1)
 
 
 def depth_map(images: Mapping[str, np.ndarray], cameras: Mapping[str, Camera], ref: str, neighbours: list[str],
-              options: DenseOptions = DenseOptions()) -> DepthMap:
+              options: DenseOptions = DenseOptions(), *, budget_mb: float = SWEEP_BUDGET_MB,
+              prepared: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None) -> DepthMap:
     """Plane-sweep depth of camera ``ref`` (at the working resolution: images / ``options.scale``).
 
     Two levels: a sweep at 1/2 of the working resolution with planes ~1 px of disparity apart, then
     per-pixel hypotheses at the working resolution, 0.5 px apart, over two coarse steps either side.
+    Each level keeps a running best over batches of hypotheses (:class:`_Sweep`, at most
+    ``budget_mb`` MiB of working set a batch), never the whole cost volume. ``prepared``: id ->
+    (working, coarse) matching images of :func:`_prep` when the caller holds them (else made from
+    ``images``).
     """
     dev = torch.device(options.device)
     t32 = dict(dtype=torch.float32, device=dev)
     s = options.scale
+    budget = int(budget_mb * 2 ** 20)
+
+    def views(level: int, scale: float) -> tuple[_View, list[_View]]:
+        out = []
+        for cid in [ref, *neighbours]:
+            g = prepared[cid][level] if prepared is not None else _prep(images[cid], (scale,))[0]
+            out.append(_View(torch.as_tensor(g, **t32)[None, None], _scaled_K(cameras[cid][0], scale),
+                             np.asarray(cameras[cid][1], np.float64)))
+        return out[0], out[1:]
+
     # disparity per unit of inverse depth for the widest neighbour (px at the working resolution)
     Cref = -cameras[ref][1][:3, :3].T @ cameras[ref][1][:3, 3]
     base = max(np.linalg.norm(-cameras[n][1][:3, :3].T @ cameras[n][1][:3, 3] - Cref) for n in neighbours)
     fpx = cameras[ref][0][0, 0] / s
     inv_lo, inv_hi = 1 / options.depth_max, 1 / options.depth_min
-    # coarse level
+    # coarse level: planes uniform in inverse depth, the running best plane per pixel
     cs = 2.0
-    ref_c, _, _, Rr, Cr, rays_c, nbs_c = _sweep_setup(images, cameras, ref, neighbours, s * cs, t32)
+    sweep = _Sweep(*views(1, s * cs), options.window, budget)
     n_planes = int(np.clip((inv_hi - inv_lo) * fpx / cs * base / 1.0, 8, options.num_depths * 8))
     inv = torch.linspace(inv_lo, inv_hi, n_planes, **t32)
-    Hc, Wc = ref_c.shape[-2:]
-    cost_c = _cost_fn(ref_c, Rr, Cr, rays_c, nbs_c, options.window)
-    c1, _ = _chunked(cost_c, (1 / inv)[:, None, None].expand(-1, Hc, Wc))
-    inv_c = inv[c1.argmin(0)]
-    # fine level
-    ref_t, Kr, Wr, Rr, Cr, rays, nbs = _sweep_setup(images, cameras, ref, neighbours, s, t32)
-    H, W = ref_t.shape[-2:]
+    Hc, Wc = sweep.H, sweep.W
+    best = torch.full((Hc, Wc), float("inf"), **t32)
+    best_j = torch.zeros((Hc, Wc), dtype=torch.long, device=dev)
+    for h0, h1, r0, r1 in sweep.batches(n_planes):
+        c = sweep.cost(lambda a, b: inv[h0:h1, None, None], r0, r1)
+        cmin, jmin = c.min(0)
+        better = cmin < best[r0:r1]
+        best[r0:r1] = torch.where(better, cmin, best[r0:r1])
+        best_j[r0:r1] = torch.where(better, jmin + h0, best_j[r0:r1])
+    inv_c = inv[best_j]
+    del sweep, best, best_j
+    # fine level: per-pixel hypotheses around the coarse depth; the running best keeps the costs
+    # either side of it for the parabola
+    sweep = _Sweep(*views(0, s), options.window, budget)
+    H, W = sweep.H, sweep.W
     inv0 = F.interpolate(inv_c[None, None], size=(H, W), mode="nearest")[0, 0]
     coarse_step = (inv[1] - inv[0]) if n_planes > 1 else torch.tensor(0.01, **t32)
     fine_step = 0.5 / (fpx * base)
     nk = int(min(max(2 * float(coarse_step) / fine_step, 2), 4 * options.refine_steps))
     ks = torch.arange(-nk, nk + 1, **t32) * fine_step
-    invs = (inv0[None] + ks[:, None, None]).clamp(min=1e-4)
-    cost = _cost_fn(ref_t, Rr, Cr, rays, nbs, options.window)
-    c2, n2 = _chunked(cost, 1 / invs)
-    j = c2.argmin(0)
-    jc = j.clamp(1, len(ks) - 2)
-    cm = c2.gather(0, (jc - 1)[None])[0]
-    c0 = c2.gather(0, jc[None])[0]
-    cp = c2.gather(0, (jc + 1)[None])[0]
+    n = len(ks)
+    inf = torch.full((H, W), float("inf"), **t32)
+    best, before, after, last = inf.clone(), inf.clone(), inf.clone(), inf.clone()
+    j = torch.zeros((H, W), dtype=torch.long, device=dev)
+    for h0, h1, r0, r1 in sweep.batches(n):
+        rows = slice(r0, r1)
+        c = sweep.cost(lambda a, b: (inv0[None, a:b] + ks[h0:h1, None, None]).clamp(min=1e-4), r0, r1)
+        # the cost after the best so far, when the best was the previous batch's last hypothesis
+        after[rows] = torch.where(j[rows] == h0 - 1, c[0], after[rows])
+        cmin, jmin = c.min(0)
+        better = cmin < best[rows]
+        prev = torch.where(jmin > 0, c.gather(0, (jmin - 1).clamp(min=0)[None])[0], last[rows])
+        nxt = torch.where(jmin < h1 - h0 - 1, c.gather(0, (jmin + 1).clamp(max=h1 - h0 - 1)[None])[0], inf[rows])
+        best[rows] = torch.where(better, cmin, best[rows])
+        j[rows] = torch.where(better, jmin + h0, j[rows])
+        before[rows] = torch.where(better, prev, before[rows])
+        after[rows] = torch.where(better, nxt, after[rows])
+        last[rows] = c[-1]
+    del sweep, last
+    cm, c0, cp = before, best, after
     den = cm - 2 * c0 + cp
-    off = torch.where(den > 1e-6, 0.5 * (cm - cp) / den, torch.zeros_like(den)).clamp(-0.5, 0.5)
-    inv_best = invs.gather(0, jc[None])[0] + off * fine_step
+    ok_den = torch.isfinite(den) & (den > 1e-6)
+    off = torch.where(ok_den, 0.5 * (cm - cp) / torch.where(ok_den, den, torch.ones_like(den)),
+                      torch.zeros_like(den)).clamp(-0.5, 0.5)
+    inv_best = (inv0 + ks[j]).clamp(min=1e-4) + off * fine_step
     depth = 1 / inv_best.clamp(min=1e-6)
-    ncc = n2.gather(0, j[None])[0]
+    ncc = 1 - best
+    g = prepared[ref][0] if prepared is not None else _prep(images[ref], (s,))[0]
+    ref_t = torch.as_tensor(g, **t32)[None, None]
     tex = torch.sqrt((_box(ref_t * ref_t, options.window) - _box(ref_t, options.window) ** 2).clamp(min=0))[0, 0]
-    ok = (ncc > options.min_ncc) & (tex > options.min_texture) & (j > 0) & (j < len(ks) - 1)
+    ok = (ncc > options.min_ncc) & (tex > options.min_texture) & (j > 0) & (j < n - 1)
     ok &= (depth > options.depth_min) & (depth < options.depth_max)
     depth = torch.where(ok, depth, torch.zeros_like(depth))
-    return DepthMap(depth.cpu().numpy(), ncc.cpu().numpy(), Kr, Wr)
+    return DepthMap(depth.cpu().numpy(), _scaled_K(cameras[ref][0], s), np.asarray(cameras[ref][1]), n_planes)
+
+
+#: reference pixels fused at a time (the fusion's float64 working set is ~200 bytes a pixel)
+FUSE_CHUNK = 1 << 19
 
 
 def fuse_depth_maps(maps: Mapping[str, DepthMap], images: Mapping[str, np.ndarray], options: DenseOptions
                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Points [N, 3] float32, linear colours [N, 3] float32 and consistent-view counts [N]."""
+    """Points [N, 3] float32, linear colours [N, 3] float32 and consistent-view counts [N]. Each
+    reference's image is read once (for its colours), its pixels fused ``FUSE_CHUNK`` at a time."""
     import cv2
 
     pts, cols, cnts = [], [], []
     for rid, dm in maps.items():
         H, W = dm.depth.shape
-        v, u = np.nonzero(dm.depth > 0)
-        if len(u) == 0:
+        flat = np.flatnonzero(dm.depth > 0)
+        if len(flat) == 0:
             continue
-        z = dm.depth[v, u].astype(np.float64)
-        rays = np.stack([u, v, np.ones_like(u)], 1).astype(np.float64) @ np.linalg.inv(dm.K).T
-        Xc = rays * z[:, None]
-        R, t = dm.world_to_camera[:3, :3], dm.world_to_camera[:3, 3]
-        X = (Xc - t) @ R
-        count = np.zeros(len(X), np.int64)
-        for oid, om in maps.items():
-            if oid == rid:
-                continue
-            Ro, to = om.world_to_camera[:3, :3], om.world_to_camera[:3, 3]
-            Xo = X @ Ro.T + to
-            zo = Xo[:, 2]
-            uo = Xo[:, :2] / np.maximum(zo, 1e-9)[:, None] @ om.K[:2, :2].T + om.K[:2, 2]
-            ui = np.round(uo[:, 0]).astype(int)
-            vi = np.round(uo[:, 1]).astype(int)
-            inside = (zo > 0) & (ui >= 0) & (vi >= 0) & (ui < om.depth.shape[1]) & (vi < om.depth.shape[0])
-            d = np.zeros(len(X))
-            d[inside] = om.depth[vi[inside], ui[inside]]
-            count += (inside & (d > 0) & (np.abs(d - zo) < options.depth_tol * zo)).astype(np.int64)
-        keep = count >= options.min_consistent
         img = np.asarray(images[rid], np.float32)[..., :3]
-        if options.scale != 1.0:
+        if img.shape[:2] != (H, W):
             img = cv2.resize(img, (W, H), interpolation=cv2.INTER_AREA)
-        pts.append(X[keep].astype(np.float32))
-        cols.append(img[v[keep], u[keep]].astype(np.float32))
-        cnts.append(count[keep])
+        img = img.reshape(-1, 3)
+        Kinv = np.linalg.inv(dm.K).T
+        R, t = dm.world_to_camera[:3, :3], dm.world_to_camera[:3, 3]
+        for i in range(0, len(flat), FUSE_CHUNK):
+            idx = flat[i:i + FUSE_CHUNK]
+            v, u = np.divmod(idx, W)
+            z = dm.depth.reshape(-1)[idx].astype(np.float64)
+            X = (np.stack([u, v, np.ones_like(u)], 1).astype(np.float64) @ Kinv * z[:, None] - t) @ R
+            count = np.zeros(len(X), np.int64)
+            for oid, om in maps.items():
+                if oid == rid:
+                    continue
+                Ro, to = om.world_to_camera[:3, :3], om.world_to_camera[:3, 3]
+                Xo = X @ Ro.T + to
+                zo = Xo[:, 2]
+                uo = Xo[:, :2] / np.maximum(zo, 1e-9)[:, None] @ om.K[:2, :2].T + om.K[:2, 2]
+                ui = np.round(uo[:, 0]).astype(int)
+                vi = np.round(uo[:, 1]).astype(int)
+                inside = (zo > 0) & (ui >= 0) & (vi >= 0) & (ui < om.depth.shape[1]) & (vi < om.depth.shape[0])
+                d = np.zeros(len(X))
+                d[inside] = om.depth[vi[inside], ui[inside]]
+                count += (inside & (d > 0) & (np.abs(d - zo) < options.depth_tol * zo)).astype(np.int64)
+            keep = count >= options.min_consistent
+            pts.append(X[keep].astype(np.float32))
+            cols.append(img[idx[keep]].astype(np.float32))
+            cnts.append(count[keep])
     if not pts:
         return np.zeros((0, 3), np.float32), np.zeros((0, 3), np.float32), np.zeros(0, np.int64)
     return np.concatenate(pts), np.concatenate(cols), np.concatenate(cnts)
@@ -298,13 +392,22 @@ def sweep_range(scene_depth_m: tuple[float, float, float]) -> tuple[float, float
             DEPTH_MARGIN[1] * float(scene_depth_m[2]))
 
 
+#: ``progress(done, total, info)`` after each reference camera's depth map: ``info`` holds its
+#: ``camera``, ``planes``, ``depth_m`` (the sweep's nearest and farthest), ``pixels`` with a depth
+#: and ``seconds`` since the frame began
+DenseProgress = Callable[[int, int, dict], None]
+
+
 def dense_points(images: Mapping[str, np.ndarray], cameras: Mapping[str, Camera], *,
                  references: list[str] | None = None, options: DenseOptions = DenseOptions(),
                  valid: Mapping[str, np.ndarray | None] | None = None,
-                 sweeps: Mapping[str, tuple[float, float, float]] | None = None) -> dict:
+                 sweeps: Mapping[str, tuple[float, float, float]] | None = None,
+                 progress: DenseProgress | None = None, budget_mb: float = SWEEP_BUDGET_MB) -> dict:
     """One frame's dense point cloud from calibrated views.
 
-    ``images``: id -> linear RGB [H, W, 3]; ``cameras``: id -> (K [3, 3], world_to_camera [4, 4]);
+    ``images``: id -> linear RGB [H, W, 3], read twice (its matching images, then a reference's
+    colours): a mapping that loads on access keeps one full image in memory at a time;
+    ``cameras``: id -> (K [3, 3], world_to_camera [4, 4]);
     ``references``: cameras that get a depth map (default: all with enough neighbours);
     ``valid``: id -> [H, W] bool, the pixels that hold footage (a rectified distorted frame's
     :func:`~volcap_core.calibration.distortion.rectified_valid`; None or absent: all): a reference
@@ -313,23 +416,49 @@ def dense_points(images: Mapping[str, np.ndarray], cameras: Mapping[str, Camera]
     ``sweeps``: id -> the reference's ``(nearest, neighbours', farthest)`` depth in metres: it sweeps
     from the nearest to the farthest, its neighbours chosen for their triangulation angle at the
     middle one (:func:`sweep_range` of a calibration's ``CameraCalibration.scene_depth_m``); a
-    reference without one sweeps ``options.depth_min``-``depth_max``, neighbours chosen at 5 m.
+    reference without one sweeps ``options.depth_min``-``depth_max``, neighbours chosen at 5 m;
+    ``progress``: :data:`DenseProgress`; ``budget_mb``: the sweep's working set (:class:`_Sweep`;
+    the result does not depend on it).
+    Memory: the matching images (5 bytes a working pixel) and depth maps (4) of every camera, one
+    full image, the sweep's budget and the points (docs/calibration.md, "Dense points: memory and
+    time").
     Returns ``positions`` [N, 3] float32 (metres, stage frame), ``colours`` [N, 3] float32 (linear),
     ``views`` [N] consistent other views, ``depth_maps`` {id: DepthMap}, ``seconds``.
     """
     t0 = time.perf_counter()
     ids = sorted(set(images) & set(cameras))
     refs = references or ids
+    s = options.scale
+    prepared: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+
+    class _Prepared(Mapping):   # each camera's matching images, made on first use
+        def __getitem__(self, cid):
+            if cid not in prepared:
+                prepared[cid] = tuple(_prep(images[cid], (s, 2.0 * s)))
+            return prepared[cid]
+
+        def __iter__(self):
+            return iter(ids)
+
+        def __len__(self):
+            return len(ids)
+
     maps = {}
-    for r in refs:
+    for k, r in enumerate(refs):
         lo, middle, hi = (sweeps or {}).get(r, (options.depth_min, 5.0, options.depth_max))
         nbs = choose_neighbours({c: cameras[c] for c in ids}, r, options.neighbours, options.min_angle_deg,
                                 options.max_angle_deg, scene_depth=float(middle))
         if not nbs:
             continue
-        dm = depth_map(images, cameras, r, nbs, replace(options, depth_min=float(lo), depth_max=float(hi)))
+        dm = depth_map(images, cameras, r, nbs, replace(options, depth_min=float(lo), depth_max=float(hi)),
+                       budget_mb=budget_mb, prepared=_Prepared())
         if valid is not None and valid.get(r) is not None:
             dm.depth[~_valid_at(valid[r], dm.depth.shape, options.window)] = 0.0
         maps[r] = dm
+        if progress is not None:
+            progress(k + 1, len(refs), {"camera": r, "planes": dm.planes, "depth_m": (float(lo), float(hi)),
+                                        "pixels": int(np.count_nonzero(dm.depth)),
+                                        "seconds": time.perf_counter() - t0})
+    prepared.clear()
     pos, col, cnt = fuse_depth_maps(maps, images, options)
     return {"positions": pos, "colours": col, "views": cnt, "depth_maps": maps, "seconds": time.perf_counter() - t0}
