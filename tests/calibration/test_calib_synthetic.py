@@ -163,7 +163,7 @@ def test_dense_points_sweep_the_scene_each_camera_saw(result, capture, gt):
     ``DenseOptions`` leaves most of it out."""
     from volcap_core.calibration.dense import sweep_range
     from volcap_core.calibration.geometry import Similarity
-    from volcap_core.calibration.static import _depths_in_view
+    from volcap_core.calibration.geometry import depths_in_view
 
     mid = FRAMES // 2
     scan = LidarScan.from_ply_bytes(capture.lidar_path.read_bytes())
@@ -171,7 +171,7 @@ def test_dense_points_sweep_the_scene_each_camera_saw(result, capture, gt):
         cam = result.record.camera(cid)
         lo, middle, hi = sweep_range(cam.scene_depth_m)
         K, W = result.static.K[cid], result.static.world_to_camera[cid]
-        z = _depths_in_view(scan.points, K, W, (cam.width, cam.height))
+        z = depths_in_view(scan.points, K, W, (cam.width, cam.height))
         inside = float(np.mean((z > lo) & (z < hi)))
         print(cid, np.round(cam.scene_depth_m, 2), f"lidar in view {np.percentile(z, [1, 50, 99]).round(2)}",
               f"inside {inside:.3f}")

@@ -73,18 +73,18 @@ def stage_sweeps(calib: Calibration, ids: Sequence[str], frame: int) -> dict[str
     25 x 25 x 11 grid, the points in its image at least the rig's camera spacing away), as the
     static step measures it (``static.scene_depths``) for a calibration without its sparse points
     (imported, ground truth). A camera that sees none of the volume is left out."""
-    from volcap_core.calibration.static import _camera_gaps, _depths_in_view
+    from volcap_core.calibration.geometry import camera_gaps, depths_in_view
     from volcap_core.stage import stage_volume
 
     (x0, y0, z0), (x1, y1, z1) = stage_volume(calib.stage_size_m, floor_clearance_m=0.0)
     grid = np.stack(np.meshgrid(np.linspace(x0, x1, 25), np.linspace(y0, y1, 25), np.linspace(z0, z1, 11),
                                 indexing="ij"), -1).reshape(-1, 3)
     cams = {c: camera_at(calib, c, frame)[:2] for c in ids}
-    _, spacing = _camera_gaps([cams[c][1] for c in ids])
+    _, spacing = camera_gaps([cams[c][1] for c in ids])
     out = {}
     for c in ids:
         cam = calib.camera(c)
-        z = _depths_in_view(grid, cams[c][0], cams[c][1], (cam.width, cam.height))
+        z = depths_in_view(grid, cams[c][0], cams[c][1], (cam.width, cam.height))
         z = z[z >= spacing]
         if len(z):
             out[c] = sweep_range((float(z.min()), float(np.median(z)), float(z.max())))

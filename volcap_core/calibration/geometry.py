@@ -14,6 +14,7 @@ Conventions (everywhere in ``volcap_core.calibration``):
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
 import numpy as np
 
@@ -79,6 +80,27 @@ def camera_centre(world_to_camera) -> np.ndarray:
     m = np.asarray(world_to_camera, np.float64)
     R, t = m[..., :3, :3], m[..., :3, 3]
     return -np.einsum("...ji,...j->...i", R, t)
+
+
+def camera_gaps(world_to_camera: Sequence[np.ndarray]) -> tuple[np.ndarray, float]:
+    """The distances between the cameras' centres, [N, N] metres (inf on the diagonal), and the
+    rig's camera spacing: the median distance from a camera to its nearest neighbour (0 for one
+    camera)."""
+    centres = np.stack([camera_centre(np.asarray(W, np.float64)) for W in world_to_camera])
+    gaps = np.linalg.norm(centres[:, None] - centres[None], axis=-1) + np.diag(np.full(len(centres), np.inf))
+    return gaps, float(np.median(gaps.min(1))) if len(centres) > 1 else 0.0
+
+
+def depths_in_view(points: np.ndarray, K: np.ndarray, world_to_camera: np.ndarray,
+                    size: tuple[int, int]) -> np.ndarray:
+    """Depths of the points in front of a camera that project into its ``size`` = (W, H) image."""
+    X = np.asarray(points, np.float64) @ world_to_camera[:3, :3].T + world_to_camera[:3, 3]
+    z = X[:, 2]
+    front = z > 1e-9
+    uv = X[front, :2] / z[front, None] @ K[:2, :2].T + K[:2, 2]
+    w, h = size
+    inside = (uv[:, 0] > -0.5) & (uv[:, 0] < w - 0.5) & (uv[:, 1] > -0.5) & (uv[:, 1] < h - 0.5)
+    return z[front][inside]
 
 
 def intrinsic_matrix(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:

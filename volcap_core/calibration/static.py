@@ -59,8 +59,8 @@ from hardware.rig import Rig, RigCamera
 from volcap_core.calibration.bundle import BundleOptions, BundleResult, CameraSigma, bundle_adjust
 from volcap_core.calibration.distortion import Distortion, undistort_valid_mask
 from volcap_core.calibration.errors import KnownDistanceError, UnsupportedCameraError
-from volcap_core.calibration.geometry import (Similarity, camera_centre, look_at_rotation, pose_matrix,
-                                              robust_umeyama, triangulate_points)
+from volcap_core.calibration.geometry import (Similarity, camera_centre, camera_gaps, depths_in_view, look_at_rotation,
+                                              pose_matrix, robust_umeyama, triangulate_points)
 from volcap_core.calibration.guided import GuidedMatchOptions, guided_tracks
 from volcap_core.calibration.lidar import LidarScan, align_to_lidar
 from volcap_core.calibration.photometric import PhotometricOptions, refine_photometric
@@ -735,7 +735,7 @@ def scene_depths(static: StaticCalibration, stage_size_m: Sequence[float],
     # nearer than the rig's camera spacing no neighbour sees a point within the sweep's 50° of
     # triangulation angle (2 atan(1/2) = 53°): a camera inside the stage volume (a dome) would
     # otherwise sweep from a few cm, eight times the planes for nothing
-    _, spacing = _camera_gaps([static.world_to_camera[c] for c in sorted(static.world_to_camera)])
+    _, spacing = camera_gaps([static.world_to_camera[c] for c in sorted(static.world_to_camera)])
     out = {}
     for i, c in enumerate(model.camera_ids):
         if c not in static.world_to_camera:
@@ -748,33 +748,12 @@ def scene_depths(static: StaticCalibration, stage_size_m: Sequence[float],
         if len(z) < min_points:
             continue
         lo, mid, hi = np.percentile(z, (_DEPTH_PERCENTILES[0], 50.0, _DEPTH_PERCENTILES[1]))
-        stage = _depths_in_view(grid, static.K[c], W, static.size[c])
+        stage = depths_in_view(grid, static.K[c], W, static.size[c])
         stage = stage[stage >= spacing]
         if len(stage):
             lo, mid, hi = min(lo, stage.min()), np.median(stage), max(hi, stage.max())
         out[c] = (float(lo), float(mid), float(hi))
     return out
-
-
-def _camera_gaps(world_to_camera: Sequence[np.ndarray]) -> tuple[np.ndarray, float]:
-    """The distances between the cameras' centres, [N, N] metres (inf on the diagonal), and the
-    rig's camera spacing: the median distance from a camera to its nearest neighbour (0 for one
-    camera)."""
-    centres = np.stack([camera_centre(np.asarray(W, np.float64)) for W in world_to_camera])
-    gaps = np.linalg.norm(centres[:, None] - centres[None], axis=-1) + np.diag(np.full(len(centres), np.inf))
-    return gaps, float(np.median(gaps.min(1))) if len(centres) > 1 else 0.0
-
-
-def _depths_in_view(points: np.ndarray, K: np.ndarray, world_to_camera: np.ndarray,
-                    size: tuple[int, int]) -> np.ndarray:
-    """Depths of the points in front of a camera that project into its ``size`` = (W, H) image."""
-    X = np.asarray(points, np.float64) @ world_to_camera[:3, :3].T + world_to_camera[:3, 3]
-    z = X[:, 2]
-    front = z > 1e-9
-    uv = X[front, :2] / z[front, None] @ K[:2, :2].T + K[:2, 2]
-    w, h = size
-    inside = (uv[:, 0] > -0.5) & (uv[:, 0] < w - 0.5) & (uv[:, 1] > -0.5) & (uv[:, 1] < h - 0.5)
-    return z[front][inside]
 
 
 def _surface_depth_ranges(plates: Mapping[str, np.ndarray], cameras: Mapping[str, tuple[np.ndarray, np.ndarray]],
@@ -790,7 +769,7 @@ def _surface_depth_ranges(plates: Mapping[str, np.ndarray], cameras: Mapping[str
     t0 = time.perf_counter()
     ids = sorted(cameras)
     log = logging.getLogger("volcap.calibrate")
-    gaps, spacing = _camera_gaps([cameras[c][1] for c in ids])
+    gaps, spacing = camera_gaps([cameras[c][1] for c in ids])
     spacing = max(spacing, 1e-6)
     near, far = _PROBE_NEAR * spacing, _PROBE_FAR * spacing
     across = {c: float(np.median(gaps[i][np.isfinite(gaps[i])])) for i, c in enumerate(ids)}
@@ -802,7 +781,7 @@ def _surface_depth_ranges(plates: Mapping[str, np.ndarray], cameras: Mapping[str
     close: list[str] = []
     for c in ids:
         h, w = np.asarray(plates[c]).shape[:2]
-        z = _depths_in_view(probe, cameras[c][0], cameras[c][1], (w, h))
+        z = depths_in_view(probe, cameras[c][0], cameras[c][1], (w, h))
         stats["depth_range"][c] = {"probe_points": len(z)}
         if len(z) < _MIN_PROBE_POINTS:
             continue
