@@ -83,7 +83,7 @@ def ground_truth_points(store: str, capture: ArtifactRef, calibration: ArtifactR
                                            method=f"ground-truth depth, {points_per_frame} per frame"))
 
 
-@volcap_task(name="train-segment", version="8", retries=1, libraries=RECONSTRUCTION_LIBRARIES)
+@volcap_task(name="train-segment", version="9", retries=1, libraries=RECONSTRUCTION_LIBRARIES)
 def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRef, points: ArtifactRef,
                        frames: list[int], config: TrainConfig, seed: int) -> ArtifactRef:
     """Train one Poly4DGS segment, score it against its floors and draw its contact sheet
@@ -98,6 +98,8 @@ def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRe
     pixels outside its source left out of the loss and the scores (before: raw frames as a pinhole).
     Version 8: the scores add ``regions``, the performer- and face-region PSNR, SSIM and detail per
     camera role beside the floors (a synthetic capture's; ``docs/poly4dgs.md``, "Evaluation").
+    Version 9: the initial points may add the zoom cameras' own (``TrainConfig.init_zoom_stride_px``,
+    the demo preset's; issue 28), and TrainConfig gained the fields of that route.
     """
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)

@@ -289,3 +289,20 @@ def test_steps_stretch_the_preset_schedule_and_keep_the_budget():
     assert PRESETS["test"].with_steps(200).train_config().eval_every == 0
     with pytest.raises(ValueError):
         PRESETS["demo"].with_steps(0)
+
+
+def test_the_default_held_out_cameras_include_one_tracking_camera_when_asked():
+    """Issue 28: the demo holds out a tracking camera beside the static one (S004, S010 on the demo
+    rig); productions ask for none; a rig with a single tracking camera keeps it for training."""
+    from types import SimpleNamespace
+
+    from hardware.rig import load_rig
+    from volcap_core.reconstruction import default_held_out
+
+    rig = load_rig("demo_scene")
+    ids = [c.id for c in rig.cameras]
+    cap = SimpleNamespace(rig=rig, cameras=[SimpleNamespace(id=c) for c in ids])
+    assert default_held_out(cap) == ["S004"]
+    assert default_held_out(cap, tracking=1) == ["S004", "S010"]
+    one = SimpleNamespace(rig=rig, cameras=[SimpleNamespace(id=c) for c in ids if c not in ("S009", "S010", "S011")])
+    assert default_held_out(one, tracking=1) == ["S004"]

@@ -10,6 +10,7 @@ touches a store or Prefect.
 from __future__ import annotations
 
 from collections import OrderedDict
+from dataclasses import replace
 from collections.abc import Callable, Sequence
 from threading import Lock
 from typing import Any, ClassVar, Literal
@@ -233,16 +234,85 @@ def segment_points(points: PointCloudSequence, frames: tuple[int, int],
 
 
 def segment_init(load_bytes: Callable[[ArtifactRef], bytes], capture: Capture, points: PointCloudSequence,
-                 data: SegmentData, held_out: Sequence[str] = ()) -> list[PointsAtTime]:
+                 data: SegmentData, held_out: Sequence[str] = (), zoom_stride_px: int | None = None
+                 ) -> list[PointsAtTime]:
     """What a segment's training starts from, built as the ``train-segment`` task builds it: the
     segment's dense points split static/moving, plus the capture's lidar scan (when it has one)
     coloured by the static training cameras (:func:`segment_points`, :func:`background_views`).
-    Anything that must reproduce a stored segment (a resumed run, a check) calls this."""
+    Each point carries its finest training camera's pixel footprint (:func:`with_footprints`);
+    ``zoom_stride_px`` (``TrainConfig.init_zoom_stride_px``) adds the zoom cameras' points
+    (:func:`with_zoom_points`). Anything that must reproduce a stored segment (a resumed run, a
+    check) calls this."""
     from volcap_core.pointcloud import decode_points
 
-    return segment_points(points, data.frames, lambda ref: decode_points(load_bytes(ref)),
-                          static_scan=load_bytes(capture.lidar) if capture.lidar else None,
-                          background=background_views(data, capture, held_out))
+    clouds = segment_points(points, data.frames, lambda ref: decode_points(load_bytes(ref)),
+                            static_scan=load_bytes(capture.lidar) if capture.lidar else None,
+                            background=background_views(data, capture, held_out))
+    clouds = with_footprints(clouds, data, held_out)
+    return clouds if zoom_stride_px is None else with_zoom_points(clouds, data, held_out, zoom_stride_px)
+
+
+def with_zoom_points(clouds: Sequence[PointsAtTime], data: SegmentData, held_out: Sequence[str], stride_px: int
+                     ) -> list[PointsAtTime]:
+    """Each frame's moving points joined by the points of the training cameras that resolve them
+    finer than their spacing (the tracking cameras framing the faces;
+    :func:`~volcap_core.splat.init.zoom_points`, every ``stride_px`` pixels, coloured by their
+    footage at that frame). Needs :func:`with_footprints` first."""
+    from volcap_core.splat.init import neighbour_scale, zoom_points
+
+    held = set(held_out)
+    out = []
+    for p in clouds:
+        moving = ~p.static.numpy() if p.static is not None else np.ones(len(p.xyz), bool)
+        if not moving.any() or moving.sum() < 2:
+            out.append(p)
+            continue
+        xyz = p.xyz.double().numpy()[moving]
+        spacing = float(np.median(neighbour_scale(xyz)))
+        add = []
+        for v in data.views:
+            if v.camera_id in held or abs(v.time - p.time) > 1e-6:
+                continue
+            K = v.camera.K.double().numpy().copy()
+            K[0, 2] -= 0.5   # splat cameras put pixel centres at +0.5
+            K[1, 2] -= 0.5
+            W = v.camera.world_to_camera.double().numpy()
+            z = xyz @ W[2, :3] + W[2, 3]
+            seen = z > 0.1
+            if not seen.any() or float(np.median(z[seen])) / float(K[0, 0]) * stride_px > 0.5 * spacing:
+                continue   # this camera resolves the performers no finer than the sweep did
+            add.append(zoom_points(xyz, K, W, v.load()[..., :3].numpy(), stride_px=stride_px))
+        if not add:
+            out.append(p)
+            continue
+        nx = np.concatenate([a[0] for a in add]).astype(np.float32)
+        out.append(replace(p, xyz=torch.cat([p.xyz, torch.from_numpy(nx)]),
+                           rgb=torch.cat([p.rgb, torch.from_numpy(np.concatenate([a[1] for a in add]).astype(np.float32))]),
+                           static=None if p.static is None else torch.cat([p.static, torch.zeros(len(nx), dtype=torch.bool)]),
+                           footprint=torch.cat([p.footprint, torch.from_numpy(np.concatenate([a[2] for a in add])).float()])))
+    return out
+
+
+def with_footprints(clouds: Sequence[PointsAtTime], data: SegmentData, held_out: Sequence[str] = ()
+                    ) -> list[PointsAtTime]:
+    """Each cloud with its points' finest pixel footprint over the training cameras at the
+    cloud's frame (:func:`~volcap_core.splat.init.finest_footprint`; held-out cameras never count)."""
+    from volcap_core.splat.init import finest_footprint
+
+    held = set(held_out)
+    out = []
+    for p in clouds:
+        at = min({v.time for v in data.views}, key=lambda t: abs(t - p.time))
+        cams = []
+        for v in data.views:
+            if v.time == at and v.camera_id not in held:
+                K = v.camera.K.double().numpy().copy()
+                K[0, 2] -= 0.5   # splat cameras put pixel centres at +0.5
+                K[1, 2] -= 0.5
+                cams.append((K, v.camera.world_to_camera.double().numpy(), v.camera.width, v.camera.height))
+        foot = finest_footprint(p.xyz.double().numpy(), cams)
+        out.append(replace(p, footprint=torch.from_numpy(foot).float()))
+    return out
 
 
 def background_views(data: SegmentData, capture: Capture, held_out: Sequence[str] = ()) -> list:
@@ -252,16 +322,25 @@ def background_views(data: SegmentData, capture: Capture, held_out: Sequence[str
     return [v for v in data.views if v.frame == mid and v.camera_id in static and v.camera_id not in held_out]
 
 
-def default_held_out(capture: Capture, n: int = 1, calibration: Calibration | None = None) -> list[str]:
-    """Held-out cameras when none are named: static cameras spread over the rig (never tracking
-    ones, whose framing changes, nor ones the ``calibration`` left out), at most ``n``; none when
-    fewer than 4 static cameras exist."""
+def default_held_out(capture: Capture, n: int = 1, calibration: Calibration | None = None,
+                     tracking: int = 0) -> list[str]:
+    """Held-out cameras when none are named: static cameras spread over the rig (never ones the
+    ``calibration`` left out), at most ``n``, none when fewer than 4 static cameras exist; then
+    at most ``tracking`` tracking cameras picked the same way, none when fewer than 2 exist (one
+    must stay to train the close-ups: issue 28 scores a held-out tracking camera).
+
+    On the demo rig (static S000-S007, tracking S008-S011): ``n=1, tracking=1`` gives S004 and
+    S010 (the wider portrait zoom; S008, S009 and S011 frame the faces closer and train)."""
     left_out = calibration.unregistered if calibration is not None else {}
-    static = [c.id for c in capture.cameras if not capture.rig.camera(c.id).role.tracks and c.id not in left_out]
-    if len(static) < 4 or n <= 0:
-        return []
-    step = len(static) / n
-    return [static[int(step * i + step / 2)] for i in range(n)]
+    out = []
+    for count, minimum, tracks in ((n, 4, False), (tracking, 2, True)):
+        ids = [c.id for c in capture.cameras
+               if capture.rig.camera(c.id).role.tracks == tracks and c.id not in left_out]
+        if len(ids) < minimum or count <= 0:
+            continue
+        step = len(ids) / count
+        out += [ids[int(step * i + step / 2)] for i in range(count)]
+    return out
 
 
 def encode_grids(camera_ids: Sequence[str], exposure: torch.Tensor, black: torch.Tensor) -> bytes:

@@ -150,3 +150,37 @@ def test_the_moving_budget_goes_where_moving_points_are():
     split = initial_gaussians(frames, budget=3000, static_share=0.5, seed=0)
     # the scan-only cloud has no moving point: its share is not lost
     assert split.counts["static"] == 1500 and split.counts["moving"] >= 1450
+
+
+def test_zoom_points_lie_on_the_clouds_surface_at_the_cameras_resolution():
+    """A 2 cm grid of points on the plane z = 0, seen by a narrow camera 1 m above (~2 mm a pixel):
+    the camera's points lie on the plane, one per 2×2 block inside the cloud's silhouette, coloured
+    by the footage's block means; a dense zoom part does not make the sweep's points "isolated"."""
+    from volcap_core.splat.init import drop_isolated, finest_footprint, footprint_levels, zoom_points
+
+    c = np.arange(-0.1, 0.1001, 0.02)
+    x, y = np.meshgrid(c, c, indexing="ij")
+    cloud = np.stack([x.ravel(), y.ravel(), np.zeros(x.size)], 1)
+    K = np.array([[500.0, 0, 63.5], [0, 500.0, 63.5], [0, 0, 1]])
+    W = np.eye(4)
+    W[:3, :3] = np.diag([1.0, -1.0, -1.0])      # looking down -z from z = 1
+    W[2, 3] = 1.0
+    image = np.random.default_rng(0).uniform(0, 1, (128, 128, 3))
+    xyz, rgb, foot = zoom_points(cloud, K, W, image, stride_px=2)
+    assert len(xyz) > 0.5 * 64 * 64 * (0.2 * 500 / 128) ** 2 / 1.6      # most of the card's blocks
+    assert np.abs(xyz[:, 2]).max() < 1e-6 and np.abs(xyz[:, :2]).max() <= 0.1 + 2 * 2 / 500   # within a block
+    assert np.allclose(foot, 1 / 500)
+    # each point's colour is its 2x2 block's mean: re-project and compare
+    pc = xyz @ W[:3, :3].T + W[:3, 3]
+    uv = pc[:, :2] / pc[:, 2:] @ K[:2, :2].T + K[:2, 2]
+    i, j = np.floor(uv[:, 1] / 2).astype(int), np.floor(uv[:, 0] / 2).astype(int)
+    blocks = image.reshape(64, 2, 64, 2, 3).mean(axis=(1, 3))
+    assert np.allclose(rgb, blocks[i, j])
+    assert np.allclose(finest_footprint(cloud, [(K, W, 128, 128)]), 1 / 500)
+    # the zoom camera framed one corner (a face); the rest of the card has only the sweep's points
+    corner = (xyz[:, 0] < -0.04) & (xyz[:, 1] < -0.04)
+    both = np.concatenate([cloud, xyz[corner]])
+    level = footprint_levels(np.concatenate([np.full(len(cloud), 0.016), foot[corner]]), 0.016, -3)
+    assert set(level[: len(cloud)]) == {0} and set(level[len(cloud):]) == {-3}
+    assert drop_isolated(both, groups=level)[: len(cloud)].mean() > 0.9
+    assert drop_isolated(both)[: len(cloud)].mean() < 0.7     # judged against the zoom's density

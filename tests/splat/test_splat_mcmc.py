@@ -171,3 +171,30 @@ def test_regulariser_is_differentiable():
         v.requires_grad_(True)
     mcmc_regulariser(m, MCMCConfig()).backward()
     assert (m.params["opacities"].grad > 0).all() and (m.params["scales"].grad > 0).all()
+
+
+def test_moving_weight_spends_growth_on_the_performers():
+    """Half the Gaussians static (unbounded lifespan), half moving, same opacities: growth copies
+    sources ∝ opacity (about half moving) unless ``moving_weight`` favours the moving ones; with
+    weight 1 the draws are exactly those of a config without the field."""
+    from volcap_core.splat.model import STATIC_LOG_LAMBDA
+
+    def grown_moving(weight: float) -> tuple[int, torch.Tensor]:
+        m = _model(n=400)
+        m.params["opacities"].fill_(0.0)
+        m.params["log_lambdas"][:200] = STATIC_LOG_LAMBDA
+        before = m.params["means"].detach().clone()
+        n = add_gaussians(m, None, MCMCConfig(grow_rate=0.5, moving_weight=weight), torch.Generator().manual_seed(3))
+        new = m.params["means"][-n:]
+        src = torch.cdist(new, before).argmin(dim=1)      # each copy sits on its source
+        return int((src >= 200).sum()), new
+
+    even, new_even = grown_moving(1.0)
+    favoured, _ = grown_moving(9.0)
+    assert 70 <= even <= 130                      # ~half of 200
+    assert favoured >= 170                        # ~90 %
+    m = _model(n=400)
+    m.params["opacities"].fill_(0.0)
+    m.params["log_lambdas"][:200] = STATIC_LOG_LAMBDA
+    n = add_gaussians(m, None, MCMCConfig(grow_rate=0.5), torch.Generator().manual_seed(3))
+    assert torch.equal(m.params["means"][-n:], new_even)

@@ -74,6 +74,20 @@ class QualityPreset(BaseModel):
     refine_stop: int = Field(_MCMC["refine_stop"].default, ge=0, description="no refinement from this step on")
     train_scale: float = Field(1.0, gt=0, le=1, description="training resolution / capture")
     sh_degree: int = Field(3, ge=0, le=3)
+    # -- where the Gaussians go (issue 28: the performers at the tracking cameras' resolution;
+    #    docs/poly4dgs.md "Performers at the tracking cameras' resolution")
+    init_static_share: float = Field(_TRAIN["init_static_share"].default, ge=0, le=1,
+                                     description="share of the initial budget for the static pool")
+    init_zoom_stride_px: int | None = Field(_TRAIN["init_zoom_stride_px"].default, gt=0,
+                                            description="the zoom cameras' points every N pixels (None: off)")
+    init_finest_level: int = Field(_TRAIN["init_finest_level"].default, ge=-4, le=0,
+                                   description="moving points thinned up to 2^-N times finer where a camera resolves finer")
+    init_moving_scale_px: float | None = Field(_TRAIN["init_moving_scale_px"].default, gt=0,
+                                               description="moving Gaussians' initial scale cap, in finest footprints")
+    performer_view_weight: float = Field(_TRAIN["performer_view_weight"].default, ge=0,
+                                         description="camera schedule weight of the views' performer coverage")
+    moving_weight: float = Field(_MCMC["moving_weight"].default, gt=0,
+                                 description="MCMC relocation/growth weight of moving Gaussians")
     # -- segments
     gaussians_per_frame: int = Field(gt=0, description="Gaussians a segment needs per frame")
     max_gaussians_per_segment: int | None = Field(None, gt=0)
@@ -204,14 +218,16 @@ class QualityPreset(BaseModel):
         if degrees not in DEGREES:
             raise ValueError(f"unknown model degrees {degrees!r}: choose one of {', '.join(DEGREES)}")
         mcmc: dict[str, Any] = {"refine_start": self.refine_start, "refine_every": self.refine_every,
-                                "refine_stop": self.refine_stop}
+                                "refine_stop": self.refine_stop, "moving_weight": self.moving_weight}
         if isinstance(overrides.get("mcmc"), dict):
             mcmc.update(overrides.pop("mcmc"))
         values: dict[str, Any] = {
             "steps": self.train_steps, "grid_size": self.grid_size, "eval_every": self.eval_every,
             "eval_max_views": self.eval_max_views, "checkpoint_every": self.checkpoint_every,
             "image_scale": self.train_scale, "model": DEGREES[degrees](sh_degree=self.sh_degree),
-            "held_out_cameras": list(held_out)}
+            "held_out_cameras": list(held_out), "init_static_share": self.init_static_share,
+            "init_zoom_stride_px": self.init_zoom_stride_px, "init_finest_level": self.init_finest_level,
+            "init_moving_scale_px": self.init_moving_scale_px, "performer_view_weight": self.performer_view_weight}
         if max_gaussians is not None:
             mcmc["cap_max"] = max_gaussians
             values["init_max_points"] = max_gaussians

@@ -30,8 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["InitSplit", "classify_static", "colour_scan", "drop_isolated", "initial_gaussians",
-           "neighbour_scale", "voxel_thin"]
+__all__ = ["InitSplit", "classify_static", "colour_scan", "drop_isolated", "finest_footprint",
+           "footprint_levels", "initial_gaussians", "neighbour_scale", "voxel_thin", "zoom_points"]
 
 
 def neighbour_scale(xyz: np.ndarray, k: int = 3) -> np.ndarray:
@@ -45,6 +45,90 @@ def neighbour_scale(xyz: np.ndarray, k: int = 3) -> np.ndarray:
     d, _ = cKDTree(xyz).query(xyz, k=kk + 1)
     d = d[:, 1:]
     return np.maximum(np.sqrt((d * d).mean(axis=1)), 1e-7)
+
+
+def finest_footprint(xyz: np.ndarray, cameras: Sequence[tuple[np.ndarray, np.ndarray, int, int]]) -> np.ndarray:
+    """``[N]`` metres: the smallest pixel footprint (depth / focal length) of a point over the
+    cameras whose image it falls in; inf for a point no camera sees.
+
+    ``cameras``: ``(K [3, 3] OpenCV, world_to_camera [4, 4], width, height)``. What a tracking
+    camera framing a face resolves there: its footprint is 4-8× finer than a static camera's.
+    """
+    xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
+    out = np.full(len(xyz), np.inf)
+    for K, W, w, h in cameras:
+        pc = xyz @ np.asarray(W)[:3, :3].T + np.asarray(W)[:3, 3]
+        z = pc[:, 2]
+        ok = z > 0.1
+        uv = np.zeros((len(xyz), 2))
+        uv[ok] = pc[ok, :2] / z[ok, None] @ np.asarray(K)[:2, :2].T + np.asarray(K)[:2, 2]
+        ok &= (uv[:, 0] >= -0.5) & (uv[:, 0] < w - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] < h - 0.5)
+        f = float(np.sqrt(K[0][0] * K[1][1]))
+        out[ok] = np.minimum(out[ok], z[ok] / f)
+    return out
+
+
+def footprint_levels(footprint: np.ndarray, coarse: float, finest_level: int) -> np.ndarray:
+    """``[N]`` int levels for :func:`voxel_thin`: ``floor(log2(footprint / coarse))`` clipped to
+    ``[finest_level, 0]`` (0 where the footprint is inf or at least ``coarse``)."""
+    f = np.asarray(footprint, np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        lv = np.floor(np.log2(f / coarse))
+    lv = np.where(np.isfinite(lv), lv, 0)
+    return np.clip(lv, finest_level, 0).astype(np.int64)
+
+
+def zoom_points(xyz: np.ndarray, K: np.ndarray, world_to_camera: np.ndarray, image: np.ndarray, *,
+                stride_px: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points at a camera's own resolution on the surface of a cloud: the camera's view of the
+    cloud's surface, sampled every ``stride_px`` pixels and coloured by its footage.
+
+    The cloud (``xyz [P, 3]`` metres, e.g. a frame's performers from the static cameras' sweep) is
+    z-buffered into the camera, each point splatted over about half its neighbour spacing so the
+    surface closes, the splat's growth at the silhouette eroded away again; each sampled pixel
+    is lifted to the buffer's depth and takes the mean footage colour of its ``stride_px``²
+    block. A tracking camera framing a face resolves it 4-8× finer than the sweep's spacing: its
+    points carry what the dense points cannot (eyes, brows, hair pattern).
+
+    Args:
+        K: ``[3, 3]`` OpenCV intrinsics (top-left pixel centre at 0). world_to_camera: ``[4, 4]``.
+        image: ``[H, W, 3]`` linear footage of that camera at the cloud's frame.
+    Returns:
+        ``(xyz [M, 3], rgb [M, 3] linear, footprint [M] metres per pixel)``.
+    """
+    from scipy.ndimage import binary_erosion
+
+    from volcap_core.calibration.lidar import depth_buffer
+
+    h, w = image.shape[:2]
+    xyz = np.asarray(xyz, np.float64).reshape(-1, 3)
+    W = np.asarray(world_to_camera, np.float64)
+    K = np.asarray(K, np.float64)
+    empty = (np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0))
+    if len(xyz) < 2:
+        return empty
+    z = xyz @ W[2, :3] + W[2, 3]
+    front = z > 0.1
+    if not front.any():
+        return empty
+    spacing_px = neighbour_scale(xyz)[front] * float(K[0, 0]) / z[front]
+    splat = int(min(32, max(1, math.ceil(0.5 * float(np.median(spacing_px))))))
+    zbuf = depth_buffer(K, W, w, h, xyz, splat_px=splat)
+    inside = binary_erosion(np.isfinite(zbuf), structure=np.ones((2 * splat + 1, 2 * splat + 1), bool))
+    s = max(1, int(stride_px))
+    hh, ww = h // s, w // s
+    blocks = np.asarray(image[: hh * s, : ww * s, :3], np.float64).reshape(hh, s, ww, s, 3).mean(axis=(1, 3))
+    vv, uu = np.mgrid[0:hh, 0:ww]
+    u = uu * s + 0.5 * (s - 1)     # the block's centre, OpenCV pixel coordinates
+    v = vv * s + 0.5 * (s - 1)
+    ci, cj = np.minimum(np.round(v).astype(np.int64), h - 1), np.minimum(np.round(u).astype(np.int64), w - 1)
+    keep = inside[ci, cj]
+    d = zbuf[ci, cj][keep]
+    rays = np.linalg.solve(K, np.stack([u[keep], v[keep], np.ones_like(d)]))      # [3, M], z = 1
+    cam = rays * d
+    world = (W[:3, :3].T @ (cam - W[:3, 3:4])).T
+    foot = d / float(np.sqrt(K[0, 0] * K[1, 1]))
+    return world, blocks[keep], foot
 
 
 def classify_static(frames: Sequence[np.ndarray], *,
@@ -83,24 +167,39 @@ def classify_static(frames: Sequence[np.ndarray], *,
     return out
 
 
-def drop_isolated(xyz: np.ndarray, *, neighbours: int = 8, factor: float = 3.0) -> np.ndarray:
+def drop_isolated(xyz: np.ndarray, *, neighbours: int = 8, factor: float = 3.0,
+                  groups: np.ndarray | None = None) -> np.ndarray:
     """``[N]`` bool: points whose distance to their ``neighbours``-th nearest neighbour is at most
     ``factor`` × the median of that distance over the cloud (scale-free: a cloud in millimetres or
     kilometres, sparse or dense, is judged against its own density). Clouds of at most
-    ``neighbours`` points are kept whole."""
+    ``neighbours`` points are kept whole.
+
+    ``groups [N]`` (ints, or None): each point is judged against the median of its own group, so
+    a dense part (a zoom camera's points, :func:`footprint_levels`) does not make the sweep's
+    coarser points look isolated."""
     from scipy.spatial import cKDTree
 
     if len(xyz) <= neighbours:
         return np.ones(len(xyz), bool)
     d, _ = cKDTree(xyz).query(xyz, k=neighbours + 1)
     dk = d[:, -1]
-    return dk <= factor * np.median(dk)
+    if groups is None:
+        return dk <= factor * np.median(dk)
+    limit = np.empty(len(xyz))
+    for g in np.unique(groups):
+        limit[groups == g] = factor * np.median(dk[groups == g])
+    return dk <= limit
 
 
-def voxel_thin(xyz: np.ndarray, budget: int, rng: np.random.Generator) -> np.ndarray:
+def voxel_thin(xyz: np.ndarray, budget: int, rng: np.random.Generator,
+               level: np.ndarray | None = None) -> np.ndarray:
     """Indices of at most ``budget`` points spread evenly in space: one random point per cell of
     the coarsest-needed cubic grid (bisected on the cell size), topped up at random if the grid
-    leaves room. Deterministic for a seeded ``rng``."""
+    leaves room. Deterministic for a seeded ``rng``.
+
+    ``level [N]`` (ints <= 0, or None: all 0): a point of level ``-k`` is thinned on a grid
+    ``2^k`` times finer, so where a camera resolves finer (:func:`footprint_levels`) more points
+    are kept."""
     n = len(xyz)
     if n <= budget:
         return np.arange(n)
@@ -110,13 +209,19 @@ def voxel_thin(xyz: np.ndarray, budget: int, rng: np.random.Generator) -> np.nda
     pts = xyz[order]
     extent = float(np.max(pts.max(0) - pts.min(0))) or 1.0
     lo, hi = extent * 1e-4, extent
+    lev = None if level is None or not np.any(level) else np.asarray(level, np.int64)[order]
 
     origin = pts.min(0)
 
     def pick(cell: float) -> np.ndarray:
-        ijk = np.floor((pts - origin) / cell).astype(np.int64)
+        if lev is None:
+            ijk = np.floor((pts - origin) / cell).astype(np.int64)
+        else:
+            ijk = np.floor((pts - origin) / (cell * np.exp2(lev))[:, None]).astype(np.int64)
         dims = ijk.max(0) + 1
         keys = (ijk[:, 0] * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]   # one int64 per cell
+        if lev is not None:
+            _, keys = np.unique(np.stack([keys, lev], 1), axis=0, return_inverse=True)
         _, first = np.unique(keys, return_index=True)
         return np.sort(first)
 
@@ -156,13 +261,15 @@ class InitSplit:
         return {"static": int(self.static.sum()), "moving": int((~self.static).sum())}
 
 
-def initial_gaussians(frames: Sequence[tuple[float, np.ndarray, np.ndarray, np.ndarray | None]], *,
+def initial_gaussians(frames: Sequence[tuple], *,
                       budget: int, static_share: float = 0.6, scale_factor: float = 0.5,
-                      max_scale_ratio: float = 4.0, seed: int = 0) -> InitSplit:
+                      max_scale_ratio: float = 4.0, seed: int = 0,
+                      moving_scale_px: float | None = None, finest_level: int = 0) -> InitSplit:
     """Pool and thin a segment's points into at most ``budget`` initial Gaussians.
 
     Args:
-        frames: per frame ``(time_s, xyz [P, 3], rgb [P, 3] linear, static [P] bool or None)``;
+        frames: per frame ``(time_s, xyz [P, 3], rgb [P, 3] linear, static [P] bool or None)``,
+            optionally a fifth ``footprint [P]`` metres (:func:`finest_footprint`) or None;
             ``static=None`` treats the frame's points as moving.
         budget: most Gaussians in total.
         static_share: fraction of the budget the static pool may take (what it leaves unused
@@ -171,26 +278,35 @@ def initial_gaussians(frames: Sequence[tuple[float, np.ndarray, np.ndarray, np.n
             neighbours in its pool, at most ``max_scale_ratio`` × that pool's median (a lone
             point of a sparse region must not cover a camera's frame).
         seed: thinning randomness.
+        moving_scale_px: a moving Gaussian's initial scale is at most this × its point's
+            footprint (where the frame gives footprints): the finest camera that sees it
+            resolves detail that the sweep's spacing would blur.
+        finest_level: moving points are thinned on grids up to ``2^-finest_level`` times finer
+            where a camera resolves finer than the frame's 90th-percentile footprint
+            (:func:`footprint_levels`); 0: one grid for all.
     Returns:
         :class:`InitSplit`.
     """
     rng = np.random.default_rng(seed)
     s_xyz, s_rgb, m_parts = [], [], []
-    for time_s, xyz, rgb, static in frames:
+    for time_s, xyz, rgb, static, *more in frames:
         xyz, rgb = np.asarray(xyz, np.float64).reshape(-1, 3), np.asarray(rgb, np.float64).reshape(-1, 3)
         st = np.zeros(len(xyz), bool) if static is None else np.asarray(static, bool)
+        foot = more[0] if more and more[0] is not None else np.full(len(xyz), np.inf)
         s_xyz.append(xyz[st])
         s_rgb.append(rgb[st])
-        moving = xyz[~st]
-        keep = drop_isolated(moving)
-        m_parts.append((float(time_s), moving[keep], rgb[~st][keep]))
+        moving, m_foot = xyz[~st], np.asarray(foot, np.float64)[~st]
+        level = _levels(m_foot, finest_level)
+        keep = drop_isolated(moving, groups=level)
+        m_parts.append((float(time_s), moving[keep], rgb[~st][keep], m_foot[keep],
+                        None if level is None else level[keep]))
     s_xyz_all = np.concatenate(s_xyz) if s_xyz else np.zeros((0, 3))
     s_rgb_all = np.concatenate(s_rgb) if s_rgb else np.zeros((0, 3))
     # the same static point given by several frames is one point (a scan repeated per frame)
     _, first = np.unique(s_xyz_all, axis=0, return_index=True)
     first = np.sort(first)
     s_xyz_all, s_rgb_all = s_xyz_all[first], s_rgb_all[first]
-    n_moving_avail = sum(len(x) for _, x, _ in m_parts)
+    n_moving_avail = sum(len(p[1]) for p in m_parts)
     static_budget = min(len(s_xyz_all), max(int(static_share * budget), budget - n_moving_avail))
     idx = voxel_thin(s_xyz_all, static_budget, rng)
     parts_xyz = [s_xyz_all[idx]]
@@ -200,20 +316,33 @@ def initial_gaussians(frames: Sequence[tuple[float, np.ndarray, np.ndarray, np.n
     times = [f[0] for f in frames]
     mid = 0.5 * (min(times) + max(times)) if times else 0.0
     parts_t0 = [np.full(n_static, mid)]
-    shares = _fair_shares([len(x) for _, x, _ in m_parts], budget - n_static)
-    for (time_s, xyz, rgb), share in zip(m_parts, shares):
+    shares = _fair_shares([len(p[1]) for p in m_parts], budget - n_static)
+    for (time_s, xyz, rgb, foot, level), share in zip(m_parts, shares):
         if share == 0:
             continue
-        k = voxel_thin(xyz, share, rng)
+        k = voxel_thin(xyz, share, rng, level)
         parts_xyz.append(xyz[k])
         parts_rgb.append(rgb[k])
-        parts_scale.append(_capped(neighbour_scale(xyz[k]), max_scale_ratio))
+        sc = scale_factor * _capped(neighbour_scale(xyz[k]), max_scale_ratio)
+        if moving_scale_px is not None:
+            sc = np.minimum(sc, moving_scale_px * foot[k])
+        parts_scale.append(sc)
         parts_t0.append(np.full(len(k), time_s))
+    parts_scale[0] = scale_factor * parts_scale[0]
     xyz = np.concatenate(parts_xyz)
-    scale = scale_factor * np.concatenate(parts_scale)
+    scale = np.concatenate(parts_scale)
     static = np.zeros(len(xyz), bool)
     static[:n_static] = True
     return InitSplit(xyz, np.concatenate(parts_rgb), scale, np.concatenate(parts_t0), static)
+
+
+def _levels(footprint: np.ndarray, finest_level: int) -> np.ndarray | None:
+    """A frame's moving points' :func:`footprint_levels` against its 90th-percentile footprint
+    (the static cameras' resolution), or None when levels are off or no point has a footprint."""
+    finite = np.isfinite(footprint)
+    if finest_level >= 0 or not finite.any():
+        return None
+    return footprint_levels(footprint, float(np.percentile(footprint[finite], 90)), finest_level)
 
 
 def _fair_shares(available: Sequence[int], budget: int) -> list[int]:

@@ -37,7 +37,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 
 from volcap_core.checkpoint import AdamState
-from volcap_core.splat.model import LOG_SCALE_MAX, LOG_SCALE_MIN, Poly4DGS
+from volcap_core.splat.model import LOG_SCALE_MAX, LOG_SCALE_MIN, STATIC_LOG_LAMBDA, Poly4DGS
 from volcap_core.splat.rasterize import quat_scale_to_covar
 
 __all__ = ["MCMCConfig", "add_gaussians", "inject_noise", "mcmc_regulariser", "relocate_dead",
@@ -56,6 +56,9 @@ class MCMCConfig(BaseModel):
     opacity_reg: float = Field(0.01, ge=0)
     scale_reg: float = Field(0.01, ge=0)
     max_ratio: int = Field(51, ge=2, description="cap on N, the split count of one Gaussian")
+    moving_weight: float = Field(1.0, gt=0, description="relocation and growth sample a moving Gaussian "
+                                 "(finite lifespan) with this times the weight of a static one of the same "
+                                 "opacity: > 1 spends the budget on the performers first")
 
     def is_refine_step(self, step: int) -> bool:
         """True after optimiser step ``step`` (1-based) when relocation and growth run."""
@@ -119,6 +122,18 @@ def _sample_by_opacity(o0: torch.Tensor, candidates: torch.Tensor, n: int,
     return candidates[pick.to(candidates.device)]
 
 
+def _source_weight(model: Poly4DGS, o0: torch.Tensor, cfg: MCMCConfig) -> torch.Tensor:
+    """``[N]`` sampling weight of each Gaussian as a relocation/growth source: ``o_0``, times
+    ``cfg.moving_weight`` for the moving ones (a lifespan: ``log λ_1`` above the static value).
+    ``moving_weight`` 1 (or a model without lifespans) returns ``o0`` itself: the draws of every
+    run before the weight existed."""
+    lam = model.params.get("log_lambdas")
+    if cfg.moving_weight == 1.0 or lam is None:
+        return o0
+    moving = lam.detach()[:, 0] > STATIC_LOG_LAMBDA + 10.0
+    return torch.where(moving, o0 * cfg.moving_weight, o0)
+
+
 @torch.no_grad()
 def _split_into(model: Poly4DGS, sampled: torch.Tensor, cfg: MCMCConfig) -> None:
     """Set the opacity and scale of each sampled Gaussian to its share of the split."""
@@ -153,7 +168,7 @@ def relocate_dead(model: Poly4DGS, adam: AdamState | None, cfg: MCMCConfig,
     if n_dead == 0 or len(live) == 0:
         return 0
     dead_idx = torch.nonzero(dead).squeeze(1)
-    sampled = _sample_by_opacity(o0, live, n_dead, generator)
+    sampled = _sample_by_opacity(_source_weight(model, o0, cfg), live, n_dead, generator)
     if sampled is None:
         return 0
     _split_into(model, sampled, cfg)
@@ -184,8 +199,8 @@ def add_gaussians(model: Poly4DGS, adam: AdamState | None, cfg: MCMCConfig,
         return 0
     p = model.params
     o0 = torch.sigmoid(p["opacities"])
-    sampled = _sample_by_opacity(o0, torch.nonzero(_sampleable(model)).squeeze(1), n_new,
-                                 generator)
+    sampled = _sample_by_opacity(_source_weight(model, o0, cfg), torch.nonzero(_sampleable(model)).squeeze(1),
+                                 n_new, generator)
     if sampled is None:
         return 0
     _split_into(model, sampled, cfg)

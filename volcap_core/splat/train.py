@@ -56,6 +56,7 @@ from volcap_core.splat.model import (
     evaluate,
 )
 from volcap_core.splat.render import BackendChoice, render, resolve_backend
+from volcap_core.splat.schedule import draw_view, view_weights
 from volcap_core.splat.scoring import ViewScore, score_views, summarise
 
 __all__ = [
@@ -196,6 +197,10 @@ class PointsAtTime:
     xyz: torch.Tensor
     rgb: torch.Tensor
     static: torch.Tensor | None = None
+    #: ``[P]`` metres, the finest pixel footprint of a training camera that sees each point
+    #: (:func:`volcap_core.splat.init.finest_footprint`), or None; read with
+    #: ``TrainConfig.init_moving_scale_px``
+    footprint: torch.Tensor | None = None
 
 
 # --------------------------------------------------------------------------------------- config
@@ -267,6 +272,17 @@ class TrainConfig(BaseModel):
                                      "nearest neighbours")
     init_max_scale_ratio: float = Field(4.0, gt=0, description="cap on the initial scale, × the "
                                         "median initial scale of its pool")
+    init_moving_scale_px: float | None = Field(None, gt=0, description="cap on a moving Gaussian's initial "
+                                               "scale, in pixel footprints of the finest training camera that "
+                                               "sees its point (PointsAtTime.footprint); None: no cap")
+    init_zoom_stride_px: int | None = Field(None, gt=0, description="add to each frame's moving points "
+                                            "the training cameras that resolve them finer than their spacing, "
+                                            "sampled every this many pixels (splat.init.zoom_points); None: off")
+    init_finest_level: int = Field(0, ge=-4, le=0, description="moving points thinned on grids up to 2^-this "
+                                   "times finer where a camera resolves finer (splat.init.footprint_levels)")
+    performer_view_weight: float = Field(0.0, ge=0, description="camera schedule: a training view is drawn "
+                                         "with probability ∝ 1 + this × the share of its pixels seeing the "
+                                         "performers (splat.schedule); 0: uniform")
     time_scale_s: float | None = Field(None, gt=0, description="default: half the segment")
     checkpoint_every: int = Field(1000, ge=0)
     eval_every: int = Field(1000, ge=0, description="0: only at the end")
@@ -318,12 +334,18 @@ def init_model(points: Sequence[PointsAtTime], config: TrainConfig, *, frame_int
     if not points or sum(len(p.xyz) for p in points) == 0:
         raise ValueError("no initial points: the segment's dense point clouds are empty")
     seed = int(torch.randint(2 ** 31 - 1, (1,), generator=generator)) if generator is not None else 0
+    if ((config.init_moving_scale_px is not None or config.init_finest_level < 0)
+            and any(p.footprint is None for p in points)):
+        raise ValueError("init_moving_scale_px and init_finest_level need every initial cloud's footprint "
+                         "(PointsAtTime.footprint)")
     frames = [(p.time, p.xyz.double().numpy(), p.rgb.double().numpy(),
-               None if p.static is None else p.static.numpy()) for p in points]
+               None if p.static is None else p.static.numpy(),
+               None if p.footprint is None else p.footprint.double().numpy()) for p in points]
     split = initial_gaussians(frames, budget=init_budget(config), static_share=config.init_static_share,
                               scale_factor=config.init_scale_factor,
                               max_scale_ratio=config.init_max_scale_ratio,
-                              seed=seed)
+                              seed=seed, moving_scale_px=config.init_moving_scale_px,
+                              finest_level=config.init_finest_level)
     if len(split.xyz) == 0:
         raise ValueError("no initial points left after dropping isolated moving points")
     rgb = torch.from_numpy(split.rgb).float()
@@ -601,6 +623,8 @@ def train_segment(views: SegmentData, init_points: Sequence[PointsAtTime], confi
     if not train_views:
         raise ValueError("no training views left after holding out cameras")
     train_cams = sorted({v.camera_id for v in train_views})
+    weights = view_weights(train_views, init_points, config.performer_view_weight)
+    weights = None if weights is None else torch.from_numpy(weights)
     scene_scale = _scene_scale([v.camera for v in train_views])
     frame_dt = frame_interval(views.times)
     seg_len = max(views.times) - min(views.times)
@@ -640,7 +664,7 @@ def train_segment(views: SegmentData, init_points: Sequence[PointsAtTime], confi
         t_start = time.perf_counter()
         step = state.step + 1
         model = state.model
-        view = train_views[int(torch.randint(len(train_views), (1,), generator=state.generator))]
+        view = train_views[draw_view(len(train_views), weights, state.generator)]
         target = view.load().to(device)
         lrs = learning_rates(config, step, scene_scale, time_scale, model)
         for p in (*model.params.values(), *grid_params.values()):
