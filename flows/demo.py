@@ -2,7 +2,8 @@
 
 ingest → calibrate (static cameras, tracking cameras, dense points of the frames reconstructed) →
 reconstruct (Poly4DGS, one segment of the first 8 frames to the preset's Gaussian budget, on the
-estimated calibration, scored on a held-out camera against the empty- and untrained-model floors) → the segment's contact sheet
+estimated calibration, scored on held-out cameras (the demo preset holds out one static and one tracking
+camera: S004 and S010) against the empty- and untrained-model floors) → the segment's contact sheet
 (footage | render | error) as ``demo/contact_sheet.png``, a held-out camera's view at the segment's
 middle rendered to EXR and the Gaussians there exported as PLY; the calibration's error against the
 capture's ground truth is reported; then the product (issue 27), a production on the demo capture:
@@ -250,7 +251,8 @@ def check_segment_reused(prod, seg: SegmentModel, record: Capture, spec_path: Pa
         raise ValueError(f"{spec_path}: the production plans segments {frames}, not the demo's {tuple(seg.frames)}: "
                          "it would train them anew")
     # as flows.production.run_train_segments builds it
-    config = prod.spec.quality_preset().train_config(held_out=reconstruction.default_held_out(record),
+    quality = prod.spec.quality_preset()
+    config = quality.train_config(held_out=reconstruction.default_held_out(record, tracking=quality.held_out_tracking),
                                                      max_gaussians=steps[0].parameters.gaussians)
     planned = config.model_dump(mode="json")
     differ = sorted(k for k in set(planned) | set(seg.config) if planned.get(k) != seg.config.get(k))

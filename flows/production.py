@@ -511,7 +511,8 @@ def run_dense_points(run: ProductionRun, steps: list[Step]) -> None:
     a, b = p.frames
     points = point_cloud_for_frames(run.prod.store, run.capture(p.capture), run.calibration(p.capture),
                                     list(range(a, b)), scale=p.dense_scale,
-                                    exclude_cameras=reconstruction.default_held_out(run.record(p.capture)))
+                                    exclude_cameras=reconstruction.default_held_out(
+                                        run.record(p.capture), tracking=run.quality.held_out_tracking))
     run.finish(step, {"points": points})
 
 
@@ -520,7 +521,8 @@ def run_train_segments(run: ProductionRun, steps: list[Step]) -> None:
     jobs = []
     for step in steps:
         p = step.parameters
-        config = run.quality.train_config(held_out=reconstruction.default_held_out(run.record(p.capture)),
+        held = reconstruction.default_held_out(run.record(p.capture), tracking=run.quality.held_out_tracking)
+        config = run.quality.train_config(held_out=held,
                                           max_gaussians=p.gaussians)
         jobs.append(SegmentJob(capture=run.capture(p.capture), calibration=run.calibration(p.capture),
                                points=run.output(step, "dense-points", "points"), frames=p.frames, config=config))

@@ -118,7 +118,8 @@ def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = 
                                                                  min_pair_inliers=min_pair_inliers),
                                       known, tracking_calibration_options(allow_unregistered))
     held = (held_out if held_out is not None
-            else reconstruction.default_held_out(cap, calibration=s.get_record(calib_ref, Calibration), tracking=1))
+            else reconstruction.default_held_out(cap, calibration=s.get_record(calib_ref, Calibration),
+                                                 tracking=named_preset(preset).held_out_tracking))
     # held-out cameras take no part in the initial points: their footage must not reach the model
     if points:
         points_ref = s.resolve(points)

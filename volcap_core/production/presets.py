@@ -42,7 +42,9 @@ DEGREES = {"poly4dgs": Poly4DGSConfig.paper, "rotor4d": Poly4DGSConfig.rotor4d, 
 
 #: The preset fields that shape a segment's TrainConfig (a train-segment step carries them).
 TRAINING_FIELDS = ("train_steps", "grid_size", "eval_every", "eval_max_views", "checkpoint_every",
-                   "refine_start", "refine_every", "refine_stop", "train_scale", "sh_degree")
+                   "refine_start", "refine_every", "refine_stop", "train_scale", "sh_degree", "held_out_tracking",
+                   "init_static_share", "init_zoom_stride_px", "init_finest_level", "init_moving_scale_px",
+                   "performer_view_weight", "moving_weight")
 
 #: The preset fields that shape the enhancer's training (a train-enhancer step carries them).
 ENHANCER_TRAINING_FIELDS = ("enhancer_architecture", "enhancer_weights", "enhancer_steps", "enhancer_finetune",
@@ -89,6 +91,10 @@ class QualityPreset(BaseModel):
     moving_weight: float = Field(_MCMC["moving_weight"].default, gt=0,
                                  description="MCMC relocation/growth weight of moving Gaussians")
     # -- segments
+    held_out_tracking: int = Field(0, ge=0, description="tracking cameras held out of every segment for "
+                                   "scoring, beside one static camera (reconstruction.default_held_out); the "
+                                   "demo holds one out (issue 28 scores a held-out zoom view), a production none "
+                                   "(every close-up camera trains)")
     gaussians_per_frame: int = Field(gt=0, description="Gaussians a segment needs per frame")
     max_gaussians_per_segment: int | None = Field(None, gt=0)
     gpu_memory_gb: float | None = Field(None, gt=0, description="GPU a segment must fit (GiB)")
@@ -276,7 +282,8 @@ PRESETS: dict[str, QualityPreset] = {
     # 8-frame segment) that fit its time target; the measurements: docs/poly4dgs.md "The demo"
     "demo": QualityPreset(train_steps=550, grid_size=8, eval_every=110, eval_max_views=4, checkpoint_every=110,
                           refine_start=100, refine_every=100, refine_stop=500,
-                          gaussians_per_frame=10_000, max_gaussians_per_segment=80_000, overlap=2, **_CPU_FACE),
+                          gaussians_per_frame=10_000, max_gaussians_per_segment=80_000, overlap=2,
+                          held_out_tracking=1, **_CPU_FACE),
     # dailies: half resolution, short training, one 24 GB GPU per segment
     "preview": QualityPreset(train_steps=3_000, eval_every=500, checkpoint_every=500,
                              refine_start=300, refine_every=100, refine_stop=2_500,
