@@ -40,12 +40,20 @@ def api_env(prefect_api):
     return {**os.environ, "PREFECT_API_URL": PREFECT_API_URL.value(), "PREFECT_LOGGING_LEVEL": "INFO"}
 
 
+def _as_from_a_terminal() -> None:
+    """The command starts with SIGINT at its default, as from a terminal, whatever the suite was
+    started with: a suite run as a background job of a non-interactive shell (``make test &``)
+    passes SIGINT ignored down to its children, and volcap rightly keeps it ignored then
+    (:func:`test_a_sigint_ignored_at_start_stays_ignored`)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 class Running:
     """A ``volcap`` command as a subprocess, its stdout read line by line as it comes."""
 
     def __init__(self, args: list[str], env: dict) -> None:
         self.proc = subprocess.Popen([*VOLCAP, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                     text=True, env=env, cwd=REPO)
+                                     text=True, env=env, cwd=REPO, preexec_fn=_as_from_a_terminal)
         self.lines: list[str] = []
         self._queue: queue.Queue[str | None] = queue.Queue()
         threading.Thread(target=self._read, daemon=True).start()
@@ -183,7 +191,7 @@ def test_sigint_stops_a_command_without_a_flow_with_the_one_line(tmp_path):
     """Every command, not only flows: ``volcap synth`` rendering frames."""
     out = tmp_path / "cap"
     proc = subprocess.Popen([*VOLCAP, "synth", str(out), "--frames", "48", "--json"], cwd=REPO, text=True,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, preexec_fn=_as_from_a_terminal)
     _first_file(out, proc)
     t0 = time.monotonic()
     proc.send_signal(signal.SIGINT)
