@@ -9,12 +9,10 @@ camera pair is refused as before. ~25 s on 2 cores (steps 1-4 only).
 from __future__ import annotations
 
 import logging
-from dataclasses import replace
 
 import cv2  # noqa: F401  (before pycolmap)
 import pytest
 
-from volcap_core.calibration.errors import UnsupportedCameraError
 from volcap_core.calibration.lidar import LidarScan
 from volcap_core.calibration.metrics import load_ground_truth, static_errors
 from volcap_core.calibration.static import StaticCalibrationOptions, calibrate_static_cameras
