@@ -162,10 +162,7 @@ class CameraSource(BaseModel):
     def _without_absent_video(self, handler):
         # a camera without video settings serialises as it did before the field existed, so the
         # cache keys of image-sequence ingests stay what they were
-        out = handler(self)
-        if self.video is None and isinstance(out, dict):
-            out.pop("video", None)
-        return out
+        return omit_unset(handler(self), ("video",))
 
     @property
     def is_video(self) -> bool:
@@ -299,10 +296,7 @@ class CaptureCamera(BaseModel):
 
     @model_serializer(mode="wrap")
     def _without_absent_video(self, handler):
-        out = handler(self)
-        if self.source_video is None and isinstance(out, dict):
-            out.pop("source_video", None)
-        return out
+        return omit_unset(handler(self), ("source_video",))
 
 
 class Capture(Record):
