@@ -458,11 +458,10 @@ def _synthesize(out_dir: Path, rig_name: str | Path, seed: int, frames: int, kin
     if performer is not None:
         performer = {**performer, "head_height_m": round(_face_rig_head_height(rig), 6)}
     if kind == "face":
-        stage = build_face_stage(rig, _rng(seed, "stage"))
         actors = [_face_performer(performer, seed) if performer is not None else _face_actor(seed)]
     else:
-        stage = build_room_stage(rig, _rng(seed, "stage"))
         actors = _scene_actors(rig.stage_size_m, seed, n_actors)
+    stage = _stage(rig, kind, seed)
     world = World(stage, actors)
     plans = _plans(rig, seed, [a.path_centre for a in actors], cameras, lens_error)
     fps = rig.fps
@@ -605,9 +604,12 @@ def synthetic_world(scene: Mapping, rig: Rig | None = None) -> World:
     rig = load_rig(scene["rig"]) if rig is None else rig
     if rig.name != scene["rig"]:
         raise ValueError(f"scene.json was rendered with rig {scene['rig']!r}, not {rig.name!r}")
-    seed, kind = int(scene["seed"]), scene["kind"]
-    if kind == "face":
-        return World(build_face_stage(rig, _rng(seed, "stage")), scene_actors_of(scene))
-    if kind == "scene":
-        return World(build_room_stage(rig, _rng(seed, "stage")), scene_actors_of(scene))
-    raise ValueError(f"scene.json: unknown kind {kind!r} (scene or face)")
+    if scene["kind"] not in ("scene", "face"):
+        raise ValueError(f"scene.json: unknown kind {scene['kind']!r} (scene or face)")
+    return World(_stage(rig, scene["kind"], int(scene["seed"])), scene_actors_of(scene))
+
+
+def _stage(rig: Rig, kind: str, seed: int):
+    """The set of a ``kind`` ("scene" or "face") capture from its seed: the one stream that both
+    the synthesizer and the rebuilt world draw it from."""
+    return (build_face_stage if kind == "face" else build_room_stage)(rig, _rng(seed, "stage"))
