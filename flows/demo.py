@@ -37,13 +37,12 @@ import yaml
 from prefect import flow, get_run_logger
 
 from flows.ingest import ingest_flow
-from flows.production import open_production, production_flow
+from flows.production import open_production, production_flow, segment_train_config
 from flows.reconstruct import reconstruct_flow
 from flows.truth import truth_flow
 from tasks.calibrate import calibration_errors
 from tasks.production import score_shot
 from tasks.reconstruct import render_views
-from volcap_core import reconstruction
 from volcap_core.capture import Capture
 from volcap_core.enhance.production import EnhancerModel
 from volcap_core.segment import ViewSpec, tracking_frames
@@ -250,10 +249,7 @@ def check_segment_reused(prod, seg: SegmentModel, record: Capture, spec_path: Pa
     if frames != [tuple(seg.frames)]:
         raise ValueError(f"{spec_path}: the production plans segments {frames}, not the demo's {tuple(seg.frames)}: "
                          "it would train them anew")
-    # as flows.production.run_train_segments builds it
-    quality = prod.spec.quality_preset()
-    config = quality.train_config(held_out=reconstruction.default_held_out(record, tracking=quality.held_out_tracking),
-                                                     max_gaussians=steps[0].parameters.gaussians)
+    config = segment_train_config(prod.spec.quality_preset(), record, steps[0].parameters.gaussians)
     planned = config.model_dump(mode="json")
     differ = sorted(k for k in set(planned) | set(seg.config) if planned.get(k) != seg.config.get(k))
     if differ:

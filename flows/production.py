@@ -516,14 +516,20 @@ def run_dense_points(run: ProductionRun, steps: list[Step]) -> None:
     run.finish(step, {"points": points})
 
 
+def segment_train_config(quality: QualityPreset, record: Capture, gaussians: int) -> TrainConfig:
+    """A train-segment step's TrainConfig: the preset's, its held-out cameras by the preset's rule
+    (:func:`~volcap_core.reconstruction.default_held_out`), at the step's Gaussian budget. The
+    demo checks its segment against this before it runs a production on it."""
+    held = reconstruction.default_held_out(record, tracking=quality.held_out_tracking)
+    return quality.train_config(held_out=held, max_gaussians=gaussians)
+
+
 def run_train_segments(run: ProductionRun, steps: list[Step]) -> None:
     """Every needed segment at once, each to its plan's Gaussian budget."""
     jobs = []
     for step in steps:
         p = step.parameters
-        held = reconstruction.default_held_out(run.record(p.capture), tracking=run.quality.held_out_tracking)
-        config = run.quality.train_config(held_out=held,
-                                          max_gaussians=p.gaussians)
+        config = segment_train_config(run.quality, run.record(p.capture), p.gaussians)
         jobs.append(SegmentJob(capture=run.capture(p.capture), calibration=run.calibration(p.capture),
                                points=run.output(step, "dense-points", "points"), frames=p.frames, config=config))
     run.log.info("training %d segment(s) (%s)", len(jobs), run.mode)
