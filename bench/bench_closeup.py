@@ -15,9 +15,10 @@ are about an enhancer that has learned:
 * the Face Rig capture: ``demo_face`` scaled the same way (640×360), of the Scene Rig's actor 0
   (``actor_of``): the enhancer bench's Face Rig with the Face Rig actor the Scene Rig actor;
 * the enhancer: ``ENHANCER_RUNS[enhancer]`` over the preset, the full run ``long``: the enhancer
-  bench's model and step counts (``small()``, 3000 VAE + 12 000 transformer steps on 128-px crops,
-  8 sampling steps on 128-px tiles; not its VAE stages, rate drop or head windows, which are not
-  preset fields: ``docs/enhancer.md``, "The demo's close-up");
+  bench's recipe through a production's preset fields (``small()``; 3000 VAE steps then its two
+  lower-rate stages; 12 000 transformer steps on 128-px crops with its warm-up and rate drop; 8
+  sampling steps on 128-px tiles; 256-px head windows of the Face Rig frames:
+  ``docs/enhancer.md``, "The demo's close-up");
 * the shot: the demo's close-up (65 mm, 1.5 m, aimed at the head), its width where its pixels on
   the head are no finer than the finest footage's (twice the demo's at twice the pixels).
 

@@ -76,7 +76,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 import multiprocessing as mp
 import os
 import platform
@@ -115,23 +114,6 @@ def _log(msg: str) -> None:
 
 # ------------------------------------------------------------------------------------ data
 
-def head_window(alpha: torch.Tensor, size: int, below_top: int = -8) -> tuple[int, int]:
-    """Top-left ``(y0, x0)`` of a ``size``-square window over the head: its top ``below_top`` px below
-    the highest covered pixel (alpha >= 0.5 in any frame; negative: above it), centred on the
-    covered columns of that window."""
-    h, w = alpha.shape[-2:]
-    cov = (alpha >= 0.5).any(dim=0)
-    if cov.ndim == 3:
-        cov = cov[0]
-    rows = torch.nonzero(cov.any(dim=1)).flatten()
-    y0 = int(rows.min()) + below_top if len(rows) else (h - size) // 2
-    y0 = max(0, min(h - size, y0))
-    cols = torch.nonzero(cov[y0:y0 + size].any(dim=0)).flatten().float()
-    xc = float(cols.mean()) if len(cols) else w / 2
-    x0 = max(0, min(w - size, int(round(xc - size / 2))))
-    return y0, x0
-
-
 def scaled_rig(workdir: Path, rig: str, scale: int) -> str | Path:
     """``rig`` with every camera's pixel grid ``scale`` times finer (``Rig.with_finer_pixels``: the
     same views, ``scale`` times the pixels), written to ``workdir``; ``rig`` itself when ``scale`` is 1."""
@@ -149,6 +131,7 @@ def scaled_rig(workdir: Path, rig: str, scale: int) -> str | Path:
 def make_pairs(workdir: Path, s: dict) -> tuple[list, list, dict]:
     """Synthesize (or reuse) the capture, degrade it, cut the head windows; (train, held-out, info)."""
     from volcap_core.enhance.pairs import PairSet, make_face_pair_sets
+    from volcap_core.enhance.production import head_window
     from volcap_core.synth.synthesize import synthesize_face_capture
 
     cap = workdir / "capture.json"
@@ -164,7 +147,7 @@ def make_pairs(workdir: Path, s: dict) -> tuple[list, list, dict]:
     size = s["size"]
     train, held, windows = [], [], {}
     for p in sets:
-        y0, x0 = head_window(p.hq[:, 3], size, s["window_below_top"])
+        y0, x0 = head_window(p.hq[:, 3].numpy(), size, s["window_below_top"])
         windows[p.name] = [y0, x0]
         win = (slice(None), slice(None), slice(y0, y0 + size), slice(x0, x0 + size))
         cut = PairSet(lq=p.lq[win].contiguous(), hq=p.hq[win].contiguous(), name=p.name)

@@ -66,14 +66,20 @@ CLOSEUP_DISTANCE_M = 1.5
 #: The enhancer's budget (quality fields over the ``demo`` preset's). ``demo``: the preset's
 #: smoke run (the tiny CPU model from random weights, 30 VAE + 20 transformer steps on 2 × 4-frame
 #: sub-sequences of 128-px pairs from 2 cameras): it shows the machinery, not an enhancer that has
-#: learned. ``long``: the enhancer bench's model and step counts (``small()``, 3000 VAE + 12 000
-#: transformer steps on 128-px crops, 8 sampling steps on 128-px tiles) on 3 × 8-frame sub-sequences
-#: of 256-px pairs from 6 cameras: about an hour of CPU (docs/benchmarks.md, "Detail enhancer").
+#: learned. ``long``: the enhancer bench's recipe (bench/bench_enhance.py FULL): the ``small()``
+#: model; 3000 VAE steps at 3e-3 on 64-px crops, then 1500 at 1e-3 and 1500 at 3e-4; 12 000
+#: transformer steps on 128-px crops at 1e-3 after a 50-step warm-up, a fifth of it for the last
+#: third; 8 sampling steps on 128-px tiles from strength 0.4 (the demo preset's); 256-px head
+#: windows at the capture's pixels, from 3 × 8-frame sub-sequences of 6 cameras (the bench's 144
+#: frames): about an hour of CPU (docs/benchmarks.md, "Detail enhancer").
 ENHANCER_RUNS: dict[str, dict[str, Any]] = {
     "demo": {},
     "long": dict(face_subsequences=3, face_subsequence_frames=8, face_camera_paths=6, pair_resolution=256,
-                 enhancer_architecture="small", enhancer_vae_steps=3000, enhancer_steps=12_000, enhancer_crop=128,
-                 enhancer_lr=1e-3, enhancer_checkpoint_every=500, enhancer_sampling_steps=8, enhancer_tile=128),
+                 pair_window="head", enhancer_architecture="small", enhancer_vae_steps=3000,
+                 enhancer_vae_lr=3e-3, enhancer_vae_crop=64, enhancer_vae_stages=((1500, 1e-3), (1500, 3e-4)),
+                 enhancer_steps=12_000, enhancer_crop=128, enhancer_lr=1e-3, enhancer_warmup_steps=50,
+                 enhancer_lr_decay=((8000, 0.2),), enhancer_checkpoint_every=500, enhancer_sampling_steps=8,
+                 enhancer_tile=128),
 }
 
 

@@ -560,7 +560,7 @@ def run_face_pairs(run: ProductionRun, steps: list[Step]) -> None:
     p = step.parameters
     pairs = face_pairs(run.prod.store, run.capture(p.face_capture), p.actor, p.subsequences, p.subsequence_frames,
                        p.camera_paths, p.resolution, lq_gaussians=list(p.lq_gaussians),
-                       hq_gaussians_per_frame=p.hq_gaussians_per_frame)
+                       hq_gaussians_per_frame=p.hq_gaussians_per_frame, window=p.window)
     run.finish(step, {"pairs": pairs})
 
 

@@ -38,15 +38,17 @@ ENHANCER_LIBRARIES = ("torch", "diffusers", "cv2", "numpy")
 INTERIM_PAIRS = "degraded capture frames (interim, until the Face Rig pair dataset lands)"
 
 
-@volcap_task(name="face-pairs", version="1", libraries=("torch", "numpy"))
+@volcap_task(name="face-pairs", version="2", libraries=("torch", "numpy"))
 def face_pairs(store: str, capture: ArtifactRef, actor: str, subsequences: int, subsequence_frames: int,
                camera_paths: int, resolution: int, degradation: PairDegradation = PairDegradation(),
-               lq_gaussians: list[int] | None = None, hq_gaussians_per_frame: int | None = None) -> ArtifactRef:
+               lq_gaussians: list[int] | None = None, hq_gaussians_per_frame: int | None = None,
+               window: str = "performer") -> ArtifactRef:
     """An actor's LQ/HQ pair sequences from the actor's ingested Face Rig ``capture`` (interim
     pairs: :func:`~volcap_core.enhance.production.face_pairs_from_capture`): ``subsequences`` windows
     of ``subsequence_frames`` frames, ``camera_paths`` cameras each, ``resolution`` px square. A
     :class:`~volcap_core.enhance.production.FacePairSet` record, one safetensors per sequence.
-    ``lq_gaussians``/``hq_gaussians_per_frame`` (the pair renders' budgets) are only recorded."""
+    ``lq_gaussians``/``hq_gaussians_per_frame`` (the pair renders' budgets) are only recorded.
+    ``window``: the crop, ``"performer"`` or ``"head"`` (version 2: the parameter is new)."""
     from volcap_core.enhance.production import encode_pair_sequence, face_pairs_from_capture
     from volcap_core.synth import ground_truth
 
@@ -59,7 +61,8 @@ def face_pairs(store: str, capture: ArtifactRef, actor: str, subsequences: int, 
         load_mask = ground_truth.mask_loader(files)
     made = face_pairs_from_capture(cap, s.get_bytes, subsequences=subsequences,
                                    subsequence_frames=subsequence_frames, camera_paths=camera_paths,
-                                   resolution=resolution, degradation=degradation, load_mask=load_mask)
+                                   resolution=resolution, degradation=degradation, load_mask=load_mask,
+                                   window=window)
     seqs = []
     for name, camera, take, pairs in made:
         meta = {"actor": actor, "camera": camera, "frames": take, "capture": capture.digest}
@@ -71,7 +74,7 @@ def face_pairs(store: str, capture: ArtifactRef, actor: str, subsequences: int, 
     return s.put_record(FacePairSet(
         actor=actor, group=actor, capture=capture, method=INTERIM_PAIRS,
         parameters={"subsequences": subsequences, "subsequence_frames": subsequence_frames,
-                    "camera_paths": camera_paths, "resolution": resolution,
+                    "camera_paths": camera_paths, "resolution": resolution, "window": window,
                     "degradation": degradation.model_dump(mode="json"),
                     "lq_gaussians": lq_gaussians, "hq_gaussians_per_frame": hq_gaussians_per_frame},
         sequences=tuple(seqs)))

@@ -264,8 +264,9 @@ def test_enhancer_keys():
         misses={"the capture": {"capture": ref("b")}, "the actor": {"actor": "ben"},
                 "sub-sequences": {"subsequences": 3}, "frames": {"subsequence_frames": 5},
                 "camera paths": {"camera_paths": 1}, "resolution": {"resolution": 64},
-                "the degradation": {"degradation": PairDegradation(scale=2)}},
-        hits={"the default degradation, spelled out": {"degradation": PairDegradation()}})
+                "the degradation": {"degradation": PairDegradation(scale=2)}, "the window": {"window": "head"}},
+        hits={"the default degradation, spelled out": {"degradation": PairDegradation()},
+              "the default window, spelled out": {"window": "performer"}})
     q = named_preset("test")
     arch = q.enhancer_config()
     assert_key_behaviour(

@@ -19,7 +19,7 @@ from flows.production import open_production, plan_production, production_flow
 from flows.runtime import run_flow
 from volcap_core.enhance.production import (EnhanceSettings, EnhancerModel, FacePairSet, decode_pair_sequence,
                                             encode_enhanced_frame, encode_pair_sequence, enhance_shot_frames,
-                                            face_windows, read_shot_frame, square_window)
+                                            face_windows, head_window, read_shot_frame, square_window)
 from volcap_core.store import ArtifactStore
 from volcap_core.synth import synthesize_capture
 
@@ -69,6 +69,77 @@ def test_face_windows_spread_over_the_take_and_square_crops_follow_the_performer
     alpha[10:20, 80:90] = 1.0
     assert square_window(alpha) == (0, 60, 40)               # centred on the performer, inside the frame
     assert square_window(np.zeros((40, 100), np.float32)) == (0, 30, 40)
+
+
+def test_a_head_window_holds_the_head_at_the_capture_pixels_over_every_frame():
+    # a performer whose head top is at row 30 in frame 0 and row 24 in frame 1, centred on column 70
+    alpha = np.zeros((2, 120, 160), np.float32)
+    alpha[0, 30:120, 60:80] = 1.0
+    alpha[1, 24:120, 62:78] = 1.0
+    assert head_window(alpha, 64) == (8, 38)                # 16 px above the highest head top, centred
+    assert head_window(alpha, 64, below_top=0) == (24, 38)
+    assert head_window(alpha[:, :40], 40) == (0, 50)        # clamped inside the frame
+    assert head_window(np.zeros((1, 120, 160), np.float32), 64) == (28, 48)   # nobody: the centre
+
+
+def test_head_window_pairs_are_cut_at_the_capture_pixels_and_performer_ones_resized():
+    """``pair_window: head`` cuts the HQ of each pair out of the frames without resampling (the
+    enhancer bench's pairs); ``performer`` resizes the largest square on the performer."""
+    from types import SimpleNamespace
+
+    from volcap_core.enhance.production import PairDegradation, face_pairs_from_capture
+    from volcap_core.imageio.write import encode_exr
+
+    rng = np.random.default_rng(0)
+    frames, blobs = [], {}
+    for f in range(4):
+        px = np.zeros((96, 160, 4), np.float32)
+        px[..., :3] = rng.uniform(0.1, 1.0, (96, 160, 3)).astype(np.float16)     # exact in half
+        px[30:, 70:100, 3] = 1.0                                                # head top at row 30
+        frames.append(px)
+        blobs[f"F000/{f}"] = encode_exr(px)
+    cam = SimpleNamespace(id="F000", frames=[f"F000/{f}" for f in range(4)])
+    capture = SimpleNamespace(name="face", cameras=[cam], frame_count=4)
+    kw = dict(subsequences=1, subsequence_frames=4, camera_paths=1, degradation=PairDegradation())
+    [(name, camera, take, pairs)] = face_pairs_from_capture(capture, blobs.__getitem__, resolution=64,
+                                                             window="head", **kw)
+    assert (camera, take, tuple(pairs.hq.shape)) == ("F000", [0, 1, 2, 3], (4, 4, 64, 64))
+    y0, x0 = 14, 52                                       # 16 px above the head top, centred on columns 70-99
+    want = torch.from_numpy(np.stack(frames)[:, y0:y0 + 64, x0:x0 + 64]).permute(0, 3, 1, 2)
+    want = torch.cat([want[:, :3] * want[:, 3:], want[:, 3:]], dim=1)     # premultiplied by the coverage
+    assert torch.equal(pairs.hq, want)
+    [(*_, resized)] = face_pairs_from_capture(capture, blobs.__getitem__, resolution=64, window="performer", **kw)
+    assert tuple(resized.hq.shape) == (4, 4, 64, 64) and not torch.equal(resized.hq, want)
+
+
+def test_the_long_demo_enhancer_trains_with_the_enhancer_bench_recipe():
+    """``volcap demo --enhancer-preset long`` (and bench/bench_closeup.py) promise the enhancer
+    bench's recipe through a production's preset fields: the same EnhancerTrainConfig as the
+    bench builds from its FULL settings, apart from checkpoints (which do not change training)."""
+    import importlib.util
+    from pathlib import Path
+
+    from flows.demo import ENHANCER_RUNS
+    from volcap_core.enhance.training import EnhancerTrainConfig
+    from volcap_core.production.presets import named_preset
+
+    path = Path(__file__).resolve().parents[2] / "bench" / "bench_enhance.py"
+    spec = importlib.util.spec_from_file_location("bench_enhance", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    s = bench.FULL
+    q = named_preset("demo").with_overrides(**ENHANCER_RUNS["long"])
+    want = EnhancerTrainConfig(steps=s["steps"], lr=s["lr"], warmup_steps=min(50, s["steps"] // 10),
+                               lr_decay=((max(1, round(s["steps"] * s["lr_decay_at"])), s["lr_decay"]),),
+                               batch=s["batch"], crop=s["crop"], finetune="full", vae_steps=s["vae_steps"],
+                               vae_lr=s["vae_lr"], vae_batch=s["vae_batch"], vae_crop=s["vae_crop"],
+                               vae_stages=tuple(tuple(x) for x in s["vae_stages"]), seed=0)
+    got = q.enhancer_train_config().model_copy(update={"checkpoint_every": want.checkpoint_every})
+    assert got == want
+    assert (q.pair_window, q.pair_resolution, q.enhancer_architecture) == ("head", s["size"], "small")
+    assert (q.enhancer_sampling_steps, q.enhancer_strength, q.enhancer_tile) == (s["sample_steps"], s["strength"],
+                                                                                s["crop"])
+    assert q.face_subsequences * q.face_subsequence_frames == s["frames"]
 
 
 def _shot_frame(rgba: np.ndarray, window=(2, 3, 9, 7), *, frame: int = 3, flow: np.ndarray | None = None) -> bytes:

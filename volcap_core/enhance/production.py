@@ -13,7 +13,8 @@ ground-truth performer coverage where the capture has it), LQ =
 are honoured this way: ``subsequences`` windows of ``subsequence_frames`` consecutive take frames,
 spread evenly over the take; ``camera_paths`` cameras per window (real cameras stand for the
 rendered camera paths; consecutive windows take the next cameras, so every camera is used); each
-frame cropped to the largest square centred on the performer and resized to ``resolution`` px.
+frame cropped to the largest square centred on the performer and resized to ``resolution`` px
+(or, with the ``head`` window, a ``resolution``-px square over the head at the capture's pixels).
 The LQ/HQ Gaussian budgets of the plan (``lq_gaussians``, ``hq_gaussians_per_frame``) have no
 meaning for degraded frames and are only recorded.
 """
@@ -51,6 +52,7 @@ __all__ = [
     "face_pairs_from_capture",
     "face_windows",
     "has_text_encoders",
+    "head_window",
     "load_pair_sets",
     "read_shot_frame",
     "shot_flow_backend",
@@ -223,9 +225,28 @@ def square_window(alpha: np.ndarray) -> tuple[int, int, int]:
     return y0, x0, side
 
 
+def head_window(alpha: np.ndarray, side: int, below_top: int = -16) -> tuple[int, int]:
+    """Top-left ``(y0, x0)`` of a ``side``-square window over the head of ``alpha [T, H, W]`` (a
+    sub-sequence's performer coverage; ``side`` <= H, W): its top ``below_top`` px below the
+    highest pixel covered (alpha >= 0.5) in any frame (negative: above it), centred on the covered
+    columns inside the window. In a Face Rig the highest covered pixel is the top of the head, so
+    the window holds head, face and collar at the capture's own pixels; without coverage, the
+    frame's centre."""
+    h, w = alpha.shape[-2:]
+    cov = (np.asarray(alpha) >= 0.5).any(axis=0)
+    rows = np.flatnonzero(cov.any(axis=1))
+    y0 = int(rows[0]) + below_top if len(rows) else (h - side) // 2
+    y0 = max(0, min(h - side, y0))
+    cols = np.flatnonzero(cov[y0:y0 + side].any(axis=0))
+    xc = float(cols.mean()) if len(cols) else w / 2
+    x0 = max(0, min(w - side, int(round(xc - side / 2))))
+    return y0, x0
+
+
 def face_pairs_from_capture(capture, get_bytes: GetBytes, *, subsequences: int, subsequence_frames: int,
                             camera_paths: int, resolution: int, degradation: PairDegradation,
-                            load_mask: Callable[[str, int], np.ndarray | None] | None = None
+                            load_mask: Callable[[str, int], np.ndarray | None] | None = None,
+                            window: Literal["performer", "head"] = "performer"
                             ) -> list[tuple[str, str, list[int], Any]]:
     """Interim LQ/HQ pairs of an ingested Face Rig capture (module docstring): a list of
     ``(name, camera, take indices, PairSet)``, ``name`` = ``w<window>-<camera>``.
@@ -234,7 +255,10 @@ def face_pairs_from_capture(capture, get_bytes: GetBytes, *, subsequences: int, 
     the performer coverage (synthetic captures' ground truth) or None: then the frame's own alpha
     channel, else 1. The square crop of a window's frames is fixed by its first frame (so the
     sequence does not jump). Degradation noise is seeded by ``degradation.seed``, the window and
-    the camera."""
+    the camera. ``window``: ``"performer"``, that square; ``"head"``, a ``resolution``-square
+    :func:`head_window` over the sub-sequence at the capture's own pixels (the enhancer bench's
+    crop: no resampling, the face at the footage's detail; a frame narrower than ``resolution``
+    gives its narrow side, then resized)."""
     from volcap_core.enhance.pairs import make_degraded_pairs
     from volcap_core.imageio.read import decode_exr
 
@@ -258,7 +282,11 @@ def face_pairs_from_capture(capture, get_bytes: GetBytes, *, subsequences: int, 
                 if alpha.shape != rgb.shape[:2]:
                     raise ValueError(f"camera {cam.id} frame {f}: mask {alpha.shape} vs frame {rgb.shape[:2]}")
                 frames.append(np.concatenate([rgb * alpha[..., None], alpha[..., None]], axis=2))
-            y0, x0, side = square_window(frames[0][..., 3])
+            if window == "head":
+                side = min(resolution, *frames[0].shape[:2])
+                y0, x0 = head_window(np.stack([fr[..., 3] for fr in frames]), side)
+            else:
+                y0, x0, side = square_window(frames[0][..., 3])
             x = torch.from_numpy(np.stack([fr[y0:y0 + side, x0:x0 + side] for fr in frames])).permute(0, 3, 1, 2)
             x = x.float().contiguous()
             if side != resolution:

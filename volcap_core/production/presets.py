@@ -24,7 +24,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from volcap_core.enhance.model import EnhancerConfig
 from volcap_core.enhance.production import EnhanceSettings
@@ -49,7 +49,8 @@ TRAINING_FIELDS = ("train_steps", "grid_size", "eval_every", "eval_max_views", "
 #: The preset fields that shape the enhancer's training (a train-enhancer step carries them).
 ENHANCER_TRAINING_FIELDS = ("enhancer_architecture", "enhancer_weights", "enhancer_steps", "enhancer_finetune",
                             "enhancer_frozen_dtype", "enhancer_lora_rank", "enhancer_lr", "enhancer_batch", "enhancer_crop",
-                            "enhancer_vae_steps", "enhancer_checkpoint_every")
+                            "enhancer_vae_steps", "enhancer_checkpoint_every", "enhancer_warmup_steps",
+                            "enhancer_lr_decay", "enhancer_vae_lr", "enhancer_vae_crop", "enhancer_vae_stages")
 #: The preset fields that shape a shot's enhancement (an enhance-shot step carries them).
 ENHANCING_FIELDS = ("enhancer_sampling_steps", "enhancer_strength", "enhancer_tile", "enhancer_vae_tiling",
                     "enhancer_flow", "enhancer_flow_weights")
@@ -108,6 +109,10 @@ class QualityPreset(BaseModel):
     face_hq_gaussians_per_frame: int = Field(1_000_000, gt=0)
     face_lq_gaussians: tuple[int, int] = (50_000, 200_000)
     pair_resolution: int = Field(4096, gt=0, description="square LQ/HQ pair renders (px)")
+    pair_window: Literal["performer", "head"] = Field(
+        "performer", description="interim pairs' crop: performer (the largest square on the performer, resized to "
+                                 "pair_resolution) or head (a pair_resolution square over the head at the capture's "
+                                 "own pixels, the enhancer bench's window)")
     enhancer_steps: int = Field(20_000, gt=0, description="enhancer training steps")
     # -- the detail enhancer (docs/enhancer.md)
     enhancer_architecture: Literal["tiny", "small", "flux-dev"] = Field(
@@ -125,6 +130,13 @@ class QualityPreset(BaseModel):
     enhancer_crop: int = Field(1024, ge=16, description="training crop side (px)")
     enhancer_vae_steps: int = Field(0, ge=0, description="VAE pre-training steps (the tiny model's VAE is random)")
     enhancer_checkpoint_every: int = Field(500, ge=0)
+    enhancer_warmup_steps: int = Field(0, ge=0, description="linear warm-up of the transformer's rate (steps)")
+    enhancer_lr_decay: tuple[tuple[int, float], ...] = Field(
+        (), description="(step, factor) pairs: from that step on the rate is enhancer_lr times factor")
+    enhancer_vae_lr: float = Field(1e-3, gt=0, description="VAE pre-training rate")
+    enhancer_vae_crop: int | None = Field(None, ge=8, description="VAE pre-training crop (px); null: enhancer_crop")
+    enhancer_vae_stages: tuple[tuple[int, float], ...] = Field(
+        (), description="(steps, rate) stages continuing the VAE pre-training at lower rates")
     enhancer_sampling_steps: int = Field(28, ge=1, description="Euler steps per frame")
     enhancer_strength: float = Field(1.0, gt=0, le=1, description="fraction of the sampler's noise levels run, starting from the noised LQ (1: from pure noise, as Flux samples)")
     enhancer_tile: int | None = Field(1024, ge=16, description="latent tile (px, multiple of 16); null: whole frame")
@@ -155,6 +167,10 @@ class QualityPreset(BaseModel):
         lo, hi = self.face_lq_gaussians
         if not 0 < lo <= hi:
             raise ValueError(f"face_lq_gaussians must be 0 < low <= high, got {[lo, hi]}")
+        try:   # the enhancer's schedules are checked with the preset, not when its task starts
+            self.enhancer_train_config()
+        except ValidationError as e:
+            raise ValueError("; ".join(str(err.get("ctx", {}).get("error", err["msg"])) for err in e.errors())) from None
         return self
 
     def with_overrides(self, **fields: Any) -> "QualityPreset":
@@ -205,7 +221,9 @@ class QualityPreset(BaseModel):
                                    crop=self.enhancer_crop, finetune=self.enhancer_finetune,
                                    lora_rank=self.enhancer_lora_rank, vae_steps=self.enhancer_vae_steps,
                                    checkpoint_every=self.enhancer_checkpoint_every,
-                                   frozen_dtype=self.enhancer_frozen_dtype)
+                                   frozen_dtype=self.enhancer_frozen_dtype, warmup_steps=self.enhancer_warmup_steps,
+                                   lr_decay=self.enhancer_lr_decay, vae_lr=self.enhancer_vae_lr,
+                                   vae_crop=self.enhancer_vae_crop, vae_stages=self.enhancer_vae_stages)
 
     def enhance_settings(self) -> EnhanceSettings:
         """The :class:`~volcap_core.enhance.production.EnhanceSettings` of a shot's enhancement."""

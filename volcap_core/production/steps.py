@@ -142,13 +142,15 @@ class FacePairs(StepParameters):
     hq_gaussians_per_frame: int
     lq_gaussians: tuple[int, int]
     resolution: int
+    window: Literal["performer", "head"]
 
     @classmethod
     def for_actor(cls, actor: str, face_capture: str, quality: QualityPreset) -> "FacePairs":
         return cls(actor=actor, face_capture=face_capture, subsequences=quality.face_subsequences,
                    subsequence_frames=quality.face_subsequence_frames, camera_paths=quality.face_camera_paths,
                    hq_gaussians_per_frame=quality.face_hq_gaussians_per_frame,
-                   lq_gaussians=quality.face_lq_gaussians, resolution=quality.pair_resolution)
+                   lq_gaussians=quality.face_lq_gaussians, resolution=quality.pair_resolution,
+                   window=quality.pair_window)
 
 
 class TrainEnhancer(_preset_fields("EnhancerTraining", ENHANCER_TRAINING_FIELDS)):
