@@ -45,7 +45,8 @@ from tasks.production import score_shot
 from tasks.reconstruct import render_views
 from volcap_core.capture import Capture
 from volcap_core.enhance.production import EnhancerModel
-from volcap_core.segment import ViewSpec, tracking_frames
+from volcap_core.segment import tracking_frames
+from volcap_core.view import ViewSpec
 from volcap_core.calibration.record import Calibration, camera_at
 from volcap_core.production.presets import named_preset
 from volcap_core.reconstruction import SegmentModel

@@ -21,7 +21,8 @@ from volcap_core.capture import Capture
 from volcap_core.imageio.read import decode_exr
 from volcap_core.pointcloud import POINTS_MEDIA, PointCloudFrame, PointCloudSequence, encode_points
 from volcap_core.records import MEDIA_EXR, MEDIA_SAFETENSORS, ArtifactRef
-from volcap_core.segment import ViewSpec, fit_segment, render_segment_exr, tracking_frames
+from volcap_core.segment import fit_segment, render_segment_exr, tracking_frames
+from volcap_core.view import ViewSpec
 from volcap_core.splat.train import TrainConfig
 from volcap_core.store import ArtifactStore, MissingRefError
 from volcap_core.synth import ground_truth

@@ -17,7 +17,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict
 
 from volcap_core import reconstruction
 from volcap_core.calibration.record import Calibration, TrackingFrames, decode_tracking_frames
@@ -129,17 +128,6 @@ def _finite(x: float | None) -> float | None:
     return float(x) if x is not None and np.isfinite(x) else None
 
 
-class ViewSpec(BaseModel):
-    """A camera at an instant: OpenCV intrinsics (top-left pixel centre at 0) and world-to-camera."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-    K: tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]
-    world_to_camera: tuple[tuple[float, float, float, float], ...]
-    width: int
-    height: int
-    time_s: float
-
-
 def render_segment_exr(get_bytes: GetBytes, seg: reconstruction.SegmentModel, K: np.ndarray, w2c: np.ndarray,
                        width: int, height: int, time_s: float, grids_of: str | None = None) -> bytes:
     """The segment from camera (K [3, 3] OpenCV, world-to-camera [4, 4]) at ``time_s`` seconds on
@@ -165,4 +153,4 @@ def render_segment_exr(get_bytes: GetBytes, seg: reconstruction.SegmentModel, K:
     return encode_exr(rgba, ("R", "G", "B", "A"), pixel_type="half", attributes=attrs)
 
 
-__all__ = ["FittedSegment", "HeadRegion", "fit_segment", "ViewSpec", "render_segment_exr", "tracking_frames", "UI_SHEET_WIDTH"]
+__all__ = ["FittedSegment", "HeadRegion", "fit_segment", "render_segment_exr", "tracking_frames", "UI_SHEET_WIDTH"]

@@ -16,7 +16,7 @@ import math
 import numpy as np
 import pytest
 
-from volcap_core.enhance.face_paths import (CameraPath, FacePathDistribution, face_camera_paths,
+from volcap_core.production.face_paths import (CameraPath, FacePathDistribution, face_camera_paths,
                                             head_from_model)
 from volcap_core.synth import synthesize_face_capture
 from volcap_core.synth.ground_truth import backproject_depth, head_at

@@ -27,7 +27,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 from volcap_core.calibration.geometry import look_at_rotation
-from volcap_core.segment import ViewSpec
+from volcap_core.view import ViewSpec
 
 __all__ = ["SENSOR_WIDTH_MM", "CameraPath", "FacePathDistribution", "HeadEstimate", "face_camera_paths",
            "head_from_model"]
