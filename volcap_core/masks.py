@@ -156,7 +156,8 @@ def write_plate_masks(capture_dir: str | Path, *, plates: str | Path | None = No
     static = [c for c in folder.camera_ids if not folder.rig.camera(c).role.tracks]
     chosen = list(cameras) if cameras is not None else static
     for c in chosen:
-        folder.camera(c)
+        if c not in folder.camera_ids:
+            raise IngestError(f"capture {folder.name} has no camera {c!r} (it has {', '.join(folder.camera_ids)})")
         if c not in static:
             raise IngestError(f"camera {c} is a tracking camera: it moves, so no background plate stands behind it")
     given = plate_files(Path(plates), chosen) if plates is not None else {}
