@@ -140,6 +140,25 @@ def synth(out_dir: Annotated[Path, typer.Argument(help="folder to write the capt
           json_out, f"wrote {path} in {wall:.1f} s")
 
 
+@app.command()
+def masks(capture_dir: Annotated[Path, typer.Argument(help="capture folder holding capture.json")],
+          plates: Annotated[Optional[Path], typer.Option(help="folder of background plates, <camera id>.exr|png|tif|tiff|dpx in the camera's encoding; a static camera without one gets the median of its take")] = None,
+          cameras: Annotated[Optional[str], typer.Option(help="comma-separated static cameras (default: all static cameras)")] = None,
+          json_out: JsonOpt = False) -> None:
+    """Compute performer masks against background plates into the capture folder's masks folder."""
+    from volcap_core.masks import write_plate_masks
+
+    t0 = time.perf_counter()
+    progress, update = _progress("masks")
+    with progress:
+        written = write_plate_masks(capture_dir, plates=plates,
+                                    cameras=[c for c in cameras.split(",") if c] if cameras else None,
+                                    progress=lambda cam, done, total: update(done, total))
+    wall = time.perf_counter() - t0
+    _emit({"cameras": written, "wall_s": round(wall, 3)}, json_out,
+          f"wrote {sum(written.values())} masks of {len(written)} camera(s) into {capture_dir} in {wall:.1f} s")
+
+
 @app.command(name="ingest")
 def ingest_cmd(capture_dir: Annotated[Path, typer.Argument(help="capture folder holding capture.json")],
                store: StoreOpt = DEFAULT_STORE,

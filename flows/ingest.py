@@ -9,8 +9,8 @@ from prefect import flow, get_run_logger, unmapped
 
 from tasks.ingest import fingerprint_camera, ingest_camera, ingest_video_camera, record_capture
 from volcap_core import ingest
-from volcap_core.capture import CaptureFolder, IngestError
-from volcap_core.records import ArtifactRef
+from volcap_core.capture import CaptureCamera, CaptureFolder, IngestError
+from volcap_core.records import MEDIA_EXR, ArtifactRef
 from volcap_core.store import ArtifactStore
 
 
@@ -19,7 +19,9 @@ def ingest_flow(store: str, capture_dir: str, nan_policy: str = "error", set_ref
     """Check the whole folder, convert every camera (fanned out), then record the capture.
 
     Returns the Capture record's ref; also names it ``captures/<name>`` in the store. The lidar scan
-    named by ``capture.json`` is checked with the other inputs and stored with the record.
+    named by ``capture.json`` is checked with the other inputs and stored with the record, and so
+    are the performer masks of its masks folder (every one decoded and checked before any frame
+    is converted; stored as one-channel half EXRs referenced by their camera's record).
     """
     log = get_run_logger()
     capture = CaptureFolder.open(Path(capture_dir).resolve())
@@ -46,6 +48,9 @@ def ingest_flow(store: str, capture_dir: str, nan_policy: str = "error", set_ref
         else:
             ingest.check_headers(c, rig_cams[c.id], scans[c.id])
     lidar_file = ingest.check_lidar(capture)
+    with_masks = {c.id: n for c in desc.cameras if (n := ingest.check_masks(capture, c, rig_cams[c.id]))}
+    if with_masks:
+        log.info("performer masks: %d camera(s), %d masks checked", len(with_masks), sum(with_masks.values()))
     ocio_ref = None
     if desc.ocio_config:
         ocio_file = folder / desc.ocio_config
@@ -84,6 +89,9 @@ def ingest_flow(store: str, capture_dir: str, nan_policy: str = "error", set_ref
             pick(manifests, videos), pick(offsets, videos), unmapped(desc.take.frame_count),
             unmapped(desc.fps), unmapped(nan_policy), pick(lens_list, videos))))
     cameras = [futures[i] for i in range(len(cams))]
+    # the masks (checked above) are stored while the cameras convert: decoded again, not held
+    masks = {c.id: _store_masks(s, capture, c.id, rig_cams[c.id].sensor.width_px, rig_cams[c.id].sensor.height_px)
+             for c in cams if c.id in with_masks}
 
     ground_truth = None
     gt = capture.ground_truth_path
@@ -95,13 +103,26 @@ def ingest_flow(store: str, capture_dir: str, nan_policy: str = "error", set_ref
 
     # 3. Only when every camera converted: the record, then its name.
     capture_ref = record_capture(store, desc.name, rig, desc.fps, desc.take.start_timecode,
-                                 desc.take.frame_count, [c.result() for c in cameras], ground_truth, lidar,
-                                 desc.performer)
+                                 desc.take.frame_count,
+                                 [_with_masks(c.result(), masks.get(c.result().id)) for c in cameras],
+                                 ground_truth, lidar, desc.performer)
     if set_ref:
         s.set_ref(f"captures/{desc.name}", capture_ref)
     log.info("capture %s: %d cameras x %d frames -> %s", desc.name, len(desc.cameras),
              desc.take.frame_count, capture_ref.digest)
     return capture_ref
+
+
+def _store_masks(s: ArtifactStore, capture: CaptureFolder, camera_id: str, width: int, height: int
+                 ) -> tuple[ArtifactRef, ...]:
+    """A camera's performer masks, take index order, stored as :func:`volcap_core.ingest.mask_exr`s."""
+    files = ingest.select_masks(capture, capture.camera(camera_id))
+    return tuple(s.put_bytes(ingest.mask_exr(ingest.checked_mask(capture, camera_id, i, width, height), camera_id, i,
+                                             path), MEDIA_EXR) for i, path in enumerate(files))
+
+
+def _with_masks(camera: CaptureCamera, masks: tuple[ArtifactRef, ...] | None) -> CaptureCamera:
+    return camera if masks is None else camera.model_copy(update={"masks": masks})
 
 
 def _stat(path: str) -> list[int]:

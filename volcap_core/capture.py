@@ -13,6 +13,10 @@ On-disk layout (documented for users in ``docs/capture-layout.md``)::
       ground_truth/                 optional (synthetic captures): cameras per frame, geometry,
                                     lidar scan, colour chart; stored with the capture, never used
                                     by reconstruction, only by evaluation
+      <masks>/<camera id>/<NNNNNN>.<ext>
+                                    optional: performer masks, one value per pixel in [0, 1] (the
+                                    performers' coverage), numbered as the camera's frames; named
+                                    by ``CaptureDescription.masks``. ext: exr, png, tif, tiff
 
 A frame's *take index* is its position in the take: ``timecode(frame) - take.start_timecode`` in
 frames. Every camera must provide each take index in ``[0, take.frame_count)`` exactly once.
@@ -37,7 +41,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_serializer, model_valid
 from hardware.rig import Rig, load_rig
 from hardware.serialization import omit_unset
 from volcap_core.imageio.errors import ImageReadError
-from volcap_core.imageio.read import read_image
+from volcap_core.imageio.read import probe_image, read_exr_native, read_image
 from volcap_core.imageio.video import (
     VIDEO_EXTENSIONS,
     Matrix,
@@ -54,6 +58,7 @@ from volcap_core.records import ArtifactRef, Record
 CAPTURE_FORMAT = "volcap-capture/1"
 IMAGE_EXTENSIONS = (".exr", ".dpx", ".tif", ".tiff", ".png")
 FRAME_FILE_RE = re.compile(r"^(?P<number>\d+)\.(?P<ext>exr|dpx|tif|tiff|png)$", re.IGNORECASE)
+MASK_FILE_RE = re.compile(r"^(?P<number>\d+)\.(?P<ext>exr|tif|tiff|png)$", re.IGNORECASE)
 TIMECODE_RE = re.compile(r"^(\d{2}):(\d{2}):(\d{2})[:;](\d{2})$")
 
 
@@ -241,18 +246,21 @@ class CaptureDescription(BaseModel):
                                                         "path (stage frame, metres); calibration input")
     performer: Performer | None = Field(default=None, description="whose actor the capture films (a Face Rig "
                                                                    "capture of a Scene Rig capture's actor)")
+    masks: str | None = Field(default=None, description="performer masks: a folder, relative path, holding "
+                                                        "<camera id>/<frame number>.exr|png|tif|tiff")
 
     @model_serializer(mode="wrap")
     def _omit_unset(self, handler):
-        # a capture that names no performer serialises as it did before the field existed
-        return omit_unset(handler(self), ("performer",))
+        # a capture that names no performer or masks serialises as it did before the fields existed
+        return omit_unset(handler(self), ("performer", "masks"))
 
     @model_validator(mode="after")
     def _check(self) -> "CaptureDescription":
         if self.format != CAPTURE_FORMAT:
             raise ValueError(f"unsupported capture format {self.format!r} (expected {CAPTURE_FORMAT})")
-        if self.lidar is not None and (self.lidar.startswith("/") or ".." in self.lidar.split("/")):
-            raise ValueError(f"lidar path {self.lidar!r} must stay inside the capture folder")
+        for what, path in (("lidar", self.lidar), ("masks", self.masks)):
+            if path is not None and (path.startswith("/") or ".." in path.split("/")):
+                raise ValueError(f"{what} path {path!r} must stay inside the capture folder")
         seen: set[str] = set()
         for cam in self.cameras:
             if cam.id in seen:
@@ -293,10 +301,14 @@ class CaptureCamera(BaseModel):
     #: a video camera's decoding as used (every field set); None for image files, and then left
     #: out of the record's JSON, so records of image-sequence captures keep their bytes
     source_video: VideoEncoding | None = None
+    #: performer masks, ``masks[i]`` at take index ``i``: one-channel (``Y``) half EXRs of
+    #: ``width``×``height``, coverage in [0, 1]; None when the capture has none for this camera
+    #: (then left out of the record's JSON, so records of captures without masks keep their bytes)
+    masks: tuple[ArtifactRef, ...] | None = None
 
     @model_serializer(mode="wrap")
     def _without_absent_video(self, handler):
-        return omit_unset(handler(self), ("source_video",))
+        return omit_unset(handler(self), ("source_video", "masks"))
 
 
 class Capture(Record):
@@ -350,6 +362,7 @@ class CaptureFolder:
     rig: Rig
     _files: dict[str, dict[int, Path]] = field(default_factory=dict, repr=False, compare=False)
     _videos: dict[str, VideoInfo] = field(default_factory=dict, repr=False, compare=False)
+    _masks: dict[str, dict[int, Path]] = field(default_factory=dict, repr=False, compare=False)
 
     @classmethod
     def open(cls, root: str | Path) -> "CaptureFolder":
@@ -423,6 +436,95 @@ class CaptureFolder:
         """The ground-truth folder ``capture.json`` names (synthetic captures), None without one."""
         gt = self.description.ground_truth
         return self.root / gt if gt else None
+
+    @property
+    def masks_path(self) -> Path | None:
+        """The performer masks folder ``capture.json`` names, None without one."""
+        m = self.description.masks
+        return self.root / m if m else None
+
+    @cached_property
+    def mask_cameras(self) -> list[str]:
+        """The cameras that have performer masks (a ``<masks>/<camera id>/`` folder), in
+        ``capture.json``'s order; empty when the capture names no masks folder. Refuses a named
+        folder that does not exist and a sub-folder (or file) that is no listed camera's: a
+        misspelt camera id would otherwise drop its masks unnoticed."""
+        folder = self.masks_path
+        if folder is None:
+            return []
+        if not folder.is_dir():
+            raise IngestError(f"{self.description_path}: masks folder {folder} does not exist")
+        ids = set(self.camera_ids)
+        found = set()
+        for p in sorted(folder.iterdir()):
+            if p.name.startswith("."):
+                continue
+            if not p.is_dir() or p.name not in ids:
+                raise IngestError(f"masks: unexpected {'folder' if p.is_dir() else 'file'} {p} (the masks "
+                                  f"folder holds one folder per camera, named by its id: {', '.join(self.camera_ids)})")
+            found.add(p.name)
+        return [c for c in self.camera_ids if c in found]
+
+    def mask_files(self, camera_id: str) -> dict[int, Path] | None:
+        """A camera's performer mask files by take index (numbered as its frames: the camera's own
+        frame number, ``offsets`` apply), resolved; None when the camera has no masks. Refuses an
+        empty folder, a file not named as a frame and two files of one frame number."""
+        if camera_id in self._masks:
+            return self._masks[camera_id]
+        self.camera(camera_id)
+        if camera_id not in self.mask_cameras:
+            return None
+        folder = self.masks_path / camera_id
+        offset = self.offsets[camera_id]
+        by_index: dict[int, Path] = {}
+        for p in sorted(folder.iterdir()):
+            if p.name.startswith("."):
+                continue
+            m = MASK_FILE_RE.match(p.name)
+            if p.is_dir() or not m:
+                raise IngestError(f"camera {camera_id}: unexpected file {p} (masks are named NNNNNN.exr|png|tif|tiff, "
+                                  "the camera's frame number)")
+            number = int(m["number"])
+            if number + offset in by_index:
+                raise IngestError(f"camera {camera_id}: mask of frame {number} is duplicated: "
+                                  f"{by_index[number + offset]} and {p}")
+            by_index[number + offset] = p.resolve()
+        if not by_index:
+            raise IngestError(f"camera {camera_id}: no masks in {folder}")
+        self._masks[camera_id] = by_index
+        return by_index
+
+    def load_mask(self, camera_id: str, take_index: int) -> np.ndarray:
+        """A camera's performer mask at ``take_index`` as stored: float32 ``[H, W]`` (an EXR's one
+        channel as it is, a PNG's/TIFF's integer codes / (2^bits - 1): coverage, never
+        linearised). :class:`IngestError` naming file, camera and frame when there is none, or the
+        file is unreadable, has other than one channel, or (EXR) its data window is not its
+        display window. Values are not checked here (:func:`volcap_core.ingest.check_masks`)."""
+        files = self.mask_files(camera_id)
+        number = take_index - self.offsets[camera_id]
+        path = files.get(take_index) if files is not None else None
+        if path is None:
+            raise IngestError(f"camera {camera_id}, frame {number}: no mask in "
+                              f"{self.masks_path / camera_id if self.masks_path else 'the capture (no masks folder)'}")
+        where = f"camera {camera_id}, frame {number}: mask {path}"
+        try:
+            info = probe_image(path)
+            if len(info.channels) != 1:
+                raise IngestError(f"{where} has channels {', '.join(info.channels)}; a mask has one "
+                                  "(greyscale), the performers' coverage")
+            if info.format == "exr":
+                if info.parts != 1 or info.data_window != info.display_window:
+                    raise IngestError(f"{where}: a mask EXR has one part whose data window is its display "
+                                      f"window (it has {info.parts} part(s), data window {info.data_window}, "
+                                      f"display window {info.display_window})")
+                pixels, _ = read_exr_native(path)
+            elif info.format in ("png", "tiff"):
+                pixels, _ = read_image(path)
+            else:
+                raise IngestError(f"{where} is a {info.format.upper()} file; masks are EXR, PNG or TIFF")
+        except ImageReadError as exc:
+            raise IngestError(f"camera {camera_id}, frame {number}: {exc}") from exc
+        return np.asarray(pixels[..., 0], np.float32)
 
     def video_info(self, camera_id: str) -> VideoInfo:
         """A video camera's file probed (:func:`volcap_core.imageio.video.probe_video`: size, frame

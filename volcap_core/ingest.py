@@ -20,6 +20,9 @@ folder fails in seconds, and nothing is recorded unless every camera converts):
    are the same in every frame of the camera.
 5. Tracking cameras carry lens-encoder readings for every take frame.
    The lidar scan named by ``capture.json`` (if any) is a readable PLY of finite points.
+   Performer masks (if ``capture.json`` names a masks folder): a camera that has masks has one for
+   every take frame (:func:`select_masks`), each one channel at the camera's resolution with
+   finite values in [0, 1] (:func:`check_masks`, every mask decoded here, before anything is stored).
 6. While converting: damaged pixel data, and NaN/Inf pixels under the ``nan_policy``:
    ``"error"`` (default) refuses the frame, naming how many pixels; ``"repair"`` replaces NaN by 0
    and ±Inf by ±65504 (the largest half) and logs it.
@@ -266,6 +269,63 @@ def check_lidar(folder: CaptureFolder) -> Path | None:
     if bad.any():
         raise IngestError(f"lidar scan {path}: {int(bad.sum())} point(s) hold NaN or Inf")
     return path
+
+
+#: a mask value this far outside [0, 1] is refused; within it, clipped (float masks from a matting
+#: tool land a rounding error past 1)
+MASK_TOLERANCE = 1e-3
+
+
+def select_masks(folder: CaptureFolder, cam: CameraSource) -> list[Path] | None:
+    """The camera's performer mask files in take order (take index ``i`` at position ``i``), None
+    when it has no masks; masks of frames outside the take are left out, a take frame without
+    one is an error naming the camera and its frame numbers."""
+    files = folder.mask_files(cam.id)
+    if files is None:
+        return None
+    n = folder.frame_count
+    missing = [i - folder.offsets[cam.id] for i in range(n) if i not in files]
+    if missing:
+        shown = ", ".join(map(str, missing[:10])) + (" ..." if len(missing) > 10 else "")
+        raise IngestError(f"camera {cam.id}: {len(missing)} take frame(s) without a mask in "
+                          f"{folder.masks_path / cam.id}: camera frame number(s) {shown}")
+    return [files[i] for i in range(n)]
+
+
+def checked_mask(folder: CaptureFolder, camera_id: str, take_index: int, width: int, height: int) -> np.ndarray:
+    """One performer mask decoded (:meth:`CaptureFolder.load_mask`) and checked: ``height``×``width``
+    (the camera's frames), finite, within [0, 1] (:data:`MASK_TOLERANCE`). Returns it clipped to
+    [0, 1], float32 ``[H, W]``; an :class:`IngestError` names the file, camera and frame."""
+    m = folder.load_mask(camera_id, take_index)
+    path = folder.mask_files(camera_id)[take_index]
+    where = f"camera {camera_id}, frame {take_index - folder.offsets[camera_id]}: mask {path}"
+    if m.shape != (height, width):
+        raise IngestError(f"{where} is {m.shape[1]}x{m.shape[0]}, the camera's frames are {width}x{height}")
+    finite = np.isfinite(m)
+    if not finite.all():
+        raise IngestError(f"{where} has {int((~finite).sum())} NaN/Inf pixel(s); a mask holds coverage in [0, 1]")
+    outside = (m < -MASK_TOLERANCE) | (m > 1 + MASK_TOLERANCE)
+    if outside.any():
+        raise IngestError(f"{where} has {int(outside.sum())} pixel(s) outside [0, 1] (from {float(m.min()):g} to "
+                          f"{float(m.max()):g}); a mask holds coverage in [0, 1]")
+    return np.clip(m, 0.0, 1.0)
+
+
+def check_masks(folder: CaptureFolder, cam: CameraSource, rig_cam: RigCamera) -> int:
+    """Every take frame's mask of a camera decoded and checked (:func:`checked_mask`) at the rig
+    sensor's resolution; the number checked (0: the camera has no masks)."""
+    files = select_masks(folder, cam)
+    for i in range(len(files or ())):
+        checked_mask(folder, cam.id, i, rig_cam.sensor.width_px, rig_cam.sensor.height_px)
+    return len(files or ())
+
+
+def mask_exr(mask: np.ndarray, camera_id: str, take_index: int, source: Path) -> bytes:
+    """A checked mask ``[H, W]`` as it is stored: a one-channel (``Y``) half-float EXR, ZIP
+    compressed, its header naming the camera, take index and source file."""
+    return encode_exr(mask[..., None], ("Y",), pixel_type="half", compression="zip",
+                      attributes={"volcap.camera": camera_id, "volcap.take_index": str(take_index),
+                                  "volcap.source_mask": source.name})
 
 
 def fingerprint(frames: list[RawFrame]) -> list[dict]:

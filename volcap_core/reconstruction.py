@@ -120,7 +120,10 @@ def segment_data(capture: Capture, calibration: Calibration, tracking: dict[str,
     ``scale`` < 1 trains at that fraction of the capture's resolution: images are area-averaged
     (what a smaller sensor of the same optics would integrate) and intrinsics scaled to match.
     ``load_mask(camera, take index)``: performer coverage ``[H, W]`` at the capture's resolution
-    (a synthetic capture's ground truth), area-averaged like the images; scoring only.
+    (a synthetic capture's ground truth), area-averaged like the images; scoring only. Without
+    it, the scores use the capture's own performer masks (``CaptureCamera.masks``, imported with
+    the footage) where it has them. Those masks, and never a ground truth, are also the views'
+    ``matte``: what training's alpha loss reads (``TrainConfig.mask_alpha_weight``).
 
     A camera the calibration records with lens distortion is trained as the pinhole of its
     record's K: its frames (and masks) are rectified into it as they are loaded
@@ -180,22 +183,35 @@ def segment_data(capture: Capture, calibration: Calibration, tracking: dict[str,
         return torch.nn.functional.interpolate(image.permute(2, 0, 1)[None], size=(size.height, size.width),
                                                mode="area")[0].permute(1, 2, 0).contiguous()
 
-    def mask_for(cam: str, f: int) -> torch.Tensor | None:
-        m = load_mask(cam, f) if load_mask is not None else None
-        if m is None:
-            return None
-        m = torch.from_numpy(np.asarray(rectify_frame(np.asarray(m, np.float32), lens(cam, f))))
-        if scale == 1:
-            return m
-        size = camera_for(cam, f)
-        return torch.nn.functional.interpolate(m[None, None], size=(size.height, size.width), mode="area")[0, 0]
+    def capture_mask(cam: str, f: int) -> np.ndarray | None:
+        refs = capture.camera(cam).masks
+        return None if refs is None else load_frame(refs[f])[..., 0].numpy()   # stored as one channel Y
+
+    has_masks = any(capture.camera(c).masks is not None for c in ids)
+    load_matte = capture_mask if has_masks else None
+    if load_mask is None:
+        load_mask = load_matte
+
+    def in_view(load: Callable[[str, int], np.ndarray | None]) -> Callable[[str, int], torch.Tensor | None]:
+        def coverage(cam: str, f: int) -> torch.Tensor | None:
+            m = load(cam, f)
+            if m is None:
+                return None
+            m = torch.from_numpy(np.asarray(rectify_frame(np.asarray(m, np.float32), lens(cam, f))))
+            if scale == 1:
+                return m
+            size = camera_for(cam, f)
+            return torch.nn.functional.interpolate(m[None, None], size=(size.height, size.width),
+                                                   mode="area")[0, 0]
+        return coverage
 
     distorted = (any(needs_rectify(calibration.camera(c)) for c in ids)
                  or any(tracking[c].distortion is not None and np.any(tracking[c].distortion)
                         for c in ids if c in tracking_ids))
     return SegmentData.build(frames=frames, camera_ids=ids, fps=capture.fps, load_image=load_image,
-                             camera_for=camera_for, load_mask=mask_for if load_mask is not None else None,
-                             load_valid=valid_for if distorted else None)
+                             camera_for=camera_for, load_mask=in_view(load_mask) if load_mask is not None else None,
+                             load_valid=valid_for if distorted else None,
+                             load_matte=in_view(load_matte) if load_matte is not None else None)
 
 
 def segment_points(points: PointCloudSequence, frames: tuple[int, int],

@@ -26,12 +26,12 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_serializer
 from safetensors.torch import load as st_load
 
 from volcap_core.checkpoint import AdamState, adam_step, safetensors_bytes, safetensors_metadata
@@ -51,12 +51,14 @@ from volcap_core.splat.mcmc import (
 )
 from volcap_core.splat.model import (
     STATIC_LOG_LAMBDA,
+    Gaussians3D,
     Poly4DGS,
     Poly4DGSConfig,
     evaluate,
 )
 from volcap_core.splat.render import BackendChoice, render, resolve_backend
 from volcap_core.splat.schedule import draw_view, view_weights
+from volcap_core.splat.sh import SH_C0
 from volcap_core.splat.scoring import ViewScore, score_views, summarise
 
 __all__ = [
@@ -70,6 +72,7 @@ __all__ = [
     "evaluate_held_out",
     "frame_interval",
     "init_model",
+    "performer_alpha",
     "train_segment",
 ]
 
@@ -90,10 +93,14 @@ class View:
         image: ``[H, W, 3]`` or ``[H, W, 4]`` linear float (RGB, or premultiplied RGBA), or a
             zero-argument callable returning it (loaded lazily, e.g. from the artifact store).
         mask: where the performers are, ``[H, W]`` in [0, 1] (a synthetic capture's ground
-            truth), a callable returning it or None; only scoring reads it.
+            truth, else the capture's own masks), a callable returning it or None; only scoring
+            reads it.
         valid: which pixels hold footage, ``[H, W]`` bool, a callable returning it or None (all):
             a distorted camera's frame rectified into a pinhole has none where its rays leave the
             sensor. Training's loss and the scores leave the others out.
+        matte: the capture's own performer mask (imported or computed, never a ground truth),
+            ``[H, W]`` in [0, 1], a callable returning it or None: what the performers' alpha is
+            trained toward (``TrainConfig.mask_alpha_weight``).
     """
 
     camera_id: str
@@ -103,6 +110,7 @@ class View:
     image: torch.Tensor | Callable[[], torch.Tensor]
     mask: torch.Tensor | Callable[[], torch.Tensor | None] | None = None
     valid: torch.Tensor | Callable[[], torch.Tensor | None] | None = None
+    matte: torch.Tensor | Callable[[], torch.Tensor | None] | None = None
 
     def load_valid(self) -> torch.Tensor | None:
         """``[H, W]`` bool, or None when every pixel holds footage."""
@@ -116,12 +124,19 @@ class View:
         return v
 
     def load_mask(self) -> torch.Tensor | None:
-        m = self.mask() if callable(self.mask) else self.mask
+        return self._coverage(self.mask, "mask")
+
+    def load_matte(self) -> torch.Tensor | None:
+        """``[H, W]`` float32, the capture's performer mask (:attr:`matte`), or None."""
+        return self._coverage(self.matte, "matte")
+
+    def _coverage(self, value, what: str) -> torch.Tensor | None:
+        m = value() if callable(value) else value
         if m is None:
             return None
         m = torch.as_tensor(m, dtype=torch.float32).reshape(-1)
         if m.numel() != self.camera.height * self.camera.width:
-            raise ValueError(f"view {self.camera_id}@{self.frame}: mask has {m.numel()} pixels, camera "
+            raise ValueError(f"view {self.camera_id}@{self.frame}: {what} has {m.numel()} pixels, camera "
                              f"{self.camera.width}x{self.camera.height}")
         return m.reshape(self.camera.height, self.camera.width)
 
@@ -148,7 +163,8 @@ class SegmentData:
               load_image: Callable[[str, int], torch.Tensor],
               camera_for: Callable[[str, int], Camera], lazy: bool = True,
               load_mask: Callable[[str, int], torch.Tensor | None] | None = None,
-              load_valid: Callable[[str, int], torch.Tensor | None] | None = None) -> "SegmentData":
+              load_valid: Callable[[str, int], torch.Tensor | None] | None = None,
+              load_matte: Callable[[str, int], torch.Tensor | None] | None = None) -> "SegmentData":
         """Assemble from an ingested capture and a calibration.
 
         Args:
@@ -164,6 +180,8 @@ class SegmentData:
                 lazily, only when views are scored.
             load_valid: ``(camera_id, take_index) -> [H, W]`` bool (pixels that hold footage) or
                 None, read lazily (:attr:`View.valid`).
+            load_matte: ``(camera_id, take_index) -> [H, W]`` the capture's performer mask or None,
+                read lazily, only when the alpha loss trains on it (:attr:`View.matte`).
         """
         a, b = frames
         if not 0 <= a < b:
@@ -174,7 +192,8 @@ class SegmentData:
                 img = (lambda c=cam, i=f: load_image(c, i)) if lazy else load_image(cam, f)
                 mask = (lambda c=cam, i=f: load_mask(c, i)) if load_mask is not None else None
                 valid = (lambda c=cam, i=f: load_valid(c, i)) if load_valid is not None else None
-                views.append(View(cam, f, f / fps, camera_for(cam, f), img, mask, valid))
+                matte = (lambda c=cam, i=f: load_matte(c, i)) if load_matte is not None else None
+                views.append(View(cam, f, f / fps, camera_for(cam, f), img, mask, valid, matte))
         return cls((a, b), views)
 
     @property
@@ -258,6 +277,9 @@ class TrainConfig(BaseModel):
     image_scale: float = Field(1.0, gt=0, le=1, description="training resolution / capture resolution: "
                                "the caller loads area-downsampled images and scaled cameras")
     alpha_weight: float = Field(0.0, ge=0, description="L1 on alpha when images are RGBA")
+    mask_alpha_weight: float = Field(0.0, ge=0, description="L1 between the performers' alpha (the coverage "
+                                     "of the moving Gaussians, in front of the set) and the view's performer "
+                                     "mask (View.matte: the capture's masks), where a view has one; 0: off")
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     held_out_cameras: list[str] = Field(default_factory=list)
     init_opacity: float = Field(0.5, gt=0, lt=1)
@@ -289,6 +311,15 @@ class TrainConfig(BaseModel):
     eval_max_views: int = Field(24, gt=0)
     backend: Literal["auto", "gsplat", "torch"] = "auto"
     tile_size: int = Field(8, ge=1)
+
+    @model_serializer(mode="wrap")
+    def _omit_off_mask_alpha(self, handler):
+        # off, the field is left out of the JSON: configs (a train-segment key, a stored record's
+        # config) written before it existed keep their bytes
+        out = handler(self)
+        if isinstance(out, dict) and out.get("mask_alpha_weight") == 0.0:
+            del out["mask_alpha_weight"]
+        return out
 
 
 @dataclass(frozen=True)
@@ -526,10 +557,32 @@ def _deserialise(data: bytes, device) -> tuple[_State, dict, Poly4DGSConfig]:
 
 # ------------------------------------------------------------------------------------- training
 
+def performer_alpha(model: Poly4DGS, gaussians: Gaussians3D, camera: Camera, *, backend: str,
+                    tile_size: int = 8) -> torch.Tensor:
+    """The performers' alpha ``[H, W]``: ``Σ T_i α_i m_i`` over ``gaussians`` (``evaluate(model, t)``),
+    ``m_i`` 1 for a moving Gaussian (a lifespan: ``log λ_1`` above the static value; every
+    Gaussian of a model without lifespans) and 0 for the set's. That is each pixel's coverage by
+    the performers *with the set in front of them occluding*, what a performer mask holds, and
+    what compositing the performers over another background needs; the render's own alpha is 1
+    wherever the set is. One more render of the same Gaussians, each a flat linear colour
+    ``m_i``, over black."""
+    lam = model.params.get("log_lambdas")
+    ids = gaussians.ids
+    if lam is None:
+        moving = torch.ones(len(gaussians), device=gaussians.means.device)
+    else:
+        moving = (lam.detach()[ids, 0] > STATIC_LOG_LAMBDA + 10.0).to(gaussians.sh.dtype)
+    sh = torch.zeros_like(gaussians.sh)
+    sh[:, 0, :] = ((moving - 0.5) / SH_C0)[:, None]     # SH DC: colour = sh0·C0 + 0.5 = m
+    flat = replace(gaussians, sh=sh, colour_space="linear")
+    black = torch.zeros(3, device=gaussians.means.device)
+    return render(flat, camera, backend=backend, background=black, tile_size=tile_size)["rgb"][..., 0]
+
+
 def step_loss(model: Poly4DGS, time: float, camera: Camera, target: torch.Tensor,
               valid: torch.Tensor | None, exposure: torch.Tensor, row: int, black: torch.Tensor,
-              config: TrainConfig, *, backend: str, background: torch.Tensor
-              ) -> tuple[torch.Tensor, dict[str, float]]:
+              config: TrainConfig, *, backend: str, background: torch.Tensor,
+              matte: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, float]]:
     """The loss of one training step: the model at ``time`` rendered at ``camera``, through the
     camera's exposure and black-level grids, against its footage.
 
@@ -539,12 +592,15 @@ def step_loss(model: Poly4DGS, time: float, camera: Camera, target: torch.Tensor
             or None for everywhere.
         exposure: every training camera's exposure grid [C, Gy, Gx, 3]; ``row`` picks this one.
         black: every training camera's black-level grid [C, 3]; ``row`` picks this one.
+        matte: [H, W] the view's performer mask in [0, 1], or None; with
+            ``config.mask_alpha_weight`` the performers' alpha (:func:`performer_alpha`) is pulled
+            toward it (L1 over the valid pixels).
     Returns:
-        (scalar loss, its reported parts): L1 + SSIM (``config.ssim_weight``), the alpha term where
-        the target has alpha, the grids' regularisers and the MCMC regulariser.
+        (scalar loss, its reported parts): L1 + SSIM (``config.ssim_weight``), the alpha terms,
+        the grids' regularisers and the MCMC regulariser.
     """
-    out = render(evaluate(model, time), camera, backend=backend, background=background,
-                 tile_size=config.tile_size)
+    gaussians = evaluate(model, time)
+    out = render(gaussians, camera, backend=backend, background=background, tile_size=config.tile_size)
     pred = apply_grids(out["rgb"], exposure[row] if config.optimise_exposure else None,
                        black[row] if config.optimise_black_level else None)
     target_rgb = target[..., :3]
@@ -557,6 +613,12 @@ def step_loss(model: Poly4DGS, time: float, camera: Camera, target: torch.Tensor
     loss, parts = reconstruction_loss(pred, target_rgb, ssim_weight=config.ssim_weight)
     if config.alpha_weight and target.shape[2] == 4:
         loss = loss + config.alpha_weight * (out["alpha"] - target[..., 3:]).abs().mean()
+    if config.mask_alpha_weight and matte is not None:
+        err = (performer_alpha(model, gaussians, camera, backend=backend, tile_size=config.tile_size)
+               - matte.to(target.device)).abs()
+        l_matte = err[valid.to(err.device)].mean() if valid is not None else err.mean()
+        loss = loss + config.mask_alpha_weight * l_matte
+        parts["matte"] = float(l_matte.detach())
     reg, _ = grid_regularisers(
         exposure, black[row],
         exposure_weight=config.exposure_weight if config.optimise_exposure else 0.0,
@@ -672,7 +734,8 @@ def train_segment(views: SegmentData, init_points: Sequence[PointsAtTime], confi
         row = cam_row[view.camera_id]
         loss, parts = step_loss(model, view.time, view.camera, target, view.load_valid(),
                                 grid_params["exposure"], row, grid_params["black"], config,
-                                backend=backend.name, background=bg)
+                                backend=backend.name, background=bg,
+                                matte=view.load_matte() if config.mask_alpha_weight else None)
         if not torch.isfinite(loss.detach()):
             raise FloatingPointError(
                 f"step {step}: loss is {float(loss.detach())} on view {view.camera_id}@{view.frame} "
