@@ -5,34 +5,35 @@ through each camera's own sensor model, as the synthesizer renders its frames.""
 from __future__ import annotations
 
 import json
+import zlib
 from pathlib import Path
 
 import numpy as np
 
-from hardware.rig import load_rig
 from volcap_core.capture import CaptureFolder
 from volcap_core.imageio.read import read_exr_native
 from volcap_core.imageio.write import write_exr
 from volcap_core.masks import write_plate_masks
-from volcap_core.synth import synthesize as synth
 from volcap_core.synth import synthesize_capture
 from volcap_core.synth.render import World, render
+from volcap_core.synth.sensor import SensorModel
+from volcap_core.synth.truth import capture_camera, truth_world_from_folder
 
 SEED, CAMERAS, FRAMES = 1, ["S000", "S003"], 12
 
 
 def _clean_plates(root: Path, out: Path) -> Path:
     """``<out>/<camera>.exr``: each static camera's view of the set without actors, through its
-    sensor (exposure, vignette, glare, noise of its own stream), scene-linear like its frames."""
-    rig = load_rig("demo_scene")
-    actors = synth._scene_actors(rig.stage_size_m, SEED, 2)
-    plans = synth._plans(rig, SEED, [a.path_centre for a in actors], CAMERAS)
-    empty = World(synth._stage(rig, "scene", SEED), [])
+    sensor (exposure, vignette, glare, and noise of a stream of its own), scene-linear like its
+    frames: the capture's own world and cameras rebuilt from its ground truth."""
+    cameras = json.loads((root / "ground_truth" / "cameras.json").read_text())
+    empty = World(truth_world_from_folder(root).stage, [])
     out.mkdir()
-    for plan in plans:
-        radiance = render(empty, plan.static, 0.0, 1)[0]
-        write_exr(out / f"{plan.cam.id}.exr", plan.sensor.apply(radiance, synth._rng(SEED, "plate", plan.cam.id)),
-                  ("R", "G", "B"))
+    for cam in CAMERAS:
+        radiance = render(empty, capture_camera(cameras, cam, 0), 0.0, 1)[0]
+        sensor = SensorModel.from_json(cameras["cameras"][cam]["photometric"])
+        noise = np.random.default_rng(zlib.crc32(f"plate/{cam}".encode()))
+        write_exr(out / f"{cam}.exr", sensor.apply(radiance, noise), ("R", "G", "B"))
     return out
 
 
