@@ -356,7 +356,7 @@ def calibrate(capture: Annotated[str, typer.Argument(help="capture ref name (cap
         lines.append(f"against {against}:")
         lines += [f"  {cam}: rotation {e['rotation_deg']:.3f}° (stated σ {_fmt(e['rotation_sigma_deg'], 3)}°), "
                   f"centre {100 * e['centre_m']:.1f} cm (σ {_fmt(100 * e['centre_sigma_m'] if e['centre_sigma_m'] is not None else None, 1)} cm), "
-                  f"focal {e['focal_pct']:+.2f} %, principal point {e['principal_px']:.1f} px"
+                  f"focal {e['focal_pct']:+.2f} % (σ {_fmt(e.get('focal_sigma_pct'))} %), principal point {e['principal_px']:.1f} px"
                   for cam, e in out["against"].items()]
     if out.get("colour"):
         lines += _colour_lines(out["colour"])

@@ -31,7 +31,7 @@ def _calibration(*cams) -> Calibration:
 def test_each_camera_against_the_reference_beside_its_sigma():
     reference = _calibration(_camera("A", [3.0, 0.0, 1.5], 0.0, 500.0), _camera("B", [0.0, 3.0, 1.5], 0.0, 500.0),
                              _camera("C", [-3.0, 0.0, 1.5], 0.0, 500.0))
-    solved = _calibration(_camera("A", [3.0, 0.0, 1.5], 0.5, 505.0, cx=323.0, rotation_sigma_deg=0.25,
+    solved = _calibration(_camera("A", [3.0, 0.0, 1.5], 0.5, 505.0, cx=323.0, rotation_sigma_deg=0.25, focal_sigma_pct=0.5,
                                   centre_sigma_m=0.03),
                           _camera("B", [0.0, 3.02, 1.5], 0.0, 500.0))   # states no sigma; C not solved
     got = errors_against(solved, reference)
@@ -39,6 +39,7 @@ def test_each_camera_against_the_reference_beside_its_sigma():
     assert got["A"]["rotation_deg"] == pytest.approx(0.5, abs=1e-9)
     assert got["A"]["rotation_sigmas"] == pytest.approx(2.0) and got["A"]["centre_sigma_m"] == 0.03
     assert got["A"]["focal_pct"] == pytest.approx(1.0) and got["A"]["principal_px"] == pytest.approx(3.0)
+    assert got["A"]["focal_sigma_pct"] == 0.5 and got["B"]["focal_sigma_pct"] is None
     assert got["B"]["centre_m"] == pytest.approx(0.02) and got["B"]["rotation_sigma_deg"] is None
     assert got["B"]["rotation_sigmas"] is None
 

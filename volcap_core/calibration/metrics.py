@@ -360,6 +360,7 @@ def errors_against(calib, reference) -> dict[str, dict[str, float | None]]:
     Per camera (JSON-ready): ``rotation_deg`` (angle of ``R R_ref^T``), ``rotation_sigma_deg`` (the
     stated σ, the camera's ``quality``; None when the solve states none), ``rotation_sigmas`` (error
     over σ), ``centre_m`` and ``centre_sigma_m``, ``focal_pct`` (``100 (fx / fx_ref - 1)``) and
+    ``focal_sigma_pct`` (the stated focal σ, None when held or not stated),
     ``principal_px`` (distance between the principal points). The reference's frames must be the
     calibrated frames' size (``importers.fit_calibration`` makes them so)."""
     out: dict[str, dict[str, float | None]] = {}
@@ -379,6 +380,7 @@ def errors_against(calib, reference) -> dict[str, dict[str, float | None]]:
                     "centre_m": float(np.linalg.norm(_centre(W) - _centre(Wr))),
                     "centre_sigma_m": c.quality.get("centre_sigma_m"),
                     "focal_pct": 100.0 * (c.intrinsics[0] / r.intrinsics[0] - 1.0),
+                    "focal_sigma_pct": c.quality.get("focal_sigma_pct"),
                     "principal_px": float(np.hypot(c.intrinsics[2] - r.intrinsics[2],
                                                    c.intrinsics[3] - r.intrinsics[3]))}
     return out
