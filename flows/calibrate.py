@@ -290,8 +290,8 @@ def calibrate_flow(store: str, capture: str, frames: tuple[int, int] | None = No
     capture_ref = s.resolve(capture)
     cap = s.get_record(capture_ref, Capture)
     a, b = cap.take_range(frames)
-    # the reference read before the solve: a wrong ref fails at once, not after minutes
-    reference = s.get_record(s.resolve(against), Calibration) if against is not None else None
+    # the trusted calibration read before the solve: a wrong ref fails at once, not after minutes
+    trusted = s.get_record(s.resolve(against), Calibration) if against is not None else None
     trackers = tracking_camera_ids(cap)
     log.info("capture %s: %d static + %d tracking cameras, dense points for frames %d:%d", cap.name,
              len(cap.cameras) - len(trackers), len(trackers), a, b)
@@ -320,8 +320,8 @@ def calibrate_flow(store: str, capture: str, frames: tuple[int, int] | None = No
     if cap.ground_truth is not None:
         errors = s.get_json(calibration_errors(store, capture_ref, calib_ref, points_ref))
     compared = None
-    if reference is not None:
-        compared = errors_against(calib, reference)
+    if trusted is not None:
+        compared = errors_against(calib, trusted)
         for cam, e in compared.items():
             log.info("capture %s: camera %s against %s: rotation %.3f° (stated σ %s°), centre %.1f cm, focal %+.2f %%",
                      cap.name, cam, against, e["rotation_deg"],
