@@ -25,6 +25,7 @@ from volcap_core.calibration.colour_step import ChartView, ColourMatrixRecord
 from volcap_core.calibration.dense_points_step import dense_cameras
 from volcap_core.calibration.errors import CalibrationInputError, KnownPointsError
 from volcap_core.calibration.inputs import tracking_camera_ids
+from volcap_core.calibration.metrics import errors_against
 from volcap_core.calibration.record import Calibration
 from volcap_core.calibration.scale import KnownPoints
 from volcap_core.calibration.sfm import StaticSfmOptions
@@ -247,7 +248,8 @@ def calibrate_flow(store: str, capture: str, frames: tuple[int, int] | None = No
                    allow_unregistered: bool = False, colour_charts: dict | None = None,
                    colour_base_dir: str | None = None, instants: int = 1,
                    known_distance: tuple[str, str, float] | None = None,
-                   known_points: dict | None = None, min_pair_inliers: int | None = None) -> dict:
+                   known_points: dict | None = None, min_pair_inliers: int | None = None,
+                   points: bool = True, against: str | None = None) -> dict:
     """Calibrate ``capture`` (a ref name such as ``captures/demo`` or a digest) and compute dense
     points for ``frames`` [a, b) (all frames when None).
 
@@ -273,6 +275,11 @@ def calibrate_flow(store: str, capture: str, frames: tuple[int, int] | None = No
     (``static.frame_without_lidar``: ``scale_source`` 0 mounts / 1 known distance / 2 known points, ``scale``,
     ``mount_residual_rms_m`` / ``_max_m``...; with a scan and a known distance, its check), else None.
 
+    ``points=False``: the calibration alone, no dense points (``points`` None in the result; a
+    reconstruction computes them). ``against``: a Calibration ref (``imported-calibrations/NAME``:
+    the studio's) to compare the static cameras with: ``against`` in the result holds each camera's
+    :func:`~volcap_core.calibration.metrics.errors_against` beside its stated σ.
+
     ``colour_charts``: ``{"face": view, "scene": view}`` (:func:`chart_view`; relative image paths
     from ``colour_base_dir``) also runs ``calibrate-colour`` (Face Rig onto Scene Rig) and adds
     ``colour`` (:func:`colour_summary`) to the result, the record named ``colour/<capture name>``.
@@ -283,6 +290,8 @@ def calibrate_flow(store: str, capture: str, frames: tuple[int, int] | None = No
     capture_ref = s.resolve(capture)
     cap = s.get_record(capture_ref, Capture)
     a, b = cap.take_range(frames)
+    # the trusted calibration read before the solve: a wrong ref fails at once, not after minutes
+    trusted = s.get_record(s.resolve(against), Calibration) if against is not None else None
     trackers = tracking_camera_ids(cap)
     log.info("capture %s: %d static + %d tracking cameras, dense points for frames %d:%d", cap.name,
              len(cap.cameras) - len(trackers), len(trackers), a, b)
@@ -306,10 +315,18 @@ def calibrate_flow(store: str, capture: str, frames: tuple[int, int] | None = No
         log.warning("capture %s: camera %s left out of the calibration: %s", cap.name, cam, why)
     for line in calib.warnings:
         log.warning("capture %s: %s", cap.name, line)
-    points_ref = point_cloud_for_frames(store, capture_ref, calib_ref, list(range(a, b)))
+    points_ref = point_cloud_for_frames(store, capture_ref, calib_ref, list(range(a, b))) if points else None
     errors = None
     if cap.ground_truth is not None:
         errors = s.get_json(calibration_errors(store, capture_ref, calib_ref, points_ref))
+    compared = None
+    if trusted is not None:
+        compared = errors_against(calib, trusted)
+        for cam, e in compared.items():
+            log.info("capture %s: camera %s against %s: rotation %.3f° (stated σ %s°), centre %.1f cm, focal %+.2f %%",
+                     cap.name, cam, against, e["rotation_deg"],
+                     "none" if e["rotation_sigma_deg"] is None else f"{e['rotation_sigma_deg']:.3f}",
+                     100 * e["centre_m"], e["focal_pct"])
     colour = None
     if colour_charts is not None:
         source, reference = chart_views(s, colour_charts, "scene", colour_base_dir)
@@ -317,8 +334,10 @@ def calibrate_flow(store: str, capture: str, frames: tuple[int, int] | None = No
         s.set_ref(f"colour/{cap.name}", colour_ref)
         colour = colour_summary(s, colour_ref)
     s.set_ref(f"calibrations/{cap.name}", calib_ref)
-    s.set_ref(f"points/{cap.name}", points_ref)
+    if points_ref is not None:
+        s.set_ref(f"points/{cap.name}", points_ref)
     return {"capture": capture_ref.model_dump(mode="json"), "calibration": calib_ref.model_dump(mode="json"),
-            "points": points_ref.model_dump(mode="json"), "frames": [a, b], "tracking_cameras": trackers,
+            "points": points_ref.model_dump(mode="json") if points_ref is not None else None,
+            "frames": [a, b], "tracking_cameras": trackers,
             "errors": errors, "unregistered": dict(unregistered), "warnings": list(calib.warnings), "colour": colour,
-            "stage_frame": stage_frame}
+            "stage_frame": stage_frame, "against": compared}

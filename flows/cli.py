@@ -332,11 +332,14 @@ def calibrate(capture: Annotated[str, typer.Argument(help="capture ref name (cap
               known_distance: Annotated[Optional[str], typer.Option(help="CAM_A,CAM_B,METRES: measured distance between two static cameras' optical centres, the scale of a capture without a lidar scan (default: the rig's mounts)")] = None,
               known_points: Annotated[Optional[Path], typer.Option(help="JSON file: named scene points (marks on the floor, a scale bar's ends) by their pixels in two or more static cameras and the measured distance between them, the scale of a capture without a lidar scan (docs/calibration.md)")] = None,
               min_pair_inliers: Annotated[Optional[int], typer.Option(min=8, help="verified matches a pair of static cameras needs in the static SfM (default 36, for close neighbours; a sparse rig of wide baselines needs ~20, docs/calibration.md)")] = None,
+              no_points: Annotated[bool, typer.Option("--no-points", help="the calibration alone, without the dense points (volcap reconstruct computes them)")] = False,
+              against: Annotated[Optional[str], typer.Option("--against", help="a Calibration ref the studio trusts (imported-calibrations/NAME): print each static camera's rotation, centre and focal against it beside its stated sigma")] = None,
               store: StoreOpt = DEFAULT_STORE, json_out: JsonOpt = False) -> None:
     """Calibrate every camera of an ingested capture and compute per-frame dense points.
 
     Prints the Calibration and point-cloud refs (also named calibrations/NAME and points/NAME) and,
-    for a capture with ground truth (synthetic), the error table; --json adds it all as JSON.
+    for a capture with ground truth (synthetic), the error table; with --against, each static
+    camera against a trusted calibration; --json adds it all as JSON.
     """
     start_api_early()
     from flows.calibrate import calibrate_flow
@@ -347,11 +350,12 @@ def calibrate(capture: Annotated[str, typer.Argument(help="capture ref name (cap
     distance, marks = _scale_options(known_distance, known_points)
     summary = _run(calibrate_flow, store=_store_url(store), capture=capture, frames=_frame_span(frames),
                    allow_unregistered=allow_unregistered, colour_charts=charts, instants=instants,
-                   known_distance=distance, known_points=marks,
+                   known_distance=distance, known_points=marks, points=not no_points, against=against,
                    **({"min_pair_inliers": min_pair_inliers} if min_pair_inliers is not None else {}),
                    colour_base_dir=str(colour_charts.resolve().parent) if colour_charts is not None else None)
     out = summary.result
-    lines = [f"calibration: {out['calibration']['digest']}", f"points: {out['points']['digest']}"]
+    lines = [f"calibration: {out['calibration']['digest']}",
+             f"points: {out['points']['digest']}" if out["points"] else "points: not computed (--no-points)"]
     lines += [f"left out (unregistered): {cam}: {why}" for cam, why in out["unregistered"].items()]
     lines += [f"warning: {line}" for line in out.get("warnings", [])]
     sf = out.get("stage_frame") or {}
@@ -367,6 +371,12 @@ def calibrate(capture: Annotated[str, typer.Argument(help="capture ref name (cap
         lines.append("known points: " + known_points_text(sf, "mount_residual_rms_m" not in sf))
     if out["errors"] is not None:
         lines += _error_lines(out["errors"])
+    if out.get("against"):
+        lines.append(f"against {against}:")
+        lines += [f"  {cam}: rotation {e['rotation_deg']:.3f}° (stated σ {_fmt(e['rotation_sigma_deg'], 3)}°), "
+                  f"centre {100 * e['centre_m']:.1f} cm (σ {_fmt(100 * e['centre_sigma_m'] if e['centre_sigma_m'] is not None else None, 1)} cm), "
+                  f"focal {e['focal_pct']:+.2f} % (σ {_fmt(e.get('focal_sigma_pct'))} %), principal point {e['principal_px']:.1f} px"
+                  for cam, e in out["against"].items()]
     if out.get("colour"):
         lines += _colour_lines(out["colour"])
     _emit({**out, **summary.counts()}, json_out, "\n".join(lines))

@@ -564,7 +564,10 @@ def _final_support(model: SparseModel, first: BundleResult, cams: _Cameras) -> d
         # the demo rig: 0.0035° stated, 0.63-0.73° off; step 4's covariance 0.46-0.48°)
         for i, c in enumerate(reg):
             support[c].update(rotation_sigma_deg=float(first.sigma.rotation_deg[i]),
-                              centre_sigma_m=float(first.sigma.centre_m[i]))
+                              centre_sigma_m=float(first.sigma.centre_m[i]),
+                              # how far the footage may move a held lens calibration's focal
+                              # (docs/calibration.md, "Focal drift from a held lens calibration")
+                              focal_sigma_pct=100 * float(first.sigma.focal_rel[i]))
     if cams.guided_observations is not None:
         # how well step 5 knows each camera: its adjustment's covariance, the points eliminated and
         # the principal point, focal and lens corrections unknown under their priors (a

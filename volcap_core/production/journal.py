@@ -9,6 +9,14 @@ compares: equal with every output still stored means cached; otherwise the first
 reason (``never run``, ``task train-segment version 1 -> 2``, ``parameter train_steps changed``,
 ``input calibrate-static:cap changed``, ``output missing from the store``).
 
+A fingerprint holds digests of two sorts: objects in the store (a capture record a calibration read)
+and digests of things never stored (a folder listing, a step's outputs taken together, a weights
+directory's stat fingerprint). The store follows every ``blake3:`` digest a record mentions (its gc
+keeps them, ``volcap store verify`` wants them present), so the entry writes the second sort as
+``blake3-fingerprint:<hex>``: not a reference, so never reported as a missing object, while every
+digest that names a stored object stays a reference gc keeps. :func:`read_entry` gives the
+fingerprint back in its ``blake3:`` form, the form :func:`compare_fingerprints` compares.
+
 Pure store I/O, no Prefect.
 """
 
@@ -20,11 +28,15 @@ from pathlib import Path
 from typing import Any, ClassVar
 
 from volcap_core.digest import digest_bytes
-from volcap_core.records import ArtifactRef, Record, canonical_json
+from volcap_core.records import DIGEST_RE, ArtifactRef, Record, canonical_json
 from volcap_core.store import ArtifactStore, MissingRefError
 
-__all__ = ["StepEntry", "compare_fingerprints", "folder_listing_digest", "read_entry", "step_ref_name",
-           "write_entry"]
+__all__ = ["FINGERPRINT_PREFIX", "StepEntry", "compare_fingerprints", "folder_listing_digest", "read_entry",
+           "step_ref_name", "write_entry"]
+
+#: How a journal entry writes a fingerprint digest that names no stored object (module docstring).
+FINGERPRINT_PREFIX = "blake3-fingerprint:"
+_DIGEST_PREFIX = "blake3:"
 
 
 class StepEntry(Record):
@@ -43,15 +55,46 @@ def step_ref_name(production: str, step_id: str) -> str:
     return "/".join(["productions", production, "steps", *parts])
 
 
+def _map_strings(doc: Any, f) -> Any:
+    """``doc`` (JSON) with every string value (not key) replaced by ``f(value)``."""
+    if isinstance(doc, str):
+        return f(doc)
+    if isinstance(doc, dict):
+        return {k: _map_strings(v, f) for k, v in doc.items()}
+    if isinstance(doc, list):
+        return [_map_strings(v, f) for v in doc]
+    return doc
+
+
+def _digest_values(doc: Any) -> set[str]:
+    found: set[str] = set()
+    _map_strings(doc, lambda v: found.add(v) if DIGEST_RE.match(v) else None)
+    return found
+
+
+def _as_digest(value: str) -> str:
+    """A ``blake3-fingerprint:`` value back in the ``blake3:`` form; any other string as it is."""
+    return _DIGEST_PREFIX + value[len(FINGERPRINT_PREFIX):] if value.startswith(FINGERPRINT_PREFIX) else value
+
+
 def read_entry(store: ArtifactStore, production: str, step_id: str) -> StepEntry | None:
+    """The step's last entry, its fingerprint in the ``blake3:`` form it was computed in (an entry
+    written before fingerprint digests had their own form reads the same)."""
     try:
-        return store.get_record(store.get_ref(step_ref_name(production, step_id)), StepEntry)
+        entry = store.get_record(store.get_ref(step_ref_name(production, step_id)), StepEntry)
     except MissingRefError:
         return None
+    return entry.model_copy(update={"fingerprint": _map_strings(entry.fingerprint, _as_digest)})
 
 
 def write_entry(store: ArtifactStore, production: str, step_id: str, fingerprint: dict[str, Any],
                 outputs: dict[str, ArtifactRef]) -> ArtifactRef:
+    """Journal a finished step. A digest value of ``fingerprint`` that names no stored object is
+    written as ``blake3-fingerprint:<hex>`` (module docstring); one that names an object stays a
+    reference, so gc keeps what a step read."""
+    unstored = set(store.missing(_digest_values(fingerprint)))
+    fingerprint = _map_strings(fingerprint, lambda v: FINGERPRINT_PREFIX + v[len(_DIGEST_PREFIX):]
+                               if v in unstored else v)
     entry = StepEntry(production=production, step=step_id, fingerprint=fingerprint, outputs=outputs)
     ref = store.put_record(entry)
     store.set_ref(step_ref_name(production, step_id), ref)
