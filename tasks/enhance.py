@@ -110,15 +110,15 @@ def train_enhancer_task(store: str, pair_sets: list[ArtifactRef], prompts: dict[
     steps the training state is stored and named ``checkpoints/<this run's cache key>``; a killed or
     retried run resumes from it. An :class:`~volcap_core.enhance.production.EnhancerModel` record."""
     from volcap_core.enhance.model import Enhancer, PromptEmbedding, build_enhancer, enhancer_to_bytes
-    from volcap_core.enhance.production import load_pair_sets
+    from volcap_core.enhance.production import load_pair_sets, pair_record
     from volcap_core.enhance.training import train_enhancer
 
     if (architecture is None) == (base_weights is None):
         raise ValueError("train-enhancer: give exactly one of architecture (random weights) and base_weights")
     s = ArtifactStore(store)
     log = get_run_logger()
-    sets = [s.get_record(r, FacePairSet) for r in pair_sets]
-    pairs = load_pair_sets(sets, s.get_bytes)
+    sets = [pair_record(r, s.get_bytes) for r in pair_sets]   # interim FacePairSets or PairDatasets
+    pairs = load_pair_sets(sets, s.get_bytes)                # a PairDataset's training split only
     if base_weights is not None:
         import torch
 

@@ -1,0 +1,84 @@
+"""Face Rig pair tasks: one camera path's LQ/HQ renders, and the pair dataset of an actor.
+
+The HQ and LQ models themselves are ``train-segment`` runs (``tasks/reconstruct.py``): the same
+segment training a production's Scene Rig segments get. ``render-pairs`` renders both along one
+camera path (:mod:`volcap_core.splat_pairs`); ``pair-dataset`` gathers every path's sequences into
+a :class:`~volcap_core.enhance.production.PairDataset` with its split by sub-sequence
+(``docs/enhancer.md``, "Gaussian-splat pairs").
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from tasks.contract import volcap_task
+from volcap_core import reconstruction
+from volcap_core.calibration.colour_step import ColourMatrixRecord
+from volcap_core.enhance.production import SPLAT_PAIRS, PairDataset, SplatPairSequence, split_subsequences
+from volcap_core.records import MEDIA_EXR, ArtifactRef
+from volcap_core.segment import ViewSpec
+from volcap_core.store import ArtifactStore
+
+
+@volcap_task(name="render-pairs", version="1", libraries=("torch", "numpy", "OpenEXR"))
+def render_pairs(store: str, hq: ArtifactRef, lq: ArtifactRef, views: list[ViewSpec], name: str, subsequence: int,
+                 path: int, frames: list[int], path_params: dict[str, Any], lq_gaussians: int, hq_gaussians: int,
+                 colour: ArtifactRef | None = None) -> ArtifactRef:
+    """The HQ and LQ segment models (``hq``, ``lq``: SegmentModel records of one sub-sequence,
+    take indices ``frames``) rendered along one camera path (``views``, one per frame, at the
+    frames' times): half RGBA EXRs, linear and premultiplied, with the ``colour`` matrix (a
+    ``calibrate-colour`` record, Face Rig -> Scene Rig; None: none) applied, and the LQ's exact
+    backward flow per consecutive frame pair (float EXR ``flow.x``, ``flow.y``). A
+    :class:`~volcap_core.enhance.production.SplatPairSequence` record."""
+    import torch
+
+    from volcap_core.splat import load_model
+    from volcap_core.splat_pairs import encode_flow_frame, encode_pair_frame, render_path
+
+    if len(views) != len(frames):
+        raise ValueError(f"pair sequence {name}: {len(views)} views for {len(frames)} frames")
+    s = ArtifactStore(store)
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    matrix = s.get_record(colour, ColourMatrixRecord) if colour is not None else None
+    rendered = {}
+    for label, ref, want_flow in (("hq", hq, False), ("lq", lq, True)):
+        seg = s.get_record(ref, reconstruction.SegmentModel)
+        rendered[label] = render_path(load_model(s.get_bytes(seg.model), device), views, colour=matrix,
+                                      flow=want_flow)
+    out: dict[str, tuple[ArtifactRef, ...]] = {}
+    for label in ("hq", "lq"):
+        out[label] = tuple(s.put_bytes(encode_pair_frame(rgba, view, {"volcap.pair": label, "volcap.sequence": name,
+                                                                       "volcap.frame": int(f)}), MEDIA_EXR)
+                           for rgba, view, f in zip(rendered[label][0], views, frames))
+    flow = tuple(s.put_bytes(encode_flow_frame(f, {"volcap.sequence": name, "volcap.frame": int(frames[k + 1])}),
+                             MEDIA_EXR) for k, f in enumerate(rendered["lq"][1]))
+    return s.put_record(SplatPairSequence(
+        name=name, subsequence=subsequence, path=path, frames=tuple(frames), width=views[0].width,
+        height=views[0].height, lq=out["lq"], hq=out["hq"], flow=flow, path_params=path_params,
+        lq_gaussians=lq_gaussians, hq_gaussians=hq_gaussians, lq_model=lq, hq_model=hq))
+
+
+@volcap_task(name="pair-dataset", version="1")
+def pair_dataset(store: str, sequences: list[ArtifactRef], actor: str, capture: ArtifactRef,
+                 calibration: ArtifactRef, subsequences: int, lq_range: list[int], lq_range_source: str,
+                 resolution: int, parameters: dict[str, Any], seed: int, colour: ArtifactRef | None = None,
+                 validation: float = 0.1, test: float = 0.1) -> ArtifactRef:
+    """An actor's :class:`~volcap_core.enhance.production.PairDataset`: the ``render-pairs``
+    sequences, the split of its ``subsequences`` sub-sequences into train / validation / test
+    (:func:`~volcap_core.enhance.production.split_subsequences`, seeded ``seed``, fractions
+    ``validation`` and ``test``), the LQ range and where it came from (``preset`` or ``measured``)."""
+    s = ArtifactStore(store)
+    seqs = tuple(s.get_record(r, SplatPairSequence) for r in sequences)
+    bad = [q.name for q in seqs if not 0 <= q.subsequence < subsequences]
+    if bad:
+        raise ValueError(f"pair dataset of {actor}: sequences {', '.join(bad)} name a sub-sequence outside "
+                         f"0..{subsequences - 1}")
+    split = split_subsequences(subsequences, seed, validation=validation, test=test)
+    return s.put_record(PairDataset(
+        actor=actor, group=actor, capture=capture, calibration=calibration, colour=colour, method=SPLAT_PAIRS,
+        lq_range=(int(lq_range[0]), int(lq_range[1])), lq_range_source=lq_range_source, resolution=resolution,
+        parameters={**parameters, "seed": seed, "validation": validation, "test": test}, split=split,
+        sequences=seqs))
+
+
+__all__ = ["pair_dataset", "render_pairs"]
