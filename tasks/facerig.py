@@ -1,8 +1,10 @@
 """Face Rig pair tasks: one camera path's LQ/HQ renders, and the pair dataset of an actor.
 
 The HQ and LQ models themselves are ``train-segment`` runs (``tasks/reconstruct.py``): the same
-segment training a production's Scene Rig segments get. ``render-pairs`` renders both along one
-camera path (:mod:`volcap_core.splat_pairs`); ``pair-dataset`` gathers every path's sequences into
+segment training a production's Scene Rig segments get. ``face-paths`` draws a sub-sequence's
+camera paths around the head its HQ model holds (:mod:`volcap_core.enhance.face_paths`);
+``render-pairs`` renders both models along one camera path (:mod:`volcap_core.splat_pairs`);
+``pair-dataset`` gathers every path's sequences into
 a :class:`~volcap_core.enhance.production.PairDataset` with its split by sub-sequence
 (``docs/enhancer.md``, "Gaussian-splat pairs").
 """
@@ -18,6 +20,40 @@ from volcap_core.enhance.production import SPLAT_PAIRS, PairDataset, SplatPairSe
 from volcap_core.records import MEDIA_EXR, ArtifactRef
 from volcap_core.segment import ViewSpec
 from volcap_core.store import ArtifactStore
+
+
+@volcap_task(name="face-paths", version="1", libraries=("torch", "numpy"))
+def face_paths(store: str, hq: ArtifactRef, times_s: list[float], count: int, width: int, height: int, seed: int,
+               around_m: list[float], facing: tuple[float, float, float] = (1.0, 0.0, 0.0)) -> ArtifactRef:
+    """``count`` camera paths around the head of a sub-sequence's HQ model (``hq``, a SegmentModel
+    record) at ``times_s`` (the sub-sequence's frame times), ``width`` × ``height`` px, seeded
+    ``seed``: the head per frame from the model's Gaussians at that time
+    (:func:`~volcap_core.enhance.face_paths.head_from_model`, looking within 0.5 m of
+    ``around_m``, where the rig's cameras aim), its radius the median over the frames, the face
+    looking along ``facing``; then :func:`~volcap_core.enhance.face_paths.face_camera_paths`. A JSON
+    artifact: ``{"head": {"centres_m", "radius_m"}, "paths": [{"views": [ViewSpec...], "params"}]}``."""
+    import numpy as np
+
+    from volcap_core.enhance.face_paths import face_camera_paths, head_from_model
+    from volcap_core.splat import evaluate, load_model
+
+    s = ArtifactStore(store)
+    seg = s.get_record(hq, reconstruction.SegmentModel)
+    model = load_model(s.get_bytes(seg.model))
+    heads = []
+    for t in times_s:
+        g = evaluate(model, t)
+        try:
+            heads.append(head_from_model(g.means.detach(), g.opacities.detach().reshape(-1), around_m=around_m))
+        except ValueError as exc:
+            raise ValueError(f"face paths of segment {hq.digest} (frames {seg.frames[0]}:{seg.frames[1]}) at "
+                             f"{t:.3f} s: {exc}") from None
+    centres = np.stack([h.centre_m for h in heads])
+    radius = float(np.median([h.radius_m for h in heads]))
+    paths = face_camera_paths(centres, radius, times_s, count, width=width, height=height, seed=seed, facing=facing)
+    return s.put_json({"head": {"centres_m": centres.tolist(), "radius_m": radius},
+                       "paths": [{"views": [v.model_dump(mode="json") for v in p.views], "params": p.params}
+                                 for p in paths]})
 
 
 @volcap_task(name="render-pairs", version="1", libraries=("torch", "numpy", "OpenEXR"))
@@ -81,4 +117,4 @@ def pair_dataset(store: str, sequences: list[ArtifactRef], actor: str, capture: 
         sequences=seqs))
 
 
-__all__ = ["pair_dataset", "render_pairs"]
+__all__ = ["face_paths", "pair_dataset", "render_pairs"]

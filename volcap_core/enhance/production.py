@@ -2,12 +2,16 @@
 stored enhancers and enhanced shot frames.
 
 What the ``face-pairs``, ``actor-prompt``, ``train-enhancer`` and ``enhance-shot`` tasks
-(``tasks/enhance.py``) call. Bytes move through ``get_bytes(ref)`` / ``put_bytes(data, media)``
-callables, so nothing here touches a store or Prefect.
+(``tasks/enhance.py``) and the Face Rig pair tasks (``tasks/facerig.py``) call. Bytes move through
+``get_bytes(ref)`` / ``put_bytes(data, media)`` callables, so nothing here touches a store or Prefect.
 
-**Interim pairs.** Until the Face Rig pair dataset lands (LQ/HQ Poly4DGS renders of each actor's
-Face Rig capture along camera paths), an actor's pairs are made from the actor's *ingested* Face
-Rig capture frames (:func:`face_pairs_from_capture`): HQ = the frames (RGB premultiplied by the
+**Gaussian-splat pairs** (the paper's): a :class:`PairDataset` of :class:`SplatPairSequence` s,
+LQ/HQ Poly4DGS renders of an actor's Face Rig sub-sequences along camera paths with the LQ's exact
+flow (``flows/facerig_pairs.py``), split by sub-sequence (:func:`split_subsequences`).
+:func:`load_pair_sets` is the one loader training reads pairs with (a dataset's train split).
+
+**Interim pairs** (``pair_method: interim``, the CPU presets'): an actor's pairs made from the
+actor's *ingested* Face Rig capture frames (:func:`face_pairs_from_capture`): HQ = the frames (RGB premultiplied by the
 ground-truth performer coverage where the capture has it), LQ =
 :func:`~volcap_core.enhance.pairs.make_degraded_pairs` of them. The plan's face-pairs parameters
 are honoured this way: ``subsequences`` windows of ``subsequence_frames`` consecutive take frames,
