@@ -361,3 +361,28 @@ def test_face_pairs_steps_carry_the_pair_method_and_interim_plans_keep_their_fin
     assert source(None, Step(id="face-pairs:anna", parameters=interim)) == {}
     tasks = source(None, Step(id="face-pairs:anna", parameters=splat))["splat_tasks"]
     assert {"train-segment", "face-paths", "render-pairs", "pair-dataset"} <= set(tasks)
+
+
+@pytest.mark.slow
+def test_train_enhancer_trains_on_the_dataset_s_training_split(pair_flow):
+    from prefect import flow
+
+    from tasks.enhance import actor_prompt, train_enhancer_task
+    from volcap_core.enhance.production import EnhancerModel
+
+    store, quality, first, _ = pair_flow
+    dataset = first.result["dataset"]
+
+    @flow
+    def train() -> ArtifactRef:
+        arch = quality.enhancer_config()
+        prompt = actor_prompt(store, "anna", arch)
+        return train_enhancer_task(store, [dataset], {"anna": prompt},
+                                   quality.enhancer_train_config().model_copy(update={"steps": 4, "vae_steps": 4,
+                                                                                      "checkpoint_every": 0}),
+                                   architecture=arch)
+
+    s = ArtifactStore(store)
+    model = s.get_record(train(), EnhancerModel)
+    assert model.pair_sets == (dataset,) and model.groups == ("anna",) and model.steps == 4
+    assert len(model.losses) == 4 and all(np.isfinite(model.losses))
