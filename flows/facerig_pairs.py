@@ -9,7 +9,8 @@ It reads like the paper's "Training Data Generation" (``docs/enhancer.md``, "Gau
                (a count a frame drawn from the LQ range, seeded per sub-sequence): train-segment
                runs with the preset's TrainConfig, every model at once, as segments fan out
     paths      per sub-sequence face_camera_paths camera paths around the head its HQ model holds
-    render     both models along every path: half RGBA EXR at pair_resolution, the Face Rig ->
+    render     both models along every path of their sub-sequence (one task per sub-sequence, each
+               model loaded once): half RGBA EXR at pair_resolution, the Face Rig ->
                Scene Rig colour matrix applied, the LQ's exact flow per frame pair
     dataset    a PairDataset with the split by sub-sequence
 
@@ -31,7 +32,6 @@ from volcap_core.calibration.record import Calibration
 from volcap_core.capture import Capture
 from volcap_core.enhance.production import face_windows
 from volcap_core.production.presets import QualityPreset, named_preset
-from volcap_core.segment import ViewSpec
 from volcap_core.splat_pairs import lq_gaussians_per_frame
 from volcap_core.store import ArtifactStore
 
@@ -100,19 +100,14 @@ def facerig_pairs_flow(store: str, capture: str, actor: str, quality: str | Qual
     # camera paths around each sub-sequence's head, from its HQ model
     around = np.median([c.mount.look_at_m for c in cap.rig.cameras], axis=0).tolist()   # where the rig aims
     times = [[cap.frame_time(f) for f in w] for w in windows]
-    path_refs = [face_paths.submit(store, hq_models[i], times[i], q.face_camera_paths, q.pair_resolution,
-                                   q.pair_resolution, seed + i, around) for i in range(len(windows))]
-    paths = [s.get_json(f.result())["paths"] for f in path_refs]
+    futures = [face_paths.submit(store, hq_models[i], times[i], q.face_camera_paths, q.pair_resolution,
+                                 q.pair_resolution, seed + i, around) for i in range(len(windows))]
+    path_refs = [f.result() for f in futures]
 
     colour_ref = s.resolve(colour) if colour else None
-    args = [(i, k, p) for i in range(len(windows)) for k, p in enumerate(paths[i])]
-    futures = render_pairs.map(
-        unmapped(store), [hq_models[i] for i, _, _ in args], [lq_models[i] for i, _, _ in args],
-        [[ViewSpec.model_validate(v) for v in p["views"]] for _, _, p in args],
-        [f"s{i:03d}-p{k:03d}" for i, k, _ in args], [i for i, _, _ in args], [k for _, k, _ in args],
-        [windows[i] for i, _, _ in args], [p["params"] for _, _, p in args], [lq_counts[i] for i, _, _ in args],
-        unmapped(q.face_hq_gaussians_per_frame), unmapped(colour_ref))
-    sequences = [f.result() for f in futures]
+    futures = render_pairs.map(unmapped(store), hq_models, lq_models, path_refs, list(range(len(windows))),
+                               windows, lq_counts, unmapped(q.face_hq_gaussians_per_frame), unmapped(colour_ref))
+    sequences = [ref for f in futures for ref in f.result()]
     dataset = pair_dataset(store, sequences, actor, cap_ref, calib_ref, len(windows), list(lq_range),
                            lq_range_source, q.pair_resolution,
                            {"subsequences": q.face_subsequences, "subsequence_frames": q.face_subsequence_frames,

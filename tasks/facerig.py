@@ -3,7 +3,7 @@
 The HQ and LQ models themselves are ``train-segment`` runs (``tasks/reconstruct.py``): the same
 segment training a production's Scene Rig segments get. ``face-paths`` draws a sub-sequence's
 camera paths around the head its HQ model holds (:mod:`volcap_core.enhance.face_paths`);
-``render-pairs`` renders both models along one camera path (:mod:`volcap_core.splat_pairs`);
+``render-pairs`` renders both models along each of its camera paths (:mod:`volcap_core.splat_pairs`);
 ``pair-dataset`` gathers every path's sequences into
 a :class:`~volcap_core.enhance.production.PairDataset` with its split by sub-sequence
 (``docs/enhancer.md``, "Gaussian-splat pairs").
@@ -57,41 +57,50 @@ def face_paths(store: str, hq: ArtifactRef, times_s: list[float], count: int, wi
 
 
 @volcap_task(name="render-pairs", version="1", libraries=("torch", "numpy", "OpenEXR"))
-def render_pairs(store: str, hq: ArtifactRef, lq: ArtifactRef, views: list[ViewSpec], name: str, subsequence: int,
-                 path: int, frames: list[int], path_params: dict[str, Any], lq_gaussians: int, hq_gaussians: int,
-                 colour: ArtifactRef | None = None) -> ArtifactRef:
-    """The HQ and LQ segment models (``hq``, ``lq``: SegmentModel records of one sub-sequence,
-    take indices ``frames``) rendered along one camera path (``views``, one per frame, at the
+def render_pairs(store: str, hq: ArtifactRef, lq: ArtifactRef, paths: ArtifactRef, subsequence: int,
+                 frames: list[int], lq_gaussians: int, hq_gaussians: int,
+                 colour: ArtifactRef | None = None) -> list[ArtifactRef]:
+    """The HQ and LQ segment models of one sub-sequence (``hq``, ``lq``: SegmentModel records,
+    take indices ``frames``, per-frame budgets ``hq_gaussians``, ``lq_gaussians``) rendered along
+    each of its camera paths (``paths``: a ``face-paths`` artifact, one view per frame at the
     frames' times): half RGBA EXRs, linear and premultiplied, with the ``colour`` matrix (a
     ``calibrate-colour`` record, Face Rig -> Scene Rig; None: none) applied, and the LQ's exact
-    backward flow per consecutive frame pair (float EXR ``flow.x``, ``flow.y``). A
-    :class:`~volcap_core.enhance.production.SplatPairSequence` record."""
+    backward flow per consecutive frame pair (float EXR ``flow.x``, ``flow.y``). One
+    :class:`~volcap_core.enhance.production.SplatPairSequence` record per path, named
+    ``s<subsequence>-p<path>``; each model is loaded once for all the paths."""
     import torch
 
     from volcap_core.splat import load_model
     from volcap_core.splat_pairs import encode_flow_frame, encode_pair_frame, render_path
 
-    if len(views) != len(frames):
-        raise ValueError(f"pair sequence {name}: {len(views)} views for {len(frames)} frames")
     s = ArtifactStore(store)
     device = "cuda" if torch.cuda.is_available() else "cpu"
     matrix = s.get_record(colour, ColourMatrixRecord) if colour is not None else None
-    rendered = {}
-    for label, ref, want_flow in (("hq", hq, False), ("lq", lq, True)):
-        seg = s.get_record(ref, reconstruction.SegmentModel)
-        rendered[label] = render_path(load_model(s.get_bytes(seg.model), device), views, colour=matrix,
-                                      flow=want_flow)
-    out: dict[str, tuple[ArtifactRef, ...]] = {}
-    for label in ("hq", "lq"):
-        out[label] = tuple(s.put_bytes(encode_pair_frame(rgba, view, {"volcap.pair": label, "volcap.sequence": name,
-                                                                       "volcap.frame": int(f)}), MEDIA_EXR)
-                           for rgba, view, f in zip(rendered[label][0], views, frames))
-    flow = tuple(s.put_bytes(encode_flow_frame(f, {"volcap.sequence": name, "volcap.frame": int(frames[k + 1])}),
-                             MEDIA_EXR) for k, f in enumerate(rendered["lq"][1]))
-    return s.put_record(SplatPairSequence(
-        name=name, subsequence=subsequence, path=path, frames=tuple(frames), width=views[0].width,
-        height=views[0].height, lq=out["lq"], hq=out["hq"], flow=flow, path_params=path_params,
-        lq_gaussians=lq_gaussians, hq_gaussians=hq_gaussians, lq_model=lq, hq_model=hq))
+    drawn = s.get_json(paths)["paths"]
+    models = {label: load_model(s.get_bytes(s.get_record(ref, reconstruction.SegmentModel).model), device)
+              for label, ref in (("hq", hq), ("lq", lq))}
+    out = []
+    for k, path in enumerate(drawn):
+        name = f"s{subsequence:03d}-p{k:03d}"
+        views = [ViewSpec.model_validate(v) for v in path["views"]]
+        if len(views) != len(frames):
+            raise ValueError(f"pair sequence {name}: {len(views)} views for {len(frames)} frames")
+        refs: dict[str, tuple[ArtifactRef, ...]] = {}
+        flows = None
+        for label in ("hq", "lq"):
+            rgba, flow = render_path(models[label], views, colour=matrix, flow=label == "lq")
+            refs[label] = tuple(s.put_bytes(encode_pair_frame(x, v, {"volcap.pair": label, "volcap.sequence": name,
+                                                                     "volcap.frame": int(f)}), MEDIA_EXR)
+                                for x, v, f in zip(rgba, views, frames))
+            flows = flow if flow is not None else flows
+        flow_refs = tuple(s.put_bytes(encode_flow_frame(f, {"volcap.sequence": name,
+                                                            "volcap.frame": int(frames[i + 1])}), MEDIA_EXR)
+                          for i, f in enumerate(flows))
+        out.append(s.put_record(SplatPairSequence(
+            name=name, subsequence=subsequence, path=k, frames=tuple(frames), width=views[0].width,
+            height=views[0].height, lq=refs["lq"], hq=refs["hq"], flow=flow_refs, path_params=path["params"],
+            lq_gaussians=lq_gaussians, hq_gaussians=hq_gaussians, lq_model=lq, hq_model=hq)))
+    return out
 
 
 @volcap_task(name="pair-dataset", version="1")

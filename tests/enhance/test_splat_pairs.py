@@ -228,14 +228,12 @@ def test_the_pair_tasks_keys_see_what_their_output_depends_on():
     for task in (render_pairs, pair_dataset):
         assert settings_read(task) == []
         assert task_identity(task)                                          # every library has a release
-    views = path(2)
-    base = dict(hq=ref("a"), lq=ref("b"), views=views, name="s000-p000", subsequence=0, path=0, frames=[0, 1],
-                path_params={"focal_mm": 85.0}, lq_gaussians=300, hq_gaussians=2000)
+    base = dict(hq=ref("a"), lq=ref("b"), paths=ref("e"), subsequence=0, frames=[0, 1], lq_gaussians=300,
+                hq_gaussians=2000)
     assert_key_behaviour(
         render_pairs, base,
-        misses={"the HQ model": {"hq": ref("c")}, "the LQ model": {"lq": ref("c")},
-                "a view": {"views": [views[0], views[0]]}, "the colour matrix": {"colour": ref("d")},
-                "the path's parameters": {"path_params": {"focal_mm": 50.0}}},
+        misses={"the HQ model": {"hq": ref("c")}, "the LQ model": {"lq": ref("c")}, "the paths": {"paths": ref("f")},
+                "the sub-sequence": {"subsequence": 1}, "the colour matrix": {"colour": ref("d")}},
         hits={"no colour matrix, spelled out": {"colour": None}})
     base = dict(sequences=[ref("a")], actor="anna", capture=ref("b"), calibration=ref("c"), subsequences=3,
                 lq_range=[200, 500], lq_range_source="preset", resolution=128, parameters={}, seed=0)
