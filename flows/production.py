@@ -41,8 +41,10 @@ from prefect.cache_policies import NO_CACHE
 
 from flows.calibrate import calibrate_capture, point_cloud_for_frames
 from flows.cancellation import stop_flow_run_on_signal
+from flows.facerig_pairs import facerig_pairs_flow
 from flows.ingest import ingest_flow
 from tasks import calibrate as calibrate_tasks
+from tasks import facerig
 from tasks.contract import cached_output, task_identity
 from tasks.enhance import actor_prompt, enhance_shot, face_pairs, train_enhancer_task
 from tasks.ingest import fingerprint_camera, ingest_camera, record_capture
@@ -556,8 +558,16 @@ def run_render_shot(run: ProductionRun, steps: list[Step]) -> None:
 
 
 def run_face_pairs(run: ProductionRun, steps: list[Step]) -> None:
+    """An actor's pairs by the preset's ``pair_method``: ``splat``, the facerig_pairs flow on the
+    face capture (calibrated by the calibrate flow's tasks; the preset's LQ range) -> a PairDataset;
+    ``interim``, the ``face-pairs`` task (degraded frames) -> a FacePairSet."""
     [step] = steps
     p = step.parameters
+    if p.method == "splat":
+        out = facerig_pairs_flow(store=run.prod.store, capture=run.capture(p.face_capture).digest, actor=p.actor,
+                                 quality=run.quality)
+        run.finish(step, {"pairs": out["dataset"]})
+        return
     pairs = face_pairs(run.prod.store, run.capture(p.face_capture), p.actor, p.subsequences, p.subsequence_frames,
                        p.camera_paths, p.resolution, lq_gaussians=list(p.lq_gaussians),
                        hq_gaussians_per_frame=p.hq_gaussians_per_frame, window=p.window)
@@ -620,6 +630,17 @@ def _ref_source(prod: Production, step: Step) -> dict[str, Any]:
     return {"source": ArtifactStore(prod.store).resolve(ref).digest} if ref else {}
 
 
+def _pairs_source(prod: Production, step: Step) -> dict[str, Any]:
+    """Gaussian-splat pairs run the facerig_pairs flow's tasks (their identities); interim pairs
+    only ``face-pairs`` (nothing added: their fingerprints stay as they were)."""
+    if step.parameters.method != "splat":
+        return {}
+    return {"splat_tasks": _versions(calibrate_tasks.calibrate_static, calibrate_tasks.assemble_calibration,
+                                     calibrate_tasks.dense_points_frame, calibrate_tasks.point_cloud_sequence,
+                                     train_segment_task, facerig.face_paths, facerig.render_pairs,
+                                     facerig.pair_dataset)}
+
+
 def _weights_source(prod: Production, step: Step) -> dict[str, Any]:
     """The enhancer trains from the preset's FLUX.1 directory when it names one."""
     weights = prod.enhancer_weights()
@@ -658,7 +679,7 @@ STEP_KINDS: dict[str, StepKindRun] = {
                                 run_dense_points),
     "train-segment": StepKindRun((train_segment_task,), run_train_segments, together=True),
     "render-shot": StepKindRun((assemble_performance, render_shot), run_render_shot),
-    "face-pairs": StepKindRun((face_pairs,), run_face_pairs),
+    "face-pairs": StepKindRun((face_pairs,), run_face_pairs, _pairs_source),
     "train-enhancer": StepKindRun((actor_prompt, train_enhancer_task), run_train_enhancer, _weights_source),
     "enhance-shot": StepKindRun((enhance_shot,), run_enhance_shots, _flow_weights_source, together=True),
 }

@@ -3,9 +3,9 @@
 Each loads its inputs from the store, calls :mod:`volcap_core.enhance` (the production side is
 :mod:`volcap_core.enhance.production`) and stores what comes back (``docs/enhancer.md``).
 
-- ``face-pairs``: an actor's LQ/HQ pair sequences. **Interim**: until the Face Rig pair dataset
-  lands (a later issue renders LQ/HQ Gaussian-splat pairs), they are made from the actor's
-  ingested Face Rig capture frames: HQ = the frames, LQ = ``make_degraded_pairs`` of them.
+- ``face-pairs``: an actor's **interim** LQ/HQ pair sequences (``pair_method: interim``; the
+  Gaussian-splat pairs are the ``facerig_pairs`` flow's, ``tasks/facerig.py``), made from the
+  actor's ingested Face Rig capture frames: HQ = the frames, LQ = ``make_degraded_pairs`` of them.
 - ``actor-prompt``: an actor group's prompt embedding. Without text encoders (the tiny model, or a
   FLUX.1 directory without them, or no ``transformers``) it is a zero embedding.
 - ``train-enhancer``: one enhancer trained on every pair set, checkpointed in the store under
@@ -106,22 +106,24 @@ def train_enhancer_task(store: str, pair_sets: list[ArtifactRef], prompts: dict[
                         config: EnhancerTrainConfig, architecture: EnhancerConfig | None = None,
                         base_weights: str | None = None, base_fingerprint: str | None = None,
                         seed: int = 0) -> ArtifactRef:
-    """Train one enhancer on every pair set (each set's sequences carry its actor's prompt group;
+    """Train one enhancer on every pair set (interim ``FacePairSet`` s whole, a ``PairDataset``'s
+    train split: :func:`~volcap_core.enhance.production.load_pair_sets`; each set's sequences
+    carry its actor's prompt group;
     ``prompts`` maps group -> ``actor-prompt`` output). The model starts from ``architecture`` with
     random weights (seeded ``seed``; the tiny CPU model) or from the local FLUX.1 directory
     ``base_weights`` (content pinned by ``base_fingerprint``). Every ``config.checkpoint_every``
     steps the training state is stored and named ``checkpoints/<this run's cache key>``; a killed or
     retried run resumes from it. An :class:`~volcap_core.enhance.production.EnhancerModel` record."""
     from volcap_core.enhance.model import Enhancer, PromptEmbedding, build_enhancer, enhancer_to_bytes
-    from volcap_core.enhance.production import load_pair_sets
+    from volcap_core.enhance.production import load_pair_sets, pair_record
     from volcap_core.enhance.training import train_enhancer
 
     if (architecture is None) == (base_weights is None):
         raise ValueError("train-enhancer: give exactly one of architecture (random weights) and base_weights")
     s = ArtifactStore(store)
     log = get_run_logger()
-    sets = [s.get_record(r, FacePairSet) for r in pair_sets]
-    pairs = load_pair_sets(sets, s.get_bytes)
+    sets = [pair_record(r, s.get_bytes) for r in pair_sets]   # interim FacePairSets or PairDatasets
+    pairs = load_pair_sets(sets, s.get_bytes)                # a PairDataset's training split only
     if base_weights is not None:
         import torch
 

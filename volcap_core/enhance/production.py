@@ -2,12 +2,16 @@
 stored enhancers and enhanced shot frames.
 
 What the ``face-pairs``, ``actor-prompt``, ``train-enhancer`` and ``enhance-shot`` tasks
-(``tasks/enhance.py``) call. Bytes move through ``get_bytes(ref)`` / ``put_bytes(data, media)``
-callables, so nothing here touches a store or Prefect.
+(``tasks/enhance.py``) and the Face Rig pair tasks (``tasks/facerig.py``) call. Bytes move through
+``get_bytes(ref)`` / ``put_bytes(data, media)`` callables, so nothing here touches a store or Prefect.
 
-**Interim pairs.** Until the Face Rig pair dataset lands (LQ/HQ Poly4DGS renders of each actor's
-Face Rig capture along camera paths), an actor's pairs are made from the actor's *ingested* Face
-Rig capture frames (:func:`face_pairs_from_capture`): HQ = the frames (RGB premultiplied by the
+**Gaussian-splat pairs** (the paper's): a :class:`PairDataset` of :class:`SplatPairSequence` s,
+LQ/HQ Poly4DGS renders of an actor's Face Rig sub-sequences along camera paths with the LQ's exact
+flow (``flows/facerig_pairs.py``), split by sub-sequence (:func:`split_subsequences`).
+:func:`load_pair_sets` is the one loader training reads pairs with (a dataset's train split).
+
+**Interim pairs** (``pair_method: interim``, the CPU presets'): an actor's pairs made from the
+actor's *ingested* Face Rig capture frames (:func:`face_pairs_from_capture`): HQ = the frames (RGB premultiplied by the
 ground-truth performer coverage where the capture has it), LQ =
 :func:`~volcap_core.enhance.pairs.make_degraded_pairs` of them. The plan's face-pairs parameters
 are honoured this way: ``subsequences`` windows of ``subsequence_frames`` consecutive take frames,
@@ -40,11 +44,15 @@ __all__ = [
     "EnhanceSettings",
     "EnhancerModel",
     "FacePairSet",
+    "PairDataset",
     "PairDegradation",
     "PairSequence",
+    "SPLAT_PAIRS",
+    "SplatPairSequence",
     "check_flux_directory",
     "check_raft_weights",
     "decode_pair_sequence",
+    "decode_splat_pair_sequence",
     "directory_fingerprint",
     "encode_enhanced_frame",
     "encode_pair_sequence",
@@ -54,8 +62,10 @@ __all__ = [
     "has_text_encoders",
     "head_window",
     "load_pair_sets",
+    "pair_record",
     "read_shot_frame",
     "shot_flow_backend",
+    "split_subsequences",
     "square_window",
 ]
 
@@ -103,6 +113,69 @@ class FacePairSet(Record):
     method: str
     parameters: dict[str, Any]
     sequences: tuple[PairSequence, ...]
+
+
+#: the method string of a :class:`PairDataset` (the paper's pairs; the interim ones say INTERIM_PAIRS)
+SPLAT_PAIRS = "Gaussian-splat renders of HQ and LQ Poly4DGS models of Face Rig sub-sequences along camera paths"
+
+#: the splits of a :class:`PairDataset`, by sub-sequence
+SPLITS = ("train", "validation", "test")
+
+
+class SplatPairSequence(Record):
+    """One rendered pair sequence of a :class:`PairDataset`: the HQ and LQ models of sub-sequence
+    ``subsequence`` (take indices ``frames``) rendered along camera path ``path`` at ``width`` ×
+    ``height``. ``lq``, ``hq``: one half-float RGBA EXR per frame (linear, premultiplied, the
+    Face Rig -> Scene Rig colour matrix applied); ``flow``: the LQ's exact backward flow of frame
+    ``t`` to ``t - 1`` for ``t >= 1`` (float EXR, channels ``flow.x``, ``flow.y``, px), ``T - 1`` of
+    them. ``path_params``: the camera path's parameters; ``lq_gaussians`` / ``hq_gaussians``: the
+    models' Gaussian budgets (per frame) and ``lq_model`` / ``hq_model`` their SegmentModel refs."""
+
+    kind: ClassVar[str] = "splat-pair-sequence"
+    name: str
+    subsequence: int
+    path: int
+    frames: tuple[int, ...]
+    width: int
+    height: int
+    lq: tuple[ArtifactRef, ...]
+    hq: tuple[ArtifactRef, ...]
+    flow: tuple[ArtifactRef, ...]
+    path_params: dict[str, Any]
+    lq_gaussians: int
+    hq_gaussians: int
+    lq_model: ArtifactRef
+    hq_model: ArtifactRef
+
+
+class PairDataset(Record):
+    """An actor's Face Rig pair dataset (the ``facerig_pairs`` flow's output, ``docs/enhancer.md``,
+    "Gaussian-splat pairs"): the rendered sequences, the actor and its prompt group, how the LQ
+    count was chosen (``lq_range`` and where it came from, ``lq_range_source``: "preset" or
+    "measured") and the split by sub-sequence: ``split[name]`` lists the sub-sequence indices of
+    ``train``, ``validation`` and ``test`` (disjoint; every sequence of a sub-sequence is in its
+    split, so no test sub-sequence reaches training)."""
+
+    kind: ClassVar[str] = "pair-dataset"
+    actor: str
+    group: str
+    capture: ArtifactRef
+    calibration: ArtifactRef
+    colour: ArtifactRef | None
+    method: str
+    lq_range: tuple[int, int]
+    lq_range_source: str
+    resolution: int
+    parameters: dict[str, Any]
+    split: dict[str, tuple[int, ...]]
+    sequences: tuple[SplatPairSequence, ...]
+
+    def in_split(self, split: str) -> list[SplatPairSequence]:
+        """The sequences of the sub-sequences of ``split`` (``train``, ``validation``, ``test``)."""
+        if split not in SPLITS:
+            raise ValueError(f"unknown split {split!r} (known: {', '.join(SPLITS)})")
+        chosen = set(self.split.get(split, ()))
+        return [q for q in self.sequences if q.subsequence in chosen]
 
 
 class EnhancerModel(Record):
@@ -189,11 +262,80 @@ def decode_pair_sequence(data: bytes, name: str = "", group: str | None = None):
     return ps
 
 
-def load_pair_sets(sets: Iterable[FacePairSet], get_bytes: GetBytes) -> list:
+def pair_record(ref: ArtifactRef, get_bytes: GetBytes) -> "FacePairSet | PairDataset":
+    """The pair record ``ref`` names: a :class:`PairDataset` (Gaussian-splat pairs) or a
+    :class:`FacePairSet` (interim pairs), by its media type (a ref without one, e.g. a bare
+    digest: whichever of the two its JSON is); ``ValueError`` naming the digest otherwise."""
+    models = [m for m in (PairDataset, FacePairSet) if ref.media_type == m.media_type()] or [PairDataset, FacePairSet]
+    data = get_bytes(ref)
+    for model in models:
+        try:
+            return model.from_json_bytes(data)
+        except ValueError:
+            if len(models) == 1:
+                raise
+    raise ValueError(f"{ref.digest}: not a pair set ({ref.media_type}; expected a {PairDataset.kind} or a "
+                     f"{FacePairSet.kind} record)")
+
+
+def decode_splat_pair_sequence(seq: SplatPairSequence, get_bytes: GetBytes, name: str = "",
+                               group: str | None = None):
+    """A :class:`SplatPairSequence` as a :class:`~volcap_core.enhance.pairs.PairSet` (float32
+    ``[T, 4, H, W]`` LQ and HQ, ``[T - 1, 2, H, W]`` flow) with ``group`` set."""
+    from volcap_core.enhance.pairs import PairSet
+    from volcap_core.imageio.read import decode_exr_native
+
+    def frames(refs: Sequence[ArtifactRef], what: str, channels: tuple[str, ...]) -> torch.Tensor:
+        out = []
+        for k, ref in enumerate(refs):
+            where = f"pair sequence {seq.name}: {what} frame {k}"
+            px, names = decode_exr_native(get_bytes(ref), name=where)
+            missing = [c for c in channels if c not in names]
+            if missing or px.shape[:2] != (seq.height, seq.width):
+                raise ValueError(f"{where}: {px.shape[1]}x{px.shape[0]} with channels {', '.join(names)}, expected "
+                                 f"{seq.width}x{seq.height} with {', '.join(channels)}")
+            px = np.stack([px[..., names.index(c)] for c in channels], axis=-1)
+            out.append(torch.from_numpy(np.ascontiguousarray(px, np.float32)).permute(2, 0, 1))
+        return torch.stack(out)
+
+    lq, hq = frames(seq.lq, "LQ", tuple("RGBA")), frames(seq.hq, "HQ", tuple("RGBA"))
+    flow = frames(seq.flow, "flow", ("flow.x", "flow.y")) if seq.flow else None
+    ps = PairSet(lq=lq, hq=hq, flow=flow, name=name or seq.name)
+    if group is not None:
+        ps.group = group
+    return ps
+
+
+def load_pair_sets(sets: Iterable["FacePairSet | PairDataset"], get_bytes: GetBytes, split: str = "train") -> list:
     """Every sequence of ``sets`` as :class:`~volcap_core.enhance.pairs.PairSet` s, each carrying
-    its set's prompt group, in order."""
-    return [decode_pair_sequence(get_bytes(seq.data), f"{s.actor}/{seq.name}", s.group)
-            for s in sets for seq in s.sequences]
+    its set's prompt group, in order: all of a :class:`FacePairSet` (interim pairs have no split),
+    the sequences of ``split``'s sub-sequences of a :class:`PairDataset`. The one loader
+    ``train-enhancer`` reads pairs with."""
+    out = []
+    for s in sets:
+        if isinstance(s, PairDataset):
+            out += [decode_splat_pair_sequence(q, get_bytes, f"{s.actor}/{q.name}", s.group) for q in s.in_split(split)]
+        else:
+            out += [decode_pair_sequence(get_bytes(q.data), f"{s.actor}/{q.name}", s.group) for q in s.sequences]
+    return out
+
+
+def split_subsequences(count: int, seed: int, validation: float = 0.1, test: float = 0.1) -> dict[str, tuple[int, ...]]:
+    """A seeded split of sub-sequences ``0 .. count - 1`` into ``train``, ``validation`` and
+    ``test`` (disjoint, sorted): ``round(count * test)`` test sub-sequences, at least one when
+    ``test > 0`` and ``count >= 2``; likewise validation when ``count >= 3``; the rest train (at
+    least one). Sub-sequences are drawn by a permutation seeded ``seed`` (numpy's PCG64)."""
+    if count < 1:
+        raise ValueError(f"a split needs at least one sub-sequence, got {count}")
+    if not (0 <= validation < 1 and 0 <= test < 1 and validation + test < 1):
+        raise ValueError(f"split fractions must be in [0, 1) and sum below 1, got validation {validation}, test {test}")
+    n_test = max(1, round(count * test)) if test > 0 and count >= 2 else 0
+    n_val = max(1, round(count * validation)) if validation > 0 and count >= 3 else 0
+    while count - n_test - n_val < 1:
+        n_val, n_test = (n_val - 1, n_test) if n_val >= n_test else (n_val, n_test - 1)
+    order = np.random.default_rng(seed).permutation(count).tolist()
+    return {"train": tuple(sorted(order[n_test + n_val:])), "validation": tuple(sorted(order[n_test:n_test + n_val])),
+            "test": tuple(sorted(order[:n_test]))}
 
 
 # -------------------------------------------------------------------------- interim face pairs

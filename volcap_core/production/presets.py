@@ -113,6 +113,10 @@ class QualityPreset(BaseModel):
         "performer", description="interim pairs' crop: performer (the largest square on the performer, resized to "
                                  "pair_resolution) or head (a pair_resolution square over the head at the capture's "
                                  "own pixels, the enhancer bench's window)")
+    pair_method: Literal["splat", "interim"] = Field(
+        "splat", description="splat: the paper's pairs, HQ and LQ Poly4DGS models of Face Rig sub-sequences "
+                             "rendered along camera paths (the facerig_pairs flow); interim: degraded Face Rig "
+                             "frames (docs/enhancer.md)")
     enhancer_steps: int = Field(20_000, gt=0, description="enhancer training steps")
     # -- the detail enhancer (docs/enhancer.md)
     enhancer_architecture: Literal["tiny", "small", "flux-dev"] = Field(
@@ -280,10 +284,12 @@ class QualityPreset(BaseModel):
 #: Face Rig and enhancer sizes of the presets that run on a CPU: the tiny enhancer (random weights,
 #: its VAE pre-trained first), full fine-tuning on 64-px crops of 4 sequences of 128-px pairs, 4
 #: sampling steps over whole frames, started from the noised LQ (strength 0.4: a CPU-sized model
-#: enhances the LQ rather than drawing a face from noise). Why and what it costs:
+#: enhances the LQ rather than drawing a face from noise), on interim pairs (degraded Face Rig
+#: frames: the demo's Face Rig capture cannot be calibrated, docs/enhancer.md). Why and what it costs:
 #: docs/benchmarks.md "Detail enhancer", docs/enhancer.md "Cost on a CPU"
 _CPU_FACE = dict(face_subsequences=2, face_subsequence_frames=4, face_camera_paths=2,
                  face_hq_gaussians_per_frame=2_000, face_lq_gaussians=(200, 500), pair_resolution=128,
+                 pair_method="interim",
                  enhancer_architecture="tiny", enhancer_steps=20, enhancer_finetune="full", enhancer_lr=1e-3,
                  enhancer_frozen_dtype="float32",
                  enhancer_crop=64, enhancer_vae_steps=30, enhancer_checkpoint_every=10,

@@ -131,7 +131,10 @@ class RenderShot(StepParameters):
 
 
 class FacePairs(StepParameters):
-    """An actor's LQ/HQ training pairs from their Face Rig capture, at the preset's Face Rig sizes."""
+    """An actor's LQ/HQ training pairs from their Face Rig capture, at the preset's Face Rig sizes;
+    ``method`` the preset's ``pair_method``: ``splat`` (Gaussian-splat pairs, the facerig_pairs
+    flow) or ``interim`` (degraded frames; left out of the JSON, so the fingerprints of the plans
+    made before the field existed stay)."""
 
     kind: ClassVar[StepKind] = "face-pairs"
     actor: str
@@ -143,6 +146,7 @@ class FacePairs(StepParameters):
     lq_gaussians: tuple[int, int]
     resolution: int
     window: Literal["performer", "head"]
+    method: Literal["splat", "interim"] = "interim"
 
     @classmethod
     def for_actor(cls, actor: str, face_capture: str, quality: QualityPreset) -> "FacePairs":
@@ -150,7 +154,13 @@ class FacePairs(StepParameters):
                    subsequence_frames=quality.face_subsequence_frames, camera_paths=quality.face_camera_paths,
                    hq_gaussians_per_frame=quality.face_hq_gaussians_per_frame,
                    lq_gaussians=quality.face_lq_gaussians, resolution=quality.pair_resolution,
-                   window=quality.pair_window)
+                   window=quality.pair_window, method=quality.pair_method)
+
+    def as_json(self) -> dict[str, Any]:
+        out = super().as_json()
+        if self.method == "interim":
+            del out["method"]
+        return out
 
 
 class TrainEnhancer(_preset_fields("EnhancerTraining", ENHANCER_TRAINING_FIELDS)):

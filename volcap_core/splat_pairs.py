@@ -1,0 +1,103 @@
+"""The Face Rig's Gaussian-splat pairs: an HQ and an LQ Poly4DGS model of one Face Rig
+sub-sequence rendered along the same camera path (the paper's "Training Data Generation";
+``docs/enhancer.md``, "Gaussian-splat pairs").
+
+Both models are ordinary segment models (``train-segment`` trains them on the Face Rig capture,
+HQ at the preset's ``face_hq_gaussians_per_frame``, LQ at a count drawn from the LQ range by
+:func:`lq_gaussians_per_frame`). :func:`render_path` renders one of them along a path's views
+(the same cameras at the same times for both, so LQ and HQ frames are pixel-aligned) as linear
+premultiplied RGBA with the Face Rig -> Scene Rig colour matrix applied, and, for the LQ, the
+exact backward flow of each frame to the previous one
+(:func:`~volcap_core.splat.render.render_flow`: the same Gaussians at the previous frame's time
+through the previous camera). :func:`encode_pair_frame` / :func:`encode_flow_frame` write them
+as EXR.
+"""
+
+from __future__ import annotations
+
+import json
+import zlib
+from collections.abc import Sequence
+
+import numpy as np
+import torch
+
+from volcap_core import reconstruction
+from volcap_core.calibration.colour import apply_colour_matrix
+from volcap_core.imageio.write import encode_exr
+from volcap_core.view import ViewSpec
+from volcap_core.splat import evaluate, render
+from volcap_core.splat.model import Poly4DGS
+from volcap_core.splat.render import Backend, gaussians_at, render_flow
+
+__all__ = ["FLOW_CHANNELS", "encode_flow_frame", "encode_pair_frame", "lq_gaussians_per_frame", "render_path"]
+
+#: the channels of a flow frame (the render-shot frames' names, ``docs/shots.md``)
+FLOW_CHANNELS = ("flow.x", "flow.y")
+
+
+def lq_gaussians_per_frame(lq_range: tuple[int, int], seed: int, subsequence: int) -> int:
+    """The LQ model's Gaussians per frame for sub-sequence ``subsequence``: uniform over the
+    integers of ``[low, high]`` (inclusive), drawn from a generator seeded by ``seed`` and the
+    sub-sequence, so each sub-sequence's draw is the same whatever the others are."""
+    lo, hi = (int(v) for v in lq_range)
+    if not 0 < lo <= hi:
+        raise ValueError(f"LQ range must be 0 < low <= high, got {[lo, hi]}")
+    return int(np.random.default_rng(zlib.crc32(f"lq/{seed}/{subsequence}".encode())).integers(lo, hi + 1))
+
+
+def _camera(view: ViewSpec, device: torch.device):
+    return reconstruction.splat_camera(np.asarray(view.K), np.asarray(view.world_to_camera), view.width,
+                                       view.height).to(device)
+
+
+def render_path(model: Poly4DGS, views: Sequence[ViewSpec], *, colour=None, flow: bool = False,
+                backend: Backend = "auto") -> tuple[np.ndarray, np.ndarray | None]:
+    """``model`` rendered from each view at its time: ``rgba [T, H, W, 4]`` float32, linear, RGB
+    premultiplied by alpha (the renderer's), with ``colour`` applied (a colour-matrix record or
+    ``(M, b)``, :func:`~volcap_core.calibration.colour.apply_colour_matrix` on premultiplied RGBA:
+    the Face Rig's colour onto the Scene Rig's; None: unchanged). With ``flow``: also ``[T - 1, H,
+    W, 2]`` float32, the exact backward flow of frame ``t`` to frame ``t - 1`` (px, x then y,
+    ``cur(x, y) ≈ prev(x + fx, y + fy)``; 0 where the frame is empty), else None. Runs on the
+    model's device."""
+    if not views:
+        raise ValueError("a camera path needs at least one view")
+    sizes = {(v.width, v.height) for v in views}
+    if len(sizes) != 1:
+        raise ValueError(f"the views of a path must share one size, got {sorted(sizes)}")
+    device = model.params["means"].device
+    frames, flows = [], []
+    with torch.no_grad():
+        prev = None
+        for view in views:
+            cam = _camera(view, device)
+            g = evaluate(model, view.time_s)
+            out = render(g, cam, backend=backend)
+            frames.append(torch.cat([out["rgb"], out["alpha"]], dim=-1).float().cpu().numpy())
+            if flow and prev is not None:
+                prev_view, prev_cam = prev
+                f = render_flow(g, gaussians_at(model, prev_view.time_s, g.ids), cam, prev_cam, backend=backend)
+                flows.append(f["flow"].float().cpu().numpy())
+            prev = (view, cam)
+    rgba = np.stack(frames)
+    if colour is not None:
+        rgba = apply_colour_matrix(rgba, colour, premultiplied=True) if hasattr(colour, "matrix") \
+            else apply_colour_matrix(rgba, colour[0], colour[1], premultiplied=True)
+    if not flow:
+        return rgba, None
+    h, w = rgba.shape[1:3]
+    return rgba, np.stack(flows) if flows else np.zeros((0, h, w, 2), np.float32)
+
+
+def encode_pair_frame(rgba: np.ndarray, view: ViewSpec, attributes: dict[str, str | int | float]) -> bytes:
+    """A pair frame ``[H, W, 4]`` as a half-float RGBA EXR, its camera (``volcap.K``,
+    ``volcap.world_to_camera``, OpenCV) and time (``volcap.time_s``) in the header beside
+    ``attributes`` (``volcap.pair`` ...)."""
+    attrs = {"volcap.time_s": float(view.time_s), "volcap.K": json.dumps([list(r) for r in view.K]),
+             "volcap.world_to_camera": json.dumps([list(r) for r in view.world_to_camera]), **attributes}
+    return encode_exr(np.asarray(rgba, np.float32), ("R", "G", "B", "A"), pixel_type="half", attributes=attrs)
+
+
+def encode_flow_frame(flow: np.ndarray, attributes: dict[str, str | int | float] | None = None) -> bytes:
+    """A backward flow ``[H, W, 2]`` (px) as a float EXR with channels :data:`FLOW_CHANNELS`."""
+    return encode_exr(np.asarray(flow, np.float32), FLOW_CHANNELS, pixel_type="float", attributes=attributes or {})
