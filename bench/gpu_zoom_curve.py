@@ -25,8 +25,8 @@ A GPU machine has no Prefect, pycolmap or OpenCV and no artifact store, so the w
    models scored once on the same pixels (the floors; the untrained one is also step 0). The run
    stops early, at a scored checkpoint, when the next one would end past ``--budget-s`` seconds
    (loading and scoring included), and writes ``OUT/curve.json`` (the curve, the floors, the
-   Gaussian count every few steps) and ``OUT/sheet.npz`` (the face crops of the zoom cameras: the
-   longest-focal training one and the held-out ones, untrained and trained).
+   Gaussian count every few steps) and ``OUT/sheet.npz`` (the face crops of the zoom cameras,
+   held out and training, at the segment's middle frame, untrained and trained).
 3. ``--report OUT`` (here): the curve as a Markdown table for ``docs/benchmarks.md`` and the
    contact sheet (truth | render | error, :mod:`volcap_core.contact_sheet`) from ``OUT/sheet.npz``.
 
@@ -373,14 +373,13 @@ class RegionScorer:
 
 
 def sheet_views(prep: Prepared, config) -> list:
-    """The zoom cameras' views the sheet shows, at the segment's middle frame: the training tracking
-    camera with the longest focal length, then the held-out tracking cameras."""
+    """The zoom (tracking) cameras' views the sheet shows, at the segment's middle frame: the
+    held-out ones first, then the training ones (the demo's S010, then S008, S009, S011)."""
     roles = prep.meta["roles"]
     mid = prep.data.frames[0] + (prep.data.frames[1] - prep.data.frames[0]) // 2
     zoom = [v for v in prep.data.views if roles.get(v.camera_id) == "tracking" and v.frame == mid]
-    held = [v for v in zoom if v.camera_id in set(config.held_out_cameras)]
-    trained = [v for v in zoom if v not in held]
-    return ([max(trained, key=lambda v: float(v.camera.K[0, 0]))] if trained else []) + held
+    held = set(config.held_out_cameras)
+    return [v for v in zoom if v.camera_id in held] + [v for v in zoom if v.camera_id not in held]
 
 
 class _Stop(Exception):
@@ -521,11 +520,13 @@ def report(out: Path, sheet: Path | None) -> None:
     for floor in ("empty", "initial"):
         print(f"| {floor} model (floor) | – | – | " + cells(lambda w, r: curve["floors"][w][r][floor]) + " |")
     print("cameras: " + "; ".join(f"{w} {r}: {', '.join(curve['floors'][w][r]['cameras'])}" for w, r in cols))
-    if sheet is not None:
+    crops = np.load(out / "sheet.npz")
+    if sheet is not None and not crops.files:
+        print("no sheet: the run stopped before its first checkpoint")
+    elif sheet is not None:
         from volcap_core.contact_sheet import SheetRow, contact_sheet, write_sheet
 
-        crops = np.load(out / "sheet.npz")
-        cams = sorted({k.split("/")[0] for k in crops.files}, key=lambda c: c not in curve["held_out"], reverse=True)
+        cams = sorted({k.split("/")[0] for k in crops.files}, key=lambda c: (c not in curve["held_out"], c))
         rows = []
         for cam in cams:
             role = "held out" if cam in curve["held_out"] else "training"

@@ -41,7 +41,7 @@ def _bench():
 
 @pytest.mark.slow
 def test_prepare_run_report(prefect_api, tmp_path):
-    """~100 s on 2 cores: a 2-frame capture without a lidar scan reconstructed for its refs (1 step), prepared, trained 4
+    """~140 s on 2 busy cores (115 s the test, 18 s Prefect's server): a 2-frame capture without a lidar scan reconstructed for its refs (1 step), prepared, trained 4
     steps on CPU in a process where Prefect, pycolmap and OpenCV cannot be imported, reported."""
     root = synthesize_capture(tmp_path / "cap", rig="demo_scene", seed=3, frames=2, cameras=CAMERAS,
                               supersample=1, write_depth=True, lidar=False).parent
@@ -92,6 +92,11 @@ def test_prepare_run_report(prefect_api, tmp_path):
     sheet = tmp_path / "sheet.png"
     bench.main(["--report", str(out), "--sheet", str(sheet)])
     assert sheet.stat().st_size > 1000
+
+    # a budget spent before the first checkpoint: training stops, the floors and step 0 are written
+    spent = bench.run(src, tmp_path / "spent", torch.device("cpu"), budget_s=1e-3, steps=4, evals=2)
+    assert spent["stopped"] == "budget" and [p["step"] for p in spent["points"]] == [0]
+    assert json.loads((tmp_path / "spent" / "curve.json").read_text())["floors"] == curve["floors"]
 
     # the figures are score_segment's, on the store's own views and points (not the exported ones)
     s = ArtifactStore(store)
