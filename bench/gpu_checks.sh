@@ -12,6 +12,11 @@
 #      (bench/gpu_closeup.py --run; its files come back to be scored with --score). CLOSEUP_ONLY=1
 #      runs it alone (after the gsplat build): $OUT then holds gpu.txt, closeup.log, timings.json
 #      and the parts closeup_exrs.tar.NN.
+#   7. with ZOOM_CURVE=DIR (a folder from `python bench/gpu_zoom_curve.py --prepare DIR`, carried): the
+#      demo segment at a production-size budget trained through gsplat, detail and PSNR per camera
+#      role against time (bench/gpu_zoom_curve.py --run, stopped within ZOOM_BUDGET_S, default 250 s;
+#      read it back with --report). ZOOM_ONLY=1 runs it alone (after the gsplat build): $OUT then
+#      holds gpu.txt, zoom.log, curve.json and sheet.npz.
 # Results go to $OUT (default /tmp/volcap-gpu). Python packages the machine lacks can travel as
 # wheels in .whl/ (installed with --no-deps into /tmp/site). On 2026-11-26 an H200 image with torch
 # 2.11 (Python 3.12) lacked pydantic, pydantic_core, annotated_types, typing_inspection, diffusers
@@ -23,6 +28,7 @@
 #
 #   OUT=/tmp/gpu bash bench/gpu_checks.sh
 #   OUT=/tmp/gpu GPU_CLOSEUP=.gpu CLOSEUP_ONLY=1 bash bench/gpu_checks.sh   # the close-up alone
+#   OUT=/tmp/gpu ZOOM_CURVE=.gpu-zoom ZOOM_ONLY=1 bash bench/gpu_checks.sh   # the zoom curve alone
 set -u
 OUT=${OUT:-/tmp/volcap-gpu}
 mkdir -p "$OUT"
@@ -49,6 +55,24 @@ print('gsplat extension:', _C, f'{time.time() - t:.0f} s')"
 }
 if [ -n "${GPU_CLOSEUP:-}" ] && [ -n "${CLOSEUP_ONLY:-}" ]; then
     closeup
+    exit
+fi
+
+# 7. the demo segment at a production-size budget (issue 28): the extension built first, so no step's
+# time holds the build; the run stops itself within ZOOM_BUDGET_S, the timeout is the backstop
+zoom() {
+    export MAX_JOBS=${MAX_JOBS:-14} TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0}
+    {
+        timeout "${GSPLAT_BUILD_S:-400}" python3 -c "
+import time; t = time.time()
+from gsplat.cuda._backend import _C
+print('gsplat extension:', _C, f'{time.time() - t:.0f} s')"
+        timeout "${ZOOM_S:-300}" python3 bench/gpu_zoom_curve.py --run "$ZOOM_CURVE" --out "$OUT" --device cuda \
+            --budget-s "${ZOOM_BUDGET_S:-250}"
+    } 2>&1 | tee "$OUT/zoom.log" | tail -40
+}
+if [ -n "${ZOOM_CURVE:-}" ] && [ -n "${ZOOM_ONLY:-}" ]; then
+    zoom
     exit
 fi
 
@@ -83,5 +107,8 @@ timeout "${STEP_S:-150}" python3 bench/bench_poly4dgs_step.py --device cuda --fr
     --json "$OUT/poly4dgs_step.json" 2>&1 | tee "$OUT/poly4dgs_step.log"
 if [ -n "${GPU_CLOSEUP:-}" ]; then
     closeup
+fi
+if [ -n "${ZOOM_CURVE:-}" ]; then
+    zoom
 fi
 echo done

@@ -1,0 +1,572 @@
+"""The demo segment at a production-size budget through gsplat: detail and PSNR against time per
+camera role (issue 28, "When a GPU is lent"), in three parts.
+
+A GPU machine has no Prefect, pycolmap or OpenCV and no artifact store, so the work is split:
+
+1. ``--prepare DIR --store S`` (here, on CPU): from a finished demo store (``demo/segment``'s
+   capture and calibration, the PointCloudSequence made on that calibration) write into ``DIR``
+   what training the demo segment needs, built by the library's own functions
+   (:func:`volcap_core.reconstruction.segment_data`, :func:`~volcap_core.reconstruction.segment_init`):
+   the footage of every (camera, frame) view as the capture stores it (half-float EXR bytes),
+   each view's splat camera, the performer masks (the capture's ground truth) and the face regions
+   (:func:`volcap_core.synth.ground_truth.face_region`, as ``fit_segment``'s ``head_region`` gives
+   them), the initial points, the camera roles and held-out cameras (the demo preset's:
+   :func:`~volcap_core.reconstruction.default_held_out`), and the quality preset: the demo preset
+   with the production preset's Gaussians a frame, memory and MCMC schedule, stretched to
+   ``--steps`` (:meth:`~volcap_core.production.presets.QualityPreset.with_steps`); the budget is its
+   plan's (:meth:`~volcap_core.production.presets.QualityPreset.plan_segments`).
+2. ``--run DIR --out OUT --device cuda --budget-s 250`` (on the GPU machine): the segment trained by
+   :func:`volcap_core.splat.train.train_segment` (the back-end its ``TrainConfig`` picks: gsplat on
+   CUDA), its checkpoints (every ``steps / --evals`` steps and after the last) scored per camera
+   role and view set with the region figures of ``volcap reconstruct --json``'s ``scores.regions``
+   (:func:`volcap_core.splat.scoring.score_region` under the held-out protocol, composed as
+   :func:`volcap_core.splat.report.score_segment` composes them; that module draws sheets with
+   OpenCV, so it is not imported here, and the test holds the two equal); the empty and untrained
+   models scored once on the same pixels (the floors; the untrained one is also step 0). The run
+   stops early, at a scored checkpoint, when the next one would end past ``--budget-s`` seconds
+   (loading and scoring included), and writes ``OUT/curve.json`` (the curve, the floors, the
+   Gaussian count every few steps) and ``OUT/sheet.npz`` (the face crops of the zoom cameras,
+   held out and training, at the segment's middle frame, untrained and trained).
+3. ``--report OUT`` (here): the curve as a Markdown table for ``docs/benchmarks.md`` and the
+   contact sheet (truth | render | error, :mod:`volcap_core.contact_sheet`) from ``OUT/sheet.npz``.
+
+    python bench/gpu_zoom_curve.py --prepare .gpu-zoom --store /tmp/demo-base/store
+    OUT=/tmp/gpu ZOOM_CURVE=.gpu-zoom ZOOM_ONLY=1 bash bench/gpu_checks.sh   # GPU; carry .gpu-zoom, .whl
+    python bench/gpu_zoom_curve.py --report /path/to/OUT --sheet zoom_sheet.png
+"""
+
+from __future__ import annotations
+
+import argparse
+import io
+import json
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+#: views of the training set whose region figures are scored (``score_segment``'s default)
+TRAINING_VIEWS = 12
+#: seconds kept back from the budget for writing the results
+RESERVE_S = 5.0
+
+
+# -------------------------------------------------------------------------------------- prepare
+
+def _points_of(s, calibration) -> str:
+    """The digest of the one PointCloudSequence record made on ``calibration`` in store ``s``."""
+    from volcap_core.pointcloud import PointCloudSequence
+
+    found = []
+    for digest, info in s.iter_objects():
+        if info.get("size", 0) > 1_000_000:
+            continue
+        data = s.get_bytes(digest, verify=False)
+        if not data.startswith(b"{") or b'"method"' not in data or calibration.digest.encode() not in data:
+            continue
+        try:
+            PointCloudSequence.model_validate_json(data)
+        except ValueError:
+            continue
+        found.append(digest)
+    if len(found) != 1:
+        raise SystemExit(f"{s.url}: {len(found)} point cloud sequences on calibration {calibration.digest} "
+                         "(name one with --points)")
+    return found[0]
+
+
+def demo_quality(steps: int):
+    """The demo preset with the production preset's budget (Gaussians a frame, GPU memory) and MCMC
+    schedule, stretched to ``steps``: the demo's cameras, held-out cameras and initialisation, at
+    the size and schedule a production trains."""
+    from volcap_core.production.presets import named_preset
+
+    demo, prod = named_preset("demo"), named_preset("production")
+    return demo.with_overrides(
+        train_steps=prod.train_steps, refine_start=prod.refine_start, refine_every=prod.refine_every,
+        refine_stop=prod.refine_stop, eval_every=prod.eval_every, checkpoint_every=prod.checkpoint_every,
+        gaussians_per_frame=prod.gaussians_per_frame, max_gaussians_per_segment=None,
+        gpu_memory_gb=prod.gpu_memory_gb).with_steps(steps)
+
+
+def prepare(dst: Path, store_url: str, steps: int, *, capture: str | None = None, calibration: str | None = None,
+            points: str | None = None, frames: tuple[int, int] = (0, 8), seed: int = 0) -> None:
+    """Part 1 (module doc)."""
+    from safetensors.numpy import save as st_save
+
+    from volcap_core import reconstruction
+    from volcap_core.calibration.record import Calibration
+    from volcap_core.capture import Capture
+    from volcap_core.pointcloud import PointCloudSequence
+    from volcap_core.segment import tracking_frames
+    from volcap_core.store import ArtifactStore
+    from volcap_core.synth import ground_truth
+
+    s = ArtifactStore(store_url)
+    if capture is None or calibration is None:
+        seg = s.get_record(s.get_ref("demo/segment"), reconstruction.SegmentModel)
+        capture = capture or seg.capture.digest
+        calibration = calibration or seg.calibration.digest
+    cap_ref, calib_ref = s.resolve(capture), s.resolve(calibration)
+    cap = s.get_record(cap_ref, Capture)
+    calib = s.get_record(calib_ref, Calibration)
+    pts_ref = s.resolve(points or _points_of(s, calib_ref))
+    pts = s.get_record(pts_ref, PointCloudSequence)
+    if pts.calibration.digest != calib_ref.digest:
+        raise SystemExit(f"points {points}: made on calibration {pts.calibration.digest}, not {calib_ref.digest}")
+    if cap.ground_truth is None:
+        raise SystemExit(f"capture {cap.name}: no ground truth (the performer masks and faces come from it)")
+    tree = s.get_tree(cap.ground_truth)
+    files = ground_truth.GroundTruthFiles(cap.name, {p: e.digest for p, e in tree.items()}, s.get_bytes)
+    scene = json.loads(files.read("scene.json"))
+    load_mask = ground_truth.mask_loader(files)
+    if load_mask is None:
+        raise SystemExit(f"capture {cap.name}: its ground truth has no masks/ (synthesize with write_depth=True)")
+
+    a, b = cap.take_range(frames)
+    width = max(c.width for c in cap.cameras)
+    height = max(c.height for c in cap.cameras)
+    quality = demo_quality(steps)
+    [planned] = quality.with_overrides(max_segment_frames=None).plan_segments((a, b), width, height).segments[:1]
+    held = reconstruction.default_held_out(cap, calibration=calib, tracking=quality.held_out_tracking)
+    config = quality.train_config(held_out=held, max_gaussians=planned.gaussians)
+    data = reconstruction.segment_data(cap, calib, tracking_frames(s.get_bytes, calib), (a, b),
+                                       reconstruction.FrameCache(s.get_bytes), scale=config.image_scale,
+                                       load_mask=load_mask)
+    if config.image_scale != 1 or any(v.valid is not None for v in data.views):
+        raise SystemExit(f"capture {cap.name}: its views need resampling (scale {config.image_scale} or a "
+                         "distorted lens), which needs OpenCV; the GPU run takes the footage as stored")
+    t0 = time.perf_counter()
+    init = reconstruction.segment_init(s.get_bytes, cap, pts, data, config.held_out_cameras,
+                                       zoom_stride_px=config.init_zoom_stride_px)
+    print(f"initial points: {sum(len(p.xyz) for p in init)} in {len(init)} clouds "
+          f"({time.perf_counter() - t0:.1f} s)", flush=True)
+
+    shutil.rmtree(dst, ignore_errors=True)   # another demo's files would travel
+    (dst / "frames").mkdir(parents=True)
+    views, masks, faces = [], {}, {}
+    for v in data.views:
+        name = f"{v.camera_id}_{v.frame:06d}"
+        (dst / "frames" / f"{name}.exr").write_bytes(s.get_bytes(cap.camera(v.camera_id).frames[v.frame]))
+        K, w2c = v.camera.K.numpy(), v.camera.world_to_camera.numpy()
+        masks[name] = v.load_mask().numpy().astype(np.float32)
+        # what fit_segment's head_region gives score_segment for this view (its camera's K as it is)
+        faces[name] = ground_truth.face_region(scene, v.time, K, w2c, v.camera.width, v.camera.height)
+        views.append({"camera": v.camera_id, "frame": v.frame, "time": v.time, "K": K.tolist(),
+                      "world_to_camera": w2c.tolist(), "width": v.camera.width, "height": v.camera.height})
+    np.savez_compressed(dst / "masks.npz", **masks)
+    np.savez_compressed(dst / "faces.npz", **faces)
+    # footprints only where init_model reads them (the GPU gets 64 MiB with its wheels)
+    footprints = config.init_moving_scale_px is not None or config.init_finest_level < 0
+    clouds: dict[str, np.ndarray] = {}
+    for i, p in enumerate(init):
+        clouds[f"{i}/xyz"] = _compact(p.xyz.numpy())
+        clouds[f"{i}/rgb"] = _compact(p.rgb.numpy())
+        if p.static is not None:
+            clouds[f"{i}/static"] = p.static.numpy().astype(np.uint8)
+        if p.footprint is not None and footprints:
+            clouds[f"{i}/footprint"] = _compact(p.footprint.numpy())
+    (dst / "init.safetensors").write_bytes(st_save(clouds, {"times": json.dumps([p.time for p in init])}))
+    roles = {c.id: "static" if c.static else "tracking" for c in calib.cameras}
+    meta = {"capture": cap.name, "capture_ref": cap_ref.digest, "calibration_ref": calib_ref.digest,
+            "points_ref": pts_ref.digest,
+            "store": str(store_url), "frames": [a, b], "fps": cap.fps, "seed": seed, "held_out": held,
+            "roles": roles, "gaussians": planned.gaussians, "preset": quality.model_dump(mode="json"),
+            "views": views}
+    (dst / "segment.json").write_text(json.dumps(meta, indent=1))
+    size = sum(f.stat().st_size for f in dst.rglob("*") if f.is_file())
+    print(f"{dst}: {size / 2**20:.1f} MiB; {len(views)} views of {len(data.camera_ids)} cameras, frames {a}:{b}, "
+          f"held out {', '.join(held)}; {planned.gaussians} Gaussians, {config.steps} steps "
+          f"(MCMC refinement {config.mcmc.refine_start}:{config.mcmc.refine_stop} every {config.mcmc.refine_every})")
+
+
+def _compact(a: np.ndarray) -> np.ndarray:
+    """``a`` (float32) as float16 where that loses nothing (colours sampled from half-float footage),
+    else as it is."""
+    h = a.astype(np.float16)
+    return h if np.array_equal(h.astype(np.float32), a) else a
+
+
+# ------------------------------------------------------------------------------------------ run
+
+class Prepared:
+    """What ``--prepare`` wrote, loaded: the segment's views (:class:`~volcap_core.splat.SegmentData`,
+    footage decoded once), initial points, face regions, roles and the preset."""
+
+    def __init__(self, src: Path):
+        from safetensors import safe_open
+
+        from volcap_core.imageio.read import decode_exr
+        from volcap_core.production.presets import QualityPreset
+        from volcap_core.splat import Camera, PointsAtTime, SegmentData, View
+
+        path = src / "segment.json"
+        if not path.is_file():
+            raise SystemExit(f"{path}: missing (is {src} a folder written by --prepare?)")
+        self.meta = json.loads(path.read_text())
+        self.quality = QualityPreset.model_validate(self.meta["preset"])
+        masks, faces = np.load(src / "masks.npz"), np.load(src / "faces.npz")
+        views, self.faces = [], {}
+        for v in self.meta["views"]:
+            name = f"{v['camera']}_{v['frame']:06d}"
+            exr = src / "frames" / f"{name}.exr"
+            pixels, _ = decode_exr(exr.read_bytes(), name=str(exr))
+            image = torch.from_numpy(np.ascontiguousarray(pixels[..., :3], dtype=np.float32))
+            camera = Camera(K=torch.tensor(v["K"], dtype=torch.float32),
+                            world_to_camera=torch.tensor(v["world_to_camera"], dtype=torch.float32),
+                            width=v["width"], height=v["height"])
+            views.append(View(v["camera"], v["frame"], v["time"], camera, image, torch.from_numpy(masks[name])))
+            self.faces[(v["camera"], v["frame"])] = faces[name]
+        self.data = SegmentData(tuple(self.meta["frames"]), views)
+        self.init = []
+        with safe_open(str(src / "init.safetensors"), framework="pt") as f:
+            times = json.loads(f.metadata()["times"])
+            keys = set(f.keys())
+            for i, t in enumerate(times):
+                static = f.get_tensor(f"{i}/static").bool() if f"{i}/static" in keys else None
+                foot = f.get_tensor(f"{i}/footprint").float() if f"{i}/footprint" in keys else None
+                self.init.append(PointsAtTime(time=t, xyz=f.get_tensor(f"{i}/xyz").float(),
+                                              rgb=f.get_tensor(f"{i}/rgb").float(), static=static, footprint=foot))
+
+    def config(self, steps: int | None = None, evals: int = 8, backend: str = "auto"):
+        """The segment's TrainConfig: the preset (stretched to ``steps`` when given) at the prepared
+        budget and held-out cameras, checkpoints ``evals`` times in the run (each is scored), no
+        evaluation of the trainer's own (the run scores its checkpoints)."""
+        quality = self.quality if steps is None else self.quality.with_steps(steps)
+        n = quality.train_steps
+        return quality.train_config(held_out=self.meta["held_out"], max_gaussians=self.meta["gaussians"],
+                                    eval_every=0, checkpoint_every=max(1, n // max(1, evals)), backend=backend)
+
+    def head_region(self, view) -> np.ndarray:
+        return self.faces[(view.camera_id, view.frame)]
+
+
+def _pick(views, n: int) -> list:
+    """At most ``n`` views spread evenly over the list, as ``score_segment`` picks its training views."""
+    if len(views) <= n:
+        return list(views)
+    idx = np.linspace(0, len(views) - 1, n).round().astype(int)
+    return [views[i] for i in sorted(set(idx.tolist()))]
+
+
+class RegionScorer:
+    """The figures :func:`volcap_core.splat.report.score_segment` reports (``regions``, and the
+    ``held_out`` / ``training`` summaries) for a model on fixed views, the floors computed once.
+
+    Held-out views: each model through its own cross-fitted gain/offset; training views
+    (``score_segment``'s 12, spread over cameras and frames): the trained model through its grids,
+    the floors through their cross-fitted gain/offset (they learned no grids).
+    """
+
+    def __init__(self, prep: Prepared, config, device, seed: int):
+        from volcap_core.splat.train import frame_interval, init_model
+
+        self.config, self.device, self.roles = config, device, prep.meta["roles"]
+        held = set(config.held_out_cameras)
+        self.views = {"held_out": [v for v in prep.data.views if v.camera_id in held],
+                      "training": _pick([v for v in prep.data.views if v.camera_id not in held], TRAINING_VIEWS)}
+        self.targets = {k: [v.load()[..., :3].to(device) for v in vs] for k, vs in self.views.items()}
+        self.regions = {k: [self._view_regions(v, prep) for v in vs] for k, vs in self.views.items()}
+        self.initial = init_model(prep.init, config, frame_interval_s=frame_interval(prep.data.times),
+                                  generator=torch.Generator().manual_seed(seed)).to(device)
+        #: floor name -> view set -> (raw renders, cross-fitted transforms)
+        self.floor_renders = {name: {k: self._fit(m, k) for k in self.views}
+                              for name, m in (("initial", self.initial), ("empty", None))}
+        self.floors = {name: {k: [t.apply(r) for r, t in zip(*f[k])] for k in self.views}
+                       for name, f in self.floor_renders.items()}
+
+    @staticmethod
+    def _view_regions(v, prep: Prepared) -> dict[str, torch.Tensor]:
+        perf = v.load_mask() >= 0.5
+        valid = v.load_valid()
+        if valid is not None:
+            perf = perf & valid
+        return {"performers": perf, "face": perf & torch.as_tensor(prep.head_region(v), dtype=torch.bool)}
+
+    def _fit(self, model, which: str) -> tuple[list[torch.Tensor], list]:
+        """A model's renders of a view set and each one's cross-fitted gain/offset (its camera's,
+        fitted on the other frames)."""
+        from volcap_core.splat.scoring import cross_fitted_transforms
+        from volcap_core.splat.train import render_views
+
+        views = self.views[which]
+        if not views:
+            return [], []
+        renders = render_views(model, views, self.config, device=self.device)
+        return renders, cross_fitted_transforms(renders, self.targets[which], [v.camera_id for v in views],
+                                                [v.frame for v in views], [v.load_valid() for v in views])
+
+    def outputs(self, model, grids) -> dict[str, list]:
+        """The trained model's outputs per view set, the figures taken on them, and
+        ``"held_out_fit"``: its held-out renders and their transforms (for the raw figures)."""
+        from volcap_core.splat.train import render_views
+
+        renders = render_views(model, self.views["training"], self.config, device=self.device)
+        held = self._fit(model, "held_out")
+        return {"held_out": [t.apply(r) for r, t in zip(*held)], "held_out_fit": held,
+                "training": [grids.apply(r, v.camera_id) for r, v in zip(renders, self.views["training"])]}
+
+    def figures(self, outputs: dict[str, list[torch.Tensor]], *, floors: bool = False) -> dict:
+        """``{"regions": view set -> role -> {"cameras", "trained": region -> figures}}`` as
+        ``scores.regions`` (with ``floors``, also ``"initial"`` and ``"empty"``), and per view set the
+        PSNR/SSIM summary of the outputs (whole frame and performers)."""
+        from volcap_core.splat.scoring import mean_region_scores, score_region, score_views, summarise
+
+        models = {"trained": outputs, **(self.floors if floors else {})}
+        out: dict = {"regions": {}}
+        for which, views in self.views.items():
+            per_role: dict = {}
+            for role in sorted({self.roles.get(v.camera_id, "static") for v in views}):
+                idx = [i for i, v in enumerate(views) if self.roles.get(v.camera_id, "static") == role]
+                per_role[role] = {"cameras": sorted({views[i].camera_id for i in idx}), **{
+                    name: {region: mean_region_scores([score_region(o[which][i], self.targets[which][i],
+                                                                    self.regions[which][i][region]) for i in idx])
+                           for region in ("performers", "face")} for name, o in models.items()}}
+            out["regions"][which] = per_role
+            if not views:
+                continue
+            masks, valid = [v.load_mask() for v in views], [v.load_valid() for v in views]
+            if which == "held_out":   # raw renders and their transforms: raw figures beside the fitted
+                renders, tfs = outputs["held_out_fit"]
+                out[which] = summarise(score_views(renders, self.targets[which], [v.camera_id for v in views],
+                                                   [v.frame for v in views], masks, transforms=tfs,
+                                                   valid=valid)).to_json()
+            else:   # through the grids: the fit itself, scored as it is
+                out[which] = summarise(score_views(outputs[which], self.targets[which],
+                                                   [f"{v.camera_id}#{v.frame}" for v in views], [0] * len(views),
+                                                   masks, valid=valid)).to_json()
+        return out
+
+    def sheet(self, outputs: dict[str, list[torch.Tensor]], model, grids, pick: list, prep: Prepared
+              ) -> dict[str, np.ndarray]:
+        """Face crops of the views ``pick`` (linear float32): ``<camera>/truth``, ``<camera>/face``
+        (bool) and ``<camera>/initial``, ``<camera>/trained``: the model as scored (held-out views
+        through the cross-fitted gain/offset; a training view through the grids, the untrained
+        model's being the identity training starts from)."""
+        from volcap_core.splat.train import render_views
+
+        out: dict[str, np.ndarray] = {}
+        for v in pick:
+            face = np.asarray(prep.head_region(v))
+            ys, xs = np.nonzero(face)
+            if len(ys):
+                pad = max(4, int(ys.max() - ys.min()) // 3)
+                y0, y1 = max(0, ys.min() - pad), min(face.shape[0], ys.max() + pad + 1)
+                x0, x1 = max(0, xs.min() - pad), min(face.shape[1], xs.max() + pad + 1)
+            else:
+                y0, y1, x0, x1 = 0, face.shape[0], 0, face.shape[1]
+            if v in self.views["held_out"]:
+                i = self.views["held_out"].index(v)
+                imgs = {"initial": self.floors["initial"]["held_out"][i], "trained": outputs["held_out"][i]}
+            else:
+                imgs = {"initial": render_views(self.initial, [v], self.config, device=self.device)[0],
+                        "trained": grids.apply(render_views(model, [v], self.config, device=self.device)[0],
+                                               v.camera_id)}
+            out[f"{v.camera_id}/truth"] = v.load()[y0:y1, x0:x1, :3].numpy()
+            out[f"{v.camera_id}/face"] = face[y0:y1, x0:x1]
+            for name, img in imgs.items():
+                out[f"{v.camera_id}/{name}"] = img[y0:y1, x0:x1].detach().cpu().numpy()
+        return out
+
+
+def sheet_views(prep: Prepared, config) -> list:
+    """The zoom (tracking) cameras' views the sheet shows, at the segment's middle frame: the
+    held-out ones first, then the training ones (the demo's S010, then S008, S009, S011)."""
+    roles = prep.meta["roles"]
+    mid = prep.data.frames[0] + (prep.data.frames[1] - prep.data.frames[0]) // 2
+    zoom = [v for v in prep.data.views if roles.get(v.camera_id) == "tracking" and v.frame == mid]
+    held = set(config.held_out_cameras)
+    return [v for v in zoom if v.camera_id in held] + [v for v in zoom if v.camera_id not in held]
+
+
+class _Stop(Exception):
+    """The budget is spent: training ends at the last scored checkpoint."""
+
+
+def run(src: Path, out: Path, device: torch.device, budget_s: float, steps: int | None = None, evals: int = 8,
+        backend: str = "auto", trace_every: int = 25) -> dict:
+    """Part 2 (module doc). Returns what ``OUT/curve.json`` holds."""
+    from volcap_core.checkpoint import deterministic_torch
+    from volcap_core.splat.render import resolve_backend
+    from volcap_core.splat.train import _deserialise, train_segment
+
+    t_start = time.perf_counter()
+
+    def elapsed() -> float:
+        return time.perf_counter() - t_start
+
+    prep = Prepared(src)
+    config = prep.config(steps, evals, backend)
+    seed = int(prep.meta["seed"])
+    chosen = resolve_backend(config.backend, device)
+    curve: dict = {"device": str(device), "torch": torch.__version__,
+                   "gpu": torch.cuda.get_device_name(device) if device.type == "cuda" else None,
+                   "backend": chosen.name, "backend_reason": chosen.reason, "capture": prep.meta["capture"],
+                   "frames": prep.meta["frames"], "held_out": config.held_out_cameras, "roles": prep.meta["roles"],
+                   "resolution": sorted({(v.camera.width, v.camera.height) for v in prep.data.views}),
+                   "gaussians_cap": config.mcmc.cap_max, "steps": config.steps,
+                   "checkpoint_every": config.checkpoint_every, "budget_s": budget_s,
+                   "mcmc": config.mcmc.model_dump(), "train_config": config.model_dump(mode="json")}
+    with deterministic_torch(device.type):
+        t0 = time.perf_counter()
+        scorer = RegionScorer(prep, config, device, seed)
+        floors = scorer.figures({**scorer.floors["initial"], "held_out_fit": scorer.floor_renders["initial"]["held_out"]},
+                                floors=True)
+        curve["load_s"] = round(t0 - t_start, 2)
+        curve["floors_s"] = round(time.perf_counter() - t0, 2)
+        curve["floors"] = {which: {role: {k: r[k] for k in ("cameras", "initial", "empty")}
+                                   for role, r in per_role.items()} for which, per_role in floors["regions"].items()}
+        points = [{"step": 0, "wall_s": 0.0, "elapsed_s": round(elapsed(), 2), "gaussians": len(scorer.initial),
+                   "score_s": curve["floors_s"], "held_out": floors.get("held_out"),
+                   "training": floors.get("training"), "regions": _trained_only(floors["regions"])}]
+        trace: list[list] = []
+        last: dict = {}
+        pick = sheet_views(prep, config)
+        _print_point(points[-1])
+
+        def progress(step: int, total: int, info: dict) -> None:
+            if step % trace_every == 0 or step == total:
+                trace.append([step, round(info["wall_s"], 3), info["num_gaussians"], round(info["loss"], 5)])
+            if elapsed() > budget_s - RESERVE_S:
+                raise _Stop
+
+        def checkpoint(blob: bytes, step: int) -> None:
+            t = time.perf_counter()
+            state, _, _ = _deserialise(blob, device)
+            model, grids = state.model.detached(), state.grids
+            outputs = scorer.outputs(model, grids)
+            fig = scorer.figures(outputs)
+            points.append({"step": step, "wall_s": round(state.wall_s, 3), "elapsed_s": round(elapsed(), 2),
+                           "gaussians": len(model), "score_s": round(time.perf_counter() - t, 2),
+                           "held_out": fig.get("held_out"), "training": fig.get("training"),
+                           "regions": fig["regions"]})
+            last.update(model=model, grids=grids, outputs=outputs)
+            _print_point(points[-1])
+            # the next checkpoint, scored, would end past the budget: stop at this one
+            since = points[-1]["elapsed_s"] - points[-2]["elapsed_s"]
+            if step < config.steps and elapsed() + since > budget_s - RESERVE_S:
+                raise _Stop
+
+        stopped = "steps"
+        try:
+            train_segment(prep.data, prep.init, config, checkpoint=checkpoint, progress=progress, seed=seed,
+                          device=device)
+        except _Stop:
+            stopped = "budget"
+        curve.update(points=points, trace=trace, stopped=stopped, elapsed_s=round(elapsed(), 2))
+        # no checkpoint within the budget: no sheet (the curve says stopped at step 0)
+        crops = scorer.sheet(last["outputs"], last["model"], last["grids"], pick, prep) if last else {}
+    curve["sheet_step"] = points[-1]["step"]
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "curve.json").write_text(json.dumps(curve, indent=1, default=float))
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **crops)
+    (out / "sheet.npz").write_bytes(buf.getvalue())
+    print(f"{out}: curve.json ({len(points)} points, stopped by {stopped} at step {points[-1]['step']}), "
+          f"sheet.npz; {elapsed():.1f} s in all", flush=True)
+    return curve
+
+
+def _trained_only(regions: dict) -> dict:
+    return {which: {role: {k: r[k] for k in ("cameras", "trained")} for role, r in per_role.items()}
+            for which, per_role in regions.items()}
+
+
+def _fig(r: dict | None, key: str, digits: int) -> str:
+    x = None if r is None else r.get(key)
+    return "–" if x is None else f"{x:.{digits}f}"
+
+
+def _print_point(p: dict) -> None:
+    parts = []
+    for which, per_role in p["regions"].items():
+        for role, r in per_role.items():
+            f = r["trained"]
+            parts.append(f"{which}/{role} perf {_fig(f['performers'], 'psnr', 2)} dB det {_fig(f['performers'], 'detail', 3)}"
+                         f" face {_fig(f['face'], 'psnr', 2)} dB det {_fig(f['face'], 'detail', 3)}")
+    print(f"step {p['step']:>6} wall {p['wall_s']:8.1f} s elapsed {p['elapsed_s']:7.1f} s {p['gaussians']:>8} G  "
+          + "; ".join(parts), flush=True)
+
+
+# --------------------------------------------------------------------------------------- report
+
+def report(out: Path, sheet: Path | None) -> None:
+    """Part 3 (module doc)."""
+    curve = json.loads((out / "curve.json").read_text())
+    print(f"{curve['capture']} frames {curve['frames'][0]}:{curve['frames'][1]}, held out "
+          f"{', '.join(curve['held_out'])}; {curve['gaussians_cap']} Gaussians cap, {curve['steps']} steps planned, "
+          f"stopped by {curve['stopped']}; {curve['device']} ({curve['gpu']}), {curve['backend']}, "
+          f"torch {curve['torch']}; {curve['elapsed_s']} s in all (load {curve['load_s']} s, floors {curve['floors_s']} s)")
+    cols = [(which, role) for which, per_role in curve["floors"].items() for role in per_role]
+    head = "| step | train s | Gaussians | " + " | ".join(
+        f"{which.replace('_', '-')} {role}: perf dB / detail, face dB / detail" for which, role in cols) + " |"
+    print(head)
+    print("|" + "---|" * (3 + len(cols)))
+
+    def cells(get) -> str:
+        out = []
+        for which, role in cols:
+            f = get(which, role)
+            out.append("–" if f is None else f"{_fig(f['performers'], 'psnr', 2)} / {_fig(f['performers'], 'detail', 3)}, "
+                       f"{_fig(f['face'], 'psnr', 2)} / {_fig(f['face'], 'detail', 3)}")
+        return " | ".join(out)
+
+    for p in curve["points"]:
+        print(f"| {p['step']} | {p['wall_s']:.1f} | {p['gaussians']} | "
+              + cells(lambda w, r: p["regions"].get(w, {}).get(r, {}).get("trained")) + " |")
+    for floor in ("empty", "initial"):
+        print(f"| {floor} model (floor) | – | – | " + cells(lambda w, r: curve["floors"][w][r][floor]) + " |")
+    print("cameras: " + "; ".join(f"{w} {r}: {', '.join(curve['floors'][w][r]['cameras'])}" for w, r in cols))
+    crops = np.load(out / "sheet.npz")
+    if sheet is not None and not crops.files:
+        print("no sheet: the run stopped before its first checkpoint")
+    elif sheet is not None:
+        from volcap_core.contact_sheet import SheetRow, contact_sheet, write_sheet
+
+        cams = sorted({k.split("/")[0] for k in crops.files}, key=lambda c: (c not in curve["held_out"], c))
+        rows = []
+        for cam in cams:
+            role = "held out" if cam in curve["held_out"] else "training"
+            for name, label in (("initial", "step 0"), ("trained", f"step {curve['sheet_step']}")):
+                rows.append(SheetRow(f"{cam} ({role}) face, {label}", crops[f"{cam}/truth"],
+                                     crops[f"{cam}/{name}"], crops[f"{cam}/face"].astype(np.float32)))
+        write_sheet(sheet, contact_sheet(rows, title=f"{curve['capture']} zoom cameras' faces: truth | render | error"))
+        print(f"sheet {sheet}")
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    part = ap.add_mutually_exclusive_group(required=True)
+    part.add_argument("--prepare", metavar="DIR", type=Path)
+    part.add_argument("--run", metavar="DIR", type=Path)
+    part.add_argument("--report", metavar="OUT", type=Path)
+    ap.add_argument("--store", default="/tmp/demo-base/store", help="a finished demo's store (--prepare)")
+    ap.add_argument("--capture", help="capture ref (--prepare; default: demo/segment's)")
+    ap.add_argument("--calibration", help="calibration ref (--prepare; default: demo/segment's)")
+    ap.add_argument("--points", help="PointCloudSequence ref (--prepare; default: the one on the calibration)")
+    ap.add_argument("--frames", nargs=2, type=int, default=(0, 8), metavar=("A", "B"), help="take frames [A, B)")
+    ap.add_argument("--steps", type=int, default=None,
+                    help="training steps: the schedule stretched to them (--prepare: default 3000; --run: the prepared)")
+    ap.add_argument("--out", type=Path, help="where --run writes curve.json and sheet.npz")
+    ap.add_argument("--device", default="cuda")
+    ap.add_argument("--backend", default="auto", help="the rasterizer (auto: gsplat on CUDA)")
+    ap.add_argument("--budget-s", type=float, default=250.0, help="--run stops at a scored checkpoint within this")
+    ap.add_argument("--evals", type=int, default=8, help="scored checkpoints along the run")
+    ap.add_argument("--sheet", type=Path, default=None, help="--report: write the face contact sheet here")
+    args = ap.parse_args(argv)
+    if args.prepare:
+        prepare(args.prepare, args.store, args.steps or 3000, capture=args.capture, calibration=args.calibration,
+                points=args.points, frames=tuple(args.frames))
+    elif args.run:
+        if args.out is None:
+            ap.error("--run needs --out")
+        run(args.run, args.out, torch.device(args.device), args.budget_s, args.steps, args.evals, args.backend)
+    else:
+        report(args.report, args.sheet)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,125 @@
+"""bench/gpu_zoom_curve.py: prepared here, run where Prefect, pycolmap and OpenCV are absent, and
+scored as ``volcap reconstruct --json`` scores (issue 28's GPU item)."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from flows.ingest import ingest_flow
+from flows.reconstruct import reconstruct_flow
+from flows.runtime import run_flow
+from volcap_core import reconstruction
+from volcap_core.calibration.record import Calibration
+from volcap_core.capture import Capture
+from volcap_core.pointcloud import PointCloudSequence
+from volcap_core.segment import tracking_frames
+from volcap_core.splat.grids import ExposureGrids
+from volcap_core.splat.report import score_segment
+from volcap_core.store import ArtifactStore
+from volcap_core.synth import ground_truth, synthesize_capture
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "bench" / "gpu_zoom_curve.py"
+# six static cameras and two tracking ones: the demo preset holds out S003 and S009
+CAMERAS = ["S000", "S001", "S002", "S003", "S004", "S005", "S008", "S009"]
+BLOCKED = ("prefect", "pycolmap", "cv2", "OpenImageIO")
+
+
+def _bench():
+    spec = importlib.util.spec_from_file_location("gpu_zoom_curve", SCRIPT)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+@pytest.mark.slow
+def test_prepare_run_report(prefect_api, tmp_path):
+    """~140 s on 2 busy cores (115 s the test, 18 s Prefect's server): a 2-frame capture without a lidar scan reconstructed for its refs (1 step), prepared, trained 4
+    steps on CPU in a process where Prefect, pycolmap and OpenCV cannot be imported, reported."""
+    root = synthesize_capture(tmp_path / "cap", rig="demo_scene", seed=3, frames=2, cameras=CAMERAS,
+                              supersample=1, write_depth=True, lidar=False).parent
+    store = ArtifactStore(str(tmp_path / "store")).url
+    capture = run_flow(ingest_flow, store=store, capture_dir=str(root)).result.digest
+    recon = run_flow(reconstruct_flow, store=store, capture=capture, preset="test", points_per_frame=1500,
+                     held_out=["S003", "S009"], ground_truth=True, steps=1).result
+    refs = [recon["capture"]["digest"], recon["calibration"]["digest"], recon["points"]["digest"]]
+    bench = _bench()
+    src = tmp_path / "prep"
+    bench.main(["--prepare", str(src), "--store", store, "--capture", refs[0], "--calibration", refs[1],
+                "--points", refs[2], "--frames", "0", "2", "--steps", "4"])
+    meta = json.loads((src / "segment.json").read_text())
+    assert meta["held_out"] == ["S003", "S009"] and meta["gaussians"] == 200_000   # 100 000 a frame
+    assert len(meta["views"]) == 2 * len(CAMERAS)
+
+    # the run part: no Prefect, pycolmap, OpenCV or OpenImageIO in its process
+    out = tmp_path / "out"
+    code = ("import sys, runpy\n"
+            + "".join(f"sys.modules[{m!r}] = None\n" for m in BLOCKED)
+            + f"sys.argv = ['gpu_zoom_curve.py', '--run', {str(src)!r}, '--out', {str(out)!r}, '--device', 'cpu',"
+              " '--steps', '4', '--evals', '2', '--budget-s', '600']\n"
+            + f"runpy.run_path({str(SCRIPT)!r}, run_name='__main__')\n")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    curve = json.loads((out / "curve.json").read_text())
+    assert curve["backend"] == "torch" and curve["stopped"] == "steps"
+    assert [p["step"] for p in curve["points"]] == [0, 2, 4]
+    walls = [p["wall_s"] for p in curve["points"]]
+    assert walls[0] == 0 and walls[1] > 0 and walls[2] > walls[1]
+    assert all(p["gaussians"] > 0 for p in curve["points"]) and curve["trace"][-1][0] == 4
+    for which, per_role in curve["floors"].items():
+        assert set(per_role) == ({"static", "tracking"} if which == "held_out" else set(per_role)), which
+        for role, r in per_role.items():
+            for floor in ("empty", "initial"):
+                assert set(r[floor]) == {"performers", "face"}
+            assert r["empty"]["performers"]["detail"] == 0.0
+            for p in curve["points"]:
+                fig = p["regions"][which][role]["trained"]
+                assert fig["performers"]["psnr"] is not None and fig["performers"]["detail"] is not None
+    assert curve["floors"]["held_out"]["tracking"]["cameras"] == ["S009"]
+    # step 0 is the untrained model: its figures are the untrained floor's
+    assert curve["points"][0]["regions"]["held_out"]["tracking"]["trained"] == \
+        curve["floors"]["held_out"]["tracking"]["initial"]
+    crops = __import__("numpy").load(out / "sheet.npz")
+    assert {"S008/truth", "S008/trained", "S009/initial", "S009/face"} <= set(crops.files)
+
+    sheet = tmp_path / "sheet.png"
+    bench.main(["--report", str(out), "--sheet", str(sheet)])
+    assert sheet.stat().st_size > 1000
+
+    # a budget spent before the first checkpoint: training stops, the floors and step 0 are written
+    spent = bench.run(src, tmp_path / "spent", torch.device("cpu"), budget_s=1e-3, steps=4, evals=2)
+    assert spent["stopped"] == "budget" and [p["step"] for p in spent["points"]] == [0]
+    assert json.loads((tmp_path / "spent" / "curve.json").read_text())["floors"] == curve["floors"]
+
+    # the figures are score_segment's, on the store's own views and points (not the exported ones)
+    s = ArtifactStore(store)
+    cap = s.get_record(s.resolve(refs[0]), Capture)
+    calib = s.get_record(s.resolve(refs[1]), Calibration)
+    prep = bench.Prepared(src)
+    config = prep.config()
+    files = ground_truth.GroundTruthFiles(cap.name, {p: e.digest for p, e in s.get_tree(cap.ground_truth).items()},
+                                          s.get_bytes)
+    data = reconstruction.segment_data(cap, calib, tracking_frames(s.get_bytes, calib), (0, 2),
+                                       reconstruction.FrameCache(s.get_bytes), load_mask=ground_truth.mask_loader(files))
+    init = reconstruction.segment_init(s.get_bytes, cap, s.get_record(s.resolve(refs[2]), PointCloudSequence), data,
+                                       config.held_out_cameras, zoom_stride_px=config.init_zoom_stride_px)
+    scene = json.loads(files.read("scene.json"))
+    train_cams = sorted({c for c in data.camera_ids if c not in config.held_out_cameras})
+    grids = ExposureGrids.identity(train_cams, config.grid_size)
+    scorer = bench.RegionScorer(prep, config, torch.device("cpu"), seed=0)
+    ours = scorer.figures(scorer.outputs(scorer.initial, grids), floors=True)
+    theirs = score_segment(scorer.initial, grids, data, init, config, seed=0,
+                           roles={c.id: "static" if c.static else "tracking" for c in calib.cameras},
+                           head_region=lambda v: ground_truth.face_region(scene, v.time, v.camera.K.numpy(),
+                                                                          v.camera.world_to_camera.numpy(),
+                                                                          v.camera.width, v.camera.height))
+    assert ours["regions"] == theirs.regions
+    assert ours["training"] == theirs.training.to_json()
+    assert ours["held_out"] == theirs.held_out["trained"].to_json()
