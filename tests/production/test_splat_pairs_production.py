@@ -138,3 +138,86 @@ def test_ground_truth_heads_are_the_scene_s_head_prims_and_the_actor_must_be_kno
     with pytest.raises(ValueError, match=r"no actor 2 in the ground truth \(it holds 2\)"):
         ground_truth_heads(scene, 2, times)
     np.testing.assert_allclose(ground_truth_heads({"actors": [actor(0, 1.0)]}, None, [0.0]), [[1.0, 0.0, 1.6]])
+
+
+# ---------------------------------------------------------------------------------------------
+# End to end (slow): face-pairs (splat) -> train-enhancer -> enhance-shot, and a rerun cached
+
+STATIC = [f"S00{i}" for i in range(8)]
+FACE_CAMS = ["F000", "F002", "F004", "F006"]     # four static Face Rig cameras: one held out of every model
+
+
+def _production_spec(path, scene, face, store):
+    spec = {"format": "volcap-production/1", "name": "gs-pairs", "store": store,
+            # the test preset's schedule, cut down (10 steps at half resolution), with the paper's pairs: two
+            # 4-frame sub-sequences of the face take, two 64 px paths each, 1 000-Gaussian HQ models
+            "quality": {"preset": "test", "max_segment_frames": 4, "overlap": 1, "train_steps": 10,
+                        "train_scale": 0.5, "sh_degree": 0, "pair_method": "splat", "face_camera_paths": 2,
+                        "face_hq_gaussians_per_frame": 1000, "pair_resolution": 64},
+            "captures": {"scene": {"folder": str(scene)}, "face": {"folder": str(face)}},
+            "actors": [{"name": "anna", "captures": ["scene"], "face_capture": "face",
+                        "face_calibration": "ground-truth"}],
+            "shots": [{**SHOT, "performance": "scene",
+                       "keyframes": [{"frame": 0, "position": [5.0, -2.0, 1.8], "look_at": [0.0, 0.0, 1.0],
+                                      "focal_mm": 24}]}]}
+    path.write_text(yaml.safe_dump(spec, sort_keys=False))
+    return path
+
+
+@pytest.mark.slow
+def test_a_production_trains_its_enhancer_on_splat_pairs_with_the_measured_lq_range(prefect_api, tmp_path):
+    import json
+
+    from flows.runtime import run_flow
+    from volcap_core.calibration.record import Calibration
+    from volcap_core.capture import Capture
+    from volcap_core.enhance.production import SPLAT_PAIRS, EnhancerModel, PairDataset
+    from volcap_core.production.lq_range import lq_range, upper_body_gaussian_counts
+    from volcap_core.reconstruction import SegmentModel
+    from volcap_core.splat import load_model
+    from volcap_core.synth import synthesize_capture, synthesize_face_capture
+
+    scene = synthesize_capture(tmp_path / "scene", rig="demo_scene", seed=0, frames=4, supersample=1,
+                               cameras=STATIC).parent
+    face = synthesize_face_capture(tmp_path / "face", frames=8, supersample=1, cameras=FACE_CAMS, write_depth=True,
+                                   actor_of=(scene, 0)).parent
+    store = ArtifactStore(str(tmp_path / "store")).url
+    spec = _production_spec(tmp_path / "spec.yaml", scene, face, store)
+
+    before = {p.step.id: p for p in plan_production(open_production(spec))}
+    pairs_step = before["face-pairs:anna"].step
+    segments = [i for i in before if i.startswith("train-segment:scene:")]
+    assert [i for i in pairs_step.inputs if i.startswith("train-segment:")] == segments == ["train-segment:scene:000000-000004"]
+    p = pairs_step.parameters
+    assert (p.method, p.calibration, p.lq_range, p.actor_index) == ("splat", "ground-truth", "measured", 0)
+
+    first = run_flow(production_flow, spec=str(spec))
+    assert first.tasks_failed == 0
+    out = first.result
+    s = ArtifactStore(store)
+    ds = s.get_record(out["steps"]["face-pairs:anna"]["pairs"], PairDataset)
+    assert ds.method == SPLAT_PAIRS and ds.actor == "anna" and ds.resolution == 64
+    assert s.get_record(ds.calibration, Calibration).stats.get("ground_truth") == 1.0   # no SfM on the Face Rig
+    # the LQ range is actor 0's upper-body Gaussians in the scene segment, per frame, min and max, recorded measured
+    assert ds.lq_range_source == "measured"
+    measurement = s.get_json(ds.parameters["lq_measurement"])
+    seg = s.get_record(out["steps"][segments[0]]["segment"], SegmentModel)
+    cap = s.get_record(seg.capture, Capture)
+    truth = json.loads(s.get_bytes(s.get_tree(cap.ground_truth)["scene.json"].digest))
+    times = [cap.frame_time(f) for f in range(0, 4)]
+    counts = upper_body_gaussian_counts(load_model(s.get_bytes(seg.model)),
+                                        [head_at(truth["actors"][0], t)["centre_m"] for t in times], times)
+    want = lq_range(counts)
+    assert ds.lq_range == (want.low, want.high) == (measurement["low"], measurement["high"])
+    assert 0 < want.low <= want.high < seg.gaussians and measurement["frames"] == 4
+    assert all(want.low <= q.lq_gaussians <= want.high and q.hq_gaussians == 1000 for q in ds.sequences)
+    assert len(ds.sequences) == 2 * 2
+    # the enhancer trained on the dataset, and the close-up enhanced with it
+    model = s.get_record(out["steps"]["train-enhancer:anna"]["enhancer"], EnhancerModel)
+    assert [r.digest for r in model.pair_sets] == [out["steps"]["face-pairs:anna"]["pairs"]] and model.groups == ("anna",)
+    enhanced = s.get_tree(out["shots"]["cu"]["enhanced"])
+    assert sorted(enhanced) == [f"{f:06d}.exr" for f in range(4)]
+
+    again = run_flow(production_flow, spec=str(spec))
+    assert again.tasks_run == 0 and again.result["steps"] == out["steps"]
+    assert {p.status for p in plan_production(open_production(spec))} == {"cached"}
