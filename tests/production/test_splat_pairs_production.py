@@ -221,3 +221,18 @@ def test_a_production_trains_its_enhancer_on_splat_pairs_with_the_measured_lq_ra
     again = run_flow(production_flow, spec=str(spec))
     assert again.tasks_run == 0 and again.result["steps"] == out["steps"]
     assert {p.status for p in plan_production(open_production(spec))} == {"cached"}
+
+
+def test_the_demo_says_which_pairs_its_enhancer_trained_on():
+    from types import SimpleNamespace
+
+    from flows.demo import ENHANCER_RUNS, enhancer_pairs
+    from tasks.enhance import INTERIM_PAIRS
+    from volcap_core.enhance.production import SPLAT_PAIRS
+    from volcap_core.production.presets import named_preset
+
+    demo = named_preset("demo").with_overrides(**ENHANCER_RUNS["demo"])
+    line = enhancer_pairs(demo, SimpleNamespace(method=INTERIM_PAIRS, sequences=[0] * 4))
+    assert line.startswith(f"enhancer pairs: interim, {INTERIM_PAIRS}, 4 sequence(s); interim in the demo because")
+    splat = enhancer_pairs(demo.with_overrides(pair_method="splat"), SimpleNamespace(method=SPLAT_PAIRS, sequences=[0]))
+    assert splat == f"enhancer pairs: splat, {SPLAT_PAIRS}, 1 sequence(s)" and "\n" not in line
