@@ -454,7 +454,8 @@ def needed_steps(spec: ProductionSpec, capture_info: Mapping[str, CaptureInfo], 
         (C capture, SEG ``aaaaaa-bbbbbb`` take indices, S shot, A actor). A capture given by
         ``ref`` is already ingested: no ingest step, its ref is a parameter of its calibration.
         One enhancer is trained on the face pairs of every actor in an enhanced shot (the paper
-        trains one model on all actors' pairs).
+        trains one model on all actors' pairs). Gaussian-splat face pairs (``pair_method:
+        splat``) come after the actor's segments that measure their LQ range (:func:`_splat_pairs`).
     """
     requested = [spec.shot(n) for n in shots] if shots is not None else list(spec.shots)
     q = spec.quality_preset()
