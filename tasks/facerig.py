@@ -115,9 +115,12 @@ def measured_lq_range(store: str, segments: list[ArtifactRef], cores: list[list[
     (:func:`~volcap_core.production.lq_range.ground_truth_heads`, actor ``actor_index`` of each
     capture's ground truth; None: its only actor), then their minimum and maximum. A JSON artifact:
     ``{"low", "high", "frames", "actor_index", "heads", "region", "segments": [{"segment",
-    "frames", "counts"}]}``."""
+    "frames", "counts"}]}``. A frame with no Gaussian there (the wrong actor, or one off stage) is
+    refused, naming the capture, the segment and the take indices: a range from 0 cannot be drawn from."""
     import dataclasses
     import json
+
+    import numpy as np
 
     from volcap_core.capture import Capture
     from volcap_core.production.lq_range import UpperBody, ground_truth_heads, lq_range, upper_body_gaussian_counts
@@ -143,6 +146,11 @@ def measured_lq_range(store: str, segments: list[ArtifactRef], cores: list[list[
         heads = ground_truth_heads(json.loads(s.get_bytes(gt["scene.json"].digest)), actor_index, times,
                                    where=f"capture {cap.name}")
         n = upper_body_gaussian_counts(load_model(s.get_bytes(seg.model)), heads, times, region=region)
+        if not n.all():
+            empty = [a + int(k) for k in np.flatnonzero(n == 0)]
+            raise ValueError(f"LQ range: capture {cap.name}, segment {ref.digest}: no Gaussian in actor "
+                             f"{actor_index if actor_index is not None else 0}'s upper body at take indices {empty}: "
+                             "is it the actor's index there (actors[].index), and in the frames?")
         counts.append(n)
         measured.append({"segment": ref.digest, "frames": [a, b], "counts": n.tolist()})
     r = lq_range(counts)
