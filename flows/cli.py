@@ -204,7 +204,7 @@ def demo(store: StoreOpt = DEFAULT_STORE,
               *(f"  {k} frames: {v}" for k, v in closeup["frames"].items()),
               "  face region (PSNR dB / SSIM / detail): " + "; ".join(
                   f"{row} {f['psnr']} / {f['ssim']} / {f['detail']}" for row, f in face.items()),
-              f"  {closeup['enhancer_budget']}"]
+              f"  {closeup['enhancer_budget']}", f"  {closeup['enhancer_pairs']}"]
     _emit({**refs, **summary.counts()}, json_out,
           f"demo results in store {_store_url(store)} and {out}:\n" + "\n".join(lines))
 

@@ -44,7 +44,7 @@ from tasks.calibrate import calibration_errors
 from tasks.production import score_shot
 from tasks.reconstruct import render_views
 from volcap_core.capture import Capture
-from volcap_core.enhance.production import EnhancerModel
+from volcap_core.enhance.production import EnhancerModel, pair_record
 from volcap_core.segment import tracking_frames
 from volcap_core.view import ViewSpec
 from volcap_core.calibration.record import Calibration, camera_at
@@ -278,6 +278,16 @@ def enhancer_budget(quality, train_wall_s: float | None) -> str:
     return line
 
 
+def enhancer_pairs(quality, pairs) -> str:
+    """One line saying which pairs the enhancer trained on (``pairs``: its FacePairSet or
+    PairDataset), for the demo's output beside :func:`enhancer_budget`'s."""
+    line = f"enhancer pairs: {quality.pair_method}, {pairs.method}, {len(pairs.sequences)} sequence(s)"
+    if quality.pair_method == "interim":
+        line += ("; interim in the demo because Gaussian-splat pairs train two more Poly4DGS models per Face Rig "
+                 "sub-sequence, CPU time the demo does not have")
+    return line
+
+
 def _is_face_capture_of(folder: Path, capture: str, actor: int, frames: int) -> bool:
     """Whether ``folder`` holds a complete Face Rig capture of actor ``actor`` of the capture named
     ``capture``, ``frames`` frames long (capture.json is written last)."""
@@ -364,9 +374,11 @@ def closeup_production(store: str, capture_dir: Path, out: Path, *, capture_ref,
     enh = s.get_record(s.resolve(result["steps"][f"train-enhancer:actor{ACTOR_INDEX}"]["enhancer"]),
                        EnhancerModel)
     budget = enhancer_budget(q, enh.wall_s)
+    pairs = enhancer_pairs(q, pair_record(enh.pair_sets[0], s.get_bytes))
     log.info("close-up: %s x %s px (the finest footage on the head: %.0f px/m), spec %s", *shot["resolution"],
              density, spec_path)
     log.info("%s", budget)
+    log.info("%s", pairs)
     figures = closeup_figures(scored)
     for region in ("face", "performers"):
         log.info("close-up %s: %s", region, "; ".join(
@@ -377,7 +389,8 @@ def closeup_production(store: str, capture_dir: Path, out: Path, *, capture_ref,
             "segment_reused": reused, "sheet": str(sheet), "scores": str(scores_path),
             "frames": {what: str(closeup_dir / what) for what in ("render", "enhanced", "truth")},
             **figures,
-            "enhancer_run": enhancer, "enhancer_budget": budget, "enhancer_train_s": round(enh.wall_s, 1),
+            "enhancer_run": enhancer, "enhancer_budget": budget, "enhancer_pairs": pairs,
+            "enhancer_train_s": round(enh.wall_s, 1),
             "refs": {"frames": shot_out["frames"], "enhanced": shot_out["enhanced"], "truth": truth["truth"],
                      "sheet": scored["contact_sheet"]["digest"]},
             "wall_s": {k: round(v, 1) for k, v in walls.items()}}

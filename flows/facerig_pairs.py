@@ -3,8 +3,9 @@
 It reads like the paper's "Training Data Generation" (``docs/enhancer.md``, "Gaussian-splat pairs")::
 
     windows    the preset's sub-sequences, spread evenly over the take (face_windows)
-    calibrate  the capture's calibration (the calibrate flow's tasks), or one given, or a synthetic
-               capture's ground truth; dense points of the windows' frames likewise
+    calibrate  the capture's calibration (the calibrate flow's tasks), or one given (a studio's
+               target calibration), or a synthetic capture's ground truth; dense points of the
+               windows' frames likewise
     models     per sub-sequence an HQ model (face_hq_gaussians_per_frame a frame) and an LQ model
                (a count a frame drawn from the LQ range, seeded per sub-sequence): train-segment
                runs with the preset's TrainConfig, every model at once, as segments fan out
@@ -40,7 +41,8 @@ from volcap_core.store import ArtifactStore
 def facerig_pairs_flow(store: str, capture: str, actor: str, quality: str | QualityPreset = "preview",
                        calibration: str | None = None, points: str | None = None, ground_truth: bool = False,
                        colour: str | None = None, lq_range: tuple[int, int] | None = None,
-                       lq_range_source: str = "measured", seed: int = 0) -> dict[str, Any]:
+                       lq_range_source: str = "measured", lq_measurement: str | None = None,
+                       seed: int = 0) -> dict[str, Any]:
     """The pair dataset of ``actor``'s Face Rig ``capture`` (a ref name or digest) at ``quality``
     (a preset name or a resolved preset: its ``face_*`` sizes, ``pair_resolution`` and the
     segment TrainConfig).
@@ -52,7 +54,9 @@ def facerig_pairs_flow(store: str, capture: str, actor: str, quality: str | Qual
     ``calibrate-colour`` record (Face Rig -> Scene Rig) applied to every render; None: none.
     ``lq_range``: the LQ counts per frame to draw from, e.g. the measured range of the Scene Rig
     reconstruction (``volcap_core.production.lq_range``), recorded with ``lq_range_source``; None:
-    the preset's ``face_lq_gaussians``, recorded as ``preset``.
+    the preset's ``face_lq_gaussians``, recorded as ``preset``. ``lq_measurement``: the digest of
+    the ``lq-range`` artifact it was measured in, recorded in the dataset's parameters (None:
+    nothing recorded).
 
     Returns the dataset's ref and what it was made of (calibration, points, each sub-sequence's
     frames, models and LQ count, the number of sequences).
@@ -113,7 +117,8 @@ def facerig_pairs_flow(store: str, capture: str, actor: str, quality: str | Qual
                            {"subsequences": q.face_subsequences, "subsequence_frames": q.face_subsequence_frames,
                             "camera_paths": q.face_camera_paths,
                             "hq_gaussians_per_frame": q.face_hq_gaussians_per_frame, "windows": windows,
-                            "held_out": held}, seed, colour=colour_ref)
+                            "held_out": held, **({"lq_measurement": lq_measurement} if lq_measurement else {})},
+                           seed, colour=colour_ref)
     log.info("Face Rig pairs of %s: %d sequence(s) -> %s", actor, len(sequences), dataset.digest)
     return {"dataset": dataset, "capture": cap_ref, "calibration": calib_ref, "points": points_ref,
             "subsequences": [{"frames": w, "hq": hq, "lq": lq, "lq_gaussians": n}

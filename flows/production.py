@@ -49,7 +49,7 @@ from tasks.contract import cached_output, task_identity
 from tasks.enhance import actor_prompt, enhance_shot, face_pairs, train_enhancer_task
 from tasks.ingest import fingerprint_camera, ingest_camera, record_capture
 from tasks.production import assemble_performance, render_shot
-from tasks.reconstruct import train_segment_task
+from tasks.reconstruct import ground_truth_calibration, ground_truth_points, train_segment_task
 from volcap_core import reconstruction
 from volcap_core.capture import Capture
 from volcap_core.digest import digest_bytes
@@ -57,7 +57,8 @@ from volcap_core.enhance.production import (check_flux_directory, check_raft_wei
                                             has_text_encoders)
 from volcap_core.production.journal import compare_fingerprints, folder_listing_digest, read_entry, write_entry
 from volcap_core.production.presets import QualityPreset
-from volcap_core.production.spec import CaptureInfo, ProductionSpec, capture_info_from_folder, load_spec, needed_steps
+from volcap_core.production.spec import (GROUND_TRUTH, CaptureInfo, ProductionSpec, capture_info_from_folder, load_spec,
+                                         needed_steps)
 from volcap_core.production.steps import Step
 from volcap_core.records import ArtifactRef, canonical_json
 from volcap_core.splat.train import TrainConfig
@@ -152,12 +153,19 @@ class Production:
         return self.spec_path(self.spec.quality_preset().enhancer_flow_weights)
 
     def check_enhancer(self, where: str | Path | None = None) -> None:
-        """Before anything runs: an enhanced shot with the FLUX.1 architecture needs its weights
+        """Before anything runs: a Gaussian-splat face-pairs step's ``face_calibration`` ref must be
+        in the store; an enhanced shot with the FLUX.1 architecture needs its weights
         directory, one with ``enhancer_flow`` RAFT its weights file and torchvision (``ValueError``
         naming the spec and the path otherwise)."""
         if not any(s.kind in ENHANCER_STEPS for s in self.steps):
             return
         where = where or self.spec.name
+        for step in self.steps:   # a splat face-pairs step's face_calibration ref names a record in the store
+            if step.kind == "face-pairs" and step.parameters.calibration not in (None, GROUND_TRUTH):
+                try:
+                    _face_calibration(self, step)
+                except ValueError as exc:
+                    raise ValueError(f"{where}: {exc}") from None
         q = self.spec.quality_preset()
         weights = self.enhancer_weights()
         if q.enhancer_architecture == "flux-dev" and weights is None:
@@ -559,13 +567,30 @@ def run_render_shot(run: ProductionRun, steps: list[Step]) -> None:
 
 def run_face_pairs(run: ProductionRun, steps: list[Step]) -> None:
     """An actor's pairs by the preset's ``pair_method``: ``splat``, the facerig_pairs flow on the
-    face capture (calibrated by the calibrate flow's tasks; the preset's LQ range) -> a PairDataset;
-    ``interim``, the ``face-pairs`` task (degraded frames) -> a FacePairSet."""
+    face capture -> a PairDataset; ``interim``, the ``face-pairs`` task (degraded frames) -> a
+    FacePairSet. The splat pairs' face capture is calibrated as the step says (the spec's
+    ``face_calibration``: a Calibration ref, or ``ground-truth``; unset: the calibrate flow's
+    tasks), and their LQ range is measured in the step's ``train-segment`` inputs (``lq-range``,
+    recorded ``measured`` with the measurement's digest; none: the preset's, recorded ``preset``)."""
     [step] = steps
     p = step.parameters
     if p.method == "splat":
+        kw: dict[str, Any] = {}
+        if p.calibration == GROUND_TRUTH:
+            kw["ground_truth"] = True
+        elif p.calibration is not None:
+            kw["calibration"] = _face_calibration(run.prod, step).digest
+        segments = [run.steps[i] for i in step.inputs if run.steps[i].kind == "train-segment"]
+        if p.lq_range == "measured":
+            measurement = facerig.measured_lq_range(run.prod.store, [run.done[s.id]["segment"] for s in segments],
+                                                    [list(s.parameters.core) for s in segments], p.actor_index)
+            measured = run.store.get_json(measurement)
+            run.log.info("LQ range of %s: %d-%d Gaussians a frame, measured over %d frame(s) of %d segment(s)",
+                         p.actor, measured["low"], measured["high"], measured["frames"], len(segments))
+            kw.update(lq_range=(measured["low"], measured["high"]), lq_range_source="measured",
+                      lq_measurement=measurement.digest)
         out = facerig_pairs_flow(store=run.prod.store, capture=run.capture(p.face_capture).digest, actor=p.actor,
-                                 quality=run.quality)
+                                 quality=run.quality, **kw)
         run.finish(step, {"pairs": out["dataset"]})
         return
     pairs = face_pairs(run.prod.store, run.capture(p.face_capture), p.actor, p.subsequences, p.subsequence_frames,
@@ -630,15 +655,36 @@ def _ref_source(prod: Production, step: Step) -> dict[str, Any]:
     return {"source": ArtifactStore(prod.store).resolve(ref).digest} if ref else {}
 
 
+def _face_calibration(prod: Production, step: Step) -> ArtifactRef:
+    """The Calibration a splat face-pairs step names (its actor's ``face_calibration`` ref), resolved
+    now; ``ValueError`` naming the actor and the field when the store has no such ref."""
+    from volcap_core.store import MissingRefError
+
+    p = step.parameters
+    try:
+        return ArtifactStore(prod.store).resolve(p.calibration)
+    except (MissingRefError, FileNotFoundError):
+        i = next(k for k, a in enumerate(prod.spec.actors) if a.name == p.actor)
+        raise ValueError(f"actors[{i}].face_calibration: {p.calibration!r} is not in store {prod.store} "
+                         "(a ref name such as imported-calibrations/NAME, as `volcap import-calibration` "
+                         "stores it, or a blake3 digest)") from None
+
+
 def _pairs_source(prod: Production, step: Step) -> dict[str, Any]:
-    """Gaussian-splat pairs run the facerig_pairs flow's tasks (their identities); interim pairs
-    only ``face-pairs`` (nothing added: their fingerprints stay as they were)."""
-    if step.parameters.method != "splat":
+    """Gaussian-splat pairs run the facerig_pairs flow's tasks and ``lq-range`` (their identities)
+    and read the Calibration their ``face_calibration`` ref names now; interim pairs only
+    ``face-pairs`` (nothing added: their fingerprints stay as they were)."""
+    p = step.parameters
+    if p.method != "splat":
         return {}
-    return {"splat_tasks": _versions(calibrate_tasks.calibrate_static, calibrate_tasks.assemble_calibration,
-                                     calibrate_tasks.dense_points_frame, calibrate_tasks.point_cloud_sequence,
-                                     train_segment_task, facerig.face_paths, facerig.render_pairs,
-                                     facerig.pair_dataset)}
+    source = {"splat_tasks": _versions(calibrate_tasks.calibrate_static, calibrate_tasks.assemble_calibration,
+                                       calibrate_tasks.dense_points_frame, calibrate_tasks.point_cloud_sequence,
+                                       ground_truth_calibration, ground_truth_points, train_segment_task,
+                                       facerig.face_paths, facerig.render_pairs, facerig.measured_lq_range,
+                                       facerig.pair_dataset)}
+    if p.calibration not in (None, GROUND_TRUTH):
+        source["face_calibration"] = _face_calibration(prod, step).digest
+    return source
 
 
 def _weights_source(prod: Production, step: Step) -> dict[str, Any]:

@@ -4,7 +4,8 @@ The HQ and LQ models themselves are ``train-segment`` runs (``tasks/reconstruct.
 segment training a production's Scene Rig segments get. ``face-paths`` draws a sub-sequence's
 camera paths around the head its HQ model holds (:mod:`volcap_core.production.face_paths`);
 ``render-pairs`` renders both models along each of its camera paths (:mod:`volcap_core.splat_pairs`);
-``pair-dataset`` gathers every path's sequences into
+``lq-range`` measures the LQ range in an actor's Scene Rig segments
+(:mod:`volcap_core.production.lq_range`); ``pair-dataset`` gathers every path's sequences into
 a :class:`~volcap_core.enhance.production.PairDataset` with its split by sub-sequence
 (``docs/enhancer.md``, "Gaussian-splat pairs").
 """
@@ -103,6 +104,60 @@ def render_pairs(store: str, hq: ArtifactRef, lq: ArtifactRef, paths: ArtifactRe
     return out
 
 
+@volcap_task(name="lq-range", version="1", libraries=("torch", "numpy"))
+def measured_lq_range(store: str, segments: list[ArtifactRef], cores: list[list[int]],
+                      actor_index: int | None) -> ArtifactRef:
+    """The LQ range of one actor, measured in Scene Rig segments (``segments``: SegmentModel
+    records of synthetic captures; ``cores``: each one's ``[a, b)`` take indices it owns, so a
+    frame two segments share counts once): per frame the Gaussians alive then inside the actor's
+    upper body (:func:`~volcap_core.production.lq_range.upper_body_gaussian_counts`, the default
+    :class:`~volcap_core.production.lq_range.UpperBody`) around its true head
+    (:func:`~volcap_core.production.lq_range.ground_truth_heads`, actor ``actor_index`` of each
+    capture's ground truth; None: its only actor), then their minimum and maximum. A JSON artifact:
+    ``{"low", "high", "frames", "actor_index", "heads", "region", "segments": [{"segment",
+    "frames", "counts"}]}``. A frame with no Gaussian there (the wrong actor, or one off stage) is
+    refused, naming the capture, the segment and the take indices: a range from 0 cannot be drawn from."""
+    import dataclasses
+    import json
+
+    import numpy as np
+
+    from volcap_core.capture import Capture
+    from volcap_core.production.lq_range import UpperBody, ground_truth_heads, lq_range, upper_body_gaussian_counts
+    from volcap_core.splat import load_model
+
+    if len(segments) != len(cores) or not segments:
+        raise ValueError(f"LQ range: {len(segments)} segment(s) for {len(cores)} core(s): give one core per segment, "
+                         "at least one")
+    s = ArtifactStore(store)
+    region = UpperBody()
+    counts, measured = [], []
+    for ref, (a, b) in zip(segments, cores):
+        seg = s.get_record(ref, reconstruction.SegmentModel)
+        if not seg.frames[0] <= a < b <= seg.frames[1]:
+            raise ValueError(f"LQ range: core [{a}, {b}) is not inside segment {ref.digest}'s frames "
+                             f"[{seg.frames[0]}, {seg.frames[1]})")
+        cap = s.get_record(seg.capture, Capture)
+        gt = s.get_tree(cap.ground_truth) if cap.ground_truth is not None else {}
+        if "scene.json" not in gt:
+            raise ValueError(f"LQ range: capture {cap.name} (segment {ref.digest}) has no ground-truth scene.json: "
+                             "its head positions are not known (only synthetic captures carry them)")
+        times = [cap.frame_time(f) for f in range(a, b)]
+        heads = ground_truth_heads(json.loads(s.get_bytes(gt["scene.json"].digest)), actor_index, times,
+                                   where=f"capture {cap.name}")
+        n = upper_body_gaussian_counts(load_model(s.get_bytes(seg.model)), heads, times, region=region)
+        if not n.all():
+            empty = [a + int(k) for k in np.flatnonzero(n == 0)]
+            raise ValueError(f"LQ range: capture {cap.name}, segment {ref.digest}: no Gaussian in actor "
+                             f"{actor_index if actor_index is not None else 0}'s upper body at take indices {empty}: "
+                             "is it the actor's index there (actors[].index), and in the frames?")
+        counts.append(n)
+        measured.append({"segment": ref.digest, "frames": [a, b], "counts": n.tolist()})
+    r = lq_range(counts)
+    return s.put_json({**r.to_json(), "actor_index": actor_index, "heads": "ground truth (synthetic capture)",
+                       "region": dataclasses.asdict(region), "segments": measured})
+
+
 @volcap_task(name="pair-dataset", version="1")
 def pair_dataset(store: str, sequences: list[ArtifactRef], actor: str, capture: ArtifactRef,
                  calibration: ArtifactRef, subsequences: int, lq_range: list[int], lq_range_source: str,
@@ -126,4 +181,4 @@ def pair_dataset(store: str, sequences: list[ArtifactRef], actor: str, capture: 
         sequences=seqs))
 
 
-__all__ = ["face_paths", "pair_dataset", "render_pairs"]
+__all__ = ["face_paths", "measured_lq_range", "pair_dataset", "render_pairs"]

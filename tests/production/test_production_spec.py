@@ -294,7 +294,7 @@ def test_capture_info_agrees_on_the_folder_and_the_ingested_capture(tmp_path):
             "take": {"start_timecode": "01:00:00:00", "frame_count": 30},
             "cameras": [{"id": c, "path": c, "start_timecode": "01:00:00:00"} for c in ("S000", portrait.id)]}
     (tmp_path / "capture.json").write_text(json.dumps(desc))
-    record = SimpleNamespace(name="d", performer=None, rig=rig, fps=24, frame_count=30, cameras=[
+    record = SimpleNamespace(name="d", performer=None, ground_truth=None, rig=rig, fps=24, frame_count=30, cameras=[
         SimpleNamespace(id="S000", width=320, height=180),
         SimpleNamespace(id=portrait.id, width=portrait.sensor.width_px, height=portrait.sensor.height_px)])
     before, after = capture_info_from_folder(tmp_path), CaptureInfo.from_capture(record)

@@ -18,15 +18,16 @@ a Gaussian cannot leave a fragment), and moves each to where it is at that time.
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from volcap_core.splat.model import ALPHA_MIN, Poly4DGS, evaluate
+from volcap_core.synth.ground_truth import head_at
 
-__all__ = ["LQRange", "UpperBody", "lq_range", "upper_body_gaussian_counts"]
+__all__ = ["LQRange", "UpperBody", "ground_truth_heads", "lq_range", "upper_body_gaussian_counts"]
 
 
 @dataclass(frozen=True)
@@ -116,3 +117,22 @@ def lq_range(counts: np.ndarray | Iterable[np.ndarray]) -> LQRange:
     if flat.size == 0:
         raise ValueError("LQ range: no upper-body counts to take it from")
     return LQRange(low=int(flat.min()), high=int(flat.max()), frames=int(flat.size))
+
+
+def ground_truth_heads(scene: Mapping, actor: int | None, times_s, *, where: str = "scene.json") -> np.ndarray:
+    """A synthetic capture's true head centre of actor ``actor`` (``scene.json`` ``actors`` index;
+    None: the capture's only actor) at each of ``times_s`` (seconds on the take's clock):
+    ``[F, 3]`` metres (:func:`~volcap_core.synth.ground_truth.head_at`). The head positions a
+    production measures the LQ range with where its Scene Rig capture is synthetic: a real capture
+    has no head track yet. ``ValueError`` naming ``where`` for an actor it does not hold, or None
+    where it holds several."""
+    actors = scene.get("actors") or []
+    if actor is None:
+        if len(actors) != 1:
+            raise ValueError(f"{where}: the ground truth holds {len(actors)} actors: say which one "
+                             "(the production spec's actors[].index)")
+        actor = 0
+    if not 0 <= actor < len(actors):
+        raise ValueError(f"{where}: no actor {actor} in the ground truth (it holds {len(actors)})")
+    return np.array([head_at(actors[actor], float(t))["centre_m"] for t in np.asarray(times_s, np.float64).reshape(-1)],
+                    np.float64).reshape(-1, 3)

@@ -45,6 +45,7 @@ from volcap_core.production.steps import (CalibrateStatic, CalibrateTracking, De
                                           Ingest, RenderShot, Step, TrainEnhancer, TrainSegment)
 
 __all__ = [
+    "GROUND_TRUTH",
     "SPEC_FORMAT",
     "ActorSpec",
     "CaptureInfo",
@@ -62,6 +63,9 @@ __all__ = [
 
 SPEC_FORMAT = "volcap-production/1"
 NAME = r"^[A-Za-z0-9_.-]+$"
+#: ``actors[].face_calibration: ground-truth``: a synthetic face capture's true cameras and depth
+#: points, as ``volcap reconstruct --ground-truth`` uses them
+GROUND_TRUTH = "ground-truth"
 
 
 class SpecError(ValueError):
@@ -107,6 +111,11 @@ class ActorSpec(BaseModel):
     name: str = Field(pattern=NAME)
     captures: tuple[str, ...] = Field(min_length=1, description="scene captures the actor is in")
     face_capture: str | None = Field(None, description="Face Rig capture for the enhancer")
+    face_calibration: str | None = Field(
+        None, min_length=1, description="the face capture's calibration for Gaussian-splat pairs: a Calibration "
+        "in the store (a ref name such as imported-calibrations/NAME, as `volcap import-calibration` stores "
+        "it, or a blake3 digest), or 'ground-truth' (a synthetic capture's true cameras and depth points); "
+        "unset: calibrated by the calibrate flow (SfM)")
     index: int | None = Field(None, ge=0, description="the actor's index in its captures (a synthetic "
                               "capture's ground_truth/scene.json actors); a face capture that names its "
                               "performer must then name this index")
@@ -186,6 +195,9 @@ class ProductionSpec(BaseModel):
                 if c not in self.captures:
                     problems.append(f"actors[{i}].captures[{j}]: unknown capture {c!r} "
                                     f"(known: {', '.join(self.captures)})")
+            if actor.face_calibration is not None and actor.face_capture is None:
+                problems.append(f"actors[{i}].face_calibration: set, but actor {actor.name!r} has no "
+                                "face_capture to calibrate")
             if actor.face_capture is not None:
                 if actor.face_capture not in self.captures:
                     problems.append(f"actors[{i}].face_capture: unknown capture "
@@ -335,7 +347,8 @@ class CaptureInfo(BaseModel):
     the ingested capture's images give the same figures: :func:`largest_image`).
     ``segment_plan``: the plan to use; None plans from the spec's quality preset.
     ``name``: the capture's name as recorded (capture.json's, the record's); ``performer``: whose
-    actor it films, when it says (:class:`~volcap_core.capture.Performer`). None: not known."""
+    actor it films, when it says (:class:`~volcap_core.capture.Performer`); ``ground_truth``:
+    whether it carries ground truth (a synthetic capture). None: not known."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
     has_tracking_cameras: bool
@@ -346,6 +359,7 @@ class CaptureInfo(BaseModel):
     segment_plan: SegmentPlan | None = None
     name: str | None = None
     performer: Performer | None = None
+    ground_truth: bool | None = None
 
     @classmethod
     def from_capture(cls, capture, segment_plan: SegmentPlan | None = None) -> "CaptureInfo":
@@ -355,7 +369,7 @@ class CaptureInfo(BaseModel):
         width, height = largest_image((c.width, c.height) for c in capture.cameras)
         return cls(has_tracking_cameras=tracking, fps=capture.fps, frame_count=capture.frame_count,
                    width=width, height=height, segment_plan=segment_plan, name=capture.name,
-                   performer=capture.performer)
+                   performer=capture.performer, ground_truth=capture.ground_truth is not None)
 
 
 def largest_image(sizes: Iterable[tuple[int, int]]) -> tuple[int, int]:
@@ -374,7 +388,8 @@ def capture_info_from_folder(folder: str | Path) -> CaptureInfo:
     width, height = largest_image((c.sensor.width_px, c.sensor.height_px) for c in cams)
     return CaptureInfo(has_tracking_cameras=any(c.role.tracks for c in cams), fps=capture.fps,
                        frame_count=capture.frame_count, width=width, height=height, name=capture.name,
-                       performer=capture.description.performer)
+                       performer=capture.description.performer,
+                       ground_truth=capture.description.ground_truth is not None)
 
 
 def check_face_capture(spec: ProductionSpec, actor: ActorSpec, capture_info: Mapping[str, CaptureInfo]) -> None:
@@ -439,7 +454,8 @@ def needed_steps(spec: ProductionSpec, capture_info: Mapping[str, CaptureInfo], 
         (C capture, SEG ``aaaaaa-bbbbbb`` take indices, S shot, A actor). A capture given by
         ``ref`` is already ingested: no ingest step, its ref is a parameter of its calibration.
         One enhancer is trained on the face pairs of every actor in an enhanced shot (the paper
-        trains one model on all actors' pairs).
+        trains one model on all actors' pairs). Gaussian-splat face pairs (``pair_method:
+        splat``) come after the actor's segments that measure their LQ range (:func:`_splat_pairs`).
     """
     requested = [spec.shot(n) for n in shots] if shots is not None else list(spec.shots)
     q = spec.quality_preset()
@@ -525,14 +541,19 @@ def needed_steps(spec: ProductionSpec, capture_info: Mapping[str, CaptureInfo], 
             info(fc, f"face capture of actor {actor!r}")
             # the interim pairs read the ingested frames alone: no calibration of the face capture
             # (the demo_face rig's 8 cameras, 45 degrees apart around a head, give the static SfM no
-            # matches at all); the Gaussian-splat pairs will add it as their input
+            # matches at all); the Gaussian-splat pairs calibrate it inside their flow, or take the
+            # spec's face_calibration, and measure the LQ range in the actor's segments
             ingest: tuple[str, ...] = ()
             if spec.captures[fc].folder is not None:
                 ingest = (f"ingest:{fc}",)
                 if not any(st.id == ingest[0] for st in steps):
                     steps.append(Step(id=ingest[0], parameters=Ingest(capture=fc, folder=spec.captures[fc].folder)))
             pid = f"face-pairs:{actor}"
-            steps.append(Step(id=pid, inputs=ingest, parameters=FacePairs.for_actor(actor, fc, q)))
+            pairs = FacePairs.for_actor(actor, fc, q)
+            measured: tuple[str, ...] = ()
+            if pairs.method == "splat":
+                pairs, measured = _splat_pairs(spec, spec.actor(actor), pairs, capture_info, needed_segments)
+            steps.append(Step(id=pid, inputs=(*ingest, *measured), parameters=pairs))
             pair_ids.append(pid)
         enhancer = "train-enhancer:" + "+".join(enhance_actors)
         steps.append(Step(id=enhancer, inputs=tuple(pair_ids), parameters=TrainEnhancer.for_actors(
@@ -542,6 +563,35 @@ def needed_steps(spec: ProductionSpec, capture_info: Mapping[str, CaptureInfo], 
                               parameters=EnhanceShot.for_shot(shot.name, [a.name for a in spec.shot_actors(shot)], q)))
     _check_order(steps)
     return steps
+
+
+def _splat_pairs(spec: ProductionSpec, actor: ActorSpec, pairs: FacePairs, capture_info: Mapping[str, CaptureInfo],
+                 needed_segments: Mapping[str, Mapping[str, Segment]]) -> tuple[FacePairs, tuple[str, ...]]:
+    """An actor's Gaussian-splat face-pairs parameters and the segment steps it measures the LQ range in.
+
+    The face capture's calibration is the actor's ``face_calibration`` (``ground-truth`` refused for a
+    capture known to carry none). The LQ range is measured in every segment this production trains
+    of the actor's captures that carry ground truth (the head positions the count needs: a synthetic
+    capture's true heads; a real capture has no head track yet), as the actor's ``index`` there, or
+    the one its face capture names as its performer; with no such segment the preset's
+    ``face_lq_gaussians``."""
+    i = spec.actors.index(actor)
+    fc = actor.face_capture
+    if actor.face_calibration == GROUND_TRUTH and capture_info[fc].ground_truth is False:
+        raise ValueError(f"actors[{i}].face_calibration: {GROUND_TRUTH}, but actor {actor.name!r}'s face capture "
+                         f"{fc!r} carries no ground truth (only synthetic captures do): give its Calibration "
+                         "(a store ref, as `volcap import-calibration` stores it) or leave it unset to calibrate "
+                         "it by SfM")
+    segments = tuple(f"train-segment:{c}:{seg.id}" for c in actor.captures
+                     if c in needed_segments and capture_info[c].ground_truth
+                     for seg in sorted(needed_segments[c].values(), key=lambda s: s.index))
+    index = actor.index
+    performer = capture_info[fc].performer
+    if index is None and performer is not None:
+        index = performer.actor
+    return pairs.model_copy(update={"calibration": actor.face_calibration,
+                                    "lq_range": "measured" if segments else "preset",
+                                    "actor_index": index if segments else None}), segments
 
 
 def _check_order(steps: Sequence[Step]) -> None:

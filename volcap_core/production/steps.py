@@ -134,7 +134,13 @@ class FacePairs(StepParameters):
     """An actor's LQ/HQ training pairs from their Face Rig capture, at the preset's Face Rig sizes;
     ``method`` the preset's ``pair_method``: ``splat`` (Gaussian-splat pairs, the facerig_pairs
     flow) or ``interim`` (degraded frames; left out of the JSON, so the fingerprints of the plans
-    made before the field existed stay)."""
+    made before the field existed stay).
+
+    Gaussian-splat pairs only (each left out of the JSON while unset): ``calibration``, the spec's
+    ``actors[].face_calibration`` (a Calibration ref, or ``ground-truth``; None: the calibrate
+    flow); ``lq_range`` ``measured`` when the LQ range is counted in the actor's Scene Rig segments
+    (the step's ``train-segment`` inputs), as actor ``actor_index`` of their ground truth (None:
+    its only actor), else the preset's ``face_lq_gaussians``."""
 
     kind: ClassVar[StepKind] = "face-pairs"
     actor: str
@@ -147,6 +153,9 @@ class FacePairs(StepParameters):
     resolution: int
     window: Literal["performer", "head"]
     method: Literal["splat", "interim"] = "interim"
+    calibration: str | None = None
+    lq_range: Literal["measured", "preset"] = "preset"
+    actor_index: int | None = None
 
     @classmethod
     def for_actor(cls, actor: str, face_capture: str, quality: QualityPreset) -> "FacePairs":
@@ -160,6 +169,9 @@ class FacePairs(StepParameters):
         out = super().as_json()
         if self.method == "interim":
             del out["method"]
+        for name, unset in (("calibration", None), ("lq_range", "preset"), ("actor_index", None)):
+            if out[name] == unset:
+                del out[name]
         return out
 
 
