@@ -269,9 +269,11 @@ def enhancer_budget(quality, train_wall_s: float | None) -> str:
     """One line saying what the enhancer had, for the demo's output."""
     q = quality
     trained = f"trained in {train_wall_s:.0f} s" if train_wall_s is not None else "cached"
-    line = (f"enhancer: the {q.enhancer_architecture} CPU model from random weights, {q.enhancer_vae_steps} VAE + "
+    vae = sum([q.enhancer_vae_steps, *(n for n, _ in q.enhancer_vae_stages)])
+    window = "head-window" if q.pair_window == "head" else "square"
+    line = (f"enhancer: the {q.enhancer_architecture} CPU model from random weights, {vae} VAE + "
             f"{q.enhancer_steps} transformer steps on {q.face_subsequences} x {q.face_subsequence_frames}-frame "
-            f"sub-sequences of {q.pair_resolution}-px Face Rig pairs ({trained})")
+            f"sub-sequences of {q.pair_resolution}-px {window} Face Rig pairs ({trained})")
     if q.enhancer_steps < 1000:
         line += (": a smoke run of the machinery, not an enhancer that has learned (a CPU enhancer that learns "
                  "needs ~50 min: docs/benchmarks.md 'Detail enhancer'; volcap demo --enhancer-preset long)")
