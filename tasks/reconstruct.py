@@ -84,7 +84,7 @@ def ground_truth_points(store: str, capture: ArtifactRef, calibration: ArtifactR
                                            method=f"ground-truth depth, {points_per_frame} per frame"))
 
 
-@volcap_task(name="train-segment", version="9", retries=1, libraries=RECONSTRUCTION_LIBRARIES)
+@volcap_task(name="train-segment", version="10", retries=1, libraries=RECONSTRUCTION_LIBRARIES)
 def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRef, points: ArtifactRef,
                        frames: list[int], config: TrainConfig, seed: int) -> ArtifactRef:
     """Train one Poly4DGS segment, score it against its floors and draw its contact sheet
@@ -100,7 +100,9 @@ def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRe
     Version 8: the scores add ``regions``, the performer- and face-region PSNR, SSIM and detail per
     camera role beside the floors (a synthetic capture's; ``docs/poly4dgs.md``, "Evaluation").
     Version 9: the initial points may add the zoom cameras' own (``TrainConfig.init_zoom_stride_px``,
-    the demo preset's; issue 28), and TrainConfig gained the fields of that route.
+    the demo preset's; issue 28), and TrainConfig gained the fields of that route. Version 10: a
+    capture without a lidar scan (real footage) starts from a room shell coloured by the static
+    training cameras beside its dense points (``reconstruction.segment_init``; issue 30).
     """
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)

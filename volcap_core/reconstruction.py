@@ -216,7 +216,8 @@ def segment_data(capture: Capture, calibration: Calibration, tracking: dict[str,
 
 def segment_points(points: PointCloudSequence, frames: tuple[int, int],
                    load_points: Callable[[ArtifactRef], tuple[np.ndarray, np.ndarray]],
-                   static_scan: bytes | None = None, background: Sequence | None = None) -> list[PointsAtTime]:
+                   static_scan: bytes | None = None, background: Sequence | None = None,
+                   room: np.ndarray | None = None) -> list[PointsAtTime]:
     """The dense points of frames [a, b), one :class:`PointsAtTime` per frame, each point marked
     static or moving (:func:`volcap_core.splat.init.classify_static`): on the capture's lidar scan
     of the empty stage (``static_scan``, PLY bytes in the calibration's world frame) or present in
@@ -225,7 +226,9 @@ def segment_points(points: PointCloudSequence, frames: tuple[int, int],
     With a scan and ``background`` views (the static cameras at the segment's middle frame), the
     scan itself, coloured by those views (:func:`~volcap_core.splat.init.colour_scan`), is added
     as one more static cloud: it covers what the plane sweep finds no match on (a plain ceiling,
-    the far walls), where the model would otherwise have nothing to draw.
+    the far walls), where the model would otherwise have nothing to draw. Without a scan,
+    ``room`` (``[N, 3]``, :func:`~volcap_core.splat.init.room_shell`: a capture of real footage)
+    stands in for it and is coloured and added the same way.
     """
     from volcap_core.calibration.lidar import LidarScan
     from volcap_core.splat.init import classify_static, colour_scan
@@ -240,9 +243,10 @@ def segment_points(points: PointCloudSequence, frames: tuple[int, int],
                              scan_distance=None if scan is None else scan.surface_distance)
     out = [PointsAtTime(time=t, xyz=torch.from_numpy(xyz), rgb=torch.from_numpy(rgb),
                         static=torch.from_numpy(st)) for (t, xyz, rgb), st in zip(clouds, static)]
-    if scan is not None and background:
-        rgb, seen = colour_scan(scan.points, background)
-        xyz = scan.points[seen].astype(np.float32)
+    surface = scan.points if scan is not None else room
+    if surface is not None and len(surface) and background:
+        rgb, seen = colour_scan(surface, background)
+        xyz = np.asarray(surface)[seen].astype(np.float32)
         mid = 0.5 * (clouds[0][0] + clouds[-1][0])
         out.append(PointsAtTime(time=mid, xyz=torch.from_numpy(xyz), rgb=torch.from_numpy(rgb[seen]),
                                 static=torch.ones(len(xyz), dtype=torch.bool)))
@@ -253,17 +257,27 @@ def segment_init(load_bytes: Callable[[ArtifactRef], bytes], capture: Capture, p
                  data: SegmentData, held_out: Sequence[str] = (), zoom_stride_px: int | None = None
                  ) -> list[PointsAtTime]:
     """What a segment's training starts from, built as the ``train-segment`` task builds it: the
-    segment's dense points split static/moving, plus the capture's lidar scan (when it has one)
-    coloured by the static training cameras (:func:`segment_points`, :func:`background_views`).
+    segment's dense points split static/moving, plus the capture's lidar scan coloured by the
+    static training cameras (:func:`segment_points`, :func:`background_views`) or, for a capture
+    without one, a room shell around those cameras coloured the same way
+    (:func:`~volcap_core.splat.init.room_shell`: the floor at z = 0, walls beyond the cameras).
     Each point carries its finest training camera's pixel footprint (:func:`with_footprints`);
     ``zoom_stride_px`` (``TrainConfig.init_zoom_stride_px``) adds the zoom cameras' points
     (:func:`with_zoom_points`). Anything that must reproduce a stored segment (a resumed run, a
     check) calls this."""
     from volcap_core.pointcloud import decode_points
 
+    background = background_views(data, capture, held_out)
+    room = None
+    if not capture.lidar:   # real footage: a room shell around the training cameras stands in for the scan
+        from volcap_core.splat.init import room_shell
+        from volcap_core.stage import stage_volume
+
+        room = room_shell(np.array([v.camera.centre.double().numpy() for v in background]).reshape(-1, 3),
+                          stage_volume(capture.rig.stage_size_m))
     clouds = segment_points(points, data.frames, lambda ref: decode_points(load_bytes(ref)),
                             static_scan=load_bytes(capture.lidar) if capture.lidar else None,
-                            background=background_views(data, capture, held_out))
+                            background=background, room=room)
     clouds = with_footprints(clouds, data, held_out)
     return clouds if zoom_stride_px is None else with_zoom_points(clouds, data, held_out, zoom_stride_px)
 

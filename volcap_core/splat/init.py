@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["InitSplit", "classify_static", "colour_scan", "drop_isolated", "finest_footprint",
-           "footprint_levels", "initial_gaussians", "neighbour_scale", "voxel_thin", "zoom_points"]
+           "footprint_levels", "initial_gaussians", "neighbour_scale", "room_shell", "voxel_thin", "zoom_points"]
 
 
 def neighbour_scale(xyz: np.ndarray, k: int = 3) -> np.ndarray:
@@ -404,3 +404,45 @@ def colour_scan(points: np.ndarray, views: Sequence, *, min_views: int = 1, spla
     if seen.any():
         rgb[seen] = np.nanmedian(samples[:, seen], axis=0)
     return rgb, seen
+
+
+def room_shell(camera_centres: np.ndarray, stage: tuple, *, margin_m: float = 1.0, spacing_m: float = 0.05
+               ) -> np.ndarray:
+    """Points on the floor, walls and ceiling of a box room around a rig: the stand-in for a lidar
+    scan of the empty stage when a capture has none (real footage), coloured like a scan by
+    :func:`colour_scan`.
+
+    Without it the initial model of a real capture is the plane sweep's points alone, which cover
+    5-8 % of a view's pixels (the room, the floor and the far walls find no match): the first
+    renders are black where the footage is not, training fills the frame with a flat black-level
+    veil and low-opacity Gaussians, and a held-out view renders as fog (``docs/poly4dgs.md``,
+    "Real footage"). The floor is the stage frame's ``z = 0`` (exact for a calibration in the
+    stage frame); the walls stand ``margin_m`` beyond both the stage volume and every camera, the
+    ceiling ``margin_m`` above the highest of them: a guess training corrects, seen by the cameras
+    where the real room is.
+
+    Args:
+        camera_centres: ``[C, 3]`` camera centres, metres, stage frame (z up, floor at 0).
+        stage: the performance volume, a :data:`volcap_core.stage.Box`.
+        margin_m: the walls' and ceiling's distance beyond the stage and the cameras.
+        spacing_m: grid spacing of the points on each face.
+    Returns:
+        ``[N, 3]`` float64 points on the box's six faces (the floor at ``z = 0``).
+    """
+    c = np.asarray(camera_centres, np.float64).reshape(-1, 3)
+    (x0, y0, _), (x1, y1, z1) = stage
+    lo = np.minimum([x0, y0], c[:, :2].min(0)) - margin_m if len(c) else np.array([x0, y0]) - margin_m
+    hi = np.maximum([x1, y1], c[:, :2].max(0)) + margin_m if len(c) else np.array([x1, y1]) + margin_m
+    top = max(z1, float(c[:, 2].max()) if len(c) else z1) + margin_m
+    lo3, hi3 = np.array([lo[0], lo[1], 0.0]), np.array([hi[0], hi[1], top])
+    axes = [np.linspace(lo3[i], hi3[i], max(2, int(math.ceil((hi3[i] - lo3[i]) / spacing_m)) + 1)) for i in range(3)]
+    faces = []
+    for i in range(3):
+        u, v = (axes[j] for j in range(3) if j != i)
+        uu, vv = np.meshgrid(u, v, indexing="ij")
+        for side in (lo3[i], hi3[i]):
+            f = np.empty((uu.size, 3))
+            f[:, i] = side
+            f[:, [j for j in range(3) if j != i]] = np.stack([uu.ravel(), vv.ravel()], 1)
+            faces.append(f)
+    return np.concatenate(faces)
