@@ -385,7 +385,8 @@ def run(workdir: Path, settings: dict, json_path: Path, sheet: Path | None, stop
     workdir.mkdir(parents=True, exist_ok=True)
     store = ArtifactStore(str(workdir / "store")).url
     previous = json.loads(json_path.read_text()) if json_path.exists() else {}
-    result: dict[str, Any] = {"settings": settings, "workdir": str(workdir), "finished": [],
+    # an earlier run's figures stay until this run redoes their stage (a --stop-after rerun keeps the rest)
+    result: dict[str, Any] = {**previous, "settings": settings, "workdir": str(workdir), "finished": [],
                               "stages": previous.get("stages", {}),
                               "machine": {"platform": platform.platform(), "python": platform.python_version()}}
     sampler = RssSampler()
