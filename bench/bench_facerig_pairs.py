@@ -285,6 +285,9 @@ def checks_stage(store: str, settings: dict, scene: dict, pairs: dict, sheet: Pa
                    **held_out_figures(seg(first["hq"]))},
             "lq": [{"gaussians_per_frame": int(n), **held_out_figures(seg(d))}
                    for n, d in sorted(pairs["lq_models_subsequence_0"].items(), key=lambda kv: int(kv[0]))]}
+    for m in held["lq"]:        # the LQ's shortfall against the HQ on the same held-out pixels
+        m["psnr_gap_to_hq_db"] = _gap(held["hq"].get("psnr"), m.get("psnr"))
+        m["face_psnr_gap_to_hq_db"] = _gap(_face(held["hq"]).get("psnr"), _face(m).get("psnr"))
     held["every_subsequence"] = [{"frames": x["frames"], "hq": held_out_figures(seg(x["hq"])),
                                   "lq": {"gaussians_per_frame": x["lq_gaussians"], **held_out_figures(seg(x["lq"]))}}
                                  for x in pairs["subsequences"]]
@@ -339,6 +342,15 @@ def checks_stage(store: str, settings: dict, scene: dict, pairs: dict, sheet: Pa
                                          f"{list(ds.lq_range)} ({ds.lq_range_source})", truth_label="HQ"))
         result["sheet"] = str(sheet)
     return result
+
+
+def _gap(hq: float | None, lq: float | None) -> float | None:
+    return None if hq is None or lq is None else round(hq - lq, 3)
+
+
+def _face(figures: dict) -> dict:
+    """The face-region figures of :func:`held_out_figures`' first camera role ({} without masks)."""
+    return next((v for k, v in figures.items() if k.startswith("face_") and isinstance(v, dict)), {})
 
 
 def _face_detail(figures: dict) -> float | None:
@@ -469,14 +481,15 @@ def report_checks(result: dict) -> None:
     h = c["held_out"]
 
     def line(m: dict) -> str:
-        face = next((v for k, v in m.items() if k.startswith("face_") and isinstance(v, dict)), {})
+        face = _face(m)
         return (f"{m['psnr']} dB / SSIM {m['ssim']} (empty {m['empty_psnr']} dB); face {face.get('psnr')} dB "
                 f"(empty {face.get('empty_psnr')}), detail {face.get('detail')}")
 
     _log(f"held out ({', '.join(h['hq']['cameras'])}), sub-sequence 0: HQ {h['hq']['gaussians_per_frame']}/frame "
          f"{line(h['hq'])}")
     for m in h["lq"]:
-        _log(f"held out, sub-sequence 0: LQ {m['gaussians_per_frame']}/frame {line(m)}")
+        _log(f"held out, sub-sequence 0: LQ {m['gaussians_per_frame']}/frame {line(m)}; below the HQ by "
+             f"{m['psnr_gap_to_hq_db']} dB, face {m['face_psnr_gap_to_hq_db']} dB")
     for what in ("lq_frames", "hq_frames"):
         f = c["flow"][what]
         _log(f"flow, warp error on the {what.replace('_', ' ')}: rendered {f['rendered']}, zero {f['zero']}, DIS "
