@@ -232,17 +232,21 @@ def closeup_shot(heads: np.ndarray, facing: np.ndarray, frames: tuple[int, int],
 
 def closeup_spec(store: str, capture_ref: str, frames: tuple[int, int], face_folder: str,
                  shot: Mapping[str, Any], quality: str | Mapping[str, Any],
-                 rigs: tuple[str, str] = ("demo_scene", "demo_face")) -> dict[str, Any]:
+                 rigs: tuple[str, str] = ("demo_scene", "demo_face"),
+                 face_calibration: str | None = None) -> dict[str, Any]:
     """The demo's production spec (``docs/production-spec.md``): the demo capture by ref over
     ``frames`` (the demo segment's, so the production plans the same segment), the face capture
     by folder (relative to the spec), the shot's actor in both, one close-up shot; ``rigs``: the
-    scene and face captures' rigs (built-in names or rig JSON paths)."""
+    scene and face captures' rigs (built-in names or rig JSON paths); ``face_calibration``: the
+    actor's ``face_calibration`` (e.g. ``ground-truth``, which Gaussian-splat pairs of the demo's
+    Face Rig need: its SfM finds no matches), None: unset."""
     actor = shot["actors"][0]
     return {"format": "volcap-production/1", "name": PRODUCTION, "store": store, "quality": quality,
             "rigs": {"scene": str(rigs[0]), "face": str(rigs[1])},
             "captures": {"demo": {"ref": capture_ref, "rig": "scene", "frames": list(frames)},
                          "face": {"folder": face_folder, "rig": "face"}},
-            "actors": [{"name": actor, "captures": ["demo"], "index": ACTOR_INDEX, "face_capture": "face"}],
+            "actors": [{"name": actor, "captures": ["demo"], "index": ACTOR_INDEX, "face_capture": "face",
+                        **({"face_calibration": face_calibration} if face_calibration else {})}],
             "shots": [dict(shot)]}
 
 
@@ -303,17 +307,22 @@ def _is_face_capture_of(folder: Path, capture: str, actor: int, frames: int) -> 
 
 
 def closeup_production(store: str, capture_dir: Path, out: Path, *, capture_ref, segment_ref, preset: str,
-                       enhancer: str, face_rig: str | Path = "demo_face") -> dict[str, Any]:
+                       enhancer: str, face_rig: str | Path = "demo_face",
+                       quality_overrides: Mapping[str, Any] | None = None,
+                       face_calibration: str | None = None) -> dict[str, Any]:
     """The demo's production (module doc): the Face Rig capture (of ``face_rig``, a built-in name
     or a rig JSON path), the spec, the production run, the truth and the scores, the frames and
-    the sheet copied into ``out``. Returns paths, refs, figures and wall times."""
+    the sheet copied into ``out``. Returns paths, refs, figures and wall times.
+    ``quality_overrides``: preset fields over the enhancer run's (e.g. ``pair_method``: the pairs
+    bench runs it with splat and interim pairs); ``face_calibration``: the spec's, as
+    :func:`closeup_spec` takes it. Both None: the demo's production."""
     from volcap_core.synth import synthesize_face_capture
 
     log = get_run_logger()
     s = ArtifactStore(store)
     seg = s.get_record(segment_ref, SegmentModel)
     record = s.get_record(capture_ref, Capture)
-    overrides = ENHANCER_RUNS[enhancer]
+    overrides = {**ENHANCER_RUNS[enhancer], **(quality_overrides or {})}
     quality = {"preset": preset, **overrides} if overrides else preset
     q = named_preset(preset).with_overrides(**overrides)
     walls: dict[str, float] = {}
@@ -346,7 +355,8 @@ def closeup_production(store: str, capture_dir: Path, out: Path, *, capture_ref,
     if (capture_dir / scene_rig).is_file():
         scene_rig = str((capture_dir / scene_rig).resolve())
     spec_path.write_text(yaml.safe_dump(closeup_spec(s.url, cap_ref, (a, b), face_name, shot, quality,
-                                                     rigs=(scene_rig, face_rig)), sort_keys=False))
+                                                     rigs=(scene_rig, face_rig), face_calibration=face_calibration),
+                                        sort_keys=False))
     step = check_segment_reused(open_production(spec_path), seg, record, spec_path)
 
     t0 = time.perf_counter()
