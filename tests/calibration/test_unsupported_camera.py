@@ -127,7 +127,7 @@ class _FakeCapture:
 
     class _Cam:
         def __init__(self, cid, n):
-            self.id, self.frames = cid, [None] * n
+            self.id, self.frames, self.masks = cid, [None] * n, None     # no performer masks
 
     def __init__(self, cap):
         self.name, self.fps, self.rig = cap.name, cap.fps, cap.rig

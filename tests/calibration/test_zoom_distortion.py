@@ -432,6 +432,7 @@ def test_training_views_of_a_zoom_camera_are_rectified_frame_by_frame():
 
         class _Cam:
             id, frames = "T1", [0, 1, 2, 3]              # a frame's "ref" is its take index here
+            masks = None                                 # no performer masks
 
         cameras = [_Cam]
 
