@@ -35,7 +35,7 @@ from volcap_core.store import ArtifactStore, MissingRefError
 #: the enhancer's numerics: torch and diffusers (the model), OpenCV (DIS flow), numpy
 ENHANCER_LIBRARIES = ("torch", "diffusers", "cv2", "numpy")
 
-INTERIM_PAIRS = "degraded capture frames (interim, until the Face Rig pair dataset lands)"
+INTERIM_PAIRS = "degraded capture frames (interim pairs, not Gaussian-splat renders: pair_method splat makes those)"
 
 
 @volcap_task(name="face-pairs", version="2", libraries=("torch", "numpy"))
