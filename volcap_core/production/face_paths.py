@@ -15,7 +15,7 @@ frame height. Across a path the focal length (zoom), the distance (dolly) and th
 
 Conventions: world metres, the stage frame (z up unless ``up`` says otherwise); cameras OpenCV
 (x right, y down, z forward), ``K`` in pixels with the top-left pixel centre at 0 (as
-:class:`~volcap_core.segment.ViewSpec`); focal lengths in mm on a 36 mm-wide sensor (full-frame
+:class:`~volcap_core.view.ViewSpec`); focal lengths in mm on a 36 mm-wide sensor (full-frame
 equivalent), square pixels.
 """
 
@@ -89,7 +89,7 @@ class CameraPath:
     """One moving camera over a sub-sequence's frames.
 
     Attributes:
-        views: one :class:`~volcap_core.segment.ViewSpec` per frame time, in order (K px, OpenCV
+        views: one :class:`~volcap_core.view.ViewSpec` per frame time, in order (K px, OpenCV
             world-to-camera, width, height, ``time_s`` the frame's time).
         params: JSON-able, what was drawn: ``seed``, ``index``, ``frames``, ``sensor_width_mm``,
             ``focal_mm_start``/``_end`` (full-frame equivalent), ``distance_m_start``/``_end``
