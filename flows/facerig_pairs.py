@@ -8,7 +8,9 @@ It reads like the paper's "Training Data Generation" (``docs/enhancer.md``, "Gau
                windows' frames likewise
     models     per sub-sequence an HQ model (face_hq_gaussians_per_frame a frame) and an LQ model
                (a count a frame drawn from the LQ range, seeded per sub-sequence): train-segment
-               runs with the preset's TrainConfig, every model at once, as segments fan out
+               runs with the preset's TrainConfig, every model at once, through the production's
+               segment fan-out (flows/segment_runs.py: runs of the train-segment deployment on
+               GPU workers, or task runs in this process, as ``segment_runs`` chooses)
     paths      per sub-sequence face_camera_paths camera paths around the head its HQ model holds
     render     both models along every path of their sub-sequence (one task per sub-sequence, each
                model loaded once): half RGBA EXR at pair_resolution, the Face Rig ->
@@ -26,15 +28,33 @@ import numpy as np
 from prefect import flow, get_run_logger, unmapped
 
 from flows.calibrate import calibrate_capture, point_cloud_for_frames
+from flows.segment_runs import SegmentJob, SegmentRuns, segment_runs_mode, train_segments
 from tasks.facerig import face_paths, pair_dataset, render_pairs
-from tasks.reconstruct import ground_truth_calibration, ground_truth_points, train_segment_task
+from tasks.reconstruct import ground_truth_calibration, ground_truth_points
 from volcap_core import reconstruction
 from volcap_core.calibration.record import Calibration
 from volcap_core.capture import Capture
 from volcap_core.enhance.production import face_windows
 from volcap_core.production.presets import QualityPreset, named_preset
+from volcap_core.records import ArtifactRef
 from volcap_core.splat_pairs import lq_gaussians_per_frame
 from volcap_core.store import ArtifactStore
+
+
+def face_model_jobs(capture: ArtifactRef, calibration: ArtifactRef, points: ArtifactRef, windows: list[list[int]],
+                    quality: QualityPreset, held_out: list[str], lq_counts: list[int], seed: int = 0
+                    ) -> list[SegmentJob]:
+    """The two segment trainings of each sub-sequence, HQ then LQ, in window order.
+
+    ``windows``: each sub-sequence's consecutive capture frames; ``lq_counts``: its LQ Gaussians a
+    frame. Both models train on the window's frames with the preset's TrainConfig (``held_out``
+    cameras out of the loss), the HQ to ``face_hq_gaussians_per_frame`` × frames Gaussians, the LQ
+    to its count × frames: the budgets are per frame, as the paper's counts are."""
+    if len(lq_counts) != len(windows):
+        raise ValueError(f"{len(lq_counts)} LQ count(s) for {len(windows)} sub-sequence(s)")
+    return [SegmentJob(capture=capture, calibration=calibration, points=points, frames=(w[0], w[-1] + 1),
+                       config=quality.train_config(held_out=held_out, max_gaussians=per_frame * len(w)), seed=seed)
+            for w, lq in zip(windows, lq_counts) for per_frame in (quality.face_hq_gaussians_per_frame, lq)]
 
 
 @flow(name="facerig-pairs", persist_result=False)
@@ -42,7 +62,8 @@ def facerig_pairs_flow(store: str, capture: str, actor: str, quality: str | Qual
                        calibration: str | None = None, points: str | None = None, ground_truth: bool = False,
                        colour: str | None = None, lq_range: tuple[int, int] | None = None,
                        lq_range_source: str = "measured", lq_measurement: str | None = None,
-                       seed: int = 0) -> dict[str, Any]:
+                       seed: int = 0, segment_runs: SegmentRuns = "auto", max_attempts: int = 3,
+                       poll_interval_s: float = 5.0) -> dict[str, Any]:
     """The pair dataset of ``actor``'s Face Rig ``capture`` (a ref name or digest) at ``quality``
     (a preset name or a resolved preset: its ``face_*`` sizes, ``pair_resolution`` and the
     segment TrainConfig).
@@ -56,12 +77,15 @@ def facerig_pairs_flow(store: str, capture: str, actor: str, quality: str | Qual
     reconstruction (``volcap_core.production.lq_range``), recorded with ``lq_range_source``; None:
     the preset's ``face_lq_gaussians``, recorded as ``preset``. ``lq_measurement``: the digest of
     the ``lq-range`` artifact it was measured in, recorded in the dataset's parameters (None:
-    nothing recorded).
+    nothing recorded). ``segment_runs`` / ``max_attempts`` / ``poll_interval_s``: how the models
+    train, as the production's segments do (``auto`` | ``local`` | ``deployment``:
+    ``flows.segment_runs.segment_runs_mode``; a production passes its own mode).
 
     Returns the dataset's ref and what it was made of (calibration, points, each sub-sequence's
     frames, models and LQ count, the number of sequences).
     """
     log = get_run_logger()
+    mode = segment_runs_mode(segment_runs)   # before any work: a missing deployment is refused at once
     q = named_preset(quality) if isinstance(quality, str) else quality
     s = ArtifactStore(store)
     cap_ref = s.resolve(capture)
@@ -89,16 +113,12 @@ def facerig_pairs_flow(store: str, capture: str, actor: str, quality: str | Qual
 
     # two models per sub-sequence, budgets a frame times its frames: the preset's segment training
     lq_counts = [lq_gaussians_per_frame(lq_range, seed, i) for i in range(len(windows))]
-    jobs = [(i, per_frame) for i in range(len(windows))
-            for per_frame in (q.face_hq_gaussians_per_frame, lq_counts[i])]
+    jobs = face_model_jobs(cap_ref, calib_ref, points_ref, windows, q, held, lq_counts, seed)
     log.info("Face Rig pairs of %s: %d sub-sequence(s) of %d frame(s) of capture %s, HQ %d Gaussians a frame, "
-             "LQ %s a frame (range %s, %s), held out %s", actor, len(windows), len(windows[0]), cap.name,
-             q.face_hq_gaussians_per_frame, lq_counts, list(lq_range), lq_range_source, ", ".join(held) or "none")
-    futures = train_segment_task.map(
-        unmapped(store), unmapped(cap_ref), unmapped(calib_ref), unmapped(points_ref),
-        [[windows[i][0], windows[i][-1] + 1] for i, _ in jobs],
-        [q.train_config(held_out=held, max_gaussians=n * len(windows[i])) for i, n in jobs], unmapped(seed))
-    models = [f.result() for f in futures]
+             "LQ %s a frame (range %s, %s), held out %s; models %s", actor, len(windows), len(windows[0]), cap.name,
+             q.face_hq_gaussians_per_frame, lq_counts, list(lq_range), lq_range_source, ", ".join(held) or "none",
+             mode)
+    models = train_segments(store, jobs, mode, max_attempts, poll_interval_s)
     hq_models, lq_models = models[0::2], models[1::2]
 
     # camera paths around each sub-sequence's head, from its HQ model
@@ -126,4 +146,4 @@ def facerig_pairs_flow(store: str, capture: str, actor: str, quality: str | Qual
             "sequences": len(sequences)}
 
 
-__all__ = ["facerig_pairs_flow"]
+__all__ = ["face_model_jobs", "facerig_pairs_flow"]

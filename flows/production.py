@@ -6,10 +6,11 @@ It reads like the process it runs::
     ingest    each capture folder (cached: an unchanged folder is not converted again)
     calibrate static cameras once, tracking cameras per camera (none without tracking cameras)
     points    dense points for the frames of each needed segment (per frame, shared by overlaps)
-    train     every needed segment at once: runs of the `train-segment` deployment on the GPU
-              pool when a Prefect server has it, in-process task runs otherwise
+    train     every needed segment at once (flows/segment_runs.py): runs of the `train-segment`
+              deployment on the GPU pool when a Prefect server has it, in-process task runs otherwise
     render    each shot over a performance of its segments: cropped RGBA half-float EXR frames
-    enhance   only if a shot asks for it (``enhance: true``): face pairs per actor of those shots,
+    enhance   only if a shot asks for it (``enhance: true``): face pairs per actor of those shots
+              (Gaussian-splat pairs: their Face Rig models fan out as the segments do),
               their prompt embeddings, one detail enhancer trained on all their pairs, then each
               enhanced shot's frames in order (shots in parallel): ``docs/enhancer.md``
 
@@ -20,12 +21,9 @@ recomputes only what changed or never finished. After each step a journal entry
 (``volcap_core.production.journal``) records what it ran on, which is how ``volcap plan`` explains
 why a step is to run.
 
-Segment runs across machines (``docs/operations.md``): ``run_deployment`` with ``timeout=None``
-and an idempotency key made of the segment's cache key and the attempt number, so a doubled or
-retried trigger never starts the same training twice; a run that ends Crashed (its worker died;
-the zombie automation marks it) is submitted again, up to ``max_attempts``, and resumes from the
-segment's last checkpoint in the store. ``train_segment_flow`` holds one ``gpu-slots`` slot while
-it trains.
+Segments (the ``train-segment`` steps, and the Face Rig models of ``face-pairs``) fan out through
+``flows/segment_runs.py``: runs of the ``train-segment`` deployment on GPU workers, or task runs in
+this process, as ``segment_runs`` chooses once for the whole production.
 """
 
 from __future__ import annotations
@@ -36,16 +34,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from prefect import flow, get_run_logger, task, unmapped
-from prefect.cache_policies import NO_CACHE
+from prefect import flow, get_run_logger
 
 from flows.calibrate import calibrate_capture, point_cloud_for_frames
 from flows.cancellation import stop_flow_run_on_signal
 from flows.facerig_pairs import facerig_pairs_flow
 from flows.ingest import ingest_flow
+from flows.segment_runs import SegmentJob, SegmentRuns, segment_runs_mode, train_segments
+from flows.store_credentials import store_credentials_from_block
 from tasks import calibrate as calibrate_tasks
 from tasks import facerig
-from tasks.contract import cached_output, task_identity
+from tasks.contract import task_identity
 from tasks.enhance import actor_prompt, enhance_shot, face_pairs, train_enhancer_task
 from tasks.ingest import fingerprint_camera, ingest_camera, record_capture
 from tasks.production import assemble_performance, render_shot
@@ -64,57 +63,8 @@ from volcap_core.records import ArtifactRef, canonical_json
 from volcap_core.splat.train import TrainConfig
 from volcap_core.store import ArtifactStore
 
-SEGMENT_DEPLOYMENT = "train-segment-flow/train-segment"
-#: The global concurrency limit with one slot per GPU (deploy/setup-pool.sh creates it).
-GPU_SLOTS = "gpu-slots"
-#: A slot is a lease the holder renews; a dead holder's slot frees itself after this many seconds.
-GPU_SLOT_LEASE_S = 120.0
 #: Steps of the enhancer half (Face Rig pairs, the diffusion detail enhancer; docs/enhancer.md).
 ENHANCER_STEPS = ("face-pairs", "train-enhancer", "enhance-shot")
-SegmentRuns = Literal["auto", "local", "deployment"]
-
-
-# ---------------------------------------------------------------------------------------------
-# Store credentials: the environment, or a Prefect Secret block
-# ---------------------------------------------------------------------------------------------
-
-#: Names a Prefect ``Secret`` block whose value is a JSON object of environment variables for the
-#: store (``AWS_ACCESS_KEY_ID``, ``AWS_SECRET_ACCESS_KEY``, ``AWS_DEFAULT_REGION``, ``AWS_ENDPOINT_URL``).
-STORE_SECRET_ENV = "VOLCAP_STORE_SECRET"
-STORE_SECRET_KEYS = ("AWS_ACCESS_KEY_ID", "AWS_SECRET_ACCESS_KEY", "AWS_SESSION_TOKEN", "AWS_DEFAULT_REGION",
-                     "AWS_REGION", "AWS_ENDPOINT_URL", "AWS_ENDPOINT_URL_S3")
-
-
-def store_credentials_from_block() -> list[str]:
-    """Put the store credentials of the Secret block named by ``$VOLCAP_STORE_SECRET`` into this
-    process's environment (variables already set win). Returns the names set; [] without a block."""
-    name = os.environ.get(STORE_SECRET_ENV)
-    if not name:
-        return []
-    from prefect.blocks.system import Secret
-
-    try:
-        value = Secret.load(name).get()
-    except ValueError as exc:
-        raise ValueError(f"{STORE_SECRET_ENV}={name}: no such Secret block on the Prefect server ({exc})") from None
-    if isinstance(value, str):
-        import json
-
-        try:
-            value = json.loads(value)
-        except ValueError:
-            value = None
-    if not isinstance(value, dict) or not all(isinstance(v, str) for v in value.values()):
-        raise ValueError(f"Secret block {name!r} must hold a JSON object of strings, e.g. "
-                         '{"AWS_ACCESS_KEY_ID": "...", "AWS_SECRET_ACCESS_KEY": "..."}')
-    unknown = sorted(set(value) - set(STORE_SECRET_KEYS))
-    if unknown:
-        raise ValueError(f"Secret block {name!r}: unexpected keys {', '.join(unknown)} "
-                         f"(allowed: {', '.join(STORE_SECRET_KEYS)})")
-    applied = [k for k in value if k not in os.environ]
-    for k in applied:
-        os.environ[k] = value[k]
-    return applied
 
 
 # ---------------------------------------------------------------------------------------------
@@ -303,134 +253,6 @@ def plan_production(prod: Production) -> list[PlannedStep]:
 
 
 # ---------------------------------------------------------------------------------------------
-# Segment training: one GPU worker per segment, or in-process
-# ---------------------------------------------------------------------------------------------
-
-
-@dataclass(frozen=True)
-class SegmentJob:
-    """The inputs of one ``train-segment`` task run."""
-
-    capture: ArtifactRef
-    calibration: ArtifactRef
-    points: ArtifactRef
-    frames: tuple[int, int]
-    config: TrainConfig
-    seed: int = 0
-
-    def task_inputs(self) -> dict[str, Any]:
-        return {"capture": self.capture, "calibration": self.calibration, "points": self.points,
-                "frames": list(self.frames), "config": self.config, "seed": self.seed}
-
-    def deployment_parameters(self, store: str) -> dict[str, Any]:
-        return {"store": store, "capture": self.capture.model_dump(mode="json"),
-                "calibration": self.calibration.model_dump(mode="json"),
-                "points": self.points.model_dump(mode="json"), "frames": list(self.frames),
-                "config": self.config.model_dump(mode="json"), "seed": self.seed}
-
-
-def segment_runs_mode(requested: SegmentRuns) -> Literal["local", "deployment"]:
-    """``auto``: the deployment when the Prefect API this process talks to has it, else local."""
-    if requested == "local":
-        return "local"
-    from prefect.client.orchestration import get_client
-    from prefect.exceptions import ObjectNotFound
-    from prefect.settings import PREFECT_API_URL
-
-    if requested == "auto" and not PREFECT_API_URL.value():
-        return "local"
-    try:
-        with get_client(sync_client=True) as client:
-            client.read_deployment_by_name(SEGMENT_DEPLOYMENT)
-    except ObjectNotFound:
-        if requested == "deployment":
-            raise ValueError(f"segment_runs='deployment' but the Prefect server at {PREFECT_API_URL.value()} "
-                             f"has no deployment {SEGMENT_DEPLOYMENT!r}: run `env -u VOLCAP_HOME prefect deploy --all "
-                             "--prefect-file deploy/prefect.yaml` (docs/operations.md)") from None
-        return "local"
-    return "deployment"
-
-
-@task(name="segment-run", cache_policy=NO_CACHE, persist_result=False)
-def run_segment_deployment(store: str, job: SegmentJob, max_attempts: int = 3,
-                           poll_interval_s: float = 5.0) -> ArtifactRef:
-    """Train one segment as a run of the ``train-segment`` deployment; its SegmentModel ref.
-
-    Already cached: no run. Otherwise one run per attempt, idempotency key ``<cache key>/attempt-N``
-    (a rerun of this production finds the same runs instead of starting new ones). Crashed (the
-    worker died): the next attempt, which resumes from the segment's checkpoint. Failed or
-    Cancelled: an error naming the run.
-    """
-    from prefect.deployments import run_deployment
-
-    log = get_run_logger()
-    a, b = job.frames
-    key, ref = cached_output(train_segment_task, store, **job.task_inputs())
-    if ref is not None:
-        log.info("segment [%d, %d): cached", a, b)
-        return ref
-    for attempt in range(max_attempts):
-        run = run_deployment(SEGMENT_DEPLOYMENT, parameters=job.deployment_parameters(store), timeout=None,
-                             poll_interval=poll_interval_s, idempotency_key=f"{key}/attempt-{attempt}",
-                             flow_run_name=f"segment-{a:06d}-{b:06d}-attempt-{attempt}",
-                             tags=["volcap", "segment"])
-        state = run.state
-        if state is not None and state.is_completed():
-            break
-        if state is not None and state.is_crashed():
-            log.warning("segment [%d, %d): run %s crashed (%s); submitting attempt %d of %d", a, b, run.name,
-                        state.message, attempt + 2, max_attempts)
-            continue
-        raise RuntimeError(f"segment [{a}, {b}): run {run.name} ({run.id}) ended "
-                           f"{state.name if state else 'without a state'}: {state.message if state else ''}")
-    else:
-        raise RuntimeError(f"segment [{a}, {b}): {max_attempts} runs crashed; see the train-segment runs "
-                           f"with idempotency keys {key}/attempt-*")
-    _, ref = cached_output(train_segment_task, store, **job.task_inputs())
-    if ref is None:
-        raise RuntimeError(f"segment [{a}, {b}): run {run.name} completed but its result is not in store "
-                           f"{store} under key {key}: do the workers use this store URL, and the same volcap "
-                           f"release and libraries as this coordinator ({task_identity(train_segment_task)})? "
-                           "(docs/tasks.md, 'What is not in a key')")
-    return ref
-
-
-@flow(persist_result=False)
-def train_segment_flow(store: str, capture: dict, calibration: dict, points: dict, frames: list[int],
-                       config: dict, seed: int = 0) -> str:
-    """One segment on one GPU worker: hold a ``gpu-slots`` slot and run the ``train-segment`` task
-    (which resumes from the segment's last checkpoint in the store). Returns the SegmentModel digest."""
-    from prefect.concurrency.sync import concurrency
-
-    stop_flow_run_on_signal()  # a cancel (the UI's, or its production's) ends the training within seconds
-    store_credentials_from_block()
-    job = SegmentJob(capture=ArtifactRef.model_validate(capture), calibration=ArtifactRef.model_validate(calibration),
-                     points=ArtifactRef.model_validate(points), frames=(frames[0], frames[1]),
-                     config=TrainConfig.model_validate(config), seed=seed)
-    _, ref = cached_output(train_segment_task, store, **job.task_inputs())
-    if ref is None:
-        with concurrency(GPU_SLOTS, occupy=1, strict=True, lease_duration=GPU_SLOT_LEASE_S):
-            ref = train_segment_task(store, **job.task_inputs())
-    return ref.digest
-
-
-def train_segments(store: str, jobs: list[SegmentJob], mode: Literal["local", "deployment"],
-                   max_attempts: int, poll_interval_s: float) -> list[ArtifactRef]:
-    """Every segment at once; SegmentModel refs in the order of ``jobs``."""
-    if not jobs:
-        return []
-    if mode == "deployment":
-        futures = run_segment_deployment.map(unmapped(store), jobs, unmapped(max_attempts),
-                                             unmapped(poll_interval_s))
-    else:
-        futures = train_segment_task.map(unmapped(store), [j.capture for j in jobs],
-                                         [j.calibration for j in jobs], [j.points for j in jobs],
-                                         [list(j.frames) for j in jobs], [j.config for j in jobs],
-                                         [j.seed for j in jobs])
-    return [f.result() for f in futures]
-
-
-# ---------------------------------------------------------------------------------------------
 # Step kinds: what each runs, what its fingerprint reads, how it runs
 # ---------------------------------------------------------------------------------------------
 
@@ -571,7 +393,8 @@ def run_face_pairs(run: ProductionRun, steps: list[Step]) -> None:
     FacePairSet. The splat pairs' face capture is calibrated as the step says (the spec's
     ``face_calibration``: a Calibration ref, or ``ground-truth``; unset: the calibrate flow's
     tasks), and their LQ range is measured in the step's ``train-segment`` inputs (``lq-range``,
-    recorded ``measured`` with the measurement's digest; none: the preset's, recorded ``preset``)."""
+    recorded ``measured`` with the measurement's digest; none: the preset's, recorded ``preset``).
+    Its Face Rig models train as this run's segments do (its ``segment_runs`` mode)."""
     [step] = steps
     p = step.parameters
     if p.method == "splat":
@@ -590,7 +413,8 @@ def run_face_pairs(run: ProductionRun, steps: list[Step]) -> None:
             kw.update(lq_range=(measured["low"], measured["high"]), lq_range_source="measured",
                       lq_measurement=measurement.digest)
         out = facerig_pairs_flow(store=run.prod.store, capture=run.capture(p.face_capture).digest, actor=p.actor,
-                                 quality=run.quality, **kw)
+                                 quality=run.quality, segment_runs=run.mode, max_attempts=run.max_attempts,
+                                 poll_interval_s=run.poll_interval_s, **kw)
         run.finish(step, {"pairs": out["dataset"]})
         return
     pairs = face_pairs(run.prod.store, run.capture(p.face_capture), p.actor, p.subsequences, p.subsequence_frames,
@@ -785,6 +609,5 @@ def _check_rig(prod: Production, capture: str, record: Capture, log) -> None:
                     capture, name, rig.name, record.rig.name, record.rig.name)
 
 
-__all__ = ["PHASES", "STEP_KINDS", "PlannedStep", "Production", "ProductionRun", "SegmentJob", "StepKindRun",
-           "open_production", "plan_production", "production_flow", "run_segment_deployment", "segment_runs_mode",
-           "step_fingerprint", "step_versions", "train_segment_flow", "train_segments"]
+__all__ = ["PHASES", "STEP_KINDS", "PlannedStep", "Production", "ProductionRun", "StepKindRun", "open_production",
+           "plan_production", "production_flow", "step_fingerprint", "step_versions"]

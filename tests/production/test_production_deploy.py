@@ -786,7 +786,7 @@ def test_segment_runs_match_the_train_segment_deployment(flows_of_entrypoints):
     from prefect.utilities.callables import parameter_schema
     from prefect.utilities.schema_tools import validate
 
-    from flows.production import SEGMENT_DEPLOYMENT, SegmentJob
+    from flows.segment_runs import SEGMENT_DEPLOYMENT, SegmentJob
     from volcap_core.records import ArtifactRef
     from volcap_core.splat.train import TrainConfig
 
@@ -987,7 +987,7 @@ def test_setup_pool_makes_what_it_says(studio):
 def test_prefect_deploy_registers_deployments_that_enforce_their_schemas(process_pools):
     from tests.prefect_cluster import BIN
 
-    from flows.production import SEGMENT_DEPLOYMENT, SegmentJob
+    from flows.segment_runs import SEGMENT_DEPLOYMENT, SegmentJob
     from volcap_core.records import ArtifactRef
     from volcap_core.splat.train import TrainConfig
 
