@@ -10,11 +10,12 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from prefect import flow, get_run_logger, unmapped
+from prefect import flow, get_run_logger
 
 from flows.calibrate import (calibrate_capture, known_points_spec, point_cloud_for_frames, static_calibration_options,
                              tracking_calibration_options)
-from tasks.reconstruct import ground_truth_calibration, ground_truth_points, train_segment_task
+from flows.segment_runs import SegmentJob, train_segments
+from tasks.reconstruct import ground_truth_calibration, ground_truth_points
 from volcap_core import reconstruction
 from volcap_core.calibration.record import Calibration
 from volcap_core.capture import Capture
@@ -138,10 +139,11 @@ def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = 
     configs = segment_configs(plan, preset, degrees=degrees, held_out=held, steps=steps, max_gaussians=max_gaussians)
     log.info("capture %s: %d segment(s) of frames %d:%d (%d shared by neighbours), preset %s, held out %s",
              cap.name, len(plan.segments), a, b, plan.overlap, preset, ", ".join(held) or "none")
-    futures = train_segment_task.map(unmapped(store), unmapped(capture_ref), unmapped(calib_ref),
-                                     unmapped(points_ref), [list(seg.frames) for seg in plan.segments],
-                                     configs, unmapped(seed))
-    models = [f.result() for f in futures]
+    jobs = [SegmentJob(capture=capture_ref, calibration=calib_ref, points=points_ref, frames=seg.frames,
+                       config=config, seed=seed)
+            for seg, config in zip(plan.segments, configs)]
+    # in this process, through the one segment fan-out a production uses (flows/segment_runs.py)
+    models = train_segments(store, jobs, "local", max_attempts=1, poll_interval_s=0.0)
     report = [{**segment_summary(s.get_record(ref, reconstruction.SegmentModel), ref), "core": list(seg.core)}
               for seg, ref in zip(plan.segments, models)]
     return {"capture": capture_ref.model_dump(mode="json"), "calibration": calib_ref.model_dump(mode="json"),

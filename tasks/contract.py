@@ -279,7 +279,7 @@ def library_version(module: str) -> str:
     """The public release of the distribution that provides ``module`` (``torch`` -> ``2.13.0``).
 
     The local label (``+cpu``, ``+cu128``) is dropped: a CPU coordinator and a CUDA worker of the
-    same release must compute the same key for a segment (``flows/production.py`` collects a
+    same release must compute the same key for a segment (``flows/segment_runs.py`` collects a
     worker's result by its key), and the label names a build, not a change of the code.
     """
     dists = _module_distributions().get(module, [])
