@@ -40,6 +40,7 @@ __all__ = [
     "srgb_decode",
     "srgb_decode_unbounded",
     "srgb_encode",
+    "srgb_encode_and_slope",
     "srgb_encode_unbounded",
     "bt709_oetf",
     "bt709_oetf_inverse",
@@ -134,6 +135,27 @@ def srgb_encode(linear: T) -> T:
     """
     t, dtype, is_numpy = _as_float_tensor(linear)
     return _back(_encode(t.clamp(0.0, 1.0)), dtype, is_numpy)
+
+
+def srgb_encode_and_slope(linear: "torch.Tensor") -> tuple["torch.Tensor", "torch.Tensor"]:
+    """:func:`srgb_encode` and its derivative in one pass, for fits that need both (a Gauss-Newton
+    step costs one evaluation of the curve instead of autograd's forward and backward).
+
+    Args:
+        linear: linear values ``[...]``, a floating torch tensor.
+    Returns:
+        ``(encoded [...], slope [...])``: the clamped encoding, and ``d encoded / d linear``, which is
+        0 outside ``(0, 1)`` (where the clamp holds the encoding still), 12.92 on the linear segment.
+    """
+    import torch
+
+    x = linear.clamp(0.0, 1.0)
+    xp = x.clamp(min=SRGB_ENCODE_BREAK)
+    p = xp.pow(1.0 / _GAMMA)
+    low = x <= SRGB_ENCODE_BREAK
+    encoded = torch.where(low, _SLOPE * x, (1.0 + _A) * p - _A)
+    slope = torch.where(low, torch.full_like(x, _SLOPE), (1.0 + _A) / _GAMMA * p / xp)
+    return encoded, slope * ((linear > 0.0) & (linear < 1.0))
 
 
 def srgb_decode(encoded: T) -> T:

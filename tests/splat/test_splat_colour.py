@@ -83,3 +83,22 @@ def test_numpy_in_numpy_out_and_dtypes():
     assert srgb_decode(h).dtype == torch.float16
     with pytest.raises(TypeError):
         srgb_decode(np.arange(3, dtype=np.uint8))
+
+
+def test_the_srgb_slope_is_the_derivative_of_the_clamped_encoding():
+    """``srgb_encode_and_slope`` feeds the scoring fit's Gauss-Newton steps: a wrong slope would
+    stop the fit short of the best gain and offset, and every held-out figure with it."""
+    import torch
+
+    from volcap_core.colour import srgb_encode, srgb_encode_and_slope
+
+    x = torch.cat([torch.linspace(-0.5, 1.5, 2001, dtype=torch.float64),
+                   torch.tensor([0.001, 0.0031308 * 0.5, 0.5, 0.999], dtype=torch.float64)])
+    x = x[(x - 0.0031308).abs() > 1e-6]            # the curve has a kink at the break: no derivative there
+    x = x[((x - 0.0).abs() > 1e-6) & ((x - 1.0).abs() > 1e-6)]
+    enc, slope = srgb_encode_and_slope(x)
+    assert torch.equal(enc, srgb_encode(x))
+    xg = x.clone().requires_grad_(True)
+    srgb_encode(xg).sum().backward()
+    assert torch.allclose(slope, xg.grad, rtol=1e-9, atol=1e-12)
+    assert (slope[(x < 0) | (x > 1)] == 0).all()   # the clamp holds the encoding still there
