@@ -14,7 +14,9 @@ A GPU machine has no Prefect, pycolmap or OpenCV and no artifact store, so the w
    :func:`~volcap_core.reconstruction.default_held_out`), and the quality preset: the demo preset
    with the production preset's Gaussians a frame, memory and MCMC schedule, stretched to
    ``--steps`` (:meth:`~volcap_core.production.presets.QualityPreset.with_steps`); the budget is its
-   plan's (:meth:`~volcap_core.production.presets.QualityPreset.plan_segments`).
+   plan's (:meth:`~volcap_core.production.presets.QualityPreset.plan_segments`;
+   ``--gaussians-per-frame`` replaces the production preset's Gaussians a frame: a CPU smoke
+   test's tiny model).
 2. ``--run DIR --out OUT --device cuda --budget-s 250`` (on the GPU machine): the segment trained by
    :func:`volcap_core.splat.train.train_segment` (the back-end its ``TrainConfig`` picks: gsplat on
    CUDA), its checkpoints (every ``steps / --evals`` steps and after the last) scored per camera
@@ -78,23 +80,26 @@ def _points_of(s, calibration) -> str:
     return found[0]
 
 
-def demo_quality(steps: int):
+def demo_quality(steps: int, gaussians_per_frame: int | None = None):
     """The demo preset with the production preset's budget (Gaussians a frame, GPU memory) and MCMC
     schedule, stretched to ``steps``: the demo's cameras, held-out cameras and initialisation, at
-    the size and schedule a production trains."""
+    the size and schedule a production trains. ``gaussians_per_frame`` replaces the production
+    preset's (a CPU smoke test's tiny model; None: the production's)."""
     from volcap_core.production.presets import named_preset
 
     demo, prod = named_preset("demo"), named_preset("production")
     return demo.with_overrides(
         train_steps=prod.train_steps, refine_start=prod.refine_start, refine_every=prod.refine_every,
         refine_stop=prod.refine_stop, eval_every=prod.eval_every, checkpoint_every=prod.checkpoint_every,
-        gaussians_per_frame=prod.gaussians_per_frame, max_gaussians_per_segment=None,
+        gaussians_per_frame=gaussians_per_frame or prod.gaussians_per_frame, max_gaussians_per_segment=None,
         gpu_memory_gb=prod.gpu_memory_gb).with_steps(steps)
 
 
 def prepare(dst: Path, store_url: str, steps: int, *, capture: str | None = None, calibration: str | None = None,
-            points: str | None = None, frames: tuple[int, int] = (0, 8), seed: int = 0) -> None:
-    """Part 1 (module doc)."""
+            points: str | None = None, frames: tuple[int, int] = (0, 8), seed: int = 0,
+            gaussians_per_frame: int | None = None) -> None:
+    """Part 1 (module doc). ``gaussians_per_frame``: :func:`demo_quality`'s (None: the production
+    preset's)."""
     from safetensors.numpy import save as st_save
 
     from volcap_core import reconstruction
@@ -129,7 +134,7 @@ def prepare(dst: Path, store_url: str, steps: int, *, capture: str | None = None
     a, b = cap.take_range(frames)
     width = max(c.width for c in cap.cameras)
     height = max(c.height for c in cap.cameras)
-    quality = demo_quality(steps)
+    quality = demo_quality(steps, gaussians_per_frame)
     [planned] = quality.with_overrides(max_segment_frames=None).plan_segments((a, b), width, height).segments[:1]
     held = reconstruction.default_held_out(cap, calibration=calib, tracking=quality.held_out_tracking)
     config = quality.train_config(held_out=held, max_gaussians=planned.gaussians)
@@ -550,6 +555,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--frames", nargs=2, type=int, default=(0, 8), metavar=("A", "B"), help="take frames [A, B)")
     ap.add_argument("--steps", type=int, default=None,
                     help="training steps: the schedule stretched to them (--prepare: default 3000; --run: the prepared)")
+    ap.add_argument("--gaussians-per-frame", type=int, default=None,
+                    help="--prepare: the budget a frame (default: the production preset's; small for a CPU smoke test)")
     ap.add_argument("--out", type=Path, help="where --run writes curve.json and sheet.npz")
     ap.add_argument("--device", default="cuda")
     ap.add_argument("--backend", default="auto", help="the rasterizer (auto: gsplat on CUDA)")
@@ -559,7 +566,7 @@ def main(argv: list[str] | None = None) -> None:
     args = ap.parse_args(argv)
     if args.prepare:
         prepare(args.prepare, args.store, args.steps or 3000, capture=args.capture, calibration=args.calibration,
-                points=args.points, frames=tuple(args.frames))
+                points=args.points, frames=tuple(args.frames), gaussians_per_frame=args.gaussians_per_frame)
     elif args.run:
         if args.out is None:
             ap.error("--run needs --out")

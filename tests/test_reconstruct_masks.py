@@ -76,8 +76,9 @@ def test_reconstruct_scores_performers_on_imported_masks(prefect_api, tmp_path):
     root = _imported_masks_capture(tmp_path / "cap", cams, 2)
     store = ArtifactStore(str(tmp_path / "store")).url
     capture = run_flow(ingest_flow, store=store, capture_dir=str(root)).result.digest
+    # 4 000 Gaussians: the figures are checked for being there, not for their level
     out = run_flow(reconstruct_flow, store=store, capture=capture, preset="test", points_per_frame=2000,
-                   held_out=["S002"], ground_truth=True, max_gaussians=1_000_000).result
+                   held_out=["S002"], ground_truth=True, max_gaussians=4000).result
     scores = out["segments"][0]["scores"]
     for model in ("trained", "initial", "empty"):
         assert scores["held_out"][model]["psnr_performers"] is not None, model

@@ -16,13 +16,15 @@ CAMERAS = ["S000", "S001", "S002", "S003", "S004", "S005", "S008", "S009"]
 
 @pytest.mark.slow
 def test_reconstruct_reports_face_and_performer_regions_per_role(prefect_api, tmp_path):
-    """~60 s on 2 cores: a 2-frame capture, the test preset."""
+    """A 2-frame capture, the test preset (~45 s of CPU on 2 cores)."""
     root = synthesize_capture(tmp_path / "cap", rig="demo_scene", seed=3, frames=2, cameras=CAMERAS,
                               supersample=1, write_depth=True).parent
     store = ArtifactStore(str(tmp_path / "store")).url
     capture = run_flow(ingest_flow, store=store, capture_dir=str(root)).result.digest
+    # 4 000 Gaussians: the figures are checked for being there, not for their level (every point
+    # kept, ~100 000 Gaussians, the scan's, cost most of the file's time)
     out = run_flow(reconstruct_flow, store=store, capture=capture, preset="test", points_per_frame=2000,
-                   held_out=["S002", "S009"], ground_truth=True, max_gaussians=1_000_000).result
+                   held_out=["S002", "S009"], ground_truth=True, max_gaussians=4000).result
     seg = out["segments"][0]
     regions = seg["scores"]["regions"]
     # the figures that were there stay, beside the new key
