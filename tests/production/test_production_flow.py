@@ -38,7 +38,11 @@ def _shot(**kw):
 
 def _write_spec(path, capture, store, train_steps=20, shots=None):
     spec = {"format": "volcap-production/1", "name": "flow-test", "store": store,
-            "quality": {"preset": "test", "max_segment_frames": 3, "overlap": 1, "train_steps": train_steps},
+            # at a quarter of the resolution, SH degree 0, as the other production tests: what this
+            # test checks (the plan, the steps run, their outputs, the cache) does not depend on it,
+            # and the segments train and are scored on a sixteenth of the pixels
+            "quality": {"preset": "test", "max_segment_frames": 3, "overlap": 1, "train_steps": train_steps,
+                        "train_scale": 0.25, "sh_degree": 0},
             "captures": {"demo": {"folder": str(capture)},
                          "unused": {"folder": str(path.parent / "no-such-folder")}},
             "shots": shots or [_shot()]}
