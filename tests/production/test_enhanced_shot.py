@@ -1,8 +1,9 @@
 """Enhanced shots in the production flow: face pairs, actor prompts, the enhancer, enhanced frames.
 
-The end-to-end test runs a tiny spec in one process: one capture of the demo rig's static cameras
-(four frames) that also stands for the actor's Face Rig capture (so its ingest and calibration are
-shared), two shots over it, one with ``enhance: true``; the tiny enhancer of the ``test`` preset.
+The end-to-end test runs a tiny spec in one process: one capture of six of the demo rig's static
+cameras (four frames; the static solve grows with the cameras) that also stands for the actor's
+Face Rig capture (so its ingest and calibration are shared), two shots over it, one with
+``enhance: true``; the tiny enhancer of the ``test`` preset.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from volcap_core.enhance.production import (EnhanceSettings, EnhancerModel, Face
 from volcap_core.store import ArtifactStore
 from volcap_core.synth import synthesize_capture
 
-STATIC = [f"S00{i}" for i in range(8)]
+STATIC = [f"S00{i}" for i in range(6)]
 
 
 def _exr(data: bytes) -> tuple[dict, np.ndarray]:
