@@ -135,11 +135,16 @@ def submissions(log: Path) -> list[str]:
     return re.findall(r"[Ss]ubmitting flow run '([0-9a-f-]{36})'", text)
 
 
-def set_up_studio(cluster: Cluster, gpus: int, zombie_within_s: float | None = None) -> None:
+def set_up_studio(cluster: Cluster, gpus: int, zombie_within_s: float | None = None,
+                  heartbeat_s: int | None = None) -> None:
     """Server, pools and ``gpu-slots`` (deploy/setup-pool.sh), the deployments (deploy/prefect.yaml),
-    and the zombie automation (its window shortened to ``zombie_within_s`` when given)."""
+    and the zombie automation (its window shortened to ``zombie_within_s`` when given). With
+    ``heartbeat_s`` the deployments' flow runs send heartbeats that often instead of every 60 s
+    (deployed from a copy of deploy/prefect.yaml; Prefect refuses fewer than 30 s), so a shorter
+    zombie window still spans more than one heartbeat."""
     cluster.start_server()
-    cluster.run(["bash", "deploy/setup-pool.sh", "--gpus", str(gpus)])
+    # (seven `prefect` commands, seconds each on a quiet machine, over 2 minutes at a load of 25)
+    cluster.run(["bash", "deploy/setup-pool.sh", "--gpus", str(gpus)], timeout=600)
     if zombie_within_s is not None:
         automation = yaml.safe_load((REPO / "deploy/automations/crash-zombie-flows.yaml").read_text())
         automation["trigger"]["within"] = zombie_within_s
@@ -148,7 +153,14 @@ def set_up_studio(cluster: Cluster, gpus: int, zombie_within_s: float | None = N
         short.write_text(yaml.safe_dump({**automation, "name": "volcap test: crash zombie flow runs"}))
         cluster.run([str(BIN / "prefect"), "automation", "delete", "volcap: crash zombie flow runs"], check=False)
         cluster.run([str(BIN / "prefect"), "automation", "create", "--from-file", str(short)])
-    cluster.run([str(BIN / "prefect"), "--no-prompt", "deploy", "--all", "--prefect-file", "deploy/prefect.yaml"])
+    prefect_file = "deploy/prefect.yaml"
+    if heartbeat_s is not None:
+        doc = yaml.safe_load((REPO / prefect_file).read_text())
+        for deployment in doc["deployments"]:
+            deployment["work_pool"]["job_variables"]["env"]["PREFECT_FLOWS_HEARTBEAT_FREQUENCY"] = str(heartbeat_s)
+        prefect_file = str(cluster.tmp / "prefect.yaml")
+        Path(prefect_file).write_text(yaml.safe_dump(doc, sort_keys=False))
+    cluster.run([str(BIN / "prefect"), "--no-prompt", "deploy", "--all", "--prefect-file", prefect_file], timeout=600)
 
 
 def start_gpu_workers(cluster: Cluster, names: list[str]) -> None:

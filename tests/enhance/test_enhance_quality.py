@@ -73,13 +73,13 @@ def test_a_briefly_trained_enhancer_beats_the_lq_input_on_a_held_out_camera(tmp_
 
 #: training budget of the test (small, so the suite stays within its time) and the bench's sampling
 #: (8 Euler steps, the last 40 % from the noised LQ, 64-px latent tiles: the training crop).
-#: MEASURED (2026-11-24, EnhancerConfig.small() 256 wide, 101 s on 2 cores shared with a benchmark):
-#: held-out F002 PSNR LQ 20.87 dB, trained 22.16 dB, untrained 7.62 dB. Sampled from pure noise over
-#: the whole frame, the 128-wide small() trained 600 + 400 steps gave 19.03 dB (below the LQ), the
-#: 256-wide one trained 150 + 100 steps 21.06 dB. The gain over
-#: the LQ is asserted at half its measured 1.29 dB; the lift over the floor and the floor's depth
-#: under the LQ at 3 dB (measured 14.6 and 13.3).
-SETTINGS = {"vae_steps": 600, "steps": 400}
+#: MEASURED (2026-11-27, EnhancerConfig.small() 256 wide, 200 VAE + 120 transformer steps):
+#: held-out F002 PSNR LQ 20.87 dB, trained 22.20 dB, untrained 7.62 dB; the other budgets and widths
+#: measured: docs/benchmarks.md "Detail enhancer". (Sampled from pure noise over the whole frame, the
+#: 256-wide model trained 150 + 100 steps gave 21.06 dB, the 128-wide 600 + 400 steps 19.03.) The gain
+#: over the LQ is asserted at 0.6 dB (half the 1.29 dB measured at the earlier 600 + 400 steps); the
+#: lift over the floor and the floor's depth under the LQ at 3 dB (measured 14.6 and 13.3).
+SETTINGS = {"vae_steps": 200, "steps": 120}
 SAMPLING = {"steps": 8, "seed": 0, "tile": 64, "overlap": 32, "strength": 0.4}
 GAIN_DB = 0.6
 MARGIN_DB = 3.0
