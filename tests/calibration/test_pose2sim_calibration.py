@@ -1,8 +1,9 @@
 """Pose2Sim SinglePerson through the static calibration (issue 31; skipped without ../shared).
 
-Four real portrait cameras filming a person on a treadmill, no lidar. The rig is the imported
-Qualisys calibration (``calibration_from_qualisys``, fitted to the 1080-wide re-encodes of cam01 and
-cam02): each camera's lens the imported one, its mount the imported pose. Only cam01-cam02 share a
+Four real portrait cameras filming a person on a treadmill, no lidar. The rig is written from the
+imported Qualisys calibration (``calibration_from_qualisys``, fitted to the 1080-wide re-encodes of
+cam01 and cam02; ``rig_from_calibration``): each camera's lens the imported one, its mount the
+imported pose. Only cam01-cam02 share a
 view (docs/benchmarks.md, "Real footage: Pose2Sim SinglePerson"), so every track is a two-view track.
 
 - by default the calibration refuses cam03 and cam04, naming why and the flag to try;
@@ -26,8 +27,9 @@ import numpy as np
 import pytest
 
 from volcap_core.calibration.errors import CalibrationInputError
-from volcap_core.calibration.geometry import camera_centre, look_at_rotation, rotation_angle_deg
+from volcap_core.calibration.geometry import rotation_angle_deg
 from volcap_core.calibration.importers import calibration_from_qualisys
+from volcap_core.calibration.rig_from_calibration import rig_from_calibration
 from volcap_core.calibration.static import StaticCalibrationOptions, nominal_pose
 from volcap_core.calibration.static_step import calibrate_static_step
 from volcap_core.capture import CaptureFolder
@@ -40,29 +42,10 @@ FRAMES = 3
 START = "01:00:00:48"
 
 
-def _mount_roll(R: np.ndarray, position: np.ndarray, target: np.ndarray) -> float:
-    """The mount roll (degrees) that gives the look-at rotation ``R``."""
-    Rr = R @ look_at_rotation(position, target, 0.0).T
-    a = float(np.degrees(np.arctan2(Rr[1, 0], Rr[0, 0])))
-    return min((a, -a), key=lambda r: rotation_angle_deg(look_at_rotation(position, target, r), R))
-
-
 def _rig(imported) -> dict:
-    cams = []
-    for c in imported.cameras:
-        W = np.asarray(c.world_to_camera)
-        C = camera_centre(W)
-        target = C + W[2, :3]
-        fx, fy, cx, cy = c.intrinsics
-        cams.append({"id": c.id, "role": "static", "lens": {"focal_min_mm": 5.0, "focal_max_mm": 50.0},
-                     "sensor": {"width_mm": 10.0, "height_mm": 10.0 * c.height / c.width, "width_px": c.width,
-                                "height_px": c.height},
-                     "mount": {"kind": "tripod", "position_m": C.tolist(), "look_at_m": target.tolist(),
-                               "roll_deg": _mount_roll(W[:3, :3], C, target)},
-                     "nominal_focal_mm": fx * 10.0 / c.width,
-                     "intrinsics": {"fx": fx, "fy": fy, "cx": cx, "cy": cy, "opencv": list(c.distortion)}})
-    return {"name": "pose2sim", "kind": "scene", "fps": 60, "stage_size_m": [4.0, 4.0, 2.5], "cameras": cams,
-            "lighting": {"description": "lab"}}
+    """The capture's rig: written from the imported calibration (``rig_from_calibration``, what
+    `volcap import-calibration --write-rig` writes), on the 4 x 4 x 2.5 m stage of the treadmill."""
+    return rig_from_calibration(imported, stage_size_m=(4.0, 4.0, 2.5)).model_dump(mode="json")
 
 
 @pytest.fixture(scope="module")

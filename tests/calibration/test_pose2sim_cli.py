@@ -5,9 +5,10 @@ Qualisys file, `volcap calibrate --allow-unregistered --no-points --against impo
 
 The capture folder is what a user writes: capture.json naming the four MP4s, and rig.json with each
 camera's lens calibration (the imported intrinsics at its video's size, held) and its surveyed
-pose as its mount (``_rig`` of test_pose2sim_calibration, the one writer). One take frame, the
-videos' frame 49 (the reference frame of the documented 3-frame run), at full size: at half
-size SIFT finds no verified pair (docs/benchmarks.md). Checks what the user relies on: the
+pose as its mount (``_rig`` of test_pose2sim_calibration: ``rig_from_calibration``, what
+`volcap import-calibration --write-rig` writes). One take frame, the videos' frame 49 (the
+reference frame of the documented 3-frame run), at full size: at half size SIFT finds no verified
+pair (docs/benchmarks.md). Checks what the user relies on: the
 cameras registered and the ones left out with why, each registered camera's rotation error against
 the studio's calibration within twice its stated sigma and the sigma under the 1° bound, the lens
 calibration's focal held within 0.5 % (no evidence against it), the step that did not run said.
