@@ -32,7 +32,7 @@ under the loose 3 % prior, as before calibrate-static 13. Prints a table and, wi
 
 The static step is seeded by the mounts (here the very poses it is measured against) and held by
 them at 3 cm; the plain SfM knows nothing of them. The relative rotation is the fair figure.
-~2 min a frame on 2 busy cores (SIFT of 1080x1920 frames, twice).
+~3-4 min a frame on 2 busy cores (SIFT of 1080x1920 frames, three times).
 """
 
 from __future__ import annotations
