@@ -516,6 +516,8 @@ def import_calibration_cmd(source: Annotated[str, typer.Argument(help="Qualisys 
                            refine: Annotated[bool, typer.Option("--refine", help="refine the poses against the stored capture's footage (bundle adjustment; the file's world frame and lenses kept)")] = False,
                            refine_intrinsics: Annotated[bool, typer.Option("--refine-intrinsics", help="with --refine: focal lengths and principal points too, around the file's")] = False,
                            refine_instants: Annotated[int, typer.Option("--refine-instants", min=1, help="with --refine: instants of the take pooled (the middle frame first)")] = 1,
+                           frame_size: Annotated[Optional[list[str]], typer.Option("--frame-size", metavar="ID=WxH", help="a camera's frame size when no stored capture gives it (its videos re-encoded or resampled since the calibration); repeat per camera")] = None,
+                           write_rig: Annotated[Optional[Path], typer.Option("--write-rig", help="also write a rig JSON for the capture folder: each camera's lens calibration as its measured intrinsics, its pose as its mount, at its frames' size")] = None,
                            store: StoreOpt = DEFAULT_STORE, json_out: JsonOpt = False) -> None:
     """Store a studio's calibration as a Calibration record, named imported-calibrations/NAME, and
     print its ref (a Calibration ref, as `export-colmap` takes). A camera of a stored capture
@@ -525,7 +527,9 @@ def import_calibration_cmd(source: Annotated[str, typer.Argument(help="Qualisys 
     footage), applied to the capture's frames the same way. `--refine`: the poses (and with
     `--refine-intrinsics` the focal lengths and principal points) refined against the capture's
     frames; each camera's move and σ printed, a camera that shares nothing with the others kept
-    as imported (docs/calibration.md, "Refining an imported calibration")."""
+    as imported (docs/calibration.md, "Refining an imported calibration"). `--write-rig PATH`: a rig
+    for the capture folder written from the (refined) calibration, so a studio that trusts its
+    calibration ingests without typing one (docs/calibration.md, "A rig from an imported calibration")."""
     from volcap_core.calibration import importers
     from volcap_core.calibration.record import Calibration
     from volcap_core.capture import Capture
@@ -551,6 +555,15 @@ def import_calibration_cmd(source: Annotated[str, typer.Argument(help="Qualisys 
     if frames is None or fps is None:
         raise CommandError(f"no capture captures/{capture} in the store: give --frames and --fps")
     sizes = {c.id: (c.width, c.height) for c in cap.cameras} if cap else {}   # the ingested frames'
+    for item in frame_size or ():
+        cid, _, wh = item.partition("=")
+        w, _, h = wh.lower().partition("x")
+        if not cid or not w.isdigit() or not h.isdigit() or int(w) < 1 or int(h) < 1:
+            raise CommandError(f"--frame-size {item!r}: expected ID=WxH, e.g. cam01=1080x1920")
+        if cid in sizes and sizes[cid] != (int(w), int(h)):
+            raise CommandError(f"--frame-size {item}: stored capture {capture}'s camera {cid} has "
+                               f"{sizes[cid][0]}x{sizes[cid][1]} frames")
+        sizes[cid] = (int(w), int(h))
     kw = dict(capture=capture, frame_count=frames, fps=fps)
     if fmt == "colmap":
         read = lambda fs: importers.calibration_from_colmap(source, metres_per_unit=metres_per_unit, frame_sizes=fs, **kw)  # noqa: E731
@@ -572,6 +585,10 @@ def import_calibration_cmd(source: Annotated[str, typer.Argument(help="Qualisys 
     if refine and cap is None:
         raise CommandError(f"--refine: no capture captures/{capture} in the store to refine against (ingest it first)")
     ids = {c.id for c in read(None).cameras}
+    unknown = sorted(c for c in (item.partition("=")[0] for item in frame_size or ()) if c not in ids)
+    if unknown:
+        raise CommandError(f"--frame-size: {', '.join(unknown)} not in the calibration {source} "
+                           f"(its cameras: {', '.join(sorted(ids))})")
     record = read({c: wh for c, wh in sizes.items() if c in ids})
     refined = None
     if refine:
@@ -584,9 +601,22 @@ def import_calibration_cmd(source: Annotated[str, typer.Argument(help="Qualisys 
         instants = instant_frames(cap.frame_count, cap.frame_count // 2, StaticCalibrationOptions(instants=refine_instants))
         record, refined = refine_imported(record, [{c: load(c, k) for c in shared} for k in instants],
                                           RefineOptions(intrinsics=refine_intrinsics))
+    rig_doc = None
+    if write_rig is not None:
+        from volcap_core.calibration.rig_from_calibration import rig_from_calibration
+
+        try:
+            rig_doc = rig_from_calibration(record).model_dump(mode="json")
+        except ValueError as exc:
+            raise CommandError(f"--write-rig {write_rig}: {str(exc).splitlines()[0]}") from None
     ref = s.put_record(record)
     s.set_ref(f"imported-calibrations/{capture}", ref)
+    if rig_doc is not None:
+        _write_atomic(write_rig, (json.dumps(rig_doc, indent=2) + "\n").encode())
     lines = [f"calibration imported-calibrations/{capture}: {ref.digest}"]
+    if rig_doc is not None:
+        lines.append(f"rig {write_rig}: {len(rig_doc['cameras'])} static cameras, lens calibrations as measured "
+                     f"intrinsics, poses as mounts")
     for c in record.cameras:
         if c.intrinsics is None:
             lines.append(f"  {c.id}: {c.width}x{c.height}, tracking camera (intrinsics per frame)")
@@ -613,7 +643,8 @@ def import_calibration_cmd(source: Annotated[str, typer.Argument(help="Qualisys 
         lines.append(f"  capture cameras without a calibration: {', '.join(missing)}")
     _emit({"calibration": ref.model_dump(mode="json"), "name": f"imported-calibrations/{capture}",
            "cameras": sorted(ids), "unregistered": record.unregistered, "capture_cameras_missing": missing,
-           **({"refined": refined.cameras, "kept_imported": refined.kept} if refined is not None else {})},
+           **({"refined": refined.cameras, "kept_imported": refined.kept} if refined is not None else {}),
+           **({"rig": str(write_rig)} if rig_doc is not None else {})},
           json_out, "\n".join(lines))
 
 

@@ -54,7 +54,7 @@ ERRORS_MEDIA = "application/vnd.volcap.calibration-errors+json"
 CALIBRATION_LIBRARIES = ("pycolmap", "cv2", "kornia", "torch", "numpy", "scipy")
 
 
-@volcap_task(name="calibrate-static", version="12", libraries=CALIBRATION_LIBRARIES)
+@volcap_task(name="calibrate-static", version="13", libraries=CALIBRATION_LIBRARIES)
 def calibrate_static(store: str, capture: ArtifactRef,
                      options: StaticCalibrationOptions = StaticCalibrationOptions(),
                      known_points: KnownPoints | None = None) -> ArtifactRef:

@@ -270,6 +270,8 @@ class _Problem:
     has_lens: torch.Tensor | None = None
     #: [C] each camera's principal-point prior sigma (px), when principal points are refined
     pps: torch.Tensor | None = None
+    #: [C] each camera's focal prior sigma (relative, of the log focal), when focals are refined
+    fs: torch.Tensor | None = None
 
 
 def bundle_adjust(world_to_camera: np.ndarray, focal: np.ndarray, principal: np.ndarray,
@@ -277,7 +279,7 @@ def bundle_adjust(world_to_camera: np.ndarray, focal: np.ndarray, principal: np.
                   *, scan: LidarScan | None = None, focal_prior: np.ndarray | None = None,
                   centre_prior: np.ndarray | None = None, lens_group: Sequence[str | None] | None = None,
                   lens: Sequence[Sequence[float] | None] | None = None,
-                  principal_sigma: Sequence[float] | None = None,
+                  principal_sigma: Sequence[float] | None = None, focal_sigma: Sequence[float] | None = None,
                   options: BundleOptions = BundleOptions()) -> BundleResult:
     """Refine static cameras and points.
 
@@ -294,7 +296,10 @@ def bundle_adjust(world_to_camera: np.ndarray, focal: np.ndarray, principal: np.
     None for the others; with ``options.distortion_sigma`` those cameras get radial corrections
     (module docstring), the others none. ``principal_sigma`` [C]: each camera's principal-point prior
     sigma (px) when ``options.principal_sigma_px`` refines them (default: that value for every camera;
-    e.g. tighter for cameras whose principal point a lens calibration measured).
+    e.g. tighter for cameras whose principal point a lens calibration measured). ``focal_sigma`` [C]:
+    each camera's focal prior sigma (relative) when ``options.focal_sigma_rel`` refines the focals
+    (default: that value for every camera; e.g. tighter for cameras whose focal a lens calibration
+    measured). Cameras sharing a focal (``share_group_focal``) should share its sigma.
 
     Returns the refined cameras and points, each observation's reprojection error and inlier flag,
     and each camera's standard deviations (:class:`BundleResult`).
@@ -339,9 +344,13 @@ def bundle_adjust(world_to_camera: np.ndarray, focal: np.ndarray, principal: np.
     if options.principal_sigma_px is not None:
         pps = torch.as_tensor(np.full(ncam, options.principal_sigma_px, np.float64) if principal_sigma is None
                               else np.asarray(principal_sigma, np.float64).reshape(ncam), **f64)
+    fs = None
+    if not fix_focal:
+        fs = torch.as_tensor(np.full(ncam, options.focal_sigma_rel, np.float64) if focal_sigma is None
+                             else np.asarray(focal_sigma, np.float64).reshape(ncam), **f64)
     prob = _Problem(pp0, logf0, C0, options, fix_focal, params, torch.as_tensor(params.focal_weight, **f64),
                     torch.as_tensor(params.principal_weight, **f64), torch.as_tensor(params.distortion_weight, **f64),
-                    lens_t, has_lens, pps)
+                    lens_t, has_lens, pps, fs)
 
     state = _State(R, C, logf, pp0.clone(), X, dk)
     on_lidar = torch.zeros(npt, dtype=torch.bool, device=dev)
@@ -472,7 +481,7 @@ def _cost(state, prob: _Problem, oc, op, uv, plane_n, plane_d, on_lidar):
         rl = ((plane_n * state.X).sum(1) - plane_d)[on_lidar] / o.lidar_sigma_m
         c = c + _cauchy_cost(rl ** 2)
     if not prob.fix_focal:
-        c = c + (prob.wf * ((state.logf - prob.logf0) / o.focal_sigma_rel) ** 2).sum()
+        c = c + (prob.wf * ((state.logf - prob.logf0) / prob.fs) ** 2).sum()
     c = c + (((state.C - prob.C0) / o.centre_sigma_m) ** 2).sum()
     if o.principal_sigma_px is not None:
         c = c + (prob.wpp[:, None] * ((state.pp - prob.pp0) / prob.pps[:, None]) ** 2).sum()
@@ -622,8 +631,8 @@ def _reduced_system(state, prob: _Problem, oc, op, uv, plane_n, plane_d, on_lida
     if fix_focal:
         Hcc[:, 6, 6] += 1.0
     else:
-        Hcc[:, 6, 6] += wf / o.focal_sigma_rel ** 2
-        gc[:, 6] += wf * (state.logf - prob.logf0) / o.focal_sigma_rel ** 2
+        Hcc[:, 6, 6] += wf / prob.fs ** 2
+        gc[:, 6] += wf * (state.logf - prob.logf0) / prob.fs ** 2
     idx = torch.arange(7, 9, device=z.device)
     if o.principal_sigma_px is None:
         Hcc[:, idx, idx] += 1.0

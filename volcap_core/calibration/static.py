@@ -59,6 +59,8 @@ from hardware.rig import Rig, RigCamera
 from volcap_core.calibration.bundle import BundleOptions, BundleResult, CameraSigma, bundle_adjust
 from volcap_core.calibration.distortion import Distortion, undistort_valid_mask
 from volcap_core.calibration.errors import KnownDistanceError, UnsupportedCameraError
+from volcap_core.calibration.focal_prior import (MEASURED_FOCAL_SIGMA_REL, RELEASE_CHI2, FocalDecision,
+                                                 adjust_with_held_focals)
 from volcap_core.calibration.geometry import (Similarity, camera_centre, camera_gaps, depths_in_view, look_at_rotation,
                                               pose_matrix, robust_umeyama, triangulate_points)
 from volcap_core.calibration.guided import GuidedMatchOptions, guided_tracks
@@ -98,6 +100,13 @@ class StaticCalibrationOptions:
     #: point, in place of ``guided_bundle.principal_sigma_px`` (which is for nominal cameras: a centred
     #: principal point, a sensor's ~1 px tolerance). None: ``guided_bundle``'s for every camera
     measured_principal_sigma_px: float | None = MEASURED_PRINCIPAL_SIGMA_PX
+    #: in steps 4 and 5, the focal prior (1σ, relative) of a camera whose rig carries measured
+    #: intrinsics while the footage shows no evidence against its lens calibration; released to
+    #: ``bundle.focal_sigma_rel`` / ``guided_bundle.focal_sigma_rel`` when its observations fit better
+    #: by more than ``measured_focal_release_chi2`` with it free (:mod:`~volcap_core.calibration.focal_prior`).
+    #: None: every focal under those loose priors (before calibrate-static 13)
+    measured_focal_sigma_rel: float | None = MEASURED_FOCAL_SIGMA_REL
+    measured_focal_release_chi2: float = RELEASE_CHI2
     #: None (default) skips the photometric refinement: on the demo capture it did not beat the
     #: bundle adjustments, at many times their cost (docs/calibration.md);
     #: ``PhotometricOptions(max_points=20000, centre_sigma_m=0.03)`` turns it on
@@ -250,6 +259,11 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
     t3 = time.perf_counter()
     model = _final_model(model, first, cams, views)                                                         # 7
     support = _final_support(model, first, cams)
+    # each measured camera's final focal decision (step 5's when it ran) in its support, so the
+    # Calibration record's quality says whether its lens calibration's focal was held and why
+    decisions = stats.get("focal_prior", {}).get("step5" if cams.guided_observations is not None else "step4", {})
+    for c in cams.ids:
+        support[c].update(decisions.get(c, {}))
     stated = cams.guided_sigma if cams.guided_observations is not None else first.sigma
     if stated is not None and stated.undetermined:
         warnings.append(f"the final adjustment leaves {stated.undetermined} direction(s) of the cameras undetermined "
@@ -285,6 +299,8 @@ class _RigPriors:
     mounts: dict[str, np.ndarray]
     #: the camera's lens group (None: its own)
     lens_groups: dict[str, str | None]
+    #: whether the rig carries measured intrinsics for the camera (its own or its lens group's)
+    measured: dict[str, bool]
 
 
 @dataclass(frozen=True)
@@ -333,7 +349,8 @@ def _rig_priors(rig: Rig, ids: Sequence[str]) -> _RigPriors:
     return _RigPriors(intrinsics={c: Intrinsics.from_rig(rig, c) for c in ids},
                       seeds={c: nominal_pose(cams[c]) for c in ids},
                       mounts={c: np.asarray(cams[c].mount.position_m, np.float64) for c in ids},
-                      lens_groups={c: cams[c].lens_group for c in ids})
+                      lens_groups={c: cams[c].lens_group for c in ids},
+                      measured={c: rig.measured_intrinsics(c) is not None for c in ids})
 
 
 def _sparse_model(images: Mapping[str, np.ndarray], plates: Mapping[str, np.ndarray] | None, priors: _RigPriors,
@@ -393,13 +410,19 @@ def _first_adjustment(model: SparseModel, views: _Views, priors: _RigPriors, sca
     adjustment (its observations aligned with that model's) and the cameras."""
     intr, mounts = views.intrinsics, priors.mounts
     reg = model.camera_ids
-    res = bundle_adjust(np.stack([model.world_to_camera[c] for c in reg]),
-                        np.array([model.intrinsics[c].fx for c in reg]),
-                        np.array([[model.intrinsics[c].cx, model.intrinsics[c].cy] for c in reg]),
-                        model.points, model.obs_camera, model.obs_point, model.obs_xy, scan=scan,
-                        focal_prior=np.array([intr[c].fx for c in reg]),
-                        centre_prior=np.stack([mounts[c] for c in reg]),
-                        lens_group=[priors.lens_groups[c] for c in reg], options=options.bundle)
+    focal_prior = np.array([intr[c].fx for c in reg])
+
+    def adjust(focal_sigma: np.ndarray) -> BundleResult:
+        return bundle_adjust(np.stack([model.world_to_camera[c] for c in reg]),
+                             np.array([model.intrinsics[c].fx for c in reg]),
+                             np.array([[model.intrinsics[c].cx, model.intrinsics[c].cy] for c in reg]),
+                             model.points, model.obs_camera, model.obs_point, model.obs_xy, scan=scan,
+                             focal_prior=focal_prior, centre_prior=np.stack([mounts[c] for c in reg]),
+                             lens_group=[priors.lens_groups[c] for c in reg], focal_sigma=focal_sigma,
+                             options=options.bundle)
+
+    res, decided = _held_focals(adjust, reg, priors, focal_prior, model.obs_camera, options.bundle, options)
+    _record_focal_decisions(stats, "step4", reg, decided)
     K = {c: np.array([[res.focal[i], 0, intr[c].cx], [0, res.focal[i], intr[c].cy], [0, 0, 1.0]])
          for i, c in enumerate(reg)}
     w2c = {c: res.world_to_camera[i] for i, c in enumerate(reg)}
@@ -477,13 +500,20 @@ def _guided_adjustment(cams: _Cameras, views: _Views, priors: _RigPriors, rig: R
     P = np.stack([K[c] @ w2c[c][:3] for c in reg])
     start = triangulate_points(P, tracks.obs_point, tracks.obs_camera, tracks.obs_xy, len(tracks.points))
     start = np.where(np.isfinite(start), start, tracks.points)
-    g = bundle_adjust(np.stack([w2c[c] for c in reg]), np.array([K[c][0, 0] for c in reg]),
-                      np.array([[intr[c].cx, intr[c].cy] for c in reg]), start, tracks.obs_camera,
-                      tracks.obs_point, tracks.obs_xy, scan=scan, focal_prior=np.array([intr[c].fx for c in reg]),
-                      centre_prior=np.stack([mounts[c] for c in reg]),
-                      lens_group=[priors.lens_groups[c] for c in reg],
-                      lens=[_radial_lens(intr[c], lenses.get(c)) for c in reg],
-                      principal_sigma=_principal_sigmas(reg, rig, guided_bundle, options), options=guided_bundle)
+    focal_prior = np.array([intr[c].fx for c in reg])
+
+    def adjust(focal_sigma: np.ndarray) -> BundleResult:
+        return bundle_adjust(np.stack([w2c[c] for c in reg]), np.array([K[c][0, 0] for c in reg]),
+                             np.array([[intr[c].cx, intr[c].cy] for c in reg]), start, tracks.obs_camera,
+                             tracks.obs_point, tracks.obs_xy, scan=scan, focal_prior=focal_prior,
+                             centre_prior=np.stack([mounts[c] for c in reg]),
+                             lens_group=[priors.lens_groups[c] for c in reg],
+                             lens=[_radial_lens(intr[c], lenses.get(c)) for c in reg],
+                             principal_sigma=_principal_sigmas(reg, rig, guided_bundle, options),
+                             focal_sigma=focal_sigma, options=guided_bundle)
+
+    g, decided = _held_focals(adjust, reg, priors, focal_prior, tracks.obs_camera, guided_bundle, options)
+    _record_focal_decisions(stats, "step5", reg, decided)
     K = {c: np.array([[g.focal[i], 0, g.principal[i, 0]], [0, g.focal[i], g.principal[i, 1]],
                       [0, 0, 1.0]]) for i, c in enumerate(reg)}
     w2c = {c: g.world_to_camera[i] for i, c in enumerate(reg)}
@@ -504,6 +534,40 @@ def _guided_adjustment(cams: _Cameras, views: _Views, priors: _RigPriors, rig: R
     return _Cameras(reg, K, w2c, calibrated, guided_observations=np.bincount(tracks.obs_camera[g.inlier],
                                                                              minlength=len(reg)),
                     guided_sigma=g.sigma)
+
+
+def _held_focals(adjust, reg: Sequence[str], priors: _RigPriors, focal_prior: np.ndarray, obs_camera: np.ndarray,
+                 bundle: BundleOptions, options: StaticCalibrationOptions
+                 ) -> tuple[BundleResult, dict[int, FocalDecision]]:
+    """An adjustment (``adjust(focal_sigma)``) whose measured focals need evidence to move
+    (:func:`~volcap_core.calibration.focal_prior.adjust_with_held_focals`); with focals held by
+    ``bundle`` (no focal prior) the one adjustment."""
+    if bundle.focal_sigma_rel is None:
+        return adjust(None), {}
+    from volcap_core.calibration.bundle import camera_parameters
+
+    focal_of = camera_parameters([priors.lens_groups[c] for c in reg], len(reg),
+                                 share_focal=bundle.share_group_focal).focal_of
+    return adjust_with_held_focals(adjust, [priors.measured[c] for c in reg], focal_prior, obs_camera,
+                                   loose_sigma_rel=bundle.focal_sigma_rel,
+                                   tight_sigma_rel=options.measured_focal_sigma_rel,
+                                   release_chi2=options.measured_focal_release_chi2, focal_of=focal_of)
+
+
+def _record_focal_decisions(stats: dict, step: str, reg: Sequence[str], decided: Mapping[int, FocalDecision]) -> None:
+    """Each measured camera's focal decision of ``step`` into ``stats["focal_prior"][step][id]``
+    (held or released, its evidence, the focal's move either way), and logged."""
+    if not decided:
+        return
+    import logging
+
+    log = logging.getLogger("volcap.calibrate")
+    out = stats.setdefault("focal_prior", {}).setdefault(step, {})
+    for i, d in decided.items():
+        out[reg[i]] = d.as_stats()
+        log.info("%s %s: measured focal %s (evidence Δχ² %.1f against %.0f; free it moves %+.2f %%, here %+.2f %%)",
+                 step, reg[i], "held" if d.held else "released", d.evidence_chi2, d.release_chi2,
+                 100 * d.free_shift_rel, 100 * d.shift_rel)
 
 
 def _skipped_step5(cams: _Cameras, why: str, warnings: list[str], stats: dict) -> _Cameras:
