@@ -134,7 +134,7 @@ def test_a_needed_capture_that_cannot_be_read_is_named(prefect_api, tmp_path):
 def test_store_credentials_come_from_a_secret_block_and_the_environment_wins(prefect_api, monkeypatch):
     from prefect.blocks.system import Secret
 
-    from flows.production import store_credentials_from_block
+    from flows.store_credentials import store_credentials_from_block
 
     Secret(value='{"AWS_ACCESS_KEY_ID": "from-block", "AWS_SECRET_ACCESS_KEY": "s3cr3t"}').save(
         "volcap-test-store", overwrite=True)
