@@ -4,7 +4,7 @@ each camera reports its progress, a calibration without scene depths sweeps the 
 ``volcap reconstruct`` reuses the dense frames made from the same cameras at the same scale.
 
 A tiny synthetic capture (4 static + 1 tracking camera of the demo rig, one frame at 320x180)
-matched at half or quarter resolution; about 40 s on 2 cores, the reuse test most of it.
+matched at half or quarter resolution; about 50 s on 2 cores, the reuse test most of it.
 """
 
 from __future__ import annotations
