@@ -22,9 +22,11 @@ the memory model of docs/calibration.md ("Dense points: memory and time") checke
 Each measurement runs ``dense_points_step`` for one frame in a fresh child process with torch on
 ``--threads`` threads (2: the project's CPU machine) and reports its wall time, its peak resident
 memory (:func:`peak_rss_mb`: the whole process, Python, torch and the libraries included;
-``baseline_rss_mb`` is the same child's peak before the step), its CPU time (``cpu_s``: on a
-machine shared with other jobs the wall time says more about them), the load average, the points
-and the step's progress lines. ``--references N`` sweeps only the first N cameras as references (all
+``baseline_rss_mb`` is the same child's peak before the step), its CPU time (``cpu_s``, user +
+system, and ``user_s``: on a machine shared with other jobs the wall time says more about them),
+the load average, the points and the step's progress lines; on the synthetic frame also the points'
+distance to the true surface (``metrics.point_errors``: the ground truth's scan and actors).
+``--references N`` sweeps only the first N cameras as references (all
 cameras still load and serve as neighbours): the per-reference time and the peak of a size whose
 14 references would take too long here (1080p, 4K: ``--width 1920`` / ``3840``).
 """
@@ -98,7 +100,8 @@ def prepare_synthetic(work: Path, width: int) -> dict:
     cap = s.get_record(capture, Capture)
     cams_json = json.loads((folder / "ground_truth" / "cameras.json").read_text())
     record, _ = ground_truth.calibration(cams_json, cap.name, [c.id for c in cap.cameras], cap.rig.stage_size_m)
-    return {"store": store, "capture": capture, "calibration": s.put_record(record).digest, "frame": 0}
+    return {"store": store, "capture": capture, "calibration": s.put_record(record).digest, "frame": 0,
+            "ground_truth": str(folder / "ground_truth")}
 
 
 def pose2sim_rig(calib) -> dict:
@@ -186,15 +189,27 @@ def child(inputs: dict, scale: float, references: int | None, threads: int) -> d
     cap = s.get_record(s.resolve(inputs["capture"]), Capture)
     calib = s.get_record(s.resolve(inputs["calibration"]), Calibration)
     base_rss = peak_rss_mb()
-    cpu0 = resource.getrusage(resource.RUSAGE_SELF).ru_utime
+    r0 = resource.getrusage(resource.RUSAGE_SELF)
+    cpu0 = r0.ru_utime
     t0 = time.perf_counter()
     out = dense_points_step(cap, calib, inputs["frame"], frame_loader(s.get_bytes, cap), DenseOptions(), scale,
                             references=(calib.static_ids[:references] if references else None), progress=progress)
     wall = time.perf_counter() - t0
-    cpu = resource.getrusage(resource.RUSAGE_SELF).ru_utime - cpu0
-    return {"wall_s": round(wall, 2), "cpu_s": round(cpu, 1), "load_average": round(os.getloadavg()[0], 1), "peak_rss_mb": round(peak_rss_mb()),
+    r1 = resource.getrusage(resource.RUSAGE_SELF)
+    cpu, sys_s = r1.ru_utime - r0.ru_utime, r1.ru_stime - r0.ru_stime
+    accuracy = {}
+    if inputs.get("ground_truth"):   # the synthetic frame: the points against the true surface
+        from volcap_core.calibration.lidar import LidarScan
+        from volcap_core.calibration.metrics import load_ground_truth, point_errors
+
+        gt_dir = Path(inputs["ground_truth"])
+        scan = LidarScan.from_ply_bytes((gt_dir / "lidar.ply").read_bytes())
+        e = point_errors([(0, out.positions)], load_ground_truth(gt_dir), scan)["per_frame"]["0"]
+        accuracy = {"median_distance_mm": round(1000 * e["median_distance_m"], 2),
+                    "p90_distance_mm": round(1000 * e["p90_distance_m"], 1), "actor_points_3cm": e["actor_points_3cm"]}
+    return {"wall_s": round(wall, 2), "cpu_s": round(cpu + sys_s, 1), "user_s": round(cpu, 1), "load_average": round(os.getloadavg()[0], 1), "peak_rss_mb": round(peak_rss_mb()),
             "baseline_rss_mb": round(base_rss), "points": int(len(out.positions)), "cameras": len(out.cameras),
-            "references": references or len(out.cameras), "threads": threads, "log": lines}
+            "references": references or len(out.cameras), "threads": threads, **accuracy, "log": lines}
 
 
 def main() -> None:

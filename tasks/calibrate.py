@@ -106,7 +106,7 @@ def assemble_calibration(store: str, capture: ArtifactRef, static: ArtifactRef,
     return s.put_record(record)
 
 
-@volcap_task(name="dense-points-frame", version="4", libraries=CALIBRATION_LIBRARIES)
+@volcap_task(name="dense-points-frame", version="5", libraries=CALIBRATION_LIBRARIES)
 def dense_points_frame(store: str, capture: ArtifactRef, calibration: ArtifactRef, frame: int,
                        scale: float = 1.0, exclude_cameras: list[str] | None = None,
                        options: DenseOptions = DenseOptions()) -> ArtifactRef:

@@ -4,12 +4,13 @@ each camera reports its progress, a calibration without scene depths sweeps the 
 ``volcap reconstruct`` reuses the dense frames made from the same cameras at the same scale.
 
 A tiny synthetic capture (4 static + 1 tracking camera of the demo rig, one frame at 320x180)
-matched at half or quarter resolution; about 40 s on 2 cores, the reuse test most of it.
+matched at half or quarter resolution; about 50 s on 2 cores, the reuse test most of it.
 """
 
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -70,6 +71,33 @@ def test_the_depths_do_not_depend_on_the_budget(frame):
     banded = depth_map(images, cams, "S003", nbs, opts, budget_mb=1)
     assert np.count_nonzero(whole.depth) > 500
     np.testing.assert_array_equal(banded.depth, whole.depth)
+
+
+def test_a_quarter_resolution_coarse_level_finds_the_true_depths(capture_dir, frame):
+    """Above ``coarse_quarter_above_px`` wide the coarse planes are swept at a quarter of the
+    resolution (half the planes, a sixteenth of the pixels) and refined at half: here forced at
+    320x180 (a coarse image of 80x45, harsher than the 160x90 of 640 px), its depths lie on the
+    true surface nearly as often (within 1 %) and as closely as the half-resolution sweep's (which
+    a 320-px-wide image keeps by default)."""
+    from volcap_core.imageio.read import decode_exr_native
+
+    images, cams = frame
+    nbs = ["S002", "S004", "S005"]
+    opts = DenseOptions(depth_min=3.0, depth_max=12.0)
+    half = depth_map(images, cams, "S003", nbs, opts)
+    quarter = depth_map(images, cams, "S003", nbs, replace(opts, coarse_quarter_above_px=160))
+    assert quarter.planes <= half.planes // 2 + 1
+    truth = decode_exr_native((capture_dir / "ground_truth" / "depth" / "S003" / "000000.exr").read_bytes())[0][..., 0]
+    for dm in (half, quarter):
+        assert dm.depth.shape == truth.shape
+    hits = {}
+    for name, dm in (("half", half), ("quarter", quarter)):
+        ok = (dm.depth > 0) & np.isfinite(truth)
+        rel = np.abs(dm.depth[ok] / truth[ok] - 1)
+        hits[name] = int(np.count_nonzero(rel < 0.01))
+        assert ok.sum() > 5000 and np.median(rel) < 0.005, (name, ok.sum(), np.median(rel))
+    # 0.93 measured; 0.86 without the median filter of the coarse depths
+    assert hits["quarter"] >= 0.9 * hits["half"], hits
 
 
 def test_frames_are_read_when_needed_and_progress_is_reported(capture_dir):

@@ -7,6 +7,9 @@ For each reference camera and its ``neighbours`` best-placed cameras:
    depth_max]``; each neighbour is warped onto the reference through the plane and compared with a
    windowed normalised cross-correlation (NCC, box filters); the cost of a depth is ``1 - NCC``
    averaged over the best ``neighbours - 1`` neighbours (one may be occluded);
+   (at half the working resolution; above ``coarse_quarter_above_px`` wide at a quarter, half the
+   planes on a sixteenth of the pixels, then refined per pixel at half: the planes grow with the
+   width, so this level was most of the time at 640 px and above);
 2. refine around the best plane with ``refine_steps`` finer hypotheses (per-pixel depths) and a
    parabola through the three best costs;
 3. keep pixels with NCC above ``min_ncc`` and enough texture.
@@ -17,7 +20,7 @@ linear RGB. Everything in float32 torch (GPU when ``device="cuda"``).
 
 Bounded memory: each level keeps a running best over its hypotheses, evaluated in batches of
 planes and bands of rows within ``SWEEP_BUDGET_MB`` (:class:`_Sweep`), never the cost volume; a
-frame's images are read when needed (the matching images of every camera are kept, 5 bytes a
+frame's images are read when needed (the matching images of every camera are kept, 5.25 bytes a
 working pixel, and its depth map, 4). The memory model and its measurement: docs/calibration.md,
 "Dense points: memory and time".
 
@@ -49,6 +52,9 @@ class DenseOptions:
     num_depths: int = 96
     #: cap on the fine hypotheses either side of the coarse depth / 4
     refine_steps: int = 8
+    #: above this working width (px) the coarse planes are swept at a quarter of the resolution and
+    #: refined at half (:func:`depth_map`), at or below it at half
+    coarse_quarter_above_px: int = 320
     neighbours: int = 3
     #: preferred angle (deg) between a reference and a neighbour at the scene
     min_angle_deg: float = 8.0
@@ -225,15 +231,18 @@ class _Sweep:
 
 def depth_map(images: Mapping[str, np.ndarray], cameras: Mapping[str, Camera], ref: str, neighbours: list[str],
               options: DenseOptions = DenseOptions(), *, budget_mb: float = SWEEP_BUDGET_MB,
-              prepared: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None) -> DepthMap:
+              prepared: Mapping[str, tuple[np.ndarray, ...]] | None = None) -> DepthMap:
     """Plane-sweep depth of camera ``ref`` (at the working resolution: images / ``options.scale``).
 
     Two levels: a sweep at 1/2 of the working resolution with planes ~1 px of disparity apart, then
     per-pixel hypotheses at the working resolution, 0.5 px apart, over two coarse steps either side.
+    Above ``options.coarse_quarter_above_px`` working pixels wide, three: the planes ~1 px apart at
+    1/4 of the resolution (half as many, on a sixteenth of the pixels), per-pixel hypotheses ~1 px
+    apart at 1/2 over two of those planes either side, then the working resolution as above.
     Each level keeps a running best over batches of hypotheses (:class:`_Sweep`, at most
     ``budget_mb`` MiB of working set a batch), never the whole cost volume. ``prepared``: id ->
-    (working, coarse) matching images of :func:`_prep` when the caller holds them (else made from
-    ``images``).
+    (working, half, quarter resolution) matching images of :func:`_prep` when the caller holds them
+    (else made from ``images``).
     """
     dev = torch.device(options.device)
     t32 = dict(dtype=torch.float32, device=dev)
@@ -253,28 +262,36 @@ def depth_map(images: Mapping[str, np.ndarray], cameras: Mapping[str, Camera], r
     base = max(np.linalg.norm(-cameras[n][1][:3, :3].T @ cameras[n][1][:3, 3] - Cref) for n in neighbours)
     fpx = cameras[ref][0][0, 0] / s
     inv_lo, inv_hi = 1 / options.depth_max, 1 / options.depth_min
-    # coarse level: planes uniform in inverse depth, the running best plane per pixel
-    cs = 2.0
-    sweep = _Sweep(*views(1, s * cs), options.window, budget)
+    # coarse level: planes uniform in inverse depth, ~1 px of disparity apart at its resolution, the
+    # running best plane per pixel; at a quarter of the working resolution above
+    # coarse_quarter_above_px wide (the planes grow with the width), then refined at half
+    g = prepared[ref][0] if prepared is not None else _prep(images[ref], (s,))[0]
+    cs = 4 if g.shape[1] > options.coarse_quarter_above_px else 2
+    sweep = _Sweep(*views(cs.bit_length() - 1, s * cs), options.window, budget)
     n_planes = int(np.clip((inv_hi - inv_lo) * fpx / cs * base / 1.0, 8, options.num_depths * 8))
     inv = torch.linspace(inv_lo, inv_hi, n_planes, **t32)
-    Hc, Wc = sweep.H, sweep.W
-    best = torch.full((Hc, Wc), float("inf"), **t32)
-    best_j = torch.zeros((Hc, Wc), dtype=torch.long, device=dev)
-    for h0, h1, r0, r1 in sweep.batches(n_planes):
-        c = sweep.cost(lambda a, b: inv[h0:h1, None, None], r0, r1)
-        cmin, jmin = c.min(0)
-        better = cmin < best[r0:r1]
-        best[r0:r1] = torch.where(better, cmin, best[r0:r1])
-        best_j[r0:r1] = torch.where(better, jmin + h0, best_j[r0:r1])
+    best_j = _best_hypothesis(sweep, n_planes, lambda h0, h1, a, b: inv[h0:h1, None, None])
     inv_c = inv[best_j]
-    del sweep, best, best_j
+    coarse_step = (inv[1] - inv[0]) if n_planes > 1 else torch.tensor(0.01, **t32)
+    del sweep, best_j
+    if cs == 4:
+        # half-resolution level: per-pixel hypotheses ~1 px of disparity apart at half resolution
+        # over two quarter-resolution planes either side of the coarse depth, the best kept. The
+        # coarse depths are median-filtered first: a pixel's hypotheses warp its NCC window with its
+        # neighbours' depths, and a lone wrong plane in a window spoils the window's match
+        sweep = _Sweep(*views(1, s * 2), options.window, budget)
+        inv_q = F.interpolate(_median3(inv_c)[None, None], size=(sweep.H, sweep.W), mode="nearest")[0, 0]
+        coarse_step = coarse_step / 2
+        km = torch.arange(-4, 5, **t32) * coarse_step
+        best_j = _best_hypothesis(sweep, len(km), lambda h0, h1, a, b: (inv_q[None, a:b] + km[h0:h1, None, None]
+                                                                       ).clamp(min=1e-4))
+        inv_c = (inv_q + km[best_j]).clamp(min=1e-4)
+        del sweep, best_j, inv_q
     # fine level: per-pixel hypotheses around the coarse depth; the running best keeps the costs
     # either side of it for the parabola
     sweep = _Sweep(*views(0, s), options.window, budget)
     H, W = sweep.H, sweep.W
     inv0 = F.interpolate(inv_c[None, None], size=(H, W), mode="nearest")[0, 0]
-    coarse_step = (inv[1] - inv[0]) if n_planes > 1 else torch.tensor(0.01, **t32)
     fine_step = 0.5 / (fpx * base)
     nk = int(min(max(2 * float(coarse_step) / fine_step, 2), 4 * options.refine_steps))
     ks = torch.arange(-nk, nk + 1, **t32) * fine_step
@@ -305,13 +322,34 @@ def depth_map(images: Mapping[str, np.ndarray], cameras: Mapping[str, Camera], r
     inv_best = (inv0 + ks[j]).clamp(min=1e-4) + off * fine_step
     depth = 1 / inv_best.clamp(min=1e-6)
     ncc = 1 - best
-    g = prepared[ref][0] if prepared is not None else _prep(images[ref], (s,))[0]
     ref_t = torch.as_tensor(g, **t32)[None, None]
     tex = torch.sqrt((_box(ref_t * ref_t, options.window) - _box(ref_t, options.window) ** 2).clamp(min=0))[0, 0]
     ok = (ncc > options.min_ncc) & (tex > options.min_texture) & (j > 0) & (j < n - 1)
     ok &= (depth > options.depth_min) & (depth < options.depth_max)
     depth = torch.where(ok, depth, torch.zeros_like(depth))
     return DepthMap(depth.cpu().numpy(), _scaled_K(cameras[ref][0], s), np.asarray(cameras[ref][1]), n_planes)
+
+
+def _median3(x: torch.Tensor) -> torch.Tensor:
+    """The 3 x 3 median of [H, W] (edges replicated)."""
+    padded = F.pad(x[None, None], (1, 1, 1, 1), mode="replicate")[0, 0]
+    return padded.unfold(0, 3, 1).unfold(1, 3, 1).reshape(*x.shape, 9).median(-1).values
+
+
+def _best_hypothesis(sweep: _Sweep, n: int, inv_depth: Callable[[int, int, int, int], torch.Tensor]
+                     ) -> torch.Tensor:
+    """The index [H, W] (long) of the least-cost of ``n`` hypotheses per pixel of ``sweep``'s
+    reference, kept as a running best over its batches: ``inv_depth(h0, h1, a, b)`` is the inverse
+    depths (1/m) of hypotheses [h0, h1) on rows [a, b), [h1 - h0, b - a, W] or [h1 - h0, 1, 1]."""
+    best = torch.full((sweep.H, sweep.W), float("inf"), dtype=torch.float32, device=sweep.ref.image.device)
+    best_j = torch.zeros((sweep.H, sweep.W), dtype=torch.long, device=sweep.ref.image.device)
+    for h0, h1, r0, r1 in sweep.batches(n):
+        c = sweep.cost(lambda a, b: inv_depth(h0, h1, a, b), r0, r1)
+        cmin, jmin = c.min(0)
+        better = cmin < best[r0:r1]
+        best[r0:r1] = torch.where(better, cmin, best[r0:r1])
+        best_j[r0:r1] = torch.where(better, jmin + h0, best_j[r0:r1])
+    return best_j
 
 
 #: reference pixels fused at a time (the fusion's float64 working set is ~200 bytes a pixel)
@@ -419,9 +457,9 @@ def dense_points(images: Mapping[str, np.ndarray], cameras: Mapping[str, Camera]
     reference without one sweeps ``options.depth_min``-``depth_max``, neighbours chosen at 5 m;
     ``progress``: :data:`DenseProgress`; ``budget_mb``: the sweep's working set (:class:`_Sweep`;
     the result does not depend on it).
-    Memory: the matching images (5 bytes a working pixel) and depth maps (4) of every camera, one
-    full image, the sweep's budget and the points (docs/calibration.md, "Dense points: memory and
-    time").
+    Memory: the matching images (5.25 bytes a working pixel: working, half and quarter resolution)
+    and depth maps (4) of every camera, one full image, the sweep's budget and the points
+    (docs/calibration.md, "Dense points: memory and time").
     Returns ``positions`` [N, 3] float32 (metres, stage frame), ``colours`` [N, 3] float32 (linear),
     ``views`` [N] consistent other views, ``depth_maps`` {id: DepthMap}, ``seconds``.
     """
@@ -429,12 +467,12 @@ def dense_points(images: Mapping[str, np.ndarray], cameras: Mapping[str, Camera]
     ids = sorted(set(images) & set(cameras))
     refs = references or ids
     s = options.scale
-    prepared: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    prepared: dict[str, tuple[np.ndarray, ...]] = {}
 
     class _Prepared(Mapping):   # each camera's matching images, made on first use
         def __getitem__(self, cid):
             if cid not in prepared:
-                prepared[cid] = tuple(_prep(images[cid], (s, 2.0 * s)))
+                prepared[cid] = tuple(_prep(images[cid], (s, 2.0 * s, 4.0 * s)))
             return prepared[cid]
 
         def __iter__(self):
