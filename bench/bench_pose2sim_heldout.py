@@ -245,13 +245,14 @@ def train(inputs: dict, points: str, args) -> dict:
     wall = time.perf_counter() - t0
     roles = {c.id: "static" for c in calib.cameras}
     report = score_segment(result.model, result.grids, data, init, config, seed=0, device="cpu", roles=roles)
-    out = {"held": args.held, "steps": args.steps, "gaussians": args.gaussians, "fill_shell": args.fill_shell, "clean_sweep": args.clean_sweep, "hull": args.hull, "hull_close_px": args.hull_close_px,
+    out = {"held": args.held, "steps": args.steps, "gaussians": args.gaussians, "fill_shell": args.fill_shell,
+           "clean_sweep": args.clean_sweep, "hull": args.hull, "hull_close_px": args.hull_close_px,
            "mask_alpha": args.mask_alpha, "scale": args.scale, "train_wall_s": round(wall, 1),
            "gaussians_final": len(result.model), "held_out": {k: v.to_json() for k, v in report.held_out.items()},
            "training": report.training.to_json(), "regions": report.regions,
            "init_points": sum(len(p.xyz) for p in init)}
 
-    # the sheet: held-out frames whole, then the performer cropped at 1:1, then a training camera
+    # the sheet: a held-out frame whole, its raw render, a training camera, the performer cropped at 1:1
     held_views = [v for v in data.views if v.camera_id == args.held]
     renders = render_views(result.model, held_views, config, device="cpu")
     # diagnostic, outside the protocol: the raw renders' PSNR on the performers (no colour transform)
@@ -269,7 +270,8 @@ def train(inputs: dict, points: str, args) -> dict:
     from volcap_core.splat import save_model
     (args.workdir / f"model_{args.held}_{args.tag}.safetensors").write_bytes(save_model(result.model))
     tfs = cross_fitted_transforms(renders, [v.load()[..., :3] for v in held_views],
-                                  [v.camera_id for v in held_views], [v.frame for v in held_views])
+                                  [v.camera_id for v in held_views], [v.frame for v in held_views],
+                                  [v.load_valid() for v in held_views])   # as score_segment fits them
     masks = [v.load_mask() for v in held_views]
     box = performer_box([m.numpy() for m in masks if m is not None]) if any(m is not None for m in masks) else None
     rows_full, rows_crop, rows_raw = [], [], []
