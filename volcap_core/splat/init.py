@@ -31,7 +31,8 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["InitSplit", "classify_static", "colour_scan", "drop_isolated", "finest_footprint",
-           "footprint_levels", "initial_gaussians", "neighbour_scale", "room_shell", "voxel_thin", "zoom_points"]
+           "footprint_levels", "initial_gaussians", "neighbour_scale", "room_shell", "visual_hull", "voxel_thin",
+           "zoom_points"]
 
 
 def neighbour_scale(xyz: np.ndarray, k: int = 3) -> np.ndarray:
