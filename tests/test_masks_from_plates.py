@@ -66,3 +66,24 @@ def test_masks_against_plates_agree_with_the_ground_truth(tmp_path):
     print("IoU with the ground truth: clean plates", clean, "median of the take", median)
     assert min(clean.values()) > 0.65
     assert min(median.values()) > 0.3
+
+
+def test_a_video_cameras_plate_can_come_from_its_whole_recording(tmp_path):
+    """A performer who stays put through a short take is its median plate, so the take's masks are
+    empty; the median of the whole video, where they were not there most of the time, finds them
+    (Pose2Sim's 3-frame takes of a 100-frame video: docs/poly4dgs.md, "Real footage"). ~11 s at load 27,
+    most of it the first imports."""
+    from tests.test_ingest_video import write_capture, write_video
+
+    grey, white = (126, 128, 128), (235, 128, 128)
+    root = tmp_path / "capture"
+    root.mkdir()
+    # the take is video frames 1-3 (the camera starts a frame before it): the performer's white
+    write_video(root / "v.mp4", [grey, white, white, white, grey, grey, grey])
+    write_capture(root, {"V0": "v.mp4"}, {"V0": (32, 16)}, frame_count=3)
+    write_plate_masks(root)
+    folder = CaptureFolder.open(root)
+    assert all(folder.load_mask("V0", i).max() == 0.0 for i in range(3))
+    write_plate_masks(root, whole_recording=True)
+    folder = CaptureFolder.open(root)
+    assert all(folder.load_mask("V0", i).min() == 1.0 for i in range(3))

@@ -63,6 +63,33 @@ def plate_mask(frame: np.ndarray, plate: np.ndarray, *, low: float = LOW, high: 
     return np.clip((r - low) / (high - low), 0.0, 1.0).astype(np.float32)
 
 
+def filled(mask: np.ndarray, *, threshold: float = 0.5, close_px: int = 5) -> np.ndarray:
+    """A plate mask with the holes in its silhouettes filled: the pixels at ``threshold`` or more,
+    closed over ``close_px`` (a disc of that radius) and hole-filled, are set to 1; the soft edge
+    outside them is kept.
+
+    A median plate keeps a performer who stays in one place as a ghost (a torso over a
+    treadmill): where the frame matches the ghost, the relative difference falls below ``LOW`` and
+    the mask has holes inside an otherwise closed outline. Holes also carve a visual hull.
+
+    Args:
+        mask: ``[H, W]`` coverage in [0, 1] (:func:`plate_mask`).
+    Returns:
+        ``[H, W]`` float32 in [0, 1], never below ``mask``.
+    """
+    from scipy import ndimage
+
+    m = np.asarray(mask, np.float32)
+    r = int(close_px)
+    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+    disc = xx * xx + yy * yy <= r * r
+    solid = m >= threshold
+    if r > 0:
+        solid = ndimage.binary_closing(np.pad(solid, r), structure=disc)[r:-r, r:-r]
+    solid = ndimage.binary_fill_holes(solid)
+    return np.maximum(m, solid.astype(np.float32))
+
+
 def linear_frames(folder: CaptureFolder, camera_id: str, take_indices: Sequence[int]) -> Iterator[tuple[int, np.ndarray]]:
     """``(take index, [H, W, 3] scene-linear RGB)`` of a camera's frames, in ascending take order:
     image files decoded and linearised by their ``encoding`` (:func:`volcap_core.ingest.to_scene_linear`),
@@ -116,13 +143,20 @@ def read_plate(folder: CaptureFolder, camera_id: str, path: Path) -> np.ndarray:
     return _linear(folder, camera_id, pixels, f"camera {camera_id}: background plate {path}")
 
 
-def median_plate(folder: CaptureFolder, camera_id: str, frames: int = MEDIAN_PLATE_FRAMES) -> np.ndarray:
-    """A camera's background plate from its own take: the per-pixel median of ``frames`` take
-    frames evenly spread (the calibration's :func:`~volcap_core.calibration.photometric.background_plate`)."""
+def median_plate(folder: CaptureFolder, camera_id: str, frames: int = MEDIAN_PLATE_FRAMES, *,
+                 whole_recording: bool = False) -> np.ndarray:
+    """A camera's background plate from its own footage: the per-pixel median of ``frames`` frames
+    evenly spread (the calibration's :func:`~volcap_core.calibration.photometric.background_plate`)
+    over the take or, with ``whole_recording``, over a video camera's whole file (a take of a few
+    frames cut from a longer recording: the performers have moved further over the whole of it).
+    An image-sequence camera's frames outside the take are not listed, so it uses the take."""
     from volcap_core.calibration.photometric import background_plate
 
-    n = folder.frame_count
-    picks = np.unique(np.linspace(0, n - 1, min(frames, n)).round().astype(int)).tolist()
+    lo, hi = 0, folder.frame_count - 1
+    if whole_recording and folder.camera(camera_id).is_video:
+        offset = folder.offsets[camera_id]   # take index of the video's frame 0
+        lo, hi = offset, offset + folder.video_info(camera_id).frame_count - 1
+    picks = np.unique(np.linspace(lo, hi, min(frames, hi - lo + 1)).round().astype(int)).tolist()
     return background_plate([rgb for _, rgb in linear_frames(folder, camera_id, picks)])
 
 
@@ -141,7 +175,7 @@ def plate_files(plates: Path, camera_ids: Sequence[str]) -> dict[str, Path]:
 
 
 def write_plate_masks(capture_dir: str | Path, *, plates: str | Path | None = None,
-                      cameras: Sequence[str] | None = None,
+                      cameras: Sequence[str] | None = None, whole_recording: bool = False,
                       progress: Callable[[str, int, int], None] | None = None) -> dict[str, int]:
     """Compute every static camera's performer masks against its background plate and write them
     into the capture folder's masks folder (``capture.json``'s ``masks``; when it names none,
@@ -149,7 +183,8 @@ def write_plate_masks(capture_dir: str | Path, *, plates: str | Path | None = No
     channel ``Y``, half float, a mask per take frame. Existing masks of those cameras are replaced.
 
     ``plates``: a folder of plates named by camera id (:func:`plate_files`); a static camera without
-    one (or every camera, when None) gets the median of its take (:func:`median_plate`).
+    one (or every camera, when None) gets the median of its take (:func:`median_plate`), or of its
+    whole video with ``whole_recording``.
     ``cameras``: only these (default: every static camera). Returns camera id -> masks written.
     ``progress(camera, done, total)`` after each mask."""
     folder = CaptureFolder.open(capture_dir)
@@ -165,7 +200,8 @@ def write_plate_masks(capture_dir: str | Path, *, plates: str | Path | None = No
     out_root = folder.root / rel
     written: dict[str, int] = {}
     for c in chosen:
-        plate = read_plate(folder, c, given[c]) if c in given else median_plate(folder, c)
+        plate = (read_plate(folder, c, given[c]) if c in given
+                 else median_plate(folder, c, whole_recording=whole_recording))
         out = out_root / c
         out.mkdir(parents=True, exist_ok=True)
         for old in out.iterdir():
@@ -176,7 +212,8 @@ def write_plate_masks(capture_dir: str | Path, *, plates: str | Path | None = No
             number = i - folder.offsets[c]
             data = encode_exr(plate_mask(rgb, plate)[..., None], ("Y",), pixel_type="half", compression="zip",
                               attributes={"volcap.camera": c, "volcap.mask_source": "plate " +
-                                          (given[c].name if c in given else "median of the take")})
+                                          (given[c].name if c in given else "median of the " +
+                                           ("recording" if whole_recording else "take"))})
             write_atomic(out / f"{number:06d}.exr", data)
             if progress is not None:
                 progress(c, i + 1, n)

@@ -31,7 +31,8 @@ from dataclasses import dataclass
 import numpy as np
 
 __all__ = ["InitSplit", "classify_static", "colour_scan", "drop_isolated", "finest_footprint",
-           "footprint_levels", "initial_gaussians", "neighbour_scale", "room_shell", "voxel_thin", "zoom_points"]
+           "footprint_levels", "initial_gaussians", "neighbour_scale", "room_shell", "visual_hull", "voxel_thin",
+           "zoom_points"]
 
 
 def neighbour_scale(xyz: np.ndarray, k: int = 3) -> np.ndarray:
@@ -446,3 +447,51 @@ def room_shell(camera_centres: np.ndarray, stage: tuple, *, margin_m: float = 1.
             f[:, [j for j in range(3) if j != i]] = np.stack([uu.ravel(), vv.ravel()], 1)
             faces.append(f)
     return np.concatenate(faces)
+
+
+def visual_hull(cameras: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]], volume: tuple, *,
+                spacing_m: float = 0.025, threshold: float = 0.5, min_views: int = 2) -> np.ndarray:
+    """The performers' visual hull from their masks: the surface voxels of the stage volume that
+    every camera seeing them sees inside its mask.
+
+    Without it the performers of a sparse real rig have points only where two cameras within the
+    plane sweep's triangulation angle see them (Pose2Sim: the cam01-cam02 pair, the back from
+    cam03-cam04), and a held-out view between them gets the performers painted on the room
+    (``docs/poly4dgs.md``, "Real footage"). A voxel outside a camera's frame is not carved by it;
+    one seen by fewer than ``min_views`` cameras is dropped (nothing pins its depth).
+
+    Args:
+        cameras: ``(K [3, 3] OpenCV pixel centres at integers, world_to_camera [4, 4], mask [H, W]
+            coverage in [0, 1])`` per camera, all at one instant.
+        volume: the stage volume (:data:`volcap_core.stage.Box`) the performers stand in.
+        spacing_m: voxel size.
+        threshold: coverage at which a pixel counts as the performers'.
+    Returns:
+        ``[N, 3]`` float64 centres of the hull's surface voxels (a voxel with a 6-neighbour outside).
+    """
+    (x0, y0, z0), (x1, y1, z1) = volume
+    axes = [np.arange(lo + spacing_m / 2, hi, spacing_m) for lo, hi in ((x0, x1), (y0, y1), (z0, z1))]
+    shape = tuple(len(a) for a in axes)
+    xyz = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    inside = np.ones(len(xyz), bool)
+    seen = np.zeros(len(xyz), np.int32)
+    for K, W, mask in cameras:
+        m = np.asarray(mask, np.float32) >= threshold
+        h, w = m.shape
+        pc = xyz @ np.asarray(W, np.float64)[:3, :3].T + np.asarray(W, np.float64)[:3, 3]
+        z = pc[:, 2]
+        ok = z > 0.1
+        uv = np.zeros((len(xyz), 2))
+        uv[ok] = pc[ok, :2] / z[ok, None] @ np.asarray(K, np.float64)[:2, :2].T + np.asarray(K, np.float64)[:2, 2]
+        ix = np.round(uv).astype(np.int64)
+        ok &= (ix[:, 0] >= 0) & (ix[:, 0] < w) & (ix[:, 1] >= 0) & (ix[:, 1] < h)
+        seen += ok
+        inside[ok] &= m[ix[ok, 1], ix[ok, 0]]
+    inside &= seen >= min_views
+    grid = inside.reshape(shape)
+    pad = np.pad(grid, 1)
+    interior = grid.copy()
+    for axis in range(3):
+        for step in (-1, 1):
+            interior &= np.roll(pad, step, axis=axis)[1:-1, 1:-1, 1:-1]
+    return xyz[(grid & ~interior).reshape(-1)]
