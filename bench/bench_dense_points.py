@@ -125,28 +125,40 @@ def pose2sim_rig(calib) -> dict:
             "lighting": {"description": "a lab's ceiling lights"}}
 
 
-def prepare_pose2sim(work: Path, frames: int) -> dict:
-    """Ingest ``frames`` frames of SinglePerson's MP4s and import its Qualisys calibration."""
+#: Pose2Sim SinglePerson's frame sizes (cam01/cam02 re-encoded at 1080 wide)
+POSE2SIM_SIZES = {"cam01": (1080, 1920), "cam02": (1080, 1920), "cam03": (1088, 1920), "cam04": (1088, 1920)}
+
+
+def write_pose2sim_capture(root: Path, frames: int, start: int = 0):
+    """SinglePerson as a capture folder at ``root`` (its MP4s linked, :func:`pose2sim_rig`, a take of
+    ``frames`` frames from ``start``); returns its imported Qualisys ``Calibration``."""
     from volcap_core.calibration.importers import calibration_from_qualisys
-    from volcap_core.store import ArtifactStore
 
     if not POSE2SIM.is_dir():
         raise SystemExit(f"{POSE2SIM} is absent (the shared data)")
-    sizes = {"cam01": (1080, 1920), "cam02": (1080, 1920), "cam03": (1088, 1920), "cam04": (1088, 1920)}
     xml = (POSE2SIM / "calibration" / "Calib.qca.txt").read_bytes()
-    calib = calibration_from_qualisys(xml, "pose2sim", frames, 60.0, source="Calib.qca.txt", frame_sizes=sizes,
-                                      stage_size_m=(4.0, 4.0, 2.5))
-    root = work / "pose2sim"
+    calib = calibration_from_qualisys(xml, "pose2sim", frames, 60.0, source="Calib.qca.txt",
+                                      frame_sizes=POSE2SIM_SIZES, stage_size_m=(4.0, 4.0, 2.5))
     (root / "videos").mkdir(parents=True, exist_ok=True)
-    for cid in sizes:
+    for cid in POSE2SIM_SIZES:
         link = root / "videos" / f"{cid}.mp4"
         if not link.exists():
             link.symlink_to(POSE2SIM / "videos" / f"{cid}.mp4")
     (root / "rig.json").write_text(json.dumps(pose2sim_rig(calib), indent=1))
     (root / "capture.json").write_text(json.dumps({
         "format": "volcap-capture/1", "name": "pose2sim", "rig": "rig.json", "fps": 60,
-        "take": {"start_timecode": "01:00:00:00", "frame_count": frames},
-        "cameras": [{"id": c, "path": f"videos/{c}.mp4", "start_timecode": "01:00:00:00"} for c in sizes]}, indent=1))
+        "take": {"start_timecode": f"01:00:00:{start:02d}", "frame_count": frames},
+        "cameras": [{"id": c, "path": f"videos/{c}.mp4", "start_timecode": "01:00:00:00"} for c in POSE2SIM_SIZES]},
+        indent=1))
+    return calib
+
+
+def prepare_pose2sim(work: Path, frames: int) -> dict:
+    """Ingest ``frames`` frames of SinglePerson's MP4s and import its Qualisys calibration."""
+    from volcap_core.store import ArtifactStore
+
+    root = work / "pose2sim"
+    calib = write_pose2sim_capture(root, frames)
     store = ArtifactStore(str(work / "store")).url
     capture = _ingest(store, root)
     return {"store": store, "capture": capture, "calibration": ArtifactStore(store).put_record(calib).digest,

@@ -39,38 +39,23 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
-POSE2SIM = REPO.parent / "shared" / "data" / "real" / "pose2sim" / "Demo_SinglePerson"
-SIZES = {"cam01": (1080, 1920), "cam02": (1080, 1920), "cam03": (1088, 1920), "cam04": (1088, 1920)}
+
+from bench.bench_dense_points import POSE2SIM_SIZES  # noqa: E402  (the repository on the path first)
 
 
 def prepare(work: Path, start: int, frames: int) -> dict:
     """Stage 1 (cached in ``work/inputs.json``): capture folder with masks, ingest, calibration."""
-    from bench.bench_dense_points import pose2sim_rig
+    from bench.bench_dense_points import write_pose2sim_capture
     from flows.ingest import ingest_flow
     from flows.runtime import run_flow
-    from volcap_core.calibration.importers import calibration_from_qualisys
     from volcap_core.masks import write_plate_masks
     from volcap_core.store import ArtifactStore
 
     done = work / "inputs.json"
     if done.exists():
         return json.loads(done.read_text())
-    if not POSE2SIM.is_dir():
-        raise SystemExit(f"{POSE2SIM} is absent (the shared data)")
-    xml = (POSE2SIM / "calibration" / "Calib.qca.txt").read_bytes()
-    calib = calibration_from_qualisys(xml, "pose2sim", frames, 60.0, source="Calib.qca.txt", frame_sizes=SIZES,
-                                      stage_size_m=(4.0, 4.0, 2.5))
     root = work / "capture"
-    (root / "videos").mkdir(parents=True, exist_ok=True)
-    for cid in SIZES:
-        link = root / "videos" / f"{cid}.mp4"
-        if not link.exists():
-            link.symlink_to(POSE2SIM / "videos" / f"{cid}.mp4")
-    (root / "rig.json").write_text(json.dumps(pose2sim_rig(calib), indent=1))
-    (root / "capture.json").write_text(json.dumps({
-        "format": "volcap-capture/1", "name": "pose2sim", "rig": "rig.json", "fps": 60,
-        "take": {"start_timecode": f"01:00:00:{start:02d}", "frame_count": frames},
-        "cameras": [{"id": c, "path": f"videos/{c}.mp4", "start_timecode": "01:00:00:00"} for c in SIZES]}, indent=1))
+    calib = write_pose2sim_capture(root, frames, start)
     t0 = time.perf_counter()
     write_plate_masks(root, whole_recording=True)
     masks_s = time.perf_counter() - t0
@@ -313,7 +298,7 @@ def train(inputs: dict, points: str, args) -> dict:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--workdir", type=Path, required=True)
-    ap.add_argument("--held", default="cam02", choices=sorted(SIZES))
+    ap.add_argument("--held", default="cam02", choices=sorted(POSE2SIM_SIZES))
     ap.add_argument("--start", type=int, default=48, help="video frame of the take's first frame")
     ap.add_argument("--frames", type=int, default=3)
     ap.add_argument("--scale", type=float, default=0.25, help="training (and dense points) scale")
