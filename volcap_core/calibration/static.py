@@ -49,6 +49,7 @@ calibrated (it would sit at its mount).
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass, field, replace
 from typing import Mapping, Sequence
@@ -56,18 +57,24 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from hardware.rig import Rig, RigCamera
-from volcap_core.calibration.bundle import BundleOptions, BundleResult, CameraSigma, bundle_adjust
+from volcap_core.calibration.bundle import BundleOptions, BundleResult, CameraSigma, bundle_adjust, camera_parameters
+from volcap_core.calibration.dense import DenseOptions, dense_points, sweep_range
 from volcap_core.calibration.distortion import Distortion, undistort_valid_mask
 from volcap_core.calibration.errors import KnownDistanceError, UnsupportedCameraError
 from volcap_core.calibration.focal_prior import (MEASURED_FOCAL_SIGMA_REL, RELEASE_CHI2, FocalDecision,
                                                  adjust_with_held_focals)
 from volcap_core.calibration.geometry import (Similarity, camera_centre, camera_gaps, depths_in_view, look_at_rotation,
-                                              pose_matrix, robust_umeyama, triangulate_points)
+                                              pose_matrix, robust_umeyama, rotation_angle_deg,
+                                              triangulate_points)
 from volcap_core.calibration.guided import GuidedMatchOptions, guided_tracks
 from volcap_core.calibration.lidar import LidarScan, align_to_lidar
 from volcap_core.calibration.photometric import PhotometricOptions, refine_photometric
 from volcap_core.calibration.sfm import (RECTIFY_MARGIN_PX, Intrinsics, SparseModel, StaticSfmOptions,
                                          raw_from_rectified, reconstruct_static, rectify_static_inputs)
+from volcap_core.stage import stage_volume
+
+#: calibration messages (warnings a user acts on, each focal decision)
+log = logging.getLogger("volcap.calibrate")
 
 
 #: the prior (1σ) of the step-5 adjustment's corrections to a lens calibration's radial k1 and k2
@@ -270,9 +277,7 @@ def calibrate_static_cameras(images: Mapping[str, np.ndarray], rig: Rig, scan: L
                         "by the footage and the priors (e.g. two cameras without a scan turning together about their "
                         "baseline): each camera's sigma leaves them out; along them the cameras are where their "
                         "mounts' aims put them")
-        import logging
-
-        logging.getLogger("volcap.calibrate").warning("%s", warnings[-1])
+        log.warning("%s", warnings[-1])
     model, cams, support = _refuse_uncertain(model, cams, support, options, reasons)
     stats["support"] = support
     stats["time_s"] = {"sfm": t1 - t0, "bundle": t2 - t1, "guided": t_guided - t2, "photometric": t3 - t_guided,
@@ -544,8 +549,6 @@ def _held_focals(adjust, reg: Sequence[str], priors: _RigPriors, focal_prior: np
     ``bundle`` (no focal prior) the one adjustment."""
     if bundle.focal_sigma_rel is None:
         return adjust(None), {}
-    from volcap_core.calibration.bundle import camera_parameters
-
     focal_of = camera_parameters([priors.lens_groups[c] for c in reg], len(reg),
                                  share_focal=bundle.share_group_focal).focal_of
     return adjust_with_held_focals(adjust, [priors.measured[c] for c in reg], focal_prior, obs_camera,
@@ -559,9 +562,6 @@ def _record_focal_decisions(stats: dict, step: str, reg: Sequence[str], decided:
     (held or released, its evidence, the focal's move either way), and logged."""
     if not decided:
         return
-    import logging
-
-    log = logging.getLogger("volcap.calibrate")
     out = stats.setdefault("focal_prior", {}).setdefault(step, {})
     for i, d in decided.items():
         out[reg[i]] = d.as_stats()
@@ -573,13 +573,11 @@ def _record_focal_decisions(stats: dict, step: str, reg: Sequence[str], decided:
 def _skipped_step5(cams: _Cameras, why: str, warnings: list[str], stats: dict) -> _Cameras:
     """Step 5 did not run: ``why`` (and what it leaves) appended to ``warnings`` and logged, and
     ``stats["guided"]["ran"] = 0`` (1 when it ran). Returns ``cams`` unchanged."""
-    import logging
-
     msg = (f"step 5 (the guided matching and the final adjustment) did not run: {why}; the cameras are "
            "step 4's, from the sparse SfM alone, and each camera's sigma is step 4's adjustment covariance")
     warnings.append(msg)
     stats["guided"] = {"ran": 0}
-    logging.getLogger("volcap.calibrate").warning("%s", msg)
+    log.warning("%s", msg)
     return cams
 
 
@@ -765,8 +763,6 @@ def _sweep_and_fuse(images: Mapping[str, np.ndarray], cameras: Mapping[str, tupl
     (``ranges``: id -> (min, max) metres) and its neighbours chosen for their angle at the scene
     ``scene_depth`` metres along its axis (not at a fixed 5 m). Returns the fused points [N, 3] and
     the depth maps."""
-    from volcap_core.calibration.dense import DenseOptions, dense_points
-
     base = DenseOptions(scale=scale)
     if depth_tol is not None:
         base = replace(base, depth_tol=depth_tol)
@@ -791,8 +787,6 @@ def scene_depths(static: StaticCalibration, stage_size_m: Sequence[float],
     points' without the volume in view). Cameras with fewer than ``min_points`` sparse points in
     front are left out (they sweep the fixed range); none without a model. Kept in ``StaticCalibration.scene_depth``
     (:func:`~volcap_core.calibration.static_step.calibrate_static_step`) and the records after it."""
-    from volcap_core.stage import stage_volume
-
     model = static.model
     if model is None:
         return {}
@@ -829,13 +823,8 @@ def _surface_depth_ranges(plates: Mapping[str, np.ndarray], cameras: Mapping[str
     plates, its median depth (where its neighbours are chosen) and the stats saying how they were
     found. The probe chooses neighbours at the median distance to the other cameras (a rig looks
     across its stage)."""
-    import logging
-
-    from volcap_core.calibration.dense import sweep_range
-
     t0 = time.perf_counter()
     ids = sorted(cameras)
-    log = logging.getLogger("volcap.calibrate")
     gaps, spacing = camera_gaps([cameras[c][1] for c in ids])
     spacing = max(spacing, 1e-6)
     near, far = _PROBE_NEAR * spacing, _PROBE_FAR * spacing
@@ -916,10 +905,6 @@ def frame_without_lidar(world_to_camera: Mapping[str, np.ndarray], mounts: Mappi
     mounts surveyed to a few cm and a good SfM, a few cm) and ``mount_residual.<id>``, and with a
     known distance ``known_distance_*``. A camera further than ``options.mount_tolerance_m`` from its
     mount is logged as a warning (``mount_outliers``: how many)."""
-    import logging
-
-    from volcap_core.calibration.geometry import rotation_angle_deg
-
     ids = sorted(world_to_camera)
     src = np.stack([camera_centre(world_to_camera[c]) for c in ids])
     dst = np.stack([np.asarray(mounts[c], np.float64) for c in ids])
@@ -945,7 +930,7 @@ def frame_without_lidar(world_to_camera: Mapping[str, np.ndarray], mounts: Mappi
     far = [f"{c} {v:.3f} m" for c, v in zip(ids, r) if v > options.mount_tolerance_m]
     stats["mount_outliers"] = len(far)
     if far:
-        logging.getLogger("volcap.calibrate").warning(
+        log.warning(
             "no lidar scan: static camera(s) end further than %.2f m from their mounts after the similarity onto "
             "the mounts: %s (check the rig's mount positions)", options.mount_tolerance_m, ", ".join(far))
     return T, stats
