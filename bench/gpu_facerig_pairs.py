@@ -37,8 +37,8 @@ A GPU machine has no Prefect, pycolmap, OpenCV or artifact store, so the work is
    a few of warm-up): the cost of a step at the budget, not a converged model. ``render-<model>-<px>``:
    the trained models rendered along the first camera path at each render size (all its frames at
    1024 px and below, its first ``--large-frames`` above: at 4096² a frame's colour matrix and EXR
-   encode take seconds of CPU) by :func:`volcap_core.splat_pairs.render_path`, per frame the render (with the copy to the host),
-   the colour matrix (:func:`~volcap_core.calibration.colour.apply_colour_matrix`, as
+   encode take seconds of CPU) by :func:`volcap_core.splat_pairs.render_path`, per frame the render
+   (with the copy to the host), the colour matrix (:func:`~volcap_core.calibration.colour.apply_colour_matrix`, as
    ``render_path`` applies it), the EXR encode (:func:`~volcap_core.splat_pairs.encode_pair_frame`:
    16-bit half RGBA, the pairs' writer) and, for the LQ, its exact flow (``render_path(...,
    flow=True)`` over the path, less the frames' render time) and the flow EXR encode
@@ -335,6 +335,10 @@ class Run:
             torch.cuda.empty_cache()
             torch.cuda.reset_peak_memory_stats(self.device)
 
+    def allocated_gib(self) -> float | None:
+        """GPU memory held now (models kept for later stages count in a stage's peak)."""
+        return round(torch.cuda.memory_allocated(self.device) / 2**30, 3) if self.device.type == "cuda" else None
+
     def peak_gib(self) -> float | None:
         return round(torch.cuda.max_memory_allocated(self.device) / 2**30, 3) if self.device.type == "cuda" else None
 
@@ -370,6 +374,7 @@ def train_stage(r: Run, prep: Prepared, label: str, per_frame: int, steps: int, 
              "train_views": sum(v.camera_id not in set(config.held_out_cameras) for v in prep.data.views)}
     r.figures["stages"][f"train-{label}"] = stage
     r.reset_memory()
+    stage["resident_gib"] = r.allocated_gib()
     marks: list[tuple[int, float, int]] = []
     start = time.perf_counter()
 
@@ -415,6 +420,7 @@ def render_stage(r: Run, prep: Prepared, label: str, model, px: int, flow: bool,
     stage = {"px": px, "frames": len(views), "path_frames": len(path), "gaussians": len(model), "per_frame": []}
     r.figures["stages"][name] = stage
     r.reset_memory()
+    stage["resident_gib"] = r.allocated_gib()
     start = time.perf_counter()
     frames = []
     for k, view in enumerate(views):
@@ -504,11 +510,14 @@ def run(src: Path, out: Path, device: torch.device, budget_s: float, *, hq_steps
             from volcap_core.splat.render import resolve_backend
 
             chosen = resolve_backend(backend, device)
+            version = None
             if chosen.name == "gsplat":   # the extension built or loaded here, not inside a step
                 import importlib
+                import importlib.metadata
 
                 importlib.import_module("gsplat.cuda._backend")._C
-            r.figures["backend"] = {"name": chosen.name, "reason": chosen.reason,
+                version = importlib.metadata.version("gsplat")
+            r.figures["backend"] = {"name": chosen.name, "reason": chosen.reason, "version": version,
                                     "load_s": round(time.perf_counter() - t, 2)}
             r.log(f"back-end {chosen.name} ({chosen.reason}) in {r.figures['backend']['load_s']} s")
         models = {}
@@ -548,7 +557,8 @@ def report(out: Path) -> str:
     lines = [f"{f.get('capture')} frames {f.get('frames')}, held out {f.get('held_out')}; {f.get('device')} "
              f"({f.get('gpu')}), torch {f.get('torch')}, back-end {f.get('backend', {}).get('name', '-')}; "
              f"{f.get('elapsed_s')} s of a {f.get('budget_s')} s budget (loading {f.get('load_s')} s)", "",
-             "| stage | size | wall s | per step / frame (median, std) | peak GPU GiB |", "|---|---|---|---|---|"]
+             "| stage | size | wall s | per step / frame (median, std) | peak GPU GiB (of it held before) |",
+             "|---|---|---|---|---|"]
 
     def ms(sp: dict | None) -> str:
         if not sp or not sp.get("n"):
@@ -556,7 +566,7 @@ def report(out: Path) -> str:
         return f"{1000 * sp['median']:.1f} ms ({1000 * sp['std']:.1f}, n {sp['n']})"
 
     for name, s in f["stages"].items():
-        gib = "–" if s.get("peak_gpu_gib") is None else f"{s['peak_gpu_gib']:.2f}"
+        gib = "–" if s.get("peak_gpu_gib") is None else f"{s['peak_gpu_gib']:.2f} ({s.get('resident_gib', 0):.2f})"
         if name.startswith("train-"):
             size = (f"{s['gaussians']} Gaussians ({s['gaussians_per_frame']} a frame), "
                     f"{'×'.join(map(str, s['resolution'][0]))} views")
