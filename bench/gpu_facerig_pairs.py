@@ -571,7 +571,8 @@ def report(out: Path) -> str:
             size = (f"{s['gaussians']} Gaussians ({s['gaussians_per_frame']} a frame), "
                     f"{'×'.join(map(str, s['resolution'][0]))} views")
             what = (f"step {ms(s.get('step_s'))}; {s.get('growth_steps')} growth steps {s.get('growth_s')} s, "
-                    f"first step with init {s.get('first_step_s')} s")
+                    f"first step with init {s.get('first_step_s')} s"
+                    + (", stopped by the budget" if s.get("stopped") else ""))
         else:
             size = f"{s['px']}², {len(s['per_frame'])} of {s['path_frames']} frames, {s['gaussians']} Gaussians"
             what = f"render {ms(s.get('render_s'))}, colour {ms(s.get('colour_s'))}, EXR {ms(s.get('encode_s'))}"
