@@ -11,6 +11,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from flows.ingest import ingest_flow
 from flows.runtime import run_flow
@@ -29,6 +30,7 @@ def _bench():
     return mod
 
 
+@pytest.mark.slow   # ~50 s wall, ~27 s of CPU: an end-to-end run of the bench's three parts
 def test_prepare_run_report(prefect_api, tmp_path):
     """A 3-frame, 4-camera Face Rig capture and a 1-camera Scene Rig capture (the colour matrix's
     charts), prepared at 1 000 / 100-200 Gaussians a frame with two 32- and 48-px paths, trained
