@@ -3,6 +3,7 @@ performer? (issue 30; figures in ``docs/poly4dgs.md`` "Real footage" and ``docs/
 
     python bench/bench_pose2sim_heldout.py --workdir W --held cam02 [--steps 250] [--gaussians 20000]
         [--hull] [--clean-sweep] [--fill-shell] [--mask-alpha 0.1] [--tag T] [--json out.json] [--sheet sheet.jpg]
+        [--scale 1 --dense-scale 0.25 --gpu-prepare DIR [--gaussians-per-frame N]]
 
 ``../shared/data/real/pose2sim/Demo_SinglePerson``: 4 portrait phone cameras (1080x1920, 60 fps)
 47-138 degrees apart filming a person dancing on a treadmill; its Qualisys calibration imported
@@ -22,6 +23,11 @@ performer? (issue 30; figures in ``docs/poly4dgs.md`` "Real footage" and ``docs/
    the scores with their floors: the whole held-out view and its performers (the capture's masks),
    each beside the empty and untrained models on the same pixels, and (outside the protocol, a
    diagnostic) the raw renders' PSNR on the performers. The trained model is kept in the workdir.
+
+``--gpu-prepare DIR`` replaces stage 3: the same views (at ``--scale``, e.g. 1: full resolution) and
+initial points (:func:`segment_inputs`), dense points at ``--dense-scale``, at a production budget,
+written for ``bench/gpu_zoom_curve.py --run DIR`` on a GPU (its module doc; the command lines in
+``docs/benchmarks.md``, "Pose2Sim: the held-out camera's performers").
 
 The sheet: the first held-out frame's footage | render | error, the middle one's raw render, a
 training camera, then every held-out frame's performer cropped at 1:1 of the training resolution.

@@ -32,9 +32,19 @@ A GPU machine has no Prefect, pycolmap or OpenCV and no artifact store, so the w
 3. ``--report OUT`` (here): the curve as a Markdown table for ``docs/benchmarks.md`` and the
    contact sheet (truth | render | error, :mod:`volcap_core.contact_sheet`) from ``OUT/sheet.npz``.
 
+A real capture without ground truth (issue 30's GPU item: Pose2Sim at full resolution) is prepared
+by ``bench/bench_pose2sim_heldout.py --gpu-prepare DIR``, which builds the segment and its initial
+points with that bench's stages and writes them with :func:`write_prepared`: its frames rectified as
+``segment_data`` gives them, as 8-bit sRGB PNG (decoded here with Pillow, no OpenCV), its own
+performer masks (also the views' matte), no face regions (the figures have none), the held-out
+camera named. ``--run`` and ``--report`` are the same; the sheet then shows the held-out camera
+and one training camera, the whole frame at a quarter size and the performer at 1:1.
+
     python bench/gpu_zoom_curve.py --prepare .gpu-zoom --store /tmp/demo-base/store
     OUT=/tmp/gpu ZOOM_CURVE=.gpu-zoom ZOOM_ONLY=1 bash bench/gpu_checks.sh   # GPU; carry .gpu-zoom, .whl
     python bench/gpu_zoom_curve.py --report /path/to/OUT --sheet zoom_sheet.png
+    python bench/bench_pose2sim_heldout.py --workdir W --held cam02 --hull --clean-sweep --scale 1 \
+        --dense-scale 0.25 --hull-close-px 16 --steps 3000 --gpu-prepare .gpu-p2s   # the real capture
 """
 
 from __future__ import annotations
