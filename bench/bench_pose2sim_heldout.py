@@ -3,6 +3,7 @@ performer? (issue 30; figures in ``docs/poly4dgs.md`` "Real footage" and ``docs/
 
     python bench/bench_pose2sim_heldout.py --workdir W --held cam02 [--steps 250] [--gaussians 20000]
         [--hull] [--clean-sweep] [--fill-shell] [--mask-alpha 0.1] [--tag T] [--json out.json] [--sheet sheet.jpg]
+        [--scale 1 --dense-scale 0.25 --gpu-prepare DIR [--gaussians-per-frame N]]
 
 ``../shared/data/real/pose2sim/Demo_SinglePerson``: 4 portrait phone cameras (1080x1920, 60 fps)
 47-138 degrees apart filming a person dancing on a treadmill; its Qualisys calibration imported
@@ -22,6 +23,11 @@ performer? (issue 30; figures in ``docs/poly4dgs.md`` "Real footage" and ``docs/
    the scores with their floors: the whole held-out view and its performers (the capture's masks),
    each beside the empty and untrained models on the same pixels, and (outside the protocol, a
    diagnostic) the raw renders' PSNR on the performers. The trained model is kept in the workdir.
+
+``--gpu-prepare DIR`` replaces stage 3: the same views (at ``--scale``, e.g. 1: full resolution) and
+initial points (:func:`segment_inputs`), dense points at ``--dense-scale``, at a production budget,
+written for ``bench/gpu_zoom_curve.py --run DIR`` on a GPU (its module doc; the command lines in
+``docs/benchmarks.md``, "Pose2Sim: the held-out camera's performers").
 
 The sheet: the first held-out frame's footage | render | error, the middle one's raw render, a
 training camera, then every held-out frame's performer cropped at 1:1 of the training resolution.
@@ -184,35 +190,21 @@ def clean_moving(points, stage_size_m):
                    footprint=None if points.footprint is None else points.footprint[keep])
 
 
-def train(inputs: dict, points: str, args) -> dict:
-    """Stage 3: train, score against the floors, draw the sheet."""
-    import numpy as np
-    import torch
-
+def segment_inputs(inputs: dict, points: str, args, config) -> tuple:
+    """The segment's views and initial points as stage 3 trains them: ``(capture, calibration,
+    SegmentData, initial points)`` at ``config``'s image scale, with ``args``' ``--fill-shell``,
+    ``--clean-sweep`` and ``--hull`` applied (what ``--gpu-prepare`` writes too)."""
     from volcap_core import reconstruction
     from volcap_core.calibration.record import Calibration
     from volcap_core.capture import Capture
-    from volcap_core.contact_sheet import SheetRow, contact_sheet, encode_jpeg
     from volcap_core.pointcloud import PointCloudSequence
-    from volcap_core.production.presets import named_preset
-    from volcap_core.splat import train_segment
-    from volcap_core.splat.report import score_segment
-    from volcap_core.splat.scoring import cross_fitted_transforms, score_views
-    from volcap_core.splat.train import render_views
     from volcap_core.store import ArtifactStore
 
     s = ArtifactStore(inputs["store"])
-    cap_ref = s.resolve(inputs["capture"])
-    cap = s.get_record(cap_ref, Capture)
+    cap = s.get_record(s.resolve(inputs["capture"]), Capture)
     calib = s.get_record(s.resolve(inputs["calibration"]), Calibration)
     pts = s.get_record(s.resolve(points), PointCloudSequence)
-    n = cap.frame_count
-    overrides = {"eval_every": 0, "image_scale": args.scale}
-    if args.mask_alpha:
-        overrides["mask_alpha_weight"] = args.mask_alpha
-    config = named_preset("demo").with_steps(args.steps).train_config(held_out=[args.held],
-                                                                      max_gaussians=args.gaussians, **overrides)
-    data = reconstruction.segment_data(cap, calib, None, (0, n), reconstruction.FrameCache(s.get_bytes),
+    data = reconstruction.segment_data(cap, calib, None, (0, cap.frame_count), reconstruction.FrameCache(s.get_bytes),
                                        scale=config.image_scale)
     init = reconstruction.segment_init(s.get_bytes, cap, pts, data, config.held_out_cameras)
     if args.fill_shell:   # the room shell's points no training camera sees: the seen points' median colour
@@ -224,6 +216,64 @@ def train(inputs: dict, points: str, args) -> dict:
         hull = hull_points(data, config.held_out_cameras, cap.rig.stage_size_m, args.hull_close_px)
         print("hull points a frame:", [len(p.xyz) for p in hull], flush=True)
         init = list(init) + hull
+    return cap, calib, data, init
+
+
+def gpu_prepare(inputs: dict, points: str, args) -> None:
+    """``--gpu-prepare DIR``: the segment at ``--scale`` with the same initial points as stage 3
+    (:func:`segment_inputs`), at a production budget (``bench/gpu_zoom_curve.py``'s
+    :func:`demo_quality`: the production preset's Gaussians a frame and MCMC schedule stretched to
+    ``--steps``; ``--gaussians-per-frame`` a CPU check's), written for ``gpu_zoom_curve.py --run``
+    (:func:`write_prepared`: the rectified frames as 8-bit PNG, the capture's masks, no faces),
+    with each camera's performer box (:func:`performer_box`) for the sheet's 1:1 crops."""
+    import numpy as np
+
+    from bench.gpu_zoom_curve import demo_quality, write_prepared
+    from volcap_core.capture import Capture
+    from volcap_core.store import ArtifactStore
+
+    quality = demo_quality(args.steps, args.gaussians_per_frame).with_overrides(train_scale=args.scale)
+    n = inputs["frames"]
+    s = ArtifactStore(inputs["store"])
+    cap = s.get_record(s.resolve(inputs["capture"]), Capture)
+    width, height = max(c.width for c in cap.cameras), max(c.height for c in cap.cameras)
+    [planned] = quality.with_overrides(max_segment_frames=None).plan_segments((0, n), width, height).segments[:1]
+    config = quality.train_config(held_out=[args.held], max_gaussians=planned.gaussians)
+    cap, calib, data, init = segment_inputs(inputs, points, args, config)
+    boxes = {}
+    for c in data.camera_ids:
+        masks = [v.load_mask() for v in data.views if v.camera_id == c]
+        if all(m is not None for m in masks):
+            boxes[c] = performer_box([np.asarray(m) for m in masks], pad=max(12, round(12 * args.scale / 0.25)))
+    meta = {"capture": cap.name, "capture_ref": inputs["capture"], "calibration_ref": inputs["calibration"],
+            "points_ref": points, "store": inputs["store"], "frames": [0, n], "fps": cap.fps, "seed": 0,
+            "held_out": [args.held], "roles": {c.id: "static" if c.static else "tracking" for c in calib.cameras},
+            "gaussians": planned.gaussians, "preset": quality.model_dump(mode="json"),
+            "video_frames": [inputs["start"], inputs["start"] + n], "dense_scale": args.dense_scale,
+            "init": {"hull": args.hull, "hull_close_px": args.hull_close_px, "clean_sweep": args.clean_sweep,
+                     "fill_shell": args.fill_shell}}
+    write_prepared(args.gpu_prepare, data, init, config, meta, performer_boxes=boxes)
+
+
+def train(inputs: dict, points: str, args) -> dict:
+    """Stage 3: train, score against the floors, draw the sheet."""
+    import numpy as np
+    import torch
+
+    from volcap_core.contact_sheet import SheetRow, contact_sheet, encode_jpeg
+    from volcap_core.production.presets import named_preset
+    from volcap_core.splat import train_segment
+    from volcap_core.splat.report import score_segment
+    from volcap_core.splat.scoring import cross_fitted_transforms, score_views
+    from volcap_core.splat.train import render_views
+
+    overrides = {"eval_every": 0, "image_scale": args.scale}
+    if args.mask_alpha:
+        overrides["mask_alpha_weight"] = args.mask_alpha
+    config = named_preset("demo").with_steps(args.steps).train_config(held_out=[args.held],
+                                                                      max_gaussians=args.gaussians, **overrides)
+    cap, calib, data, init = segment_inputs(inputs, points, args, config)
+    n = cap.frame_count
     torch.manual_seed(0)
     t0 = time.perf_counter()
     result = train_segment(data, init, config, seed=0, device="cpu")
@@ -295,7 +345,7 @@ def train(inputs: dict, points: str, args) -> dict:
     return out
 
 
-def main() -> None:
+def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--workdir", type=Path, required=True)
     ap.add_argument("--held", default="cam02", choices=sorted(POSE2SIM_SIZES))
@@ -314,14 +364,25 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--json", type=Path)
     ap.add_argument("--sheet", type=str)
-    args = ap.parse_args()
+    ap.add_argument("--gpu-prepare", type=Path, metavar="DIR",
+                    help="instead of training: write DIR for bench/gpu_zoom_curve.py --run at --scale (a GPU's run)")
+    ap.add_argument("--dense-scale", type=float, default=None,
+                    help="dense points' scale (default: --scale; the GPU preparation's 0.25, the CPU runs' points)")
+    ap.add_argument("--gaussians-per-frame", type=int, default=None,
+                    help="--gpu-prepare: the budget a frame (default: the production preset's)")
+    args = ap.parse_args(argv)
+    if args.dense_scale is None:
+        args.dense_scale = args.scale
     import torch
 
     torch.set_num_threads(args.threads)
     args.workdir.mkdir(parents=True, exist_ok=True)
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
     inputs = prepare(args.workdir, args.start, args.frames)
-    points = dense_points(inputs, args.workdir, args.held, args.scale, args.max_angle)
+    points = dense_points(inputs, args.workdir, args.held, args.dense_scale, args.max_angle)
+    if args.gpu_prepare:
+        gpu_prepare(inputs, points, args)
+        return
     out = train(inputs, points, args)
     text = json.dumps(out, indent=1)
     print(text)

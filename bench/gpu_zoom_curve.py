@@ -32,9 +32,19 @@ A GPU machine has no Prefect, pycolmap or OpenCV and no artifact store, so the w
 3. ``--report OUT`` (here): the curve as a Markdown table for ``docs/benchmarks.md`` and the
    contact sheet (truth | render | error, :mod:`volcap_core.contact_sheet`) from ``OUT/sheet.npz``.
 
+A real capture without ground truth (issue 30's GPU item: Pose2Sim at full resolution) is prepared
+by ``bench/bench_pose2sim_heldout.py --gpu-prepare DIR``, which builds the segment and its initial
+points with that bench's stages and writes them with :func:`write_prepared`: its frames rectified as
+``segment_data`` gives them, as 8-bit sRGB PNG (decoded here with Pillow, no OpenCV), its own
+performer masks (also the views' matte), no face regions (the figures have none), the held-out
+camera named. ``--run`` and ``--report`` are the same; the sheet then shows the held-out camera
+and one training camera, the whole frame at a quarter size and the performer at 1:1.
+
     python bench/gpu_zoom_curve.py --prepare .gpu-zoom --store /tmp/demo-base/store
     OUT=/tmp/gpu ZOOM_CURVE=.gpu-zoom ZOOM_ONLY=1 bash bench/gpu_checks.sh   # GPU; carry .gpu-zoom, .whl
     python bench/gpu_zoom_curve.py --report /path/to/OUT --sheet zoom_sheet.png
+    python bench/bench_pose2sim_heldout.py --workdir W --held cam02 --hull --clean-sweep --scale 1 \
+        --dense-scale 0.25 --hull-close-px 16 --steps 3000 --gpu-prepare .gpu-p2s   # the real capture
 """
 
 from __future__ import annotations
@@ -100,8 +110,6 @@ def prepare(dst: Path, store_url: str, steps: int, *, capture: str | None = None
             gaussians_per_frame: int | None = None) -> None:
     """Part 1 (module doc). ``gaussians_per_frame``: :func:`demo_quality`'s (None: the production
     preset's)."""
-    from safetensors.numpy import save as st_save
-
     from volcap_core import reconstruction
     from volcap_core.calibration.record import Calibration
     from volcap_core.capture import Capture
@@ -150,20 +158,63 @@ def prepare(dst: Path, store_url: str, steps: int, *, capture: str | None = None
     print(f"initial points: {sum(len(p.xyz) for p in init)} in {len(init)} clouds "
           f"({time.perf_counter() - t0:.1f} s)", flush=True)
 
-    shutil.rmtree(dst, ignore_errors=True)   # another demo's files would travel
+    faces = {}
+    for v in data.views:
+        # what fit_segment's head_region gives score_segment for this view (its camera's K as it is)
+        faces[(v.camera_id, v.frame)] = ground_truth.face_region(scene, v.time, v.camera.K.numpy(),
+                                                                 v.camera.world_to_camera.numpy(),
+                                                                 v.camera.width, v.camera.height)
+    roles = {c.id: "static" if c.static else "tracking" for c in calib.cameras}
+    meta = {"capture": cap.name, "capture_ref": cap_ref.digest, "calibration_ref": calib_ref.digest,
+            "points_ref": pts_ref.digest,
+            "store": str(store_url), "frames": [a, b], "fps": cap.fps, "seed": seed, "held_out": held,
+            "roles": roles, "gaussians": planned.gaussians, "preset": quality.model_dump(mode="json")}
+    write_prepared(dst, data, init, config, meta, faces=faces,
+                   exr_bytes=lambda v: s.get_bytes(cap.camera(v.camera_id).frames[v.frame]))
+
+
+def write_prepared(dst: Path, data, init, config, meta: dict, *, faces: dict | None = None,
+                   exr_bytes=None, performer_boxes: dict[str, tuple[int, int, int, int]] | None = None) -> None:
+    """Write what ``--run`` loads (:class:`Prepared`) into ``dst`` (replaced): ``segment.json``
+    (``meta`` and each view's camera), ``frames/``, ``masks.npz`` (each view's performer mask as
+    ``View.load_mask`` gives it), ``init.safetensors`` (the initial points ``init``), and where
+    they exist ``faces.npz`` (``faces``: ``(camera, frame)`` -> ``[H, W]`` bool face region),
+    ``valid.npz`` (the pixels that hold footage after rectification).
+
+    Footage: ``exr_bytes(view)`` gives each view's half-float EXR as the capture stores it (its
+    views neither resampled nor rectified); without it the views' images as ``segment_data`` gives
+    them (rectified, resampled) are written as 8-bit sRGB PNG (a real capture is 8-bit video: its
+    rectified frames rounded to the video's own depth, so that full-resolution footage fits the
+    64 MiB a GPU call carries; decoded without OpenCV), and its masks are the capture's own (also
+    the views' matte). ``performer_boxes``: camera -> ``(y0, y1, x0, x1)``, the sheet's 1:1 crop
+    for a capture without face regions."""
+    from safetensors.numpy import save as st_save
+
+    from volcap_core.colour import srgb_encode
+    from volcap_core.contact_sheet import encode_png
+
+    shutil.rmtree(dst, ignore_errors=True)   # another capture's files would travel
     (dst / "frames").mkdir(parents=True)
-    views, masks, faces = [], {}, {}
+    views, masks, valid = [], {}, {}
     for v in data.views:
         name = f"{v.camera_id}_{v.frame:06d}"
-        (dst / "frames" / f"{name}.exr").write_bytes(s.get_bytes(cap.camera(v.camera_id).frames[v.frame]))
-        K, w2c = v.camera.K.numpy(), v.camera.world_to_camera.numpy()
+        if exr_bytes is not None:
+            (dst / "frames" / f"{name}.exr").write_bytes(exr_bytes(v))
+        else:
+            codes = (srgb_encode(v.load()[..., :3].numpy()) * 255.0).round().clip(0, 255).astype(np.uint8)
+            (dst / "frames" / f"{name}.png").write_bytes(encode_png(codes))
+            ok = v.load_valid()
+            if ok is not None:
+                valid[name] = ok.numpy()
         masks[name] = v.load_mask().numpy().astype(np.float32)
-        # what fit_segment's head_region gives score_segment for this view (its camera's K as it is)
-        faces[name] = ground_truth.face_region(scene, v.time, K, w2c, v.camera.width, v.camera.height)
+        K, w2c = v.camera.K.numpy(), v.camera.world_to_camera.numpy()
         views.append({"camera": v.camera_id, "frame": v.frame, "time": v.time, "K": K.tolist(),
                       "world_to_camera": w2c.tolist(), "width": v.camera.width, "height": v.camera.height})
     np.savez_compressed(dst / "masks.npz", **masks)
-    np.savez_compressed(dst / "faces.npz", **faces)
+    if faces is not None:
+        np.savez_compressed(dst / "faces.npz", **{f"{c}_{f:06d}": m for (c, f), m in faces.items()})
+    if valid:
+        np.savez_compressed(dst / "valid.npz", **valid)
     # footprints only where init_model reads them (the GPU gets 64 MiB with its wheels)
     footprints = config.init_moving_scale_px is not None or config.init_finest_level < 0
     clouds: dict[str, np.ndarray] = {}
@@ -175,16 +226,17 @@ def prepare(dst: Path, store_url: str, steps: int, *, capture: str | None = None
         if p.footprint is not None and footprints:
             clouds[f"{i}/footprint"] = _compact(p.footprint.numpy())
     (dst / "init.safetensors").write_bytes(st_save(clouds, {"times": json.dumps([p.time for p in init])}))
-    roles = {c.id: "static" if c.static else "tracking" for c in calib.cameras}
-    meta = {"capture": cap.name, "capture_ref": cap_ref.digest, "calibration_ref": calib_ref.digest,
-            "points_ref": pts_ref.digest,
-            "store": str(store_url), "frames": [a, b], "fps": cap.fps, "seed": seed, "held_out": held,
-            "roles": roles, "gaussians": planned.gaussians, "preset": quality.model_dump(mode="json"),
-            "views": views}
+    meta = dict(meta)
+    if exr_bytes is None:
+        meta["footage"] = "png"
+    if performer_boxes is not None:
+        meta["performer_boxes"] = {c: [int(x) for x in b] for c, b in performer_boxes.items()}
+    meta["views"] = views
     (dst / "segment.json").write_text(json.dumps(meta, indent=1))
     size = sum(f.stat().st_size for f in dst.rglob("*") if f.is_file())
+    a, b = meta["frames"]
     print(f"{dst}: {size / 2**20:.1f} MiB; {len(views)} views of {len(data.camera_ids)} cameras, frames {a}:{b}, "
-          f"held out {', '.join(held)}; {planned.gaussians} Gaussians, {config.steps} steps "
+          f"held out {', '.join(config.held_out_cameras)}; {meta['gaussians']} Gaussians, {config.steps} steps "
           f"(MCMC refinement {config.mcmc.refine_start}:{config.mcmc.refine_stop} every {config.mcmc.refine_every})")
 
 
@@ -199,12 +251,12 @@ def _compact(a: np.ndarray) -> np.ndarray:
 
 class Prepared:
     """What ``--prepare`` wrote, loaded: the segment's views (:class:`~volcap_core.splat.SegmentData`,
-    footage decoded once), initial points, face regions, roles and the preset."""
+    footage decoded once), initial points, face regions (None for a capture without them: its
+    figures have no face region), roles and the preset."""
 
     def __init__(self, src: Path):
         from safetensors import safe_open
 
-        from volcap_core.imageio.read import decode_exr
         from volcap_core.production.presets import QualityPreset
         from volcap_core.splat import Camera, PointsAtTime, SegmentData, View
 
@@ -213,18 +265,24 @@ class Prepared:
             raise SystemExit(f"{path}: missing (is {src} a folder written by --prepare?)")
         self.meta = json.loads(path.read_text())
         self.quality = QualityPreset.model_validate(self.meta["preset"])
-        masks, faces = np.load(src / "masks.npz"), np.load(src / "faces.npz")
-        views, self.faces = [], {}
+        masks = np.load(src / "masks.npz")
+        faces = np.load(src / "faces.npz") if (src / "faces.npz").is_file() else None
+        valid = np.load(src / "valid.npz") if (src / "valid.npz").is_file() else None
+        own_masks = self.meta.get("footage") == "png"   # a real capture's masks: its own, also the matte
+        views = []
+        self.faces = None if faces is None else {}
         for v in self.meta["views"]:
             name = f"{v['camera']}_{v['frame']:06d}"
-            exr = src / "frames" / f"{name}.exr"
-            pixels, _ = decode_exr(exr.read_bytes(), name=str(exr))
-            image = torch.from_numpy(np.ascontiguousarray(pixels[..., :3], dtype=np.float32))
+            image = _footage(src / "frames", name)
             camera = Camera(K=torch.tensor(v["K"], dtype=torch.float32),
                             world_to_camera=torch.tensor(v["world_to_camera"], dtype=torch.float32),
                             width=v["width"], height=v["height"])
-            views.append(View(v["camera"], v["frame"], v["time"], camera, image, torch.from_numpy(masks[name])))
-            self.faces[(v["camera"], v["frame"])] = faces[name]
+            mask = torch.from_numpy(masks[name])
+            ok = torch.from_numpy(valid[name]) if valid is not None and name in valid.files else None
+            views.append(View(v["camera"], v["frame"], v["time"], camera, image, mask, valid=ok,
+                              matte=mask if own_masks else None))
+            if faces is not None:
+                self.faces[(v["camera"], v["frame"])] = faces[name]
         self.data = SegmentData(tuple(self.meta["frames"]), views)
         self.init = []
         with safe_open(str(src / "init.safetensors"), framework="pt") as f:
@@ -245,8 +303,43 @@ class Prepared:
         return quality.train_config(held_out=self.meta["held_out"], max_gaussians=self.meta["gaussians"],
                                     eval_every=0, checkpoint_every=max(1, n // max(1, evals)), backend=backend)
 
-    def head_region(self, view) -> np.ndarray:
-        return self.faces[(view.camera_id, view.frame)]
+    def head_region(self, view) -> np.ndarray | None:
+        return None if self.faces is None else self.faces[(view.camera_id, view.frame)]
+
+    def crop_box(self, view) -> tuple[int, int, int, int]:
+        """``(y0, y1, x0, x1)`` of the sheet's 1:1 crop of ``view``: around its face region (a third
+        of its height beyond it) or, for a capture without faces, its camera's performer box."""
+        h, w = view.camera.height, view.camera.width
+        if self.faces is None:
+            box = self.meta.get("performer_boxes", {}).get(view.camera_id)
+            return tuple(box) if box else (0, h, 0, w)
+        face = np.asarray(self.head_region(view))
+        ys, xs = np.nonzero(face)
+        if not len(ys):
+            return 0, h, 0, w
+        pad = max(4, int(ys.max() - ys.min()) // 3)
+        return (max(0, ys.min() - pad), min(h, ys.max() + pad + 1), max(0, xs.min() - pad),
+                min(w, xs.max() + pad + 1))
+
+
+def _footage(folder: Path, name: str) -> torch.Tensor:
+    """A view's footage ``[H, W, 3]`` linear float32: ``name.exr`` (half float, as a capture stores
+    it) or ``name.png`` (8-bit sRGB: :func:`write_prepared`'s rectified real footage)."""
+    exr, png = folder / f"{name}.exr", folder / f"{name}.png"
+    if exr.is_file():
+        from volcap_core.imageio.read import decode_exr
+
+        pixels, _ = decode_exr(exr.read_bytes(), name=str(exr))
+        return torch.from_numpy(np.ascontiguousarray(pixels[..., :3], dtype=np.float32))
+    if not png.is_file():
+        raise SystemExit(f"{folder}: no {name}.exr or {name}.png (is it a folder written by --prepare?)")
+    from PIL import Image
+
+    from volcap_core.colour import srgb_decode
+
+    with Image.open(png) as im:
+        codes = np.asarray(im.convert("RGB"))
+    return torch.from_numpy(srgb_decode(codes.astype(np.float32) / 255.0))
 
 
 def _pick(views, n: int) -> list:
@@ -285,10 +378,13 @@ class RegionScorer:
 
     @staticmethod
     def _view_regions(v, prep: Prepared) -> dict[str, torch.Tensor]:
+        """The regions scored in ``v``: the performers and, where the capture has them, the face."""
         perf = v.load_mask() >= 0.5
         valid = v.load_valid()
         if valid is not None:
             perf = perf & valid
+        if prep.faces is None:
+            return {"performers": perf}
         return {"performers": perf, "face": perf & torch.as_tensor(prep.head_region(v), dtype=torch.bool)}
 
     def _fit(self, model, which: str) -> tuple[list[torch.Tensor], list]:
@@ -316,8 +412,10 @@ class RegionScorer:
 
     def figures(self, outputs: dict[str, list[torch.Tensor]], *, floors: bool = False) -> dict:
         """``{"regions": view set -> role -> {"cameras", "trained": region -> figures}}`` as
-        ``scores.regions`` (with ``floors``, also ``"initial"`` and ``"empty"``), and per view set the
-        PSNR/SSIM summary of the outputs (whole frame and performers)."""
+        ``scores.regions`` (with ``floors``, also ``"initial"`` and ``"empty"``), per view set the
+        PSNR/SSIM summary of the outputs (whole frame and performers; held out: raw and fitted),
+        with ``floors`` the floors' summaries (``"floor_summaries"``: floor -> view set -> summary),
+        and ``"held_out_raw"``: role -> model -> the held-out performers' figures in the raw renders."""
         from volcap_core.splat.scoring import mean_region_scores, score_region, score_views, summarise
 
         models = {"trained": outputs, **(self.floors if floors else {})}
@@ -329,62 +427,95 @@ class RegionScorer:
                 per_role[role] = {"cameras": sorted({views[i].camera_id for i in idx}), **{
                     name: {region: mean_region_scores([score_region(o[which][i], self.targets[which][i],
                                                                     self.regions[which][i][region]) for i in idx])
-                           for region in ("performers", "face")} for name, o in models.items()}}
+                           for region in self.regions[which][idx[0]]} for name, o in models.items()}}
             out["regions"][which] = per_role
             if not views:
                 continue
             masks, valid = [v.load_mask() for v in views], [v.load_valid() for v in views]
-            if which == "held_out":   # raw renders and their transforms: raw figures beside the fitted
-                renders, tfs = outputs["held_out_fit"]
-                out[which] = summarise(score_views(renders, self.targets[which], [v.camera_id for v in views],
-                                                   [v.frame for v in views], masks, transforms=tfs,
-                                                   valid=valid)).to_json()
-            else:   # through the grids: the fit itself, scored as it is
-                out[which] = summarise(score_views(outputs[which], self.targets[which],
-                                                   [f"{v.camera_id}#{v.frame}" for v in views], [0] * len(views),
-                                                   masks, valid=valid)).to_json()
+            summaries = {"trained": (outputs["held_out_fit"] if which == "held_out" else outputs[which])}
+            if floors:   # the floors' whole-frame figures on the same views
+                summaries.update({name: (r[which] if which == "held_out" else self.floors[name][which])
+                                  for name, r in self.floor_renders.items()})
+            for name, o in summaries.items():
+                if which == "held_out":   # raw renders and their transforms: raw figures beside the fitted
+                    renders, tfs = o
+                    fig = summarise(score_views(renders, self.targets[which], [v.camera_id for v in views],
+                                                [v.frame for v in views], masks, transforms=tfs,
+                                                valid=valid)).to_json()
+                else:   # through the grids (the floors through their fit): scored as it is
+                    fig = summarise(score_views(o, self.targets[which], [f"{v.camera_id}#{v.frame}" for v in views],
+                                                [0] * len(views), masks, valid=valid)).to_json()
+                if name == "trained":
+                    out[which] = fig
+                else:
+                    out.setdefault("floor_summaries", {}).setdefault(name, {})[which] = fig
+        # the held-out performers in the raw renders (no colour transform: outside the protocol, what
+        # the fitted figure flattens when the render does not correlate with the footage)
+        raws = {"trained": outputs["held_out_fit"][0],
+                **({name: r["held_out"][0] for name, r in self.floor_renders.items()} if floors else {})}
+        held = self.views["held_out"]
+        out["held_out_raw"] = {role: {name: mean_region_scores([
+            score_region(r[i], self.targets["held_out"][i], self.regions["held_out"][i]["performers"])
+            for i, v in enumerate(held) if self.roles.get(v.camera_id, "static") == role])
+            for name, r in raws.items()} for role in sorted({self.roles.get(v.camera_id, "static") for v in held})}
         return out
 
     def sheet(self, outputs: dict[str, list[torch.Tensor]], model, grids, pick: list, prep: Prepared
               ) -> dict[str, np.ndarray]:
-        """Face crops of the views ``pick`` (linear float32): ``<camera>/truth``, ``<camera>/face``
-        (bool) and ``<camera>/initial``, ``<camera>/trained``: the model as scored (held-out views
-        through the cross-fitted gain/offset; a training view through the grids, the untrained
-        model's being the identity training starts from)."""
+        """Crops of the views ``pick`` at 1:1 (:meth:`Prepared.crop_box`: the face, or a capture
+        without faces the performer; linear float32, float16 without faces: full-resolution crops
+        must come back in 16 MiB): ``<camera>/truth``, ``<camera>/face`` (bool: the region, the
+        performers' without faces) and ``<camera>/initial``, ``<camera>/trained``: the model as
+        scored (held-out views through the cross-fitted gain/offset; a training view through the
+        grids, the untrained model's being the identity training starts from). Without faces also
+        ``<camera>/trained_raw`` (a held-out view's render without its colour transform) and the
+        whole frame at a quarter of the size, ``<camera>/whole/<truth|initial|trained>``."""
         from volcap_core.splat.train import render_views
 
+        real = prep.faces is None
         out: dict[str, np.ndarray] = {}
         for v in pick:
-            face = np.asarray(prep.head_region(v))
-            ys, xs = np.nonzero(face)
-            if len(ys):
-                pad = max(4, int(ys.max() - ys.min()) // 3)
-                y0, y1 = max(0, ys.min() - pad), min(face.shape[0], ys.max() + pad + 1)
-                x0, x1 = max(0, xs.min() - pad), min(face.shape[1], xs.max() + pad + 1)
-            else:
-                y0, y1, x0, x1 = 0, face.shape[0], 0, face.shape[1]
+            y0, y1, x0, x1 = prep.crop_box(v)
+            region = np.asarray(prep.head_region(v)) if not real else v.load_mask().numpy() >= 0.5
             if v in self.views["held_out"]:
                 i = self.views["held_out"].index(v)
                 imgs = {"initial": self.floors["initial"]["held_out"][i], "trained": outputs["held_out"][i]}
+                if real:
+                    imgs["trained_raw"] = outputs["held_out_fit"][0][i]
             else:
                 imgs = {"initial": render_views(self.initial, [v], self.config, device=self.device)[0],
                         "trained": grids.apply(render_views(model, [v], self.config, device=self.device)[0],
                                                v.camera_id)}
-            out[f"{v.camera_id}/truth"] = v.load()[y0:y1, x0:x1, :3].numpy()
-            out[f"{v.camera_id}/face"] = face[y0:y1, x0:x1]
+            dtype = np.float16 if real else np.float32
+            truth = v.load()[..., :3]
+            out[f"{v.camera_id}/truth"] = truth[y0:y1, x0:x1].numpy().astype(dtype)
+            out[f"{v.camera_id}/face"] = region[y0:y1, x0:x1]
             for name, img in imgs.items():
-                out[f"{v.camera_id}/{name}"] = img[y0:y1, x0:x1].detach().cpu().numpy()
+                out[f"{v.camera_id}/{name}"] = img[y0:y1, x0:x1].detach().cpu().numpy().astype(dtype)
+            if real:
+                for name, img in (("truth", truth), ("initial", imgs["initial"]), ("trained", imgs["trained"])):
+                    out[f"{v.camera_id}/whole/{name}"] = _quarter(img).astype(dtype)
         return out
 
 
+def _quarter(img: torch.Tensor) -> np.ndarray:
+    """``[H, W, 3]`` -> ``[H/4, W/4, 3]`` area-averaged, on the CPU."""
+    x = img.detach().float().cpu().permute(2, 0, 1)[None]
+    return torch.nn.functional.avg_pool2d(x, 4)[0].permute(1, 2, 0).numpy()
+
+
 def sheet_views(prep: Prepared, config) -> list:
-    """The zoom (tracking) cameras' views the sheet shows, at the segment's middle frame: the
-    held-out ones first, then the training ones (the demo's S010, then S008, S009, S011)."""
+    """The views the sheet shows, at the segment's middle frame: the zoom (tracking) cameras', the
+    held-out ones first, then the training ones (the demo's S010, then S008, S009, S011); on a rig
+    without zoom cameras (Pose2Sim) the held-out cameras' and the first training camera's."""
     roles = prep.meta["roles"]
     mid = prep.data.frames[0] + (prep.data.frames[1] - prep.data.frames[0]) // 2
-    zoom = [v for v in prep.data.views if roles.get(v.camera_id) == "tracking" and v.frame == mid]
+    at_mid = [v for v in prep.data.views if v.frame == mid]
+    zoom = [v for v in at_mid if roles.get(v.camera_id) == "tracking"]
     held = set(config.held_out_cameras)
-    return [v for v in zoom if v.camera_id in held] + [v for v in zoom if v.camera_id not in held]
+    if zoom:
+        return [v for v in zoom if v.camera_id in held] + [v for v in zoom if v.camera_id not in held]
+    return [v for v in at_mid if v.camera_id in held] + [v for v in at_mid if v.camera_id not in held][:1]
 
 
 class _Stop(Exception):
@@ -424,9 +555,13 @@ def run(src: Path, out: Path, device: torch.device, budget_s: float, steps: int 
         curve["floors_s"] = round(time.perf_counter() - t0, 2)
         curve["floors"] = {which: {role: {k: r[k] for k in ("cameras", "initial", "empty")}
                                    for role, r in per_role.items()} for which, per_role in floors["regions"].items()}
+        curve["floor_summaries"] = floors.get("floor_summaries", {})
+        curve["floors_held_out_raw"] = {role: {k: r[k] for k in ("initial", "empty")}
+                                        for role, r in floors["held_out_raw"].items()}
         points = [{"step": 0, "wall_s": 0.0, "elapsed_s": round(elapsed(), 2), "gaussians": len(scorer.initial),
                    "score_s": curve["floors_s"], "held_out": floors.get("held_out"),
-                   "training": floors.get("training"), "regions": _trained_only(floors["regions"])}]
+                   "training": floors.get("training"), "regions": _trained_only(floors["regions"]),
+                   "held_out_raw": {role: r["trained"] for role, r in floors["held_out_raw"].items()}}]
         trace: list[list] = []
         last: dict = {}
         pick = sheet_views(prep, config)
@@ -447,7 +582,8 @@ def run(src: Path, out: Path, device: torch.device, budget_s: float, steps: int 
             points.append({"step": step, "wall_s": round(state.wall_s, 3), "elapsed_s": round(elapsed(), 2),
                            "gaussians": len(model), "score_s": round(time.perf_counter() - t, 2),
                            "held_out": fig.get("held_out"), "training": fig.get("training"),
-                           "regions": fig["regions"]})
+                           "regions": fig["regions"],
+                           "held_out_raw": {role: r["trained"] for role, r in fig["held_out_raw"].items()}})
             last.update(model=model, grids=grids, outputs=outputs)
             _print_point(points[-1])
             # the next checkpoint, scored, would end past the budget: stop at this one
@@ -490,13 +626,43 @@ def _print_point(p: dict) -> None:
     for which, per_role in p["regions"].items():
         for role, r in per_role.items():
             f = r["trained"]
-            parts.append(f"{which}/{role} perf {_fig(f['performers'], 'psnr', 2)} dB det {_fig(f['performers'], 'detail', 3)}"
-                         f" face {_fig(f['face'], 'psnr', 2)} dB det {_fig(f['face'], 'detail', 3)}")
+            face = f" face {_fig(f['face'], 'psnr', 2)} dB det {_fig(f['face'], 'detail', 3)}" if "face" in f else ""
+            parts.append(f"{which}/{role} perf {_fig(f['performers'], 'psnr', 2)} dB det "
+                         f"{_fig(f['performers'], 'detail', 3)}{face}")
+    held = p.get("held_out") or {}
+    if held:
+        parts.append(f"held-out whole {_fig(held, 'psnr', 2)} dB (raw {_fig(held, 'psnr_raw', 2)})")
     print(f"step {p['step']:>6} wall {p['wall_s']:8.1f} s elapsed {p['elapsed_s']:7.1f} s {p['gaussians']:>8} G  "
           + "; ".join(parts), flush=True)
 
 
 # --------------------------------------------------------------------------------------- report
+
+def _whole_table(curve: dict) -> None:
+    """The whole-frame figures per scored step beside the floors: held out under the protocol
+    (PSNR fitted / raw, performers fitted / raw) and the training views (PSNR, performers)."""
+    def row(held: dict | None, raw: dict | None, training: dict | None) -> str:
+        held, training = held or {}, training or {}
+        perf_raw = None if not raw else _fig(raw.get("performers"), "psnr", 2)
+        return (f"{_fig(held, 'psnr', 2)} / {_fig(held, 'psnr_raw', 2)} | {_fig(held, 'psnr_performers', 2)} / "
+                f"{perf_raw or '–'} | {_fig(training, 'psnr', 2)} / {_fig(training, 'psnr_performers', 2)}")
+
+    def raw_of(per_role: dict, key: str | None) -> dict | None:
+        rs = [r if key is None else r.get(key) for r in per_role.values()]
+        return rs[0] if len(rs) == 1 else None   # one held-out role: its figures (several: see curve.json)
+
+    print("\n| step | train s | held-out PSNR fitted / raw | held-out performers fitted / raw | "
+          "training views / performers |")
+    print("|---|---|---|---|---|")
+    for p in curve["points"]:
+        print(f"| {p['step']} | {p['wall_s']:.1f} | "
+              + row(p.get("held_out"), {"performers": raw_of(p.get("held_out_raw", {}), None)}, p.get("training")) + " |")
+    for floor in ("empty", "initial"):
+        f = curve["floor_summaries"].get(floor, {})
+        print(f"| {floor} model (floor) | – | "
+              + row(f.get("held_out"), {"performers": raw_of(curve.get("floors_held_out_raw", {}), floor)},
+                    f.get("training")) + " |")
+
 
 def report(out: Path, sheet: Path | None) -> None:
     """Part 3 (module doc)."""
@@ -506,8 +672,10 @@ def report(out: Path, sheet: Path | None) -> None:
           f"stopped by {curve['stopped']}; {curve['device']} ({curve['gpu']}), {curve['backend']}, "
           f"torch {curve['torch']}; {curve['elapsed_s']} s in all (load {curve['load_s']} s, floors {curve['floors_s']} s)")
     cols = [(which, role) for which, per_role in curve["floors"].items() for role in per_role]
+    faces = any("face" in r["empty"] for per_role in curve["floors"].values() for r in per_role.values())
     head = "| step | train s | Gaussians | " + " | ".join(
-        f"{which.replace('_', '-')} {role}: perf dB / detail, face dB / detail" for which, role in cols) + " |"
+        f"{which.replace('_', '-')} {role}: perf dB / detail" + (", face dB / detail" if faces else "")
+        for which, role in cols) + " |"
     print(head)
     print("|" + "---|" * (3 + len(cols)))
 
@@ -515,8 +683,9 @@ def report(out: Path, sheet: Path | None) -> None:
         out = []
         for which, role in cols:
             f = get(which, role)
-            out.append("–" if f is None else f"{_fig(f['performers'], 'psnr', 2)} / {_fig(f['performers'], 'detail', 3)}, "
-                       f"{_fig(f['face'], 'psnr', 2)} / {_fig(f['face'], 'detail', 3)}")
+            face = f", {_fig(f['face'], 'psnr', 2)} / {_fig(f['face'], 'detail', 3)}" if f and "face" in f else ""
+            out.append("–" if f is None else f"{_fig(f['performers'], 'psnr', 2)} / "
+                       f"{_fig(f['performers'], 'detail', 3)}{face}")
         return " | ".join(out)
 
     for p in curve["points"]:
@@ -525,6 +694,8 @@ def report(out: Path, sheet: Path | None) -> None:
     for floor in ("empty", "initial"):
         print(f"| {floor} model (floor) | – | – | " + cells(lambda w, r: curve["floors"][w][r][floor]) + " |")
     print("cameras: " + "; ".join(f"{w} {r}: {', '.join(curve['floors'][w][r]['cameras'])}" for w, r in cols))
+    if "floor_summaries" in curve:
+        _whole_table(curve)
     crops = np.load(out / "sheet.npz")
     if sheet is not None and not crops.files:
         print("no sheet: the run stopped before its first checkpoint")
@@ -532,13 +703,23 @@ def report(out: Path, sheet: Path | None) -> None:
         from volcap_core.contact_sheet import SheetRow, contact_sheet, write_sheet
 
         cams = sorted({k.split("/")[0] for k in crops.files}, key=lambda c: (c not in curve["held_out"], c))
+        real = any("/whole/" in k for k in crops.files)   # a capture without faces: the performer
+        region = "performer at 1:1" if real else "face"
         rows = []
         for cam in cams:
             role = "held out" if cam in curve["held_out"] else "training"
-            for name, label in (("initial", "step 0"), ("trained", f"step {curve['sheet_step']}")):
-                rows.append(SheetRow(f"{cam} ({role}) face, {label}", crops[f"{cam}/truth"],
-                                     crops[f"{cam}/{name}"], crops[f"{cam}/face"].astype(np.float32)))
-        write_sheet(sheet, contact_sheet(rows, title=f"{curve['capture']} zoom cameras' faces: truth | render | error"))
+            mask = crops[f"{cam}/face"].astype(np.float32)
+            steps = [("initial", "step 0"), ("trained", f"step {curve['sheet_step']}")]
+            if real:
+                rows += [SheetRow(f"{cam} ({role}) whole frame at 1/4, {label}", crops[f"{cam}/whole/truth"].astype(
+                    np.float32), crops[f"{cam}/whole/{name}"].astype(np.float32)) for name, label in steps]
+                if f"{cam}/trained_raw" in crops.files:
+                    steps.append(("trained_raw", f"step {curve['sheet_step']}, raw render (no colour transform)"))
+            for name, label in steps:
+                rows.append(SheetRow(f"{cam} ({role}) {region}, {label}", crops[f"{cam}/truth"].astype(np.float32),
+                                     crops[f"{cam}/{name}"].astype(np.float32), mask))
+        what = "held-out and training cameras" if real else "zoom cameras' faces"
+        write_sheet(sheet, contact_sheet(rows, title=f"{curve['capture']} {what}: truth | render | error"))
         print(f"sheet {sheet}")
 
 
