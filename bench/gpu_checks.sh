@@ -7,16 +7,19 @@
 #      rendered flow), Poly4DGS training through gsplat, RAFT with torchvision;
 #   4. bench/bench_rasterizer.py on CUDA, gsplat beside the torch back-end;
 #   5. bench/bench_poly4dgs_step.py: a Poly4DGS training step against a static 3DGS of the same count;
-#   6. with GPU_CLOSEUP=DIR (a folder from `python bench/gpu_closeup.py --prepare DIR`, its DIR/gpu
-#      carried): the demo's close-up rendered through gsplat and enhanced on CUDA, timed per frame
-#      (bench/gpu_closeup.py --run; its files come back to be scored with --score). CLOSEUP_ONLY=1
-#      runs it alone (after the gsplat build): $OUT then holds gpu.txt, closeup.log, timings.json
-#      and the parts closeup_exrs.tar.NN.
-#   7. with ZOOM_CURVE=DIR (a folder from `python bench/gpu_zoom_curve.py --prepare DIR`, carried): the
-#      demo segment at a production-size budget trained through gsplat, detail and PSNR per camera
-#      role against time (bench/gpu_zoom_curve.py --run, stopped within ZOOM_BUDGET_S, default 250 s;
-#      read it back with --report). ZOOM_ONLY=1 runs it alone (after the gsplat build): $OUT then
-#      holds gpu.txt, zoom.log, curve.json and sheet.npz.
+#   6. the prepared runs, each from a folder written here on CPU (a GPU machine has no Prefect, pycolmap,
+#      OpenCV or store) and carried; each runs after the gsplat build, so no timing holds the build:
+#      GPU_CLOSEUP=DIR (`python bench/gpu_closeup.py --prepare DIR`, its DIR/gpu carried): the demo's
+#        close-up rendered through gsplat and enhanced on CUDA, timed per frame (issue 27; $OUT/closeup.log,
+#        timings.json and the parts closeup_exrs.tar.NN, scored here with --score);
+#      ZOOM_CURVE=DIR (`python bench/gpu_zoom_curve.py --prepare DIR`): the demo segment at a production-size
+#        budget, detail and PSNR per camera role against time, stopped within ZOOM_BUDGET_S (issue 28;
+#        $OUT/zoom/: curve.json, sheet.npz, log; read back with --report);
+#      P2S=DIR (`python bench/bench_pose2sim_heldout.py ... --gpu-prepare DIR`): issue 30's real capture at full
+#        resolution, gpu_zoom_curve's run over the prepared Pose2Sim segment within P2S_BUDGET_S ($OUT/p2s/);
+#      PAIRS=DIR (`python bench/gpu_facerig_pairs.py --prepare DIR`): the Face Rig pair stages' time and GPU
+#        memory at 1024² and 4096² within PAIRS_BUDGET_S (issue 29; $OUT/pairs/).
+#      PREPARED_ONLY=1 runs the build and the prepared runs alone (what a 15-minute lease holds).
 # Results go to $OUT (default /tmp/volcap-gpu). Python packages the machine lacks can travel as
 # wheels in .whl/ (installed with --no-deps into /tmp/site). On 2026-11-26 an H200 image with torch
 # 2.11 (Python 3.12) lacked pydantic, pydantic_core, annotated_types, typing_inspection, diffusers
@@ -27,8 +30,8 @@
 # as a collection error, the GPU tests run regardless).
 #
 #   OUT=/tmp/gpu bash bench/gpu_checks.sh
-#   OUT=/tmp/gpu GPU_CLOSEUP=.gpu CLOSEUP_ONLY=1 bash bench/gpu_checks.sh   # the close-up alone
-#   OUT=/tmp/gpu ZOOM_CURVE=.gpu-zoom ZOOM_ONLY=1 bash bench/gpu_checks.sh   # the zoom curve alone
+#   OUT=/tmp/gpu GPU_CLOSEUP=.gpu PREPARED_ONLY=1 bash bench/gpu_checks.sh          # the close-up alone
+#   OUT=/tmp/gpu P2S=.gpu-p2s PAIRS=.gpu-pairs PREPARED_ONLY=1 bash bench/gpu_checks.sh   # two prepared runs
 set -u
 OUT=${OUT:-/tmp/volcap-gpu}
 mkdir -p "$OUT"
@@ -42,48 +45,45 @@ export PYTHONPATH=${PYTHONPATH:+$PYTHONPATH:}$PWD
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv | tee "$OUT/gpu.txt"
 python3 -c "import torch, diffusers; print('torch', torch.__version__, 'cuda', torch.version.cuda, 'diffusers', diffusers.__version__)"
 
-# 6. the demo's close-up (issue 27): the extension built first, so no frame's time holds the build
-closeup() {
-    export MAX_JOBS=${MAX_JOBS:-14} TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0}
-    {
-        timeout "${GSPLAT_BUILD_S:-400}" python3 -c "
-import time; t = time.time()
-from gsplat.cuda._backend import _C
-print('gsplat extension:', _C, f'{time.time() - t:.0f} s')"
-        timeout "${CLOSEUP_S:-300}" python3 bench/gpu_closeup.py --run "$GPU_CLOSEUP" --out "$OUT" --device cuda
-    } 2>&1 | tee "$OUT/closeup.log" | tail -40
-}
-if [ -n "${GPU_CLOSEUP:-}" ] && [ -n "${CLOSEUP_ONLY:-}" ]; then
-    closeup
-    exit
-fi
-
-# 7. the demo segment at a production-size budget (issue 28): the extension built first, so no step's
-# time holds the build; the run stops itself within ZOOM_BUDGET_S, the timeout is the backstop
-zoom() {
-    export MAX_JOBS=${MAX_JOBS:-14} TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0}
-    {
-        timeout "${GSPLAT_BUILD_S:-400}" python3 -c "
-import time; t = time.time()
-from gsplat.cuda._backend import _C
-print('gsplat extension:', _C, f'{time.time() - t:.0f} s')"
-        timeout "${ZOOM_S:-300}" python3 bench/gpu_zoom_curve.py --run "$ZOOM_CURVE" --out "$OUT" --device cuda \
-            --budget-s "${ZOOM_BUDGET_S:-250}"
-    } 2>&1 | tee "$OUT/zoom.log" | tail -40
-}
-if [ -n "${ZOOM_CURVE:-}" ] && [ -n "${ZOOM_ONLY:-}" ]; then
-    zoom
-    exit
-fi
-
-# 1. gsplat's extension, in the background (CPU-bound: it overlaps the GPU-bound enhancer bench)
-(
+# gsplat's CUDA extension, built before any prepared run is timed
+build_gsplat() {
     export MAX_JOBS=${MAX_JOBS:-14} TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0}
     timeout "${GSPLAT_BUILD_S:-400}" python3 -c "
 import time; t = time.time()
 from gsplat.cuda._backend import _C
 print('gsplat extension:', _C, f'{time.time() - t:.0f} s')"
-) > "$OUT/gsplat_build.log" 2>&1 &
+}
+
+# 6. the prepared runs (each stops itself within its budget; the timeout is the backstop)
+prepared() {
+    if [ -n "${GPU_CLOSEUP:-}" ]; then
+        timeout "${CLOSEUP_S:-300}" python3 bench/gpu_closeup.py --run "$GPU_CLOSEUP" --out "$OUT" --device cuda \
+            2>&1 | tee "$OUT/closeup.log" | tail -40
+    fi
+    if [ -n "${ZOOM_CURVE:-}" ]; then
+        mkdir -p "$OUT/zoom"
+        timeout "${ZOOM_S:-300}" python3 bench/gpu_zoom_curve.py --run "$ZOOM_CURVE" --out "$OUT/zoom" --device cuda \
+            --budget-s "${ZOOM_BUDGET_S:-250}" 2>&1 | tee "$OUT/zoom/log" | tail -40
+    fi
+    if [ -n "${P2S:-}" ]; then
+        mkdir -p "$OUT/p2s"
+        timeout "${P2S_S:-230}" python3 bench/gpu_zoom_curve.py --run "$P2S" --out "$OUT/p2s" --device cuda \
+            --budget-s "${P2S_BUDGET_S:-200}" 2>&1 | tee "$OUT/p2s/log" | tail -40
+    fi
+    if [ -n "${PAIRS:-}" ]; then
+        mkdir -p "$OUT/pairs"
+        timeout "${PAIRS_S:-180}" python3 bench/gpu_facerig_pairs.py --run "$PAIRS" --out "$OUT/pairs" --device cuda \
+            --budget-s "${PAIRS_BUDGET_S:-150}" 2>&1 | tee "$OUT/pairs/log" | tail -40
+    fi
+}
+if [ -n "${PREPARED_ONLY:-}" ]; then
+    build_gsplat
+    prepared
+    exit
+fi
+
+# 1. gsplat's extension, in the background (CPU-bound: it overlaps the GPU-bound enhancer bench)
+build_gsplat > "$OUT/gsplat_build.log" 2>&1 &
 build=$!
 
 # 2. the enhancer at full size
@@ -105,10 +105,5 @@ timeout "${RASTER_S:-120}" python3 bench/bench_rasterizer.py --device cuda --bac
 # 5. Poly4DGS's step against a static 3DGS's, through gsplat (the paper: "no visible overhead")
 timeout "${STEP_S:-150}" python3 bench/bench_poly4dgs_step.py --device cuda --frames 1 8 \
     --json "$OUT/poly4dgs_step.json" 2>&1 | tee "$OUT/poly4dgs_step.log"
-if [ -n "${GPU_CLOSEUP:-}" ]; then
-    closeup
-fi
-if [ -n "${ZOOM_CURVE:-}" ]; then
-    zoom
-fi
+prepared
 echo done
