@@ -2,7 +2,7 @@
 performer? (issue 30; figures in ``docs/poly4dgs.md`` "Real footage" and ``docs/benchmarks.md``).
 
     python bench/bench_pose2sim_heldout.py --workdir W --held cam02 [--steps 250] [--gaussians 20000]
-        [--hull] [--clean-sweep] [--fill-shell] [--mask-alpha 0.1] [--tag T] [--json out.json] [--sheet sheet.jpg]
+        [--fill-shell] [--mask-alpha 0.1] [--tag T] [--json out.json] [--sheet sheet.jpg]
         [--scale 1 --dense-scale 0.25 --gpu-prepare DIR [--gaussians-per-frame N]]
 
 ``../shared/data/real/pose2sim/Demo_SinglePerson``: 4 portrait phone cameras (1080x1920, 60 fps)
@@ -16,10 +16,10 @@ performer? (issue 30; figures in ``docs/poly4dgs.md`` "Real footage" and ``docs/
 2. dense points per frame at the training scale, the held-out camera left out
    (``dense_points_step``; ``--max-angle`` widens the sweep's triangulation angle so that a pair
    remains when cam01 or cam02 is held out);
-3. training (``fit_segment``'s steps, ``train-segment``'s initial model; ``--hull`` adds the
-   performers' visual hull from the training cameras' masks, :func:`volcap_core.splat.init.visual_hull`),
-   ``--clean-sweep`` drops the sweep's moving points outside the stage volume, ``--fill-shell`` keeps
-   the room shell's points no training camera sees, coloured by the median of the seen ones), then
+3. training (``fit_segment``'s steps, ``train-segment``'s initial model: with the capture's masks
+   it holds the performers' visual hull and drops the sweep's moving points outside the stage,
+   :func:`volcap_core.reconstruction.with_performer_hull`; ``--fill-shell`` keeps the room shell's
+   points no training camera sees, coloured by the median of the seen ones), then
    the scores with their floors: the whole held-out view and its performers (the capture's masks),
    each beside the empty and untrained models on the same pixels, and (outside the protocol, a
    diagnostic) the raw renders' PSNR on the performers. The trained model is kept in the workdir.
@@ -121,34 +121,6 @@ def performer_box(masks, pad: int = 12) -> tuple[int, int, int, int]:
     return max(0, ys.min() - pad), min(h, ys.max() + pad + 1), max(0, xs.min() - pad), min(w, xs.max() + pad + 1)
 
 
-def hull_points(data, held_out, stage_size_m, close_px: int) -> list:
-    """Each frame's visual hull of the training cameras' masks (``View.matte``, their holes filled:
-    :func:`volcap_core.masks.filled`), coloured by them (:func:`~volcap_core.splat.init.colour_scan`),
-    as moving points."""
-    import numpy as np
-    import torch
-
-    from volcap_core.masks import filled
-    from volcap_core.splat.init import colour_scan, visual_hull
-    from volcap_core.splat.train import PointsAtTime
-    from volcap_core.stage import stage_volume
-
-    out = []
-    for f in sorted({v.frame for v in data.views}):
-        views = [v for v in data.views if v.frame == f and v.camera_id not in held_out and v.load_matte() is not None]
-        cams = []
-        for v in views:
-            K = v.camera.K.double().numpy().copy()
-            K[0, 2] -= 0.5   # splat cameras put pixel centres at +0.5
-            K[1, 2] -= 0.5
-            cams.append((K, v.camera.world_to_camera.double().numpy(), filled(v.load_matte().numpy(), close_px=close_px)))
-        xyz = visual_hull(cams, stage_volume(stage_size_m))
-        rgb, seen = colour_scan(xyz, views)
-        out.append(PointsAtTime(time=views[0].time, xyz=torch.from_numpy(xyz[seen].astype(np.float32)),
-                                rgb=torch.from_numpy(rgb[seen]), static=torch.zeros(int(seen.sum()), dtype=torch.bool)))
-    return out
-
-
 def filled_shell(data, cap, held_out, time_s: float):
     """The room shell (``segment_init``'s last cloud) with every point, those no training camera
     sees coloured by the median of the seen ones instead of dropped (they are what a held-out
@@ -172,24 +144,6 @@ def filled_shell(data, cap, held_out, time_s: float):
     return reconstruction.with_footprints([shell], data, held_out)[0]
 
 
-def clean_moving(points, stage_size_m):
-    """``points`` without its moving points outside the stage volume (the sweep's mismatches)."""
-    from dataclasses import replace
-
-    import torch
-
-    from volcap_core.stage import stage_volume
-
-    (x0, y0, z0), (x1, y1, z1) = stage_volume(stage_size_m)
-    xyz = points.xyz
-    inside = ((xyz[:, 0] >= x0) & (xyz[:, 0] <= x1) & (xyz[:, 1] >= y0) & (xyz[:, 1] <= y1)
-              & (xyz[:, 2] >= z0) & (xyz[:, 2] <= z1))
-    static = points.static if points.static is not None else torch.zeros(len(xyz), dtype=torch.bool)
-    keep = inside | static
-    return replace(points, xyz=xyz[keep], rgb=points.rgb[keep], static=None if points.static is None else static[keep],
-                   footprint=None if points.footprint is None else points.footprint[keep])
-
-
 def segment_inputs(inputs: dict, points: str, args, config) -> tuple:
     """The segment's views and initial points as stage 3 trains them: ``(capture, calibration,
     SegmentData, initial points)`` at ``config``'s image scale, with ``args``' ``--fill-shell``,
@@ -209,13 +163,7 @@ def segment_inputs(inputs: dict, points: str, args, config) -> tuple:
     init = reconstruction.segment_init(s.get_bytes, cap, pts, data, config.held_out_cameras)
     if args.fill_shell:   # the room shell's points no training camera sees: the seen points' median colour
         init = list(init[:-1]) + [filled_shell(data, cap, config.held_out_cameras, init[-1].time)]
-    if args.clean_sweep:   # the sweep's moving points outside the stage volume: mismatches, not performers
-        init = [clean_moving(p, cap.rig.stage_size_m) for p in init]
-        print("points after the clean-up:", [len(p.xyz) for p in init], flush=True)
-    if args.hull:
-        hull = hull_points(data, config.held_out_cameras, cap.rig.stage_size_m, args.hull_close_px)
-        print("hull points a frame:", [len(p.xyz) for p in hull], flush=True)
-        init = list(init) + hull
+    print("initial points a cloud:", [len(p.xyz) for p in init], flush=True)
     return cap, calib, data, init
 
 
@@ -229,6 +177,7 @@ def gpu_prepare(inputs: dict, points: str, args) -> None:
     import numpy as np
 
     from bench.gpu_zoom_curve import demo_quality, write_prepared
+    from volcap_core import reconstruction
     from volcap_core.capture import Capture
     from volcap_core.store import ArtifactStore
 
@@ -250,7 +199,7 @@ def gpu_prepare(inputs: dict, points: str, args) -> None:
             "held_out": [args.held], "roles": {c.id: "static" if c.static else "tracking" for c in calib.cameras},
             "gaussians": planned.gaussians, "preset": quality.model_dump(mode="json"),
             "video_frames": [inputs["start"], inputs["start"] + n], "dense_scale": args.dense_scale,
-            "init": {"hull": args.hull, "hull_close_px": args.hull_close_px, "clean_sweep": args.clean_sweep,
+            "init": {"performer_hull": reconstruction.has_performer_mattes(data, [args.held]),
                      "fill_shell": args.fill_shell}}
     write_prepared(args.gpu_prepare, data, init, config, meta, performer_boxes=boxes)
 
@@ -260,6 +209,7 @@ def train(inputs: dict, points: str, args) -> dict:
     import numpy as np
     import torch
 
+    from volcap_core import reconstruction
     from volcap_core.contact_sheet import SheetRow, contact_sheet, encode_jpeg
     from volcap_core.production.presets import named_preset
     from volcap_core.splat import train_segment
@@ -281,7 +231,7 @@ def train(inputs: dict, points: str, args) -> dict:
     roles = {c.id: "static" for c in calib.cameras}
     report = score_segment(result.model, result.grids, data, init, config, seed=0, device="cpu", roles=roles)
     out = {"held": args.held, "steps": args.steps, "gaussians": args.gaussians, "fill_shell": args.fill_shell,
-           "clean_sweep": args.clean_sweep, "hull": args.hull, "hull_close_px": args.hull_close_px,
+           "performer_hull": reconstruction.has_performer_mattes(data, [args.held]),
            "mask_alpha": args.mask_alpha, "scale": args.scale, "train_wall_s": round(wall, 1),
            "gaussians_final": len(result.model), "held_out": {k: v.to_json() for k, v in report.held_out.items()},
            "training": report.training.to_json(), "regions": report.regions,
@@ -356,9 +306,6 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--steps", type=int, default=250)
     ap.add_argument("--gaussians", type=int, default=20000)
     ap.add_argument("--fill-shell", action="store_true", help="keep the room shell's unseen points, median-coloured")
-    ap.add_argument("--clean-sweep", action="store_true", help="drop the sweep's moving points outside the stage")
-    ap.add_argument("--hull", action="store_true", help="add the performers' visual hull to the initial points")
-    ap.add_argument("--hull-close-px", type=int, default=4, help="masks closed over this radius for the hull")
     ap.add_argument("--mask-alpha", type=float, default=0.0, help="TrainConfig.mask_alpha_weight")
     ap.add_argument("--tag", default="run", help="names the saved model in the workdir")
     ap.add_argument("--threads", type=int, default=1)

@@ -43,8 +43,8 @@ and one training camera, the whole frame at a quarter size and the performer at 
     python bench/gpu_zoom_curve.py --prepare .gpu-zoom --store /tmp/demo-base/store
     OUT=/tmp/gpu ZOOM_CURVE=.gpu-zoom ZOOM_ONLY=1 bash bench/gpu_checks.sh   # GPU; carry .gpu-zoom, .whl
     python bench/gpu_zoom_curve.py --report /path/to/OUT --sheet zoom_sheet.png
-    python bench/bench_pose2sim_heldout.py --workdir W --held cam02 --hull --clean-sweep --scale 1 \
-        --dense-scale 0.25 --hull-close-px 16 --steps 3000 --gpu-prepare .gpu-p2s   # the real capture
+    python bench/bench_pose2sim_heldout.py --workdir W --held cam02 --scale 1 --dense-scale 0.25 \
+        --steps 3000 --gpu-prepare .gpu-p2s   # the real capture
 """
 
 from __future__ import annotations

@@ -84,7 +84,7 @@ def ground_truth_points(store: str, capture: ArtifactRef, calibration: ArtifactR
                                            method=f"ground-truth depth, {points_per_frame} per frame"))
 
 
-@volcap_task(name="train-segment", version="10", retries=1, libraries=RECONSTRUCTION_LIBRARIES)
+@volcap_task(name="train-segment", version="11", retries=1, libraries=RECONSTRUCTION_LIBRARIES)
 def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRef, points: ArtifactRef,
                        frames: list[int], config: TrainConfig, seed: int) -> ArtifactRef:
     """Train one Poly4DGS segment, score it against its floors and draw its contact sheet

@@ -32,7 +32,8 @@ def _module(path: Path, name: str):
 @pytest.mark.slow
 def test_real_capture_prepare_run_report(prefect_api, tmp_path):
     """2 frames of the 4 cameras at 1/16 size (68x120), masks against the whole videos' medians, dense
-    points at 1/8 without cam02, the hull and the sweep's clean-up, 500 Gaussians a frame, 4 steps.
+    points at 1/8 without cam02, the performers' hull and the sweep's clean-up (the capture has masks),
+    500 Gaussians a frame, 4 steps.
     ~75 s on the 2 busy cores (2026-11-28), most of it the ingest of the 1080x1920 MP4 frames."""
     if not POSE2SIM.is_dir():
         pytest.skip(f"needs {POSE2SIM} (absent without ../shared)")
@@ -50,7 +51,7 @@ def test_real_capture_prepare_run_report(prefect_api, tmp_path):
     points = p2s.dense_points(inputs, work, "cam02", 0.125, 70.0)
     src = tmp_path / "prep"
     args = argparse.Namespace(held="cam02", scale=1 / 16, dense_scale=0.125, steps=4, gaussians_per_frame=500,
-                              hull=True, hull_close_px=1, clean_sweep=True, fill_shell=False, gpu_prepare=src)
+                              fill_shell=False, gpu_prepare=src)
     p2s.gpu_prepare(inputs, points, args)
 
     meta = json.loads((src / "segment.json").read_text())

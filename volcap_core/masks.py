@@ -63,33 +63,6 @@ def plate_mask(frame: np.ndarray, plate: np.ndarray, *, low: float = LOW, high: 
     return np.clip((r - low) / (high - low), 0.0, 1.0).astype(np.float32)
 
 
-def filled(mask: np.ndarray, *, threshold: float = 0.5, close_px: int = 5) -> np.ndarray:
-    """A plate mask with the holes in its silhouettes filled: the pixels at ``threshold`` or more,
-    closed over ``close_px`` (a disc of that radius) and hole-filled, are set to 1; the soft edge
-    outside them is kept.
-
-    A median plate keeps a performer who stays in one place as a ghost (a torso over a
-    treadmill): where the frame matches the ghost, the relative difference falls below ``LOW`` and
-    the mask has holes inside an otherwise closed outline. Holes also carve a visual hull.
-
-    Args:
-        mask: ``[H, W]`` coverage in [0, 1] (:func:`plate_mask`).
-    Returns:
-        ``[H, W]`` float32 in [0, 1], never below ``mask``.
-    """
-    from scipy import ndimage
-
-    m = np.asarray(mask, np.float32)
-    r = int(close_px)
-    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
-    disc = xx * xx + yy * yy <= r * r
-    solid = m >= threshold
-    if r > 0:
-        solid = ndimage.binary_closing(np.pad(solid, r), structure=disc)[r:-r, r:-r]
-    solid = ndimage.binary_fill_holes(solid)
-    return np.maximum(m, solid.astype(np.float32))
-
-
 def linear_frames(folder: CaptureFolder, camera_id: str, take_indices: Sequence[int]) -> Iterator[tuple[int, np.ndarray]]:
     """``(take index, [H, W, 3] scene-linear RGB)`` of a camera's frames, in ascending take order:
     image files decoded and linearised by their ``encoding`` (:func:`volcap_core.ingest.to_scene_linear`),

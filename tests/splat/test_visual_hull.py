@@ -1,5 +1,5 @@
 """The performers' visual hull from their masks (``splat.init.visual_hull``; docs/poly4dgs.md, "Real
-footage"), and the plate masks' hole filling it is built from (``masks.filled``). A sphere seen by
+footage"), and the masks' hole filling it is built from (``splat.init.filled_silhouette``). A sphere seen by
 four cameras: the hull's surface holds the sphere (no point inside it), stays within the masks of
 every camera, and fills each camera's mask when drawn back. ~10 s at load 15-20 (6 s the sphere)."""
 
@@ -7,9 +7,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from volcap_core.masks import filled
 from volcap_core.splat.camera import look_at
-from volcap_core.splat.init import visual_hull
+from volcap_core.splat.init import filled_silhouette, visual_hull
 
 CENTRE, RADIUS = np.array([0.2, -0.1, 1.0]), 0.3
 #: the volume carved: around the sphere (the stage volume in use; a small one keeps the test fast)
@@ -71,7 +70,7 @@ def test_filled_closes_a_silhouette_with_a_hole_and_keeps_its_soft_edge():
     r = np.hypot(x - 30, y - 30)
     ring = ((r >= 8) & (r <= 20)).astype(np.float32)      # a torso whose middle matched the plate
     ring[(r > 20) & (r <= 21)] = 0.3                       # the soft edge outside
-    out = filled(ring, close_px=2)
+    out = filled_silhouette(ring, close_px=2)
     assert out[30, 30] == 1.0 and (out[r < 8] == 1.0).all()
     assert np.allclose(out[(r > 20.5) & (r <= 21)], 0.3)   # the soft edge kept, not hardened
     assert out[0, 0] == 0.0                                 # the outside untouched

@@ -449,6 +449,35 @@ def room_shell(camera_centres: np.ndarray, stage: tuple, *, margin_m: float = 1.
     return np.concatenate(faces)
 
 
+def filled_silhouette(mask: np.ndarray, *, threshold: float = 0.5, close_px: int = 5) -> np.ndarray:
+    """A performer mask with the holes in its silhouettes filled: the pixels at ``threshold`` or more,
+    closed over ``close_px`` (a disc of that radius) and hole-filled, are set to 1; the soft edge
+    outside them is kept.
+
+    A median plate keeps a performer who stays in one place as a ghost (a torso over a
+    treadmill): where the frame matches the ghost, the relative difference falls below
+    :data:`volcap_core.masks.LOW` and the mask has holes inside an otherwise closed outline. Holes
+    would carve a tunnel through :func:`visual_hull`, which is what this is for.
+
+    Args:
+        mask: ``[H, W]`` coverage in [0, 1] (a capture's performer mask, e.g.
+            :func:`volcap_core.masks.plate_mask`'s).
+    Returns:
+        ``[H, W]`` float32 in [0, 1], never below ``mask``.
+    """
+    from scipy import ndimage
+
+    m = np.asarray(mask, np.float32)
+    r = int(close_px)
+    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+    disc = xx * xx + yy * yy <= r * r
+    solid = m >= threshold
+    if r > 0:
+        solid = ndimage.binary_closing(np.pad(solid, r), structure=disc)[r:-r, r:-r]
+    solid = ndimage.binary_fill_holes(solid)
+    return np.maximum(m, solid.astype(np.float32))
+
+
 def visual_hull(cameras: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]], volume: tuple, *,
                 spacing_m: float = 0.025, threshold: float = 0.5, min_views: int = 2) -> np.ndarray:
     """The performers' visual hull from their masks: the surface voxels of the stage volume that
@@ -476,17 +505,20 @@ def visual_hull(cameras: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]], vo
     inside = np.ones(len(xyz), bool)
     seen = np.zeros(len(xyz), np.int32)
     for K, W, mask in cameras:
+        # only voxels no camera has carved yet are projected: the rest stay carved whatever this
+        # camera sees (the same hull as projecting all, a fraction of the work after the first)
+        idx = np.flatnonzero(inside)
         m = np.asarray(mask, np.float32) >= threshold
         h, w = m.shape
-        pc = xyz @ np.asarray(W, np.float64)[:3, :3].T + np.asarray(W, np.float64)[:3, 3]
+        pc = xyz[idx] @ np.asarray(W, np.float64)[:3, :3].T + np.asarray(W, np.float64)[:3, 3]
         z = pc[:, 2]
         ok = z > 0.1
-        uv = np.zeros((len(xyz), 2))
+        uv = np.zeros((len(idx), 2))
         uv[ok] = pc[ok, :2] / z[ok, None] @ np.asarray(K, np.float64)[:2, :2].T + np.asarray(K, np.float64)[:2, 2]
         ix = np.round(uv).astype(np.int64)
         ok &= (ix[:, 0] >= 0) & (ix[:, 0] < w) & (ix[:, 1] >= 0) & (ix[:, 1] < h)
-        seen += ok
-        inside[ok] &= m[ix[ok, 1], ix[ok, 0]]
+        seen[idx] += ok
+        inside[idx[ok]] = m[ix[ok, 1], ix[ok, 0]]
     inside &= seen >= min_views
     grid = inside.reshape(shape)
     pad = np.pad(grid, 1)
