@@ -1,9 +1,10 @@
 """Poly4DGS on a synthetic capture: held-out error against training time, and the paper's Table 1.
 
-    python bench/bench_poly4dgs.py            # the documented run (~8-10 min, see "Time")
-    python bench/bench_poly4dgs.py --quick    # smoke run (~30 s): tiny, numbers meaningless
-    python bench/bench_poly4dgs.py --json out.json --plot docs/img/poly4dgs_error_vs_time.png \\
-        --sheet docs/img/poly4dgs_contact_sheet.jpg
+    python bench/bench_poly4dgs.py            # 160x90, 360 steps (~10 min, see "Time")
+    python bench/bench_poly4dgs.py --quick    # smoke run (~50 s): tiny, numbers meaningless
+    python bench/bench_poly4dgs.py --downsample 1 --steps 720 --json out.json \\
+        --plot docs/img/poly4dgs_error_vs_time.png --sheet docs/img/poly4dgs_contact_sheet.jpg
+                                              # the documented run (docs/benchmarks.md, ~30 min)
 
 Scene: ``synthesize_capture(rig="demo_scene", seed=0, frames=N, write_depth=True)`` read back from
 its files (:mod:`poly4dgs_data`): 12 cameras (8 static, 4 zoom/tracking with veiling glare), each
@@ -87,11 +88,13 @@ full, rotor4d, per_frame, linear_storage), the initial model and the end only fo
 printed: what each run's exposure and black-level grids learned against the synthetic cameras'
 true gain and black offset.
 
-Time, on the shared 2-core development machine (load average 1.5-2): the full run alone took
-87 s (71 s wall / 68 s CPU of training, the rest scoring, the report and the sheet); all seven
-runs should take about 8-10 min at that load (an estimate, not measured as a whole; per-frame GS
-and sparse are cheaper than full), more on a busier machine (the old protocol's documented run:
-20.5 min at load 3-9, with 125 CPU s of training for full). Runs single-threaded (``torch.set_num_threads(1)``; see ``--threads``). Writes the PNG (two panels:
+Time, on the shared 2-core development machine: at these defaults, with S002 and S005 held out
+only (load average 1.5-2), the full run alone took 87 s (71 s wall / 68 s CPU of training, the
+rest scoring, the report and the sheet) and all seven runs should take about 8-10 min (an
+estimate, not measured as a whole); the held-out tracking camera adds half again to every
+evaluation. The documented run (``--downsample 1 --steps 720``, ``docs/benchmarks.md``) took
+1883 s at load 2.0-6.6 with the tracking camera held out and the region figures; ``--quick``
+about 50 s. Runs single-threaded (``torch.set_num_threads(1)``; see ``--threads``). Writes the PNG (two panels:
 PSNR against wall-clock and against CPU seconds, the empty floor dotted; needs matplotlib, the
 ``bench`` extra, else skipped with a warning) and, with ``--json``, every number.
 """
@@ -799,7 +802,8 @@ def plot(results: dict[str, MethodResult], empty: dict, path: Path, title: str) 
 HELP_DESCRIPTION = """\
 Poly4DGS on a synthetic capture: held-out error against training time (with the empty and
 untrained floors), and the paper's Table 1 with its ablations, under the library's held-out
-protocol (volcap_core.splat.scoring). Initial points as production builds them
+protocol (volcap_core.splat.scoring), with score_segment's region figures per camera role
+(performers and face: PSNR, SSIM, detail; held-out S002, S005 and the tracking S010). Initial points as production builds them
 (reconstruction.segment_points: lidar scan + persistence, the coloured scan appended).
 Defaults: 6 frames at 160x90, 5000 points per frame, 360 steps per run (8-10 min on
 2 lightly loaded cores).
@@ -819,7 +823,7 @@ def main(argv: list[str] | None = None) -> int:
         description=HELP_DESCRIPTION,
         epilog=HELP_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true",
-                    help="smoke run (~30 s): 2 frames at 80x45, 40 steps; numbers meaningless")
+                    help="smoke run (~50 s): 2 frames at 80x45, 40 steps; numbers meaningless")
     ap.add_argument("--frames", type=int, help="frames in the segment (default 6; quick 2)")
     ap.add_argument("--steps", type=int, help="optimiser steps per run, per-frame GS splits them "
                     "over its frames (default 360; quick 40)")
