@@ -1,14 +1,18 @@
 """Poly4DGS on a synthetic capture: held-out error against training time, and the paper's Table 1.
 
-    python bench/bench_poly4dgs.py            # the documented run (~8-10 min, see "Time")
-    python bench/bench_poly4dgs.py --quick    # smoke run (~30 s): tiny, numbers meaningless
-    python bench/bench_poly4dgs.py --json out.json --plot docs/img/poly4dgs_error_vs_time.png \\
-        --sheet docs/img/poly4dgs_contact_sheet.jpg
+    python bench/bench_poly4dgs.py            # 160x90, 360 steps (~10 min, see "Time")
+    python bench/bench_poly4dgs.py --quick    # smoke run (~50 s): tiny, numbers meaningless
+    python bench/bench_poly4dgs.py --downsample 1 --steps 720 --json out.json \\
+        --plot docs/img/poly4dgs_error_vs_time.png --sheet docs/img/poly4dgs_contact_sheet.jpg
+                                              # the documented run (docs/benchmarks.md, ~30 min)
 
 Scene: ``synthesize_capture(rig="demo_scene", seed=0, frames=N, write_depth=True)`` read back from
 its files (:mod:`poly4dgs_data`): 12 cameras (8 static, 4 zoom/tracking with veiling glare), each
-with its own gain, black offset and vignetting; two static cameras (S002, S005) are held out
-(never trained on, never used for the initial points).
+with its own gain, black offset and vignetting. Held out (never trained on, never used for the
+initial points): two static cameras (S002, S005) and the tracking camera the demo preset holds
+out (``QualityPreset.held_out_tracking`` through ``reconstruction.default_held_out``, the rule
+the demo's flow uses: S010, the wider portrait zoom; S008, S009 and S011 frame the faces closer
+and train), so the figures say how a zoom view the model never saw is drawn (issue 28).
 
 Initial points, as production builds them (``docs/poly4dgs.md`` "Initialisation"): the training
 cameras' ground-truth depth, back-projected per frame (``P`` points per frame), goes through
@@ -37,7 +41,7 @@ linear_storage     SH colours stored as linear radiance (no sRGB decode before r
 
 Evaluation: the library's held-out protocol (:mod:`volcap_core.splat.scoring`, what the
 ``train-segment`` task reports), the same for every run and every snapshot. All held-out views
-are rendered (2 cameras × N frames; per-frame GS renders each view with its frame's model) and
+are rendered (3 cameras × N frames; per-frame GS renders each view with its frame's model) and
 scored by :func:`~volcap_core.splat.scoring.score_views`: each held-out camera gets a gain and an
 offset per channel in linear light, **fitted on the camera's other frames** (two folds by frame
 parity), never on the view scored. Figures are on the display encoding (sRGB clamped to [0, 1]),
@@ -52,13 +56,23 @@ means over the views:
   fitted offsets can still draw each camera's mean colour; one per run, as it does not depend on
   the method) and ``initial`` (the method's untrained model, rebuilt from the same points, config
   and seed as training built it; it is also the step-0 point of every curve). A figure is worth
-  what it stands above its floors.
+  what it stands above its floors;
+* **region figures per camera role** of every run's end and of both its floors on the same
+  pixels (:class:`Evaluation`): what ``score_segment`` reports as ``regions``, by its own function
+  (:func:`volcap_core.splat.report.role_regions`) on its views: per view set (held out; the 12
+  training views it scores) and role (static, tracking), PSNR, SSIM and detail (the output's
+  gradient energy over the footage's, ``image_metrics.detail``) on the ``performers`` (mask >=
+  0.5) and the ``face`` (the performers within the actors' heads of ``ground_truth/scene.json``,
+  ``synth.ground_truth.face_region``). Held-out views after each model's cross-fitted
+  gain/offset, training views after the trained model's learned grids (the floors, which learned
+  none, after their cross-fitted gain/offset).
 
 The full run is also scored by :func:`volcap_core.splat.report.score_segment`, as the task does
-(its held-out figures must equal the bench's; a warning says when not): its training views with
-their learned grids (the fit itself: a ceiling, not generalisation) and a contact sheet (footage |
-render | error for the held-out and two training cameras at the first, middle and last frame),
-written to ``--sheet`` (default ``docs/img/poly4dgs_contact_sheet.jpg``; none with ``--quick``
+(its held-out figures and region figures must equal the bench's; a warning says when not): its
+training views with their learned grids (the fit itself: a ceiling, not generalisation) and a
+contact sheet (footage | render | error for the held-out cameras, the tracking one added to
+``score_segment``'s two, and a static and a tracking training camera at the first, middle and
+last frame), written to ``--sheet`` (default ``docs/img/poly4dgs_contact_sheet.jpg``; none with ``--quick``
 unless given).
 
 Snapshots come from ``train_segment``'s checkpoints; time on the x-axis is training time only
@@ -74,11 +88,13 @@ full, rotor4d, per_frame, linear_storage), the initial model and the end only fo
 printed: what each run's exposure and black-level grids learned against the synthetic cameras'
 true gain and black offset.
 
-Time, on the shared 2-core development machine (load average 1.5-2): the full run alone took
-87 s (71 s wall / 68 s CPU of training, the rest scoring, the report and the sheet); all seven
-runs should take about 8-10 min at that load (an estimate, not measured as a whole; per-frame GS
-and sparse are cheaper than full), more on a busier machine (the old protocol's documented run:
-20.5 min at load 3-9, with 125 CPU s of training for full). Runs single-threaded (``torch.set_num_threads(1)``; see ``--threads``). Writes the PNG (two panels:
+Time, on the shared 2-core development machine: at these defaults, with S002 and S005 held out
+only (load average 1.5-2), the full run alone took 87 s (71 s wall / 68 s CPU of training, the
+rest scoring, the report and the sheet) and all seven runs should take about 8-10 min (an
+estimate, not measured as a whole); the held-out tracking camera adds half again to every
+evaluation. The documented run (``--downsample 1 --steps 720``, ``docs/benchmarks.md``) took
+1883 s at load 2.0-6.6 with the tracking camera held out and the region figures; ``--quick``
+about 50 s. Runs single-threaded (``torch.set_num_threads(1)``; see ``--threads``). Writes the PNG (two panels:
 PSNR against wall-clock and against CPU seconds, the empty floor dotted; needs matplotlib, the
 ``bench`` extra, else skipped with a warning) and, with ``--json``, every number.
 """
@@ -111,12 +127,21 @@ from poly4dgs_data import (  # noqa: E402
     subsample_points,
 )
 
-from volcap_core.contact_sheet import contact_sheet, write_sheet  # noqa: E402
+from volcap_core import reconstruction  # noqa: E402
+from volcap_core.capture import CaptureFolder  # noqa: E402
+from volcap_core.contact_sheet import SheetRow, contact_sheet, write_sheet  # noqa: E402
+from volcap_core.production.presets import named_preset  # noqa: E402
 from volcap_core.splat.grids import ExposureGrids  # noqa: E402
 from volcap_core.splat.mcmc import MCMCConfig  # noqa: E402
 from volcap_core.splat.model import STATIC_LOG_LAMBDA, Poly4DGS, Poly4DGSConfig  # noqa: E402
-from volcap_core.splat.report import score_segment  # noqa: E402
-from volcap_core.splat.scoring import Scores, score_views, summarise  # noqa: E402
+from volcap_core.splat.report import role_regions, score_segment, sheet_views, spread_views  # noqa: E402
+from volcap_core.splat.scoring import (  # noqa: E402
+    ColourTransform,
+    Scores,
+    cross_fitted_transforms,
+    score_views,
+    summarise,
+)
 from volcap_core.splat.train import (  # noqa: E402
     LearningRates,
     PointsAtTime,
@@ -124,7 +149,6 @@ from volcap_core.splat.train import (  # noqa: E402
     TrainConfig,
     View,
     frame_interval,
-    evaluate_held_out,
     init_budget,
     init_model,
     render_views,
@@ -132,7 +156,12 @@ from volcap_core.splat.train import (  # noqa: E402
 )
 from volcap_core.synth import synthesize_capture  # noqa: E402
 
-HELD_OUT = ["S002", "S005"]
+HELD_OUT_STATIC = ["S002", "S005"]
+#: the preset whose held-out tracking cameras the bench holds out too (issue 28: the demo's S010)
+TRACKING_PRESET = "demo"
+TRAINING_VIEWS = 12   # training views scored, as score_segment's default max_training_views
+ROLES = ("static", "tracking")
+REGIONS = ("performers", "face")
 METHODS = ["full", "rotor4d", "per_frame", "no_black", "no_exposure", "sparse", "linear_storage"]
 CURVE_METHODS = ("full", "rotor4d", "per_frame", "linear_storage")
 LABELS = {
@@ -202,16 +231,98 @@ FIGURES = ("psnr", "ssim", "psnr_raw", "ssim_raw", "psnr_performers", "ssim_perf
 ModelOrFrames = Poly4DGS | dict[float, Poly4DGS] | None
 
 
-def held_out_scores(model: ModelOrFrames, views: list[View], cfg: TrainConfig) -> Scores:
-    """The library's held-out protocol on ``views``: a model (``evaluate_held_out``, what the task
-    reports), ``None`` (the empty model, a floor) or ``{time: model}`` (per-frame GS: every view
-    rendered by its frame's model, then the same :func:`score_views`)."""
-    if not isinstance(model, dict):
-        return summarise(evaluate_held_out(model, views, cfg))
-    renders = [render_views(model[v.time], [v], cfg)[0] for v in views]
-    return summarise(score_views(renders, [v.load()[..., :3] for v in views],
-                                 [v.camera_id for v in views], [v.frame for v in views],
-                                 [v.load_mask() for v in views]))
+def held_out_cameras(capture_dir: Path) -> list[str]:
+    """The bench's held-out cameras: the static S002 and S005 (Table 1's since the first run),
+    then the tracking cameras :data:`TRACKING_PRESET` holds out, picked by the rule the demo's
+    flow uses (``reconstruction.default_held_out``, ``QualityPreset.held_out_tracking``): S010
+    on the demo rig, the wider portrait zoom; S008, S009 and S011 frame the faces closer and
+    train."""
+    from types import SimpleNamespace
+
+    folder = CaptureFolder.open(capture_dir)
+    # default_held_out reads a capture's camera ids and rig: the folder's, before any ingest
+    capture = SimpleNamespace(rig=folder.rig, cameras=[SimpleNamespace(id=c) for c in folder.camera_ids])
+    tracking = reconstruction.default_held_out(
+        capture, n=0, tracking=named_preset(TRACKING_PRESET).held_out_tracking)
+    return HELD_OUT_STATIC + [c for c in tracking if c not in HELD_OUT_STATIC]
+
+
+def renders_of(model: ModelOrFrames, views: list[View], cfg: TrainConfig) -> list[torch.Tensor]:
+    """Linear renders of ``views``: a model, ``None`` (the empty model) or ``{time: model}``
+    (per-frame GS: every view rendered by its frame's model)."""
+    if isinstance(model, dict):
+        return [render_views(model[v.time], [v], cfg)[0] for v in views]
+    return render_views(model, views, cfg)
+
+
+class Evaluation:
+    """The views every run is scored on and the figures taken on them, by the library's code.
+
+    * Held-out views (every frame of the held-out cameras): the held-out protocol
+      (:mod:`volcap_core.splat.scoring`: renders, each camera's gain/offset cross-fitted on its
+      other frames, :func:`score_views`), what ``score_segment`` reports as ``held_out``.
+    * Region figures per camera role (:func:`volcap_core.splat.report.role_regions`, the function
+      ``score_segment`` computes its ``regions`` with): on the held-out views and on
+      ``score_segment``'s training views (:func:`spread_views`, 12), for a trained model and its
+      floors (its untrained model and the empty one) on the same pixels. Held out: each model
+      after its own cross-fitted gain/offset; training: the trained model after its learned
+      grids, the floors after their cross-fitted gain/offset; faces from the synthetic ground
+      truth (:meth:`BenchScene.head_region`).
+    """
+
+    def __init__(self, scene: BenchScene, cfg: TrainConfig):
+        held = set(scene.held_out)
+        self.scene = scene
+        self.held = [v for v in scene.data.views if v.camera_id in held]
+        self.training = spread_views([v for v in scene.data.views if v.camera_id not in held],
+                                     TRAINING_VIEWS)
+        self.targets = {"held_out": [v.load()[..., :3] for v in self.held],
+                        "training": [v.load()[..., :3] for v in self.training]}
+        empty_scores, self.empty_held = self.held_out(None, cfg)
+        self.empty = figures(empty_scores)
+        self.empty_training = self.fitted(None, "training", cfg)[1]
+
+    def fitted(self, model: ModelOrFrames, which: str, cfg: TrainConfig
+               ) -> tuple[list[torch.Tensor], list[torch.Tensor], list[ColourTransform]]:
+        """``model``'s renders of a view set (``"held_out"``, ``"training"``), the same through
+        each view's cross-fitted gain/offset, and those transforms."""
+        views = self.held if which == "held_out" else self.training
+        renders = renders_of(model, views, cfg)
+        tfs = cross_fitted_transforms(renders, self.targets[which], [v.camera_id for v in views],
+                                      [v.frame for v in views], [v.load_valid() for v in views])
+        return renders, [t.apply(r) for t, r in zip(tfs, renders)], tfs
+
+    def held_out(self, model: ModelOrFrames, cfg: TrainConfig) -> tuple[Scores, list[torch.Tensor]]:
+        """The held-out protocol's figures of ``model`` and its outputs (after the transforms)."""
+        renders, outputs, tfs = self.fitted(model, "held_out", cfg)
+        v = self.held
+        scores = score_views(renders, self.targets["held_out"], [x.camera_id for x in v],
+                             [x.frame for x in v], [x.load_mask() for x in v], transforms=tfs,
+                             valid=[x.load_valid() for x in v])
+        return summarise(scores), outputs
+
+    def trained_training(self, model: ModelOrFrames, grids: ExposureGrids | dict[float, ExposureGrids],
+                         cfg: TrainConfig) -> list[torch.Tensor]:
+        """The trained model's outputs on the training views through its learned grids (per-frame
+        GS: each frame's model through that frame's grids)."""
+        renders = renders_of(model, self.training, cfg)
+        return [(grids[v.time] if isinstance(grids, dict) else grids).apply(r, v.camera_id)
+                for r, v in zip(renders, self.training)]
+
+    def regions(self, trained: dict[str, list[torch.Tensor]], initial: ModelOrFrames,
+                initial_held: list[torch.Tensor], cfg: TrainConfig) -> dict:
+        """``score_segment``'s ``regions``: view set -> role -> ``cameras`` and model (trained,
+        initial, empty) -> region -> ``{psnr, ssim, detail, views}``. ``trained``: the trained
+        model's outputs per view set; ``initial_held``: the untrained model's held-out outputs."""
+        outputs = {"held_out": {"trained": trained["held_out"], "initial": initial_held,
+                                "empty": self.empty_held},
+                   "training": {"trained": trained["training"],
+                                "initial": self.fitted(initial, "training", cfg)[1],
+                                "empty": self.empty_training}}
+        return {which: role_regions(self.held if which == "held_out" else self.training,
+                                    self.targets[which], outputs[which], self.scene.roles,
+                                    self.scene.head_region)
+                for which in ("held_out", "training")}
 
 
 def figures(sc: Scores) -> dict:
@@ -308,6 +419,8 @@ class MethodResult:
     steps: int
     grids: dict[str, dict] = field(default_factory=dict)   # camera -> learned mean E, B
     training: dict | None = None  # full: training views with their grids (score_segment)
+    #: score_segment's ``regions`` of the end: view set -> role -> cameras, model -> region -> figures
+    regions: dict = field(default_factory=dict)
 
     @property
     def final(self) -> dict:
@@ -330,13 +443,13 @@ def _print_point(name: str, c: dict, n: int | None = None) -> None:
           flush=True)
 
 
-def run_method(name: str, scene: BenchScene, init: InitPoints, s: Settings, *, with_curve: bool,
-               sheet: Path | None = None, sheet_title: str = "") -> MethodResult:
+def run_method(name: str, scene: BenchScene, init: InitPoints, s: Settings, ev: Evaluation, *,
+               with_curve: bool, sheet: Path | None = None, sheet_title: str = "") -> MethodResult:
     """Train ``name`` (see the module doc) and score it on the held-out views: its initial model
-    (step 0), ``s.snapshots`` points along the run when ``with_curve``, and the end. ``full`` is
+    (step 0), ``s.snapshots`` points along the run when ``with_curve``, and the end; the region
+    figures per camera role of the end and its floors (:meth:`Evaluation.regions`). ``full`` is
     also scored by ``score_segment`` (training views; the contact sheet, written to ``sheet``)."""
     train_views = [v for v in scene.data.views if v.camera_id not in scene.held_out]
-    held_views = [v for v in scene.data.views if v.camera_id in scene.held_out]
     cap = cap_for(s.frames * s.points_per_frame)
     model = Poly4DGSConfig.paper(sh_degree=s.sh_degree)
     extra: dict = {}
@@ -352,7 +465,7 @@ def run_method(name: str, scene: BenchScene, init: InitPoints, s: Settings, *, w
     elif name == "linear_storage":
         model = model.model_copy(update={"colour_space": "linear"})
     elif name == "per_frame":
-        return _run_per_frame(scene, init, s, train_views, held_views, with_curve=with_curve)
+        return _run_per_frame(scene, init, s, ev, train_views, with_curve=with_curve)
     elif name != "full":
         raise ValueError(name)
 
@@ -360,53 +473,81 @@ def run_method(name: str, scene: BenchScene, init: InitPoints, s: Settings, *, w
     cfg = base_config(s, model=model, steps=s.steps, cap=cap, checkpoint_every=every, **extra)
     data = SegmentData(scene.frames, train_views)
     initial = initial_model(points, cfg, data, s.seed)
-    curve = [_point(0, 0.0, 0.0, held_out_scores(initial, held_views, cfg))]
+    sc, initial_held = ev.held_out(initial, cfg)
+    curve = [_point(0, 0.0, 0.0, sc)]
     _print_point(name, curve[0], len(initial))
     log, final, grids = train_with_snapshots(data, points, cfg, seed=s.seed)
     for snap in log.snapshots:   # the last one is the final model (checkpointed after step S)
-        curve.append(_point(snap.step, snap.wall_s, snap.cpu_s,
-                            held_out_scores(snap.model, held_views, cfg)))
+        sc, held = ev.held_out(snap.model, cfg)
+        curve.append(_point(snap.step, snap.wall_s, snap.cpu_s, sc))
         _print_point(name, curve[-1], len(snap.model))
     learned = {c: {"exposure": float(grids.exposure[i].mean()),
                    "black": float(grids.black[i].mean())} for i, c in enumerate(grids.camera_ids)}
+    regions = ev.regions({"held_out": held, "training": ev.trained_training(final, grids, cfg)},
+                         initial, initial_held, cfg)
+    _print_regions(regions)
     result = MethodResult(name, curve, with_curve, len(final), len(initial), static_count(initial),
-                          cap, s.steps, learned)
+                          cap, s.steps, learned, regions=regions)
     if name == "full":
-        result.training = _report(final, grids, scene, points, cfg, s, curve, sheet, sheet_title)
+        result.training = _report(final, grids, scene, points, cfg, s, ev, result, held, sheet,
+                                  sheet_title)
     return result
 
 
 def _report(final: Poly4DGS, grids: ExposureGrids, scene: BenchScene,
-            points: list[PointsAtTime], cfg: TrainConfig, s: Settings, curve: list[dict],
-            sheet: Path | None, title: str) -> dict:
-    """``score_segment`` on the full run, as the train-segment task calls it: its held-out
-    figures must be the bench's (same protocol, same initial model); returns the training-view
-    ceiling and writes the contact sheet."""
+            points: list[PointsAtTime], cfg: TrainConfig, s: Settings, ev: Evaluation,
+            result: MethodResult, held_outputs: list[torch.Tensor], sheet: Path | None,
+            title: str) -> dict:
+    """``score_segment`` on the full run, as the train-segment task calls it (camera roles and
+    face regions included): its held-out figures and its ``regions`` must be the bench's (same
+    protocol, same initial model, same functions); returns the training-view ceiling and writes
+    the contact sheet, with the held-out tracking cameras' rows added after the held-out static
+    ones (``score_segment`` draws the first two held-out cameras only)."""
     cfg_task = cfg.model_copy(update={"held_out_cameras": list(scene.held_out)})
     report = score_segment(final, grids, SegmentData(scene.frames, scene.data.views), points,
-                           cfg_task, seed=s.seed)
-    for key, point in (("trained", curve[-1]), ("initial", curve[0])):
+                           cfg_task, seed=s.seed, roles=scene.roles,
+                           head_region=scene.head_region)
+    for key, point in (("trained", result.final), ("initial", result.initial)):
         got = report.held_out[key]
         if not math.isclose(got.psnr, point["psnr"], abs_tol=1e-3):
             print(f"  WARNING: score_segment's {key} PSNR {got.psnr:.4f} != the bench's "
                   f"{point['psnr']:.4f}", flush=True)
+    if report.regions != result.regions:
+        print("  WARNING: score_segment's region figures differ from the bench's", flush=True)
     tr = report.training
     print(f"  full on its training views (learned grids, raw; {tr.views} views): PSNR "
           f"{fmt(tr.psnr)}  SSIM {fmt(tr.ssim, 4)}  performers {fmt(tr.psnr_performers)} / "
           f"{fmt(tr.ssim_performers, 4)}", flush=True)
     if sheet is not None:
+        rows = list(report.sheet_rows)
+        drawn = sorted(scene.held_out)[:2]
+        extra_cams = [c for c in scene.held_out if c not in drawn]
+        index = {(v.camera_id, v.frame): i for i, v in enumerate(ev.held)}
+        score_of = {(x.camera_id, x.frame): x for x in report.views}
+        added = []
+        for v in sheet_views(ev.held, extra_cams):
+            sc = score_of[(v.camera_id, v.frame)]
+            m = v.load_mask()
+            added.append(SheetRow(
+                f"{v.camera_id} frame {v.frame} HELD-OUT {scene.roles[v.camera_id]}  PSNR "
+                f"{sc.psnr:.1f} dB (raw {sc.psnr_raw:.1f})", v.load()[..., :3].numpy(),
+                held_outputs[index[(v.camera_id, v.frame)]].numpy(),
+                None if m is None else m.numpy()))
+        at = len(sheet_views(ev.held, drawn))
+        rows[at:at] = added
         sheet.parent.mkdir(parents=True, exist_ok=True)
         # panels ~2x the 160x90 images (the library's 1600 px default: 3x); 4 MB at 1000 px
-        write_sheet(sheet, contact_sheet(report.sheet_rows, title=title, max_width=SHEET_WIDTH))
+        write_sheet(sheet, contact_sheet(rows, title=title, max_width=SHEET_WIDTH))
         print(f"  contact sheet: {sheet}", flush=True)
     return {"views": tr.views, **figures(tr)}
 
 
-def _run_per_frame(scene: BenchScene, init: InitPoints, s: Settings, train_views, held_views, *,
-                   with_curve: bool) -> MethodResult:
+def _run_per_frame(scene: BenchScene, init: InitPoints, s: Settings, ev: Evaluation, train_views,
+                   *, with_curve: bool) -> MethodResult:
     """One static model per frame, S / N steps each (the same total step budget), on that frame's
     points plus the coloured scan, cap P / 0.7 each. Curve point k sums every frame's time up to
-    its k-th snapshot and scores all frames' models together (each view by its frame's model)."""
+    its k-th snapshot and scores all frames' models together (each view by its frame's model,
+    a training view through its frame's grids)."""
     steps = max(1, s.steps // s.frames)
     every = steps // s.snapshots if with_curve else 0
     model = Poly4DGSConfig.static(sh_degree=s.sh_degree)
@@ -415,25 +556,49 @@ def _run_per_frame(scene: BenchScene, init: InitPoints, s: Settings, train_views
     logs: dict[float, RunLog] = {}
     inits: dict[float, Poly4DGS] = {}
     finals: dict[float, Poly4DGS] = {}
+    grids: dict[float, ExposureGrids] = {}
     cfg = base_config(s, model=model, steps=steps, cap=cap, checkpoint_every=every)
     for i, f in enumerate(range(*scene.frames)):
         pts = [init.frames[i]] + scan
         data = SegmentData((f, f + 1), [v for v in train_views if v.frame == f])
         t = init.frames[i].time
         inits[t] = initial_model(pts, cfg, data, s.seed + i)
-        logs[t], finals[t], _ = train_with_snapshots(data, pts, cfg, seed=s.seed + i)
-    curve = [_point(0, 0.0, 0.0, held_out_scores(inits, held_views, cfg))]
+        logs[t], finals[t], grids[t] = train_with_snapshots(data, pts, cfg, seed=s.seed + i)
+    sc, initial_held = ev.held_out(inits, cfg)
+    curve = [_point(0, 0.0, 0.0, sc)]
     _print_point("per_frame", curve[0], sum(len(m) for m in inits.values()))
     n_snap = min(len(lg.snapshots) for lg in logs.values())
+    held = None
     for k in range(n_snap):
         snaps = {t: lg.snapshots[k] for t, lg in logs.items()}
-        sc = held_out_scores({t: sn.model for t, sn in snaps.items()}, held_views, cfg)
+        sc, held = ev.held_out({t: sn.model for t, sn in snaps.items()}, cfg)
         curve.append(_point(sum(sn.step for sn in snaps.values()),
                             sum(sn.wall_s for sn in snaps.values()),
                             sum(sn.cpu_s for sn in snaps.values()), sc))
         _print_point("per_frame", curve[-1], sum(len(sn.model) for sn in snaps.values()))
+    if held is None or n_snap < max(len(lg.snapshots) for lg in logs.values()):
+        held = ev.held_out(finals, cfg)[1]   # the curve stopped short of every frame's end
+    regions = ev.regions({"held_out": held, "training": ev.trained_training(finals, grids, cfg)},
+                         inits, initial_held, cfg)
+    _print_regions(regions)
     return MethodResult("per_frame", curve, with_curve, sum(len(m) for m in finals.values()),
-                        sum(len(m) for m in inits.values()), 0, cap * s.frames, steps * s.frames)
+                        sum(len(m) for m in inits.values()), 0, cap * s.frames, steps * s.frames,
+                        regions=regions)
+
+
+def _cell(r: dict | None) -> str:
+    """``PSNR / SSIM / detail`` of one region figure (``—`` where the region is empty)."""
+    if r is None or not r.get("views"):
+        return "—"
+    return f"{fmt(r['psnr'])} / {fmt(r['ssim'], 3)} / {fmt(r['detail'], 3)}"
+
+
+def _print_regions(regions: dict) -> None:
+    for which, per_role in regions.items():
+        for role, r in per_role.items():
+            print(f"  {which:8s} {role:8s} ({', '.join(r['cameras'])}): " + "  ".join(
+                f"{region} {_cell(r['trained'].get(region))} (empty {_cell(r['empty'].get(region))}, "
+                f"initial {_cell(r['initial'].get(region))})" for region in REGIONS), flush=True)
 
 
 # ------------------------------------------------------------------------------------- reports
@@ -520,9 +685,40 @@ def print_tables(results: dict[str, MethodResult], empty: dict, s: Settings) -> 
         lines.append(f"Ceiling: the full run on {t['views']} of its training views with their "
                      f"learned grids (raw): PSNR {fmt(t['psnr'])}, SSIM {fmt(t['ssim'], 4)}, "
                      f"performers {fmt(t['psnr_performers'])} / {fmt(t['ssim_performers'], 4)}")
+    lines += ["", *region_table(results)]
     text = "\n".join(lines)
     print(text)
     return text
+
+
+def region_table(results: dict[str, MethodResult]) -> list[str]:
+    """Table 1's region figures per camera role (``score_segment``'s ``regions``): one column per
+    view set, role and region, one row per method and per floor on the same pixels."""
+    first = next((r for n, r in results.items() if r.regions), None)
+    if first is None:
+        return []
+    cols = [(which, role, region) for which in ("held_out", "training") for role in ROLES
+            for region in REGIONS if role in first.regions.get(which, {})]
+    head = [f"{'held-out' if w == 'held_out' else 'training'} {role} "
+            f"({', '.join(first.regions[w][role]['cameras'])}) {region}" for w, role, region in cols]
+
+    def row(label: str, r: MethodResult, model: str) -> str:
+        return f"| {label} | " + " | ".join(
+            _cell(r.regions.get(w, {}).get(role, {}).get(model, {}).get(region))
+            for w, role, region in cols) + " |"
+
+    lines = ["Region figures per camera role (PSNR dB / SSIM / detail: the output's gradient energy "
+             "over the footage's; held out after each model's cross-fitted gain/offset, training "
+             "views after the trained model's grids and the floors' cross-fitted gain/offset; "
+             "performers = ground-truth mask >= 0.5, face = the performers within the heads)",
+             "| model | " + " | ".join(head) + " |", "|---|" + "---|" * len(cols),
+             row("floor: empty", first, "empty")]
+    for name in METHODS:
+        if name in results and results[name].regions:
+            r = results[name]
+            lines.append(row(LABELS[name], r, "trained"))
+            lines.append(row(f"floor: untrained {name}", r, "initial"))
+    return lines
 
 
 def grid_table(results: dict[str, MethodResult], scene: BenchScene) -> str:
@@ -606,7 +802,8 @@ def plot(results: dict[str, MethodResult], empty: dict, path: Path, title: str) 
 HELP_DESCRIPTION = """\
 Poly4DGS on a synthetic capture: held-out error against training time (with the empty and
 untrained floors), and the paper's Table 1 with its ablations, under the library's held-out
-protocol (volcap_core.splat.scoring). Initial points as production builds them
+protocol (volcap_core.splat.scoring), with score_segment's region figures per camera role
+(performers and face: PSNR, SSIM, detail; held-out S002, S005 and the tracking S010). Initial points as production builds them
 (reconstruction.segment_points: lidar scan + persistence, the coloured scan appended).
 Defaults: 6 frames at 160x90, 5000 points per frame, 360 steps per run (8-10 min on
 2 lightly loaded cores).
@@ -626,7 +823,7 @@ def main(argv: list[str] | None = None) -> int:
         description=HELP_DESCRIPTION,
         epilog=HELP_EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true",
-                    help="smoke run (~30 s): 2 frames at 80x45, 40 steps; numbers meaningless")
+                    help="smoke run (~50 s): 2 frames at 80x45, 40 steps; numbers meaningless")
     ap.add_argument("--frames", type=int, help="frames in the segment (default 6; quick 2)")
     ap.add_argument("--steps", type=int, help="optimiser steps per run, per-frame GS splits them "
                     "over its frames (default 360; quick 40)")
@@ -671,7 +868,8 @@ def main(argv: list[str] | None = None) -> int:
                                write_depth=True)
         t_synth = time.perf_counter() - t0
         t0 = time.perf_counter()
-        scene = load_scene(cap_dir, frames=(0, s.frames), held_out=HELD_OUT,
+        held_out = held_out_cameras(cap_dir)
+        scene = load_scene(cap_dir, frames=(0, s.frames), held_out=held_out,
                            downsample=s.downsample, points_per_frame=s.points_per_frame,
                            seed=s.seed)
         t_load = time.perf_counter() - t0
@@ -683,7 +881,8 @@ def main(argv: list[str] | None = None) -> int:
     n_masks = sum(v.mask is not None for v in held_views)
     cap = cap_for(s.frames * s.points_per_frame)
     print(f"capture: {t_synth:.1f} s to synthesize, {t_load:.1f} s to read; "
-          f"{len(scene.train_cameras)} training + {len(scene.held_out)} held-out cameras × "
+          f"{len(scene.train_cameras)} training + {len(scene.held_out)} held-out cameras "
+          f"({', '.join(f'{c} {scene.roles[c]}' for c in scene.held_out)}) × "
           f"{s.frames} frames at {v0.camera.width}x{v0.camera.height} (and portrait); "
           f"performer masks on {n_masks}/{len(held_views)} held-out views", flush=True)
     print(f"initial points ({t_points:.1f} s, reconstruction.segment_points): {init.summary()}; "
@@ -693,7 +892,8 @@ def main(argv: list[str] | None = None) -> int:
     empty_cfg = base_config(s, model=Poly4DGSConfig.paper(sh_degree=s.sh_degree), steps=s.steps,
                             cap=cap, checkpoint_every=0)
     assert init_budget(empty_cfg) >= s.frames * s.points_per_frame
-    empty = figures(held_out_scores(None, held_views, empty_cfg))
+    ev = Evaluation(scene, empty_cfg)
+    empty = ev.empty
     print(f"floor: empty model  PSNR {fmt(empty['psnr'])}  SSIM {fmt(empty['ssim'], 4)}  raw "
           f"{fmt(empty['psnr_raw'])}  performers {fmt(empty['psnr_performers'])} / "
           f"{fmt(empty['ssim_performers'], 4)}", flush=True)
@@ -712,7 +912,7 @@ def main(argv: list[str] | None = None) -> int:
     for name in args.methods:
         t0 = time.perf_counter()
         print(f"{name}:", flush=True)
-        results[name] = run_method(name, scene, init, s, with_curve=name in args.curves,
+        results[name] = run_method(name, scene, init, s, ev, with_curve=name in args.curves,
                                    sheet=sheet_path, sheet_title=sheet_title)
         loads.append(os.getloadavg()[0])
         print(f"  ({time.perf_counter() - t0:.0f} s with evaluation)", flush=True)
@@ -728,7 +928,7 @@ def main(argv: list[str] | None = None) -> int:
         plot(results, empty, plot_path,
              f"Poly4DGS on synthetic demo_scene: {s.frames} frames, "
              f"{v0.camera.width}x{v0.camera.height}, {s.steps} steps, held-out "
-             f"{'+'.join(HELD_OUT)} (gain/offset fitted on other frames); 1 thread, shared 2-core "
+             f"{'+'.join(scene.held_out)} (gain/offset fitted on other frames); 1 thread, shared 2-core "
              f"Xeon")
         print(f"plot: {plot_path}")
     if args.json:

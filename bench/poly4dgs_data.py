@@ -11,6 +11,8 @@ offsets, vignetting, veiling glare on the zoom cameras) read back as a reconstru
 * performer masks: ``ground_truth/masks/<camera>/<take index>.exr``
   (:func:`volcap_core.synth.ground_truth.performer_mask`), area-downsampled like the images and
   attached to every view (``View.mask``): scoring reads them for the performers-only figures;
+* the performers' heads: ``ground_truth/scene.json`` (its actors), for the face regions
+  (:meth:`BenchScene.head_region`, :func:`volcap_core.synth.ground_truth.face_region`);
 * the lidar scan of the empty stage: ``ground_truth/lidar.ply`` (the same bytes as the capture's
   ``lidar.ply``), read with :class:`volcap_core.calibration.lidar.LidarScan`;
 * dense points per frame: the ground-truth depth maps (``ground_truth/depth``) of the *training*
@@ -44,7 +46,7 @@ from volcap_core.imageio.read import read_image
 from volcap_core.splat.camera import Camera
 from volcap_core.splat.train import PointsAtTime, SegmentData, View
 from volcap_core.synth import read_exr
-from volcap_core.synth.ground_truth import performer_mask
+from volcap_core.synth.ground_truth import face_region, performer_mask
 
 __all__ = ["BenchScene", "InitPoints", "background_views", "load_scene", "production_points",
            "subsample_points"]
@@ -60,11 +62,30 @@ class BenchScene:
     frames: tuple[int, int]
     photometric: dict[str, dict]      # camera -> cameras.json "photometric" plus its "role"
     scan_ply: bytes | None = None     # the lidar scan of the empty stage (PLY bytes), if any
+    scene: dict | None = None         # ground_truth/scene.json (the actors), if any
 
     @property
     def static_cameras(self) -> list[str]:
         """Cameras that do not track (``CameraRole.tracks`` False), held-out ones included."""
         return [c for c, ph in self.photometric.items() if not CameraRole(ph["role"]).tracks]
+
+    @property
+    def roles(self) -> dict[str, str]:
+        """Camera id -> ``"static"`` or ``"tracking"``: the roles of the region figures (what
+        ``fit_segment`` gives ``score_segment`` from the calibration)."""
+        return {c: "tracking" if CameraRole(ph["role"]).tracks else "static"
+                for c, ph in self.photometric.items()}
+
+    def head_region(self, view: View) -> np.ndarray | None:
+        """``[H, W]`` bool, where the performers' heads are in ``view``
+        (:func:`~volcap_core.synth.ground_truth.face_region` without coverage, on the view's own
+        camera and time, as ``fit_segment`` hands it to ``score_segment``); None without a
+        ``scene.json``."""
+        if self.scene is None:
+            return None
+        cam = view.camera
+        return face_region(self.scene, view.time, cam.K.detach().cpu().numpy(),
+                           cam.world_to_camera.detach().cpu().numpy(), cam.width, cam.height)
 
 
 def _camera(rec: dict, fr: dict, downsample: int) -> Camera:
@@ -147,8 +168,10 @@ def load_scene(capture_dir: str | Path, *, frames: tuple[int, int], held_out: li
         if candidate.exists():
             scan_ply = candidate.read_bytes()
             break
+    scene_file = root / "ground_truth" / "scene.json"
+    scene = json.loads(scene_file.read_text()) if scene_file.exists() else None
     return BenchScene(SegmentData((a, b), views), dense, fps, train, list(held_out), (a, b),
-                      photometric, scan_ply)
+                      photometric, scan_ply, scene)
 
 
 @dataclass

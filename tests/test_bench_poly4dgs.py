@@ -1,5 +1,6 @@
 """Smoke test of ``bench/bench_poly4dgs.py``: every method runs on a tiny capture and reports its
-figures beside the floors, with the library's protocol and production's initial points (~30 s)."""
+figures beside the floors, with the library's protocol and production's initial points, and the
+region figures per camera role with a held-out tracking camera (~50 s)."""
 
 from __future__ import annotations
 
@@ -63,3 +64,22 @@ def test_quick_run_reports_floors(bench, tmp_path, capsys):
     # w/o dense points: 2 % of the frames' points and no scan
     assert res["sparse"]["init_gaussians"] < 0.05 * res["full"]["init_gaussians"]
     assert res["full"]["training"]["views"] > 0
+    # issue 28: a tracking camera held out too, and score_segment's region figures per camera role
+    # for every run and both floors on the same pixels (the bench warns when they differ from it)
+    assert "S010 tracking" in printed and "WARNING: score_segment" not in printed
+    assert "Region figures per camera role" in printed
+    for name, r in res.items():
+        held, training = r["regions"]["held_out"], r["regions"]["training"]
+        assert held["static"]["cameras"] == ["S002", "S005"]
+        assert held["tracking"]["cameras"] == ["S010"]
+        assert "S010" not in training["tracking"]["cameras"] and training["tracking"]["cameras"]
+        for per_role in (held, training):
+            for role in ("static", "tracking"):
+                for model in ("trained", "initial", "empty"):
+                    for region in ("performers", "face"):
+                        fig = per_role[role][model][region]
+                        assert fig["views"] > 0 and fig["psnr"] is not None, (name, role, model, region)
+                assert per_role[role]["empty"]["performers"]["detail"] == 0.0   # draws no edge
+    # trained on the zoom cameras' footage: more detail on their performers than the untrained model
+    zoom = res["full"]["regions"]["training"]["tracking"]
+    assert zoom["trained"]["performers"]["detail"] > zoom["initial"]["performers"]["detail"]

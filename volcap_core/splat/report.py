@@ -52,7 +52,7 @@ from volcap_core.splat.train import (
     render_views,
 )
 
-__all__ = ["SegmentScores", "score_segment", "sheet_views"]
+__all__ = ["SegmentScores", "role_regions", "score_segment", "sheet_views", "spread_views"]
 
 
 @dataclass
@@ -84,7 +84,9 @@ class SegmentScores:
         return rows
 
 
-def _spread(views: Sequence[View], n: int) -> list[View]:
+def spread_views(views: Sequence[View], n: int) -> list[View]:
+    """At most ``n`` of ``views``, spread evenly over the list (deterministic): the training views
+    :func:`score_segment` scores (``max_training_views``)."""
     if len(views) <= n:
         return list(views)
     idx = np.linspace(0, len(views) - 1, n).round().astype(int)
@@ -131,7 +133,7 @@ def score_segment(model: Poly4DGS, grids: ExposureGrids, data: SegmentData,
     tfs = cross_fitted_transforms(held_renders, held_targets, held_ids, held_frames, held_valid)
     trained_views = score_views(held_renders, held_targets, held_ids, held_frames,
                                 [v.load_mask() for v in held_views], transforms=tfs, valid=held_valid)
-    scored = _spread(train_views, max_training_views)
+    scored = spread_views(train_views, max_training_views)
     masks = [v.load_mask() for v in scored]
     with_regions = any(v.load_mask() is not None for v in held_views) or any(m is not None for m in masks)
     if with_regions:  # the floors' renders and transforms also serve the region figures
@@ -159,8 +161,8 @@ def score_segment(model: Poly4DGS, grids: ExposureGrids, data: SegmentData,
         train_floors = {name: _floor(m, scored, config, device) for name, m in (("initial", initial), ("empty", None))}
         train_outputs = {"trained": renders,
                          **{name: [t.apply(r) for t, r in zip(f[1], f[0])] for name, f in train_floors.items()}}
-        regions = {"held_out": _regions(held_views, held_targets, held_outputs, role_of, head_region),
-                   "training": _regions(scored, targets, train_outputs, role_of, head_region)}
+        regions = {"held_out": role_regions(held_views, held_targets, held_outputs, role_of, head_region),
+                   "training": role_regions(scored, targets, train_outputs, role_of, head_region)}
 
     rows = []
     held_cams = sorted(held)
@@ -197,9 +199,20 @@ def _floor(model: Poly4DGS | None, views: Sequence[View], config: TrainConfig, d
                                      transforms=tfs, valid=valid)
 
 
-def _regions(views: Sequence[View], targets: Sequence[torch.Tensor], outputs: Mapping[str, Sequence[torch.Tensor]],
-             role_of: Mapping[str, str], head_region: Callable[[View], np.ndarray | None] | None) -> dict:
-    """Role -> model -> region -> mean figures (:func:`mean_region_scores`) over ``views``."""
+def role_regions(views: Sequence[View], targets: Sequence[torch.Tensor], outputs: Mapping[str, Sequence[torch.Tensor]],
+                 role_of: Mapping[str, str], head_region: Callable[[View], np.ndarray | None] | None) -> dict:
+    """One view set's ``regions`` (see :meth:`SegmentScores.to_json`): role -> ``cameras`` and model
+    -> region -> mean figures (:func:`mean_region_scores`) over ``views``.
+
+    Args:
+        views: the views scored; those without a performer mask are left out.
+        targets: ``[H, W, 3]`` linear footage of each view.
+        outputs: model name -> ``[H, W, 3]`` linear output per view, already through the model's
+            colour transform (held out: its cross-fitted gain/offset; training: its grids).
+        role_of: camera id -> ``"static"`` or ``"tracking"`` (absent: ``"static"``).
+        head_region: view -> ``[H, W]`` bool where the heads are (None: no head in it); None: no
+            ``face`` region.
+    """
     per_view = []
     for v in views:
         m = v.load_mask()
