@@ -84,6 +84,13 @@ def test_a_video_cameras_plate_can_come_from_its_whole_recording(tmp_path):
     write_plate_masks(root)
     folder = CaptureFolder.open(root)
     assert all(folder.load_mask("V0", i).max() == 0.0 for i in range(3))
-    write_plate_masks(root, whole_recording=True)
+    # as a user asks for it: `volcap masks --whole-recording`
+    from typer.testing import CliRunner
+
+    from flows import cli
+
+    res = CliRunner().invoke(cli.app, ["masks", str(root), "--whole-recording", "--json"])
+    assert res.exit_code == 0, res.output
+    assert json.loads(res.output.strip().splitlines()[-1])["cameras"] == {"V0": 3}
     folder = CaptureFolder.open(root)
     assert all(folder.load_mask("V0", i).min() == 1.0 for i in range(3))
