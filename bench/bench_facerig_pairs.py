@@ -28,7 +28,8 @@ nothing that finished; the JSON is written after every stage, ``finished`` listi
     frame and face region, against that camera's footage as ``train-segment`` scores them
     (``splat.scoring``), beside the empty model's on the same pixels, for the HQ and every LQ count;
     the LQ's rendered flow against zero flow and OpenCV DIS (``enhance.metrics.warp_error``, over
-    the pixels the LQ draws; on the LQ frames and on the HQ frames, as ``tests/enhance/
+    the pixels the LQ draws whose samples all three flows keep inside the previous frame:
+    :func:`flow_warp_errors`; on the LQ frames and on the HQ frames, as ``tests/enhance/
     test_splat_pairs.py`` checks it); the detail of the LQ pair renders (``image_metrics.detail``,
     LQ over HQ on the HQ's silhouette, display sRGB) beside the Scene Rig's (the scene segment's
     held-out face detail against its footage, and the close-up render's face detail against the
@@ -264,16 +265,71 @@ def _mean(xs):
     return round(float(np.mean(xs)), 6) if xs else None
 
 
+#: the flows the check compares, by name (module doc)
+FLOWS = ("rendered", "zero", "dis")
+
+
+def flow_warp_errors(frames, flows: dict[str, Any], drawn) -> dict[str, float | None]:
+    """Each flow's ``enhance.metrics.warp_error`` of ``frames`` (``[T, C, H, W]``; ``flows[name]``:
+    ``[T - 1, 2, H, W]`` backward flows) over **one set of pixels**: those ``drawn`` (``[T - 1, 1,
+    H, W]``) whose sample every flow keeps inside frame ``t - 1``. ``warp_error`` alone scores each
+    flow on its own in-frame pixels, so a flow that sends most pixels out of the frame is scored
+    on the few it keeps while the others are scored on all of them. Also ``in_frame_<name>``: the
+    fraction of the drawn pixels each flow keeps in frame, and ``scored``: the fraction scored."""
+    import torch
+
+    from volcap_core.enhance.metrics import warp_error
+    from volcap_core.enhance.temporal import in_frame
+
+    inside = {name: torch.stack([in_frame(f) for f in flow]) for name, flow in flows.items()}
+    common = drawn.float()
+    for m in inside.values():
+        common = common * m
+    total = float(drawn.sum())
+    out: dict[str, float | None] = {name: warp_error(frames, flow, common) for name, flow in flows.items()}
+    for name, m in inside.items():
+        out[f"in_frame_{name}"] = round(float((m * drawn).sum()) / total, 4) if total else None
+    out["scored"] = round(float(common.sum()) / total, 4) if total else None
+    return out
+
+
+def flow_checks(ds, get_bytes) -> list[dict[str, Any]]:
+    """Per sequence of the pair dataset ``ds``: :func:`flow_warp_errors` of the LQ's rendered flow,
+    zero flow and OpenCV DIS (run on the LQ frames) over the pixels the LQ draws, on the LQ frames
+    (``lq``) and on the HQ frames (``hq``, what training warps)."""
+    import torch
+
+    from volcap_core.enhance.production import decode_splat_pair_sequence
+    from volcap_core.enhance.temporal import DisFlow
+
+    dis = DisFlow()
+    out = []
+    for q in ds.sequences:
+        p = decode_splat_pair_sequence(q, get_bytes)
+        drawn = (p.lq[1:, 3:4] > 0.5).float()
+        flows = {"rendered": p.flow, "zero": torch.zeros_like(p.flow),
+                 "dis": torch.stack([dis(p.lq[t, :3], p.lq[t + 1, :3]) for t in range(len(p) - 1)])}
+        out.append({"sequence": q.name, "path_params": q.path_params,
+                    **{what: flow_warp_errors(frames, flows, drawn) for what, frames in (("lq", p.lq), ("hq", p.hq))}})
+    return out
+
+
+def flow_summary(flows: list[dict[str, Any]], what: str) -> dict[str, Any]:
+    """The means over the sequences of :func:`flow_checks` (``what``: "lq" or "hq") and on how many
+    the rendered flow has the lower error."""
+    out = {m: _mean([f[what][m] for f in flows]) for m in FLOWS + ("in_frame_rendered", "scored")}
+    out["rendered_below_zero"] = f"{sum(f[what]['rendered'] < f[what]['zero'] for f in flows)}/{len(flows)}"
+    out["rendered_below_dis"] = f"{sum(f[what]['rendered'] < f[what]['dis'] for f in flows)}/{len(flows)}"
+    return out
+
+
 def checks_stage(store: str, settings: dict, scene: dict, pairs: dict, sheet: Path | None,
                  closeups: dict[str, Any]) -> dict[str, Any]:
     """The checks on the pairs (module doc): held-out gap per LQ count, the flow, detail, the sheet."""
-    import torch
-
     from volcap_core.colour import srgb_encode
     from volcap_core.contact_sheet import SheetRow, contact_sheet, write_sheet
-    from volcap_core.enhance.metrics import warp_error
     from volcap_core.enhance.production import PairDataset, decode_splat_pair_sequence
-    from volcap_core.enhance.temporal import DisFlow, warp
+    from volcap_core.enhance.temporal import in_frame, warp
     from volcap_core.image_metrics import detail
     from volcap_core.reconstruction import SegmentModel
     from volcap_core.store import ArtifactStore
@@ -293,18 +349,10 @@ def checks_stage(store: str, settings: dict, scene: dict, pairs: dict, sheet: Pa
                                  for x in pairs["subsequences"]]
 
     ds = s.get_record(s.resolve(pairs["dataset"]), PairDataset)
-    dis = DisFlow()
-    flows, details, rows = [], [], []
+    flows = flow_checks(ds, s.get_bytes)
+    details, rows = [], []
     for k, q in enumerate(ds.sequences):
         p = decode_splat_pair_sequence(q, s.get_bytes)
-        drawn = (p.lq[1:, 3:4] > 0.5).float()
-        dis_flow = torch.stack([dis(p.lq[t, :3], p.lq[t + 1, :3]) for t in range(len(p) - 1)])
-        zero = torch.zeros_like(p.flow)
-        f = {"sequence": q.name, "path_params": q.path_params}
-        for what, frames in (("lq", p.lq), ("hq", p.hq)):
-            f[what] = {"rendered": warp_error(frames, p.flow, drawn), "zero": warp_error(frames, zero, drawn),
-                       "dis": warp_error(frames, dis_flow, drawn)}
-        flows.append(f)
         for t in range(len(p)):
             mask = p.hq[t, 3] > 0.5
             if mask.sum() > 16:
@@ -316,14 +364,11 @@ def checks_stage(store: str, settings: dict, scene: dict, pairs: dict, sheet: Pa
             rows.append(SheetRow(f"{q.name} frame {q.frames[t]}: HQ ({q.hq_gaussians}/frame) | LQ "
                                  f"({q.lq_gaussians}/frame) | LQ-HQ error", hq, lq, p.hq[t, 3].numpy()))
             moved = warp(p.hq[t - 1, :3], p.flow[t - 1]).permute(1, 2, 0).numpy()
+            drawn = p.lq[t, 3] > 0.5
+            lost = float((in_frame(p.flow[t - 1])[0] < 0.5)[drawn].float().mean()) if drawn.any() else 0.0
             rows.append(SheetRow(f"{q.name} flow: HQ frame {q.frames[t]} | HQ frame {q.frames[t - 1]} warped by the "
-                                 "LQ's rendered flow | warp error", hq, moved, p.lq[t, 3].numpy()))
-
-    def summary(what: str) -> dict[str, Any]:
-        out = {m: _mean([f[what][m] for f in flows]) for m in ("rendered", "zero", "dis")}
-        out["rendered_below_zero"] = f"{sum(f[what]['rendered'] < f[what]['zero'] for f in flows)}/{len(flows)}"
-        out["rendered_below_dis"] = f"{sum(f[what]['rendered'] < f[what]['dis'] for f in flows)}/{len(flows)}"
-        return out
+                                 f"LQ's rendered flow (black: sampled outside the frame, {lost:.0%} of the LQ's pixels) "
+                                 "| warp error", hq, moved, p.lq[t, 3].numpy()))
 
     scene_seg = held_out_figures(seg(scene["segment"]))
     detail_side = {"lq_pairs_vs_hq": _mean(details), "lq_pair_frames": len(details),
@@ -332,7 +377,8 @@ def checks_stage(store: str, settings: dict, scene: dict, pairs: dict, sheet: Pa
                    "hq_model_held_out_face_vs_footage": _face_detail(held["hq"]),
                    "scene_segment_held_out_face_vs_footage": _face_detail(scene_seg),
                    "closeup_render_face_vs_truth": {m: c["face"]["render"]["detail"] for m, c in closeups.items()}}
-    result = {"held_out": held, "flow": {"lq_frames": summary("lq"), "hq_frames": summary("hq"), "sequences": flows},
+    result = {"held_out": held, "flow": {"lq_frames": flow_summary(flows, "lq"), "hq_frames": flow_summary(flows, "hq"),
+                                        "sequences": flows},
               "detail": detail_side, "scene_segment_held_out": scene_seg,
               "dataset": {"sequences": len(ds.sequences), "split": ds.split, "lq_range": list(ds.lq_range),
                           "lq_range_source": ds.lq_range_source, "resolution": ds.resolution}}
@@ -493,7 +539,8 @@ def report_checks(result: dict) -> None:
     for what in ("lq_frames", "hq_frames"):
         f = c["flow"][what]
         _log(f"flow, warp error on the {what.replace('_', ' ')}: rendered {f['rendered']}, zero {f['zero']}, DIS "
-             f"{f['dis']} (rendered below zero in {f['rendered_below_zero']}, below DIS in {f['rendered_below_dis']})")
+             f"{f['dis']} (rendered below zero in {f['rendered_below_zero']}, below DIS in {f['rendered_below_dis']}; "
+             f"scored on {f['scored']} of the drawn pixels, the rendered flow keeping {f['in_frame_rendered']} in frame)")
     d = c["detail"]
     _log(f"detail: LQ pairs / HQ {d['lq_pairs_vs_hq']} over {d['lq_pair_frames']} frames; held-out face vs footage: "
          f"LQ models {d['lq_models_held_out_face_vs_footage']}, HQ {d['hq_model_held_out_face_vs_footage']}, "
