@@ -71,6 +71,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
+from bench.gpu_zoom_curve import initial_points_bytes, load_initial_points  # noqa: E402  (the repository on the path first)
+
 #: the background Face Rig pairs bench's store and its Face Rig / Scene Rig captures (640×360)
 STORE = "/work/pairsbench-w/store"
 FACE_CAPTURE = "captures/synth-demo_face_x2-s0"
@@ -125,8 +127,6 @@ def prepare(dst: Path, store_url: str = STORE, *, capture: str = FACE_CAPTURE, s
     """Part 1 (module doc). ``cameras``: the cameras whose footage travels (None: all; the held-out
     ones are always kept: training checks they exist). ``overrides``: QualityPreset fields (a CPU
     test's tiny budgets). Returns what ``DIR/pairs.json`` holds."""
-    from safetensors.numpy import save as st_save
-
     from volcap_core import reconstruction
     from volcap_core.calibration.distortion import record_distortion
     from volcap_core.calibration.record import camera_at, frame_camera
@@ -201,17 +201,7 @@ def prepare(dst: Path, store_url: str = STORE, *, capture: str = FACE_CAPTURE, s
         views.append({"camera": v.camera_id, "frame": v.frame, "time": v.time, "K": v.camera.K.tolist(),
                       "world_to_camera": v.camera.world_to_camera.tolist(), "width": v.camera.width,
                       "height": v.camera.height})
-    # footprints only where init_model reads them (gpu_zoom_curve's rule: the folder travels)
-    footprints = quality.init_moving_scale_px is not None or quality.init_finest_level < 0
-    clouds: dict[str, np.ndarray] = {}
-    for i, p in enumerate(init):
-        clouds[f"{i}/xyz"] = p.xyz.numpy().astype(np.float32)
-        clouds[f"{i}/rgb"] = p.rgb.numpy().astype(np.float16)      # sampled from half-float footage
-        if p.static is not None:
-            clouds[f"{i}/static"] = p.static.numpy().astype(np.uint8)
-        if p.footprint is not None and footprints:
-            clouds[f"{i}/footprint"] = p.footprint.numpy().astype(np.float32)
-    (dst / "init.safetensors").write_bytes(st_save(clouds, {"times": json.dumps([p.time for p in init])}))
+    (dst / "init.safetensors").write_bytes(initial_points_bytes(init, quality))
     meta = {"capture": cap.name, "capture_ref": cap_ref.digest, "scene_ref": scene_ref.digest, "store": str(store_url),
             "frames": [a, b], "fps": cap.fps, "seed": seed, "held_out": held, "cameras": keep,
             "points_per_frame": points_per_frame, "point_cameras": point_cams,
@@ -244,12 +234,10 @@ class Prepared:
     initial points, the preset, the paths per render size and the colour matrix."""
 
     def __init__(self, src: Path):
-        from safetensors import safe_open
-
         from volcap_core.calibration.colour_step import ColourMatrixRecord
         from volcap_core.imageio.read import decode_exr
         from volcap_core.production.presets import QualityPreset
-        from volcap_core.splat import Camera, PointsAtTime, SegmentData, View
+        from volcap_core.splat import Camera, SegmentData, View
         from volcap_core.view import ViewSpec
 
         path = src / "pairs.json"
@@ -270,15 +258,7 @@ class Prepared:
                             width=v["width"], height=v["height"])
             views.append(View(v["camera"], v["frame"], v["time"], camera, image))
         self.data = SegmentData(tuple(self.meta["frames"]), views)
-        self.init = []
-        with safe_open(str(src / "init.safetensors"), framework="pt") as f:
-            times = json.loads(f.metadata()["times"])
-            keys = set(f.keys())
-            for i, t in enumerate(times):
-                static = f.get_tensor(f"{i}/static").bool() if f"{i}/static" in keys else None
-                foot = f.get_tensor(f"{i}/footprint").float() if f"{i}/footprint" in keys else None
-                self.init.append(PointsAtTime(time=t, xyz=f.get_tensor(f"{i}/xyz").float(),
-                                              rgb=f.get_tensor(f"{i}/rgb").float(), static=static, footprint=foot))
+        self.init = load_initial_points(src / "init.safetensors")
 
     def config(self, per_frame: int, steps: int, backend: str = "auto"):
         """The production preset's TrainConfig at ``per_frame`` × frames Gaussians (the flow's

@@ -188,8 +188,6 @@ def write_prepared(dst: Path, data, init, config, meta: dict, *, faces: dict | N
     64 MiB a GPU call carries; decoded without OpenCV), and its masks are the capture's own (also
     the views' matte). ``performer_boxes``: camera -> ``(y0, y1, x0, x1)``, the sheet's 1:1 crop
     for a capture without face regions."""
-    from safetensors.numpy import save as st_save
-
     from volcap_core.colour import srgb_encode
     from volcap_core.contact_sheet import encode_png
 
@@ -215,17 +213,7 @@ def write_prepared(dst: Path, data, init, config, meta: dict, *, faces: dict | N
         np.savez_compressed(dst / "faces.npz", **{f"{c}_{f:06d}": m for (c, f), m in faces.items()})
     if valid:
         np.savez_compressed(dst / "valid.npz", **valid)
-    # footprints only where init_model reads them (the GPU gets 64 MiB with its wheels)
-    footprints = config.init_moving_scale_px is not None or config.init_finest_level < 0
-    clouds: dict[str, np.ndarray] = {}
-    for i, p in enumerate(init):
-        clouds[f"{i}/xyz"] = _compact(p.xyz.numpy())
-        clouds[f"{i}/rgb"] = _compact(p.rgb.numpy())
-        if p.static is not None:
-            clouds[f"{i}/static"] = p.static.numpy().astype(np.uint8)
-        if p.footprint is not None and footprints:
-            clouds[f"{i}/footprint"] = _compact(p.footprint.numpy())
-    (dst / "init.safetensors").write_bytes(st_save(clouds, {"times": json.dumps([p.time for p in init])}))
+    (dst / "init.safetensors").write_bytes(initial_points_bytes(init, config))
     meta = dict(meta)
     if exr_bytes is None:
         meta["footage"] = "png"
@@ -238,6 +226,43 @@ def write_prepared(dst: Path, data, init, config, meta: dict, *, faces: dict | N
     print(f"{dst}: {size / 2**20:.1f} MiB; {len(views)} views of {len(data.camera_ids)} cameras, frames {a}:{b}, "
           f"held out {', '.join(config.held_out_cameras)}; {meta['gaussians']} Gaussians, {config.steps} steps "
           f"(MCMC refinement {config.mcmc.refine_start}:{config.mcmc.refine_stop} every {config.mcmc.refine_every})")
+
+
+def initial_points_bytes(init, config) -> bytes:
+    """The initial points ``init`` (``PointsAtTime`` per cloud) as the safetensors file a prepared
+    folder holds (``init.safetensors``; :func:`load_initial_points` reads it): footprints only where
+    ``config`` (a TrainConfig or QualityPreset) makes ``init_model`` read them, floats as half where
+    that loses nothing (the folder travels to a GPU within 64 MiB, wheels included)."""
+    from safetensors.numpy import save as st_save
+
+    footprints = config.init_moving_scale_px is not None or config.init_finest_level < 0
+    clouds: dict[str, np.ndarray] = {}
+    for i, p in enumerate(init):
+        clouds[f"{i}/xyz"] = _compact(p.xyz.numpy())
+        clouds[f"{i}/rgb"] = _compact(p.rgb.numpy())
+        if p.static is not None:
+            clouds[f"{i}/static"] = p.static.numpy().astype(np.uint8)
+        if p.footprint is not None and footprints:
+            clouds[f"{i}/footprint"] = _compact(p.footprint.numpy())
+    return st_save(clouds, {"times": json.dumps([p.time for p in init])})
+
+
+def load_initial_points(path: Path) -> list:
+    """:func:`initial_points_bytes`' file back as ``PointsAtTime`` (float32)."""
+    from safetensors import safe_open
+
+    from volcap_core.splat import PointsAtTime
+
+    out = []
+    with safe_open(str(path), framework="pt") as f:
+        times = json.loads(f.metadata()["times"])
+        keys = set(f.keys())
+        for i, t in enumerate(times):
+            static = f.get_tensor(f"{i}/static").bool() if f"{i}/static" in keys else None
+            foot = f.get_tensor(f"{i}/footprint").float() if f"{i}/footprint" in keys else None
+            out.append(PointsAtTime(time=t, xyz=f.get_tensor(f"{i}/xyz").float(), rgb=f.get_tensor(f"{i}/rgb").float(),
+                                    static=static, footprint=foot))
+    return out
 
 
 def _compact(a: np.ndarray) -> np.ndarray:
@@ -255,10 +280,8 @@ class Prepared:
     figures have no face region), roles and the preset."""
 
     def __init__(self, src: Path):
-        from safetensors import safe_open
-
         from volcap_core.production.presets import QualityPreset
-        from volcap_core.splat import Camera, PointsAtTime, SegmentData, View
+        from volcap_core.splat import Camera, SegmentData, View
 
         path = src / "segment.json"
         if not path.is_file():
@@ -284,15 +307,7 @@ class Prepared:
             if faces is not None:
                 self.faces[(v["camera"], v["frame"])] = faces[name]
         self.data = SegmentData(tuple(self.meta["frames"]), views)
-        self.init = []
-        with safe_open(str(src / "init.safetensors"), framework="pt") as f:
-            times = json.loads(f.metadata()["times"])
-            keys = set(f.keys())
-            for i, t in enumerate(times):
-                static = f.get_tensor(f"{i}/static").bool() if f"{i}/static" in keys else None
-                foot = f.get_tensor(f"{i}/footprint").float() if f"{i}/footprint" in keys else None
-                self.init.append(PointsAtTime(time=t, xyz=f.get_tensor(f"{i}/xyz").float(),
-                                              rgb=f.get_tensor(f"{i}/rgb").float(), static=static, footprint=foot))
+        self.init = load_initial_points(src / "init.safetensors")
 
     def config(self, steps: int | None = None, evals: int = 8, backend: str = "auto"):
         """The segment's TrainConfig: the preset (stretched to ``steps`` when given) at the prepared
