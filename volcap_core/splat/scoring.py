@@ -137,7 +137,7 @@ def _display_scores(pred: torch.Tensor, target: torch.Tensor, mask: torch.Tensor
         full_ssim = float(smap[vv].mean()) if bool(vv.any()) else float(smap.mean())
     if mask is None:
         return full_psnr, full_ssim, None, None
-    m = mask.detach().float().reshape(p.shape[:2]) >= 0.5
+    m = mask.detach().to(p.device).float().reshape(p.shape[:2]) >= 0.5
     if valid is not None:
         m = m & v
     if not bool(m.any()):
