@@ -23,7 +23,7 @@ from volcap_core.view import ViewSpec
 from volcap_core.store import ArtifactStore
 
 
-@volcap_task(name="face-paths", version="1", libraries=("torch", "numpy"))
+@volcap_task(name="face-paths", version="2", libraries=("torch", "numpy"))
 def face_paths(store: str, hq: ArtifactRef, times_s: list[float], count: int, width: int, height: int, seed: int,
                around_m: list[float], facing: tuple[float, float, float] = (1.0, 0.0, 0.0)) -> ArtifactRef:
     """``count`` camera paths around the head of a sub-sequence's HQ model (``hq``, a SegmentModel
@@ -31,8 +31,10 @@ def face_paths(store: str, hq: ArtifactRef, times_s: list[float], count: int, wi
     ``seed``: the head per frame from the model's Gaussians at that time
     (:func:`~volcap_core.production.face_paths.head_from_model`, looking within 0.5 m of
     ``around_m``, where the rig's cameras aim), its radius the median over the frames, the face
-    looking along ``facing``; then :func:`~volcap_core.production.face_paths.face_camera_paths`. A JSON
-    artifact: ``{"head": {"centres_m", "radius_m"}, "paths": [{"views": [ViewSpec...], "params"}]}``."""
+    looking along ``facing``; then :func:`~volcap_core.production.face_paths.face_camera_paths` (each
+    view with its near plane: nothing between the camera and the head is rendered). A JSON
+    artifact: ``{"head": {"centres_m", "radius_m"}, "paths": [{"views": [ViewSpec...], "params"}]}``.
+    Version 2: the views carry ``near_m``."""
     import numpy as np
 
     from volcap_core.production.face_paths import face_camera_paths, head_from_model
@@ -57,7 +59,7 @@ def face_paths(store: str, hq: ArtifactRef, times_s: list[float], count: int, wi
                                  for p in paths]})
 
 
-@volcap_task(name="render-pairs", version="1", libraries=("torch", "numpy", "OpenEXR"))
+@volcap_task(name="render-pairs", version="2", libraries=("torch", "numpy", "OpenEXR"))
 def render_pairs(store: str, hq: ArtifactRef, lq: ArtifactRef, paths: ArtifactRef, subsequence: int,
                  frames: list[int], lq_gaussians: int, hq_gaussians: int,
                  colour: ArtifactRef | None = None) -> list[ArtifactRef]:
@@ -68,7 +70,8 @@ def render_pairs(store: str, hq: ArtifactRef, lq: ArtifactRef, paths: ArtifactRe
     ``calibrate-colour`` record, Face Rig -> Scene Rig; None: none) applied, and the LQ's exact
     backward flow per consecutive frame pair (float EXR ``flow.x``, ``flow.y``). One
     :class:`~volcap_core.enhance.production.SplatPairSequence` record per path, named
-    ``s<subsequence>-p<path>``; each model is loaded once for all the paths."""
+    ``s<subsequence>-p<path>``; each model is loaded once for all the paths. Version 2: each view's
+    ``near_m`` clips the colour and the flow (:func:`~volcap_core.splat_pairs.render_path`)."""
     import torch
 
     from volcap_core.splat import load_model

@@ -18,6 +18,7 @@ from __future__ import annotations
 import json
 import zlib
 from collections.abc import Sequence
+from dataclasses import replace
 
 import numpy as np
 import torch
@@ -47,8 +48,9 @@ def lq_gaussians_per_frame(lq_range: tuple[int, int], seed: int, subsequence: in
 
 
 def _camera(view: ViewSpec, device: torch.device):
-    return reconstruction.splat_camera(np.asarray(view.K), np.asarray(view.world_to_camera), view.width,
-                                       view.height).to(device)
+    """The splat camera of ``view``, with its near plane when it has one (the renderer's default else)."""
+    cam = reconstruction.splat_camera(np.asarray(view.K), np.asarray(view.world_to_camera), view.width, view.height)
+    return (cam if view.near_m is None else replace(cam, near=float(view.near_m))).to(device)
 
 
 def render_path(model: Poly4DGS, views: Sequence[ViewSpec], *, colour=None, flow: bool = False,
@@ -58,8 +60,10 @@ def render_path(model: Poly4DGS, views: Sequence[ViewSpec], *, colour=None, flow
     ``(M, b)``, :func:`~volcap_core.calibration.colour.apply_colour_matrix` on premultiplied RGBA:
     the Face Rig's colour onto the Scene Rig's; None: unchanged). With ``flow``: also ``[T - 1, H,
     W, 2]`` float32, the exact backward flow of frame ``t`` to frame ``t - 1`` (px, x then y,
-    ``cur(x, y) ≈ prev(x + fx, y + fy)``; 0 where the frame is empty), else None. Runs on the
-    model's device."""
+    ``cur(x, y) ≈ prev(x + fx, y + fy)``; 0 where the frame is empty), else None. A view's
+    ``near_m`` is its camera's near plane for the colour and the flow alike (``Camera.near``, which
+    both back-ends cull by): the Gaussians nearer than it at that frame are neither drawn nor
+    counted in its flow. Runs on the model's device."""
     if not views:
         raise ValueError("a camera path needs at least one view")
     sizes = {(v.width, v.height) for v in views}
@@ -91,10 +95,11 @@ def render_path(model: Poly4DGS, views: Sequence[ViewSpec], *, colour=None, flow
 
 def encode_pair_frame(rgba: np.ndarray, view: ViewSpec, attributes: dict[str, str | int | float]) -> bytes:
     """A pair frame ``[H, W, 4]`` as a half-float RGBA EXR, its camera (``volcap.K``,
-    ``volcap.world_to_camera``, OpenCV) and time (``volcap.time_s``) in the header beside
-    ``attributes`` (``volcap.pair`` ...)."""
+    ``volcap.world_to_camera``, OpenCV; ``volcap.near_m`` when the view has a near plane) and time
+    (``volcap.time_s``) in the header beside ``attributes`` (``volcap.pair`` ...)."""
     attrs = {"volcap.time_s": float(view.time_s), "volcap.K": json.dumps([list(r) for r in view.K]),
-             "volcap.world_to_camera": json.dumps([list(r) for r in view.world_to_camera]), **attributes}
+             "volcap.world_to_camera": json.dumps([list(r) for r in view.world_to_camera]),
+             **({} if view.near_m is None else {"volcap.near_m": float(view.near_m)}), **attributes}
     return encode_exr(np.asarray(rgba, np.float32), ("R", "G", "B", "A"), pixel_type="half", attributes=attrs)
 
 

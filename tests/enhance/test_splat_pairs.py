@@ -159,6 +159,47 @@ def test_the_rendered_flow_warps_the_previous_frame_better_than_zero_flow_and_di
     assert exact_hq < 0.05 * warp_error(hq, zero, drawn) and exact_hq < 0.7 * dis_hq, (exact_hq, dis_hq)
 
 
+def walled(n: int) -> Poly4DGS:
+    """:func:`blob` (the head: a 0.6 m cube at the origin, drifting along x) with a static wall of
+    ~1 000 dark Gaussians 1.2 m in front of it (the plane y = -1.2, 2.4 m × 1.6 m): the Face Rig
+    room's wall when a path camera stands beyond it."""
+    head = blob(n)
+    gx, gz = np.meshgrid(np.arange(-1.2, 1.2, 0.06), np.arange(-0.8, 0.8, 0.06))
+    xyz = torch.tensor(np.stack([gx.ravel(), np.full(gx.size, -1.2), gz.ravel()], 1), dtype=torch.float32)
+    wall = Poly4DGS.from_points(head.config, xyz, torch.full((len(xyz), 3), 0.03), scales=torch.full((len(xyz),), 0.02),
+                                t0=torch.zeros(len(xyz)), opacity=0.9, lifespan_s=float("inf"))
+    return Poly4DGS(head.config, {k: torch.cat([head.params[k], wall.params[k]]) for k in head.params})
+
+
+def test_a_path_view_s_near_plane_hides_what_stands_between_the_camera_and_the_head():
+    """A face path's camera 1.7 m from the head, past a wall 1.2 m from it (the Face Rig's full run:
+    a long lens beyond the room's wall): its near plane drops the wall, so the pair frames and the
+    LQ's flow are the head's alone, as if the wall were not there; without it the wall veils the
+    head and its flow (static, seen moving by parallax) is mixed into the head's."""
+    from volcap_core.production.face_paths import FacePathDistribution, face_camera_paths
+
+    torch.set_num_threads(1)
+    r = 0.3                                 # the blob's head sphere
+    dist = FacePathDistribution(focal_mm=(50.0, 50.0), zoom=1.0, head_fraction=(0.5, 0.5), azimuth_deg=0.0,
+                                orbit_deg=30.0, elevation_deg=(0.0, 0.0), tilt_deg=0.0, aim_offset=0.0, roll_deg=0.0)
+    [p] = face_camera_paths((0.0, 0.0, 0.0), r, np.arange(3) / FPS, 1, width=SIZE, height=SIZE, seed=2,
+                            facing=(0.0, -1.0, 0.0), distribution=dist)
+    views = p.views                         # orbiting 14 degrees in 3 frames: the wall moves by parallax
+    d = p.params["distance_m_start"]
+    assert d > 1.2 + 0.3 and all(v.near_m == pytest.approx(d - 3 * r) for v in views)   # the wall is between
+    head_rgba, head_flow = render_path(blob(1500), views, flow=True)
+    rgba, flow = render_path(walled(1500), views, flow=True)
+    np.testing.assert_allclose(rgba, head_rgba, atol=1e-5)                 # the head, unveiled
+    np.testing.assert_allclose(flow, head_flow, atol=1e-4)                 # and the head's motion
+    assert np.abs(head_flow[..., 0]).max() > 1.0                           # which does move
+    # the same views without their near plane: the wall veils the frame and drags the flow
+    bare = [v.model_copy(update={"near_m": None}) for v in views]
+    veiled, veiled_flow = render_path(walled(1500), bare, flow=True)
+    head = head_rgba[..., 3] > 0.5
+    assert veiled[..., 3].mean() > 0.5 and np.abs(veiled - head_rgba)[head].mean() > 0.1
+    assert np.abs(veiled_flow - head_flow)[head[1:]].mean() > 5.0         # px: the wall's parallax, not the head's
+
+
 def test_a_path_of_views_of_two_sizes_is_refused():
     views = path(2)
     views[1] = views[1].model_copy(update={"width": SIZE + 1})
@@ -310,7 +351,8 @@ def test_the_flow_s_lq_and_hq_are_aligned_and_its_flow_warps(pair_flow):
         # the HQ model rendered again from the stored frames' cameras gives the stored pixels
         views = [ViewSpec(K=tuple(map(tuple, json_of(ref, s, "volcap.K"))),
                           world_to_camera=tuple(map(tuple, json_of(ref, s, "volcap.world_to_camera"))),
-                          width=q.width, height=q.height, time_s=float(np.ravel(header_of(ref, s)["volcap.time_s"])[0]))
+                          width=q.width, height=q.height, time_s=float(np.ravel(header_of(ref, s)["volcap.time_s"])[0]),
+                          near_m=float(np.ravel(header_of(ref, s)["volcap.near_m"])[0]))
                  for ref in q.hq]
         hq = load_model(s.get_bytes(s.get_record(q.hq_model, SegmentModel).model))
         again, _ = render_path(hq, views)

@@ -74,6 +74,12 @@ def test_every_view_frames_the_head(width, height):
                 assert abs(u - (width - 1) / 2) <= 0.1 * height and abs(v - (height - 1) / 2) <= 0.1 * height
                 disc = project(view, sphere)
                 assert np.all(disc[:, 2] > 0)
+                # the near plane: the whole head is beyond it, a point 3.5 radii nearer than the
+                # head centre on the way to the camera (a wall in between) is not
+                assert disc[:, 2].min() > view.near_m
+                assert view.near_m == pytest.approx(max(z - 3 * RADIUS, 0.01), abs=0.2 * RADIUS)
+                between = CENTRE + 3.5 * RADIUS * (camera_centre(view) - CENTRE) / np.linalg.norm(camera_centre(view) - CENTRE)
+                assert project(view, between[None])[0, 2] < view.near_m or z < 3.5 * RADIUS
                 size = (disc[:, 1].max() - disc[:, 1].min()) / height
                 assert lo * 0.99 <= size <= hi * 1.02, (seed, path.params["index"], size)
 
@@ -95,6 +101,8 @@ def test_focal_and_distance_ranges_over_many_seeds():
             assert path.views[-1].K[0][0] * 36.0 / 640 == pytest.approx(p["focal_mm_end"])
             assert distances[-len(TIMES)] == pytest.approx(p["distance_m_start"])
             assert distances[-1] == pytest.approx(p["distance_m_end"])
+            assert path.views[0].near_m == pytest.approx(max(p["distance_m_start"] - 3 * RADIUS, 0.01))
+            assert path.views[-1].near_m == p["near_m_end"]
             assert p["zoom_rate"] == pytest.approx(math.log(p["focal_mm_end"] / p["focal_mm_start"]) / 7)
             assert p["dolly_rate"] == pytest.approx(math.log(p["distance_m_end"] / p["distance_m_start"]) / 7)
             assert abs(p["azimuth_deg_start"]) <= dist.azimuth_deg
@@ -148,6 +156,8 @@ def test_bad_input_is_one_clear_line():
             face_camera_paths(**args)
     with pytest.raises(ValueError, match="focal_mm"):
         FacePathDistribution(focal_mm=(50.0, 35.0))
+    with pytest.raises(ValueError, match="near_margin 1.1 must be >= 1 \\+ aim_offset"):
+        FacePathDistribution(near_margin=1.1)
 
 
 @pytest.fixture(scope="module")

@@ -13,6 +13,11 @@ frame height. Across a path the focal length (zoom), the distance (dolly) and th
 (azimuth around the head, elevation) change at constant rates per frame. The distribution is
 :class:`FacePathDistribution`; docs/enhancer.md ("Camera paths") states it and why.
 
+Each view carries a near clipping plane (``ViewSpec.near_m``) a few head radii nearer than the head
+centre: the paths' distances come from the lens, not from the room, so a path camera may stand
+beyond the room's walls (a zoomed-in camera far away), and then what lies between it and the head
+(the wall's Gaussians) must not be drawn: the renders see the head and what is behind it.
+
 Conventions: world metres, the stage frame (z up unless ``up`` says otherwise); cameras OpenCV
 (x right, y down, z forward), ``K`` in pixels with the top-left pixel centre at 0 (as
 :class:`~volcap_core.view.ViewSpec`); focal lengths in mm on a 36 mm-wide sensor (full-frame
@@ -29,11 +34,14 @@ import numpy as np
 from volcap_core.calibration.geometry import look_at_rotation
 from volcap_core.view import ViewSpec
 
-__all__ = ["SENSOR_WIDTH_MM", "CameraPath", "FacePathDistribution", "HeadEstimate", "face_camera_paths",
+__all__ = ["NEAR_MIN_M", "SENSOR_WIDTH_MM", "CameraPath", "FacePathDistribution", "HeadEstimate", "face_camera_paths",
            "head_from_model"]
 
 #: full-frame sensor width (mm): focal lengths are equivalents on it, ``fx = focal · W / 36``
 SENSOR_WIDTH_MM = 36.0
+
+#: the nearest a path view's near plane comes to its camera (metres; the splat camera's default)
+NEAR_MIN_M = 0.01
 
 
 @dataclass(frozen=True)
@@ -55,6 +63,11 @@ class FacePathDistribution:
             this many head radii, at the start and at the end (the face is near, not exactly at,
             the image centre).
         roll_deg: the camera's roll about its optical axis, ``U(-roll, roll)`` at start and end.
+        near_margin: not drawn: each view's near clipping plane (``ViewSpec.near_m``, metres of
+            camera depth) is its distance to the head centre less this many head radii (at least
+            :data:`NEAR_MIN_M`), so the head (within one radius of its centre, the aim offset
+            within ``aim_offset`` radii) and what is behind it are drawn and nothing between the
+            camera and the head is.
     """
 
     focal_mm: tuple[float, float] = (35.0, 200.0)
@@ -66,6 +79,7 @@ class FacePathDistribution:
     tilt_deg: float = 10.0
     aim_offset: float = 0.25
     roll_deg: float = 3.0
+    near_margin: float = 3.0
 
     def __post_init__(self) -> None:
         lo, hi = self.focal_mm
@@ -79,6 +93,9 @@ class FacePathDistribution:
         lo, hi = self.elevation_deg
         if not -90 < lo <= hi < 90:
             raise ValueError(f"face path distribution: elevation_deg {self.elevation_deg} must be inside (-90, 90)")
+        if not self.near_margin >= 1 + self.aim_offset:
+            raise ValueError(f"face path distribution: near_margin {self.near_margin} must be >= 1 + aim_offset "
+                             f"({1 + self.aim_offset:g} head radii): the near plane would cut the head")
         if min(self.azimuth_deg, self.orbit_deg, self.tilt_deg, self.aim_offset, self.roll_deg) < 0:
             raise ValueError("face path distribution: azimuth_deg, orbit_deg, tilt_deg, aim_offset and "
                              "roll_deg must be >= 0")
@@ -90,10 +107,12 @@ class CameraPath:
 
     Attributes:
         views: one :class:`~volcap_core.view.ViewSpec` per frame time, in order (K px, OpenCV
-            world-to-camera, width, height, ``time_s`` the frame's time).
+            world-to-camera, width, height, ``time_s`` the frame's time, ``near_m`` the near
+            clipping plane: see :attr:`FacePathDistribution.near_margin`).
         params: JSON-able, what was drawn: ``seed``, ``index``, ``frames``, ``sensor_width_mm``,
             ``focal_mm_start``/``_end`` (full-frame equivalent), ``distance_m_start``/``_end``
-            (camera centre to head centre), ``azimuth_deg_start``/``_end`` (around ``up`` from
+            (camera centre to head centre), ``near_m_start``/``_end`` (the views' near planes),
+            ``azimuth_deg_start``/``_end`` (around ``up`` from
             ``facing``), ``elevation_deg_start``/``_end``, ``head_fraction_start``/``_end``,
             ``roll_deg_start``/``_end``, ``aim_offset_m_start``/``_end`` (3-vectors),
             ``zoom_rate`` and ``dolly_rate`` (natural log of the focal length's and the
@@ -116,7 +135,8 @@ def face_camera_paths(head_centre_m, head_radius_m: float, frame_times_s, count:
     zoom and dolly rates), linearly for the others. The camera sits at that distance from the head
     centre of that frame in that direction and aims at the centre plus the offset; with the head
     sphere of ``head_radius_m`` at distance ``d`` its image diameter is ``2 f r / √(d² − r²)``
-    pixels (``f`` the focal in pixels), the drawn fraction of ``height``.
+    pixels (``f`` the focal in pixels), the drawn fraction of ``height``. Its near clipping plane
+    is ``max(d − near_margin · r, NEAR_MIN_M)``: nothing between the camera and the head is drawn.
 
     Args:
         head_centre_m: ``[3]`` the head centre (metres, world), or ``[n, 3]`` one per frame time.
@@ -192,11 +212,13 @@ def _path(i: int, seed: int, dist: FacePathDistribution, centres: np.ndarray, ti
         w2c[:3, :3], w2c[:3, 3] = R, -R @ position
         K = ((fpx, 0.0, cx), (0.0, fpx, cy), (0.0, 0.0, 1.0))
         views.append(ViewSpec(K=K, world_to_camera=tuple(tuple(float(x) for x in row) for row in w2c),
-                              width=width, height=height, time_s=float(times[k])))
+                              width=width, height=height, time_s=float(times[k]),
+                              near_m=max(d - dist.near_margin * r, NEAR_MIN_M)))
         dists.append(d)
     steps = max(n - 1, 1)
     params = {"seed": seed, "index": i, "frames": n, "sensor_width_mm": SENSOR_WIDTH_MM,
               "focal_mm_start": f0, "focal_mm_end": f1, "distance_m_start": dists[0], "distance_m_end": dists[-1],
+              "near_m_start": views[0].near_m, "near_m_end": views[-1].near_m,
               "azimuth_deg_start": a0, "azimuth_deg_end": a1, "elevation_deg_start": e0, "elevation_deg_end": e1,
               "head_fraction_start": float(phi0), "head_fraction_end": float(phi1),
               "roll_deg_start": float(roll0), "roll_deg_end": float(roll1),
