@@ -4,11 +4,7 @@ rendered where Prefect, pycolmap, OpenCV and OpenImageIO cannot be imported, and
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,16 +14,8 @@ from flows.runtime import run_flow
 from volcap_core.store import ArtifactStore
 from volcap_core.synth import synthesize_capture, synthesize_face_capture
 
-ROOT = Path(__file__).resolve().parents[1]
-SCRIPT = ROOT / "bench" / "gpu_facerig_pairs.py"
-BLOCKED = ("prefect", "pycolmap", "cv2", "OpenImageIO")
+from tests.gpu_machine import load_bench, run_without_absent
 
-
-def _bench():
-    spec = importlib.util.spec_from_file_location("gpu_facerig_pairs", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 @pytest.mark.slow   # ~50 s wall, ~27 s of CPU: an end-to-end run of the bench's three parts
@@ -42,7 +30,7 @@ def test_prepare_run_report(prefect_api, tmp_path):
                                name="scene-gpu").parent
     store = ArtifactStore(str(tmp_path / "store")).url
     refs = [run_flow(ingest_flow, store=store, capture_dir=str(d)).result.digest for d in (face, scene)]
-    bench = _bench()
+    bench = load_bench("gpu_facerig_pairs")
     src = tmp_path / "prep"
     meta = bench.prepare(src, store, capture=refs[0], scene=refs[1], frames=(0, 3), cameras=["F003"],
                          points_per_frame=1500, paths=2, sizes=(32, 48),
@@ -57,12 +45,8 @@ def test_prepare_run_report(prefect_api, tmp_path):
     assert meta["colour"]["after"]["delta_e2000_mean"] < meta["colour"]["before"]["delta_e2000_mean"]
 
     out = tmp_path / "out"
-    code = ("import sys, runpy\n"
-            + "".join(f"sys.modules[{m!r}] = None\n" for m in BLOCKED)
-            + f"sys.argv = ['gpu_facerig_pairs.py', '--run', {str(src)!r}, '--out', {str(out)!r}, '--device', 'cpu',"
-              " '--hq-steps', '4', '--lq-steps', '4', '--budget-s', '600']\n"
-            + f"runpy.run_path({str(SCRIPT)!r}, run_name='__main__')\n")
-    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    proc = run_without_absent("gpu_facerig_pairs", ["--run", src, "--out", out, "--device", "cpu", "--hq-steps", "4",
+                                                    "--lq-steps", "4", "--budget-s", "600"])
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert sorted(p.name for p in out.iterdir()) == ["facerig_pairs.json", "facerig_pairs.log"]
     fig = json.loads((out / "facerig_pairs.json").read_text())

@@ -3,11 +3,7 @@ scored as ``volcap reconstruct --json`` scores (issue 28's GPU item)."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import subprocess
-import sys
-from pathlib import Path
 
 import pytest
 import torch
@@ -26,19 +22,11 @@ from volcap_core.splat.report import score_segment
 from volcap_core.store import ArtifactStore
 from volcap_core.synth import ground_truth, synthesize_capture
 
-ROOT = Path(__file__).resolve().parents[1]
-SCRIPT = ROOT / "bench" / "gpu_zoom_curve.py"
+from tests.gpu_machine import load_bench, run_without_absent
+
 # four static cameras and two tracking ones: the demo preset holds out S003 and S009 (each
 # camera's views cost their floors' colour fits, several times over: the test's most)
 CAMERAS = ["S001", "S002", "S003", "S004", "S008", "S009"]
-BLOCKED = ("prefect", "pycolmap", "cv2", "OpenImageIO")
-
-
-def _bench():
-    spec = importlib.util.spec_from_file_location("gpu_zoom_curve", SCRIPT)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 @pytest.mark.slow
@@ -54,7 +42,7 @@ def test_prepare_run_report(prefect_api, tmp_path):
     recon = run_flow(reconstruct_flow, store=store, capture=capture, preset="test", points_per_frame=1500,
                      held_out=["S003", "S009"], ground_truth=True, steps=1).result
     refs = [recon["capture"]["digest"], recon["calibration"]["digest"], recon["points"]["digest"]]
-    bench = _bench()
+    bench = load_bench("gpu_zoom_curve")
     src = tmp_path / "prep"
     bench.main(["--prepare", str(src), "--store", store, "--capture", refs[0], "--calibration", refs[1],
                 "--points", refs[2], "--frames", "0", "2", "--steps", "4", "--gaussians-per-frame", "1000"])
@@ -66,12 +54,8 @@ def test_prepare_run_report(prefect_api, tmp_path):
 
     # the run part: no Prefect, pycolmap, OpenCV or OpenImageIO in its process
     out = tmp_path / "out"
-    code = ("import sys, runpy\n"
-            + "".join(f"sys.modules[{m!r}] = None\n" for m in BLOCKED)
-            + f"sys.argv = ['gpu_zoom_curve.py', '--run', {str(src)!r}, '--out', {str(out)!r}, '--device', 'cpu',"
-              " '--steps', '4', '--evals', '2', '--budget-s', '600']\n"
-            + f"runpy.run_path({str(SCRIPT)!r}, run_name='__main__')\n")
-    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    proc = run_without_absent("gpu_zoom_curve", ["--run", src, "--out", out, "--device", "cpu", "--steps", "4",
+                                                 "--evals", "2", "--budget-s", "600"])
     assert proc.returncode == 0, proc.stderr[-3000:]
     curve = json.loads((out / "curve.json").read_text())
     assert curve["backend"] == "torch" and curve["stopped"] == "steps"

@@ -6,27 +6,14 @@ and OpenCV cannot be imported, reported. Skipped without ../shared."""
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
-import subprocess
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from bench.bench_dense_points import POSE2SIM
+from tests.gpu_machine import load_bench, run_without_absent
 
-ROOT = Path(__file__).resolve().parents[1]
-SCRIPT = ROOT / "bench" / "gpu_zoom_curve.py"
-BLOCKED = ("prefect", "pycolmap", "cv2", "OpenImageIO")
-
-
-def _module(path: Path, name: str):
-    spec = importlib.util.spec_from_file_location(name, path)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
 
 
 @pytest.mark.slow
@@ -43,8 +30,8 @@ def test_real_capture_prepare_run_report(prefect_api, tmp_path):
     from volcap_core.colour import srgb_encode
     from volcap_core.store import ArtifactStore
 
-    p2s = _module(ROOT / "bench" / "bench_pose2sim_heldout.py", "bench_pose2sim_heldout")
-    bench = _module(SCRIPT, "gpu_zoom_curve")
+    p2s = load_bench("bench_pose2sim_heldout")
+    bench = load_bench("gpu_zoom_curve")
     work = tmp_path / "w"
     work.mkdir()
     inputs = p2s.prepare(work, start=48, frames=2)
@@ -74,12 +61,8 @@ def test_real_capture_prepare_run_report(prefect_api, tmp_path):
         assert ours.load_matte() is not None   # the capture's own masks are its matte too
 
     out = tmp_path / "out"
-    code = ("import sys, runpy\n"
-            + "".join(f"sys.modules[{m!r}] = None\n" for m in BLOCKED)
-            + f"sys.argv = ['gpu_zoom_curve.py', '--run', {str(src)!r}, '--out', {str(out)!r}, '--device', 'cpu',"
-              " '--steps', '4', '--evals', '2', '--budget-s', '600']\n"
-            + f"runpy.run_path({str(SCRIPT)!r}, run_name='__main__')\n")
-    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    proc = run_without_absent("gpu_zoom_curve", ["--run", src, "--out", out, "--device", "cpu", "--steps", "4",
+                                                 "--evals", "2", "--budget-s", "600"])
     assert proc.returncode == 0, proc.stderr[-3000:]
     curve = json.loads((out / "curve.json").read_text())
     assert curve["stopped"] == "steps" and [p["step"] for p in curve["points"]] == [0, 2, 4]
