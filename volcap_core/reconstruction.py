@@ -263,10 +263,11 @@ def segment_init(load_bytes: Callable[[ArtifactRef], bytes], capture: Capture, p
     (:func:`~volcap_core.splat.init.room_shell`: the floor at z = 0, walls beyond the cameras).
     Each point carries its finest training camera's pixel footprint (:func:`with_footprints`);
     ``zoom_stride_px`` (``TrainConfig.init_zoom_stride_px``) adds the zoom cameras' points
-    (:func:`with_zoom_points`). A capture with its own performer masks (every training view has a
-    matte) gets the performers' visual hull as each frame's moving points, and loses the sweep's
-    moving points outside the stage volume (:func:`with_performer_hull`). Anything that must
-    reproduce a stored segment (a resumed run, a check) calls this."""
+    (:func:`with_zoom_points`). A capture with its own performer masks (its training views carry
+    mattes: :func:`has_performer_mattes`) gets the performers' visual hull as each frame's moving
+    points, and loses the sweep's moving points outside the stage volume
+    (:func:`with_performer_hull`). Anything that must reproduce a stored segment (a resumed run, a
+    check) calls this."""
     from volcap_core.pointcloud import decode_points
 
     background = background_views(data, capture, held_out)
@@ -336,9 +337,7 @@ def with_performer_hull(clouds: Sequence[PointsAtTime], data: SegmentData, held_
         keep = static | inside
         cams = []
         for v, m in mattes:
-            K = v.camera.K.double().numpy().copy()
-            K[0, 2] -= 0.5   # splat cameras put pixel centres at +0.5
-            K[1, 2] -= 0.5
+            K = v.camera.opencv_K()
             close = max(1, round(HULL_CLOSE_FRACTION * min(v.camera.width, v.camera.height)))
             cams.append((K, v.camera.world_to_camera.double().numpy(), filled_silhouette(m.numpy(), close_px=close)))
         hull = visual_hull(cams, volume)
@@ -372,9 +371,7 @@ def with_zoom_points(clouds: Sequence[PointsAtTime], data: SegmentData, held_out
         for v in data.views:
             if v.camera_id in held or abs(v.time - p.time) > 1e-6:
                 continue
-            K = v.camera.K.double().numpy().copy()
-            K[0, 2] -= 0.5   # splat cameras put pixel centres at +0.5
-            K[1, 2] -= 0.5
+            K = v.camera.opencv_K()
             W = v.camera.world_to_camera.double().numpy()
             z = xyz @ W[2, :3] + W[2, 3]
             seen = z > 0.1
@@ -405,9 +402,7 @@ def with_footprints(clouds: Sequence[PointsAtTime], data: SegmentData, held_out:
         cams = []
         for v in data.views:
             if v.time == at and v.camera_id not in held:
-                K = v.camera.K.double().numpy().copy()
-                K[0, 2] -= 0.5   # splat cameras put pixel centres at +0.5
-                K[1, 2] -= 0.5
+                K = v.camera.opencv_K()
                 cams.append((K, v.camera.world_to_camera.double().numpy(), v.camera.width, v.camera.height))
         foot = finest_footprint(p.xyz.double().numpy(), cams)
         out.append(replace(p, footprint=torch.from_numpy(foot).float()))

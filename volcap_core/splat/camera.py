@@ -61,6 +61,15 @@ class Camera:
         R = self.world_to_camera[:3, :3]
         return -R.T @ self.world_to_camera[:3, 3]
 
+    def opencv_K(self) -> np.ndarray:
+        """``[3, 3]`` float64 intrinsics with pixel centres at integers (OpenCV's, what depth
+        buffers and projections to pixel indices round to): this camera's ``K`` (centres at +0.5,
+        gsplat's convention) with ``cx, cy`` less half a pixel."""
+        K = self.K.double().cpu().numpy().copy()
+        K[0, 2] -= 0.5
+        K[1, 2] -= 0.5
+        return K
+
     def to(self, device: torch.device | str) -> "Camera":
         return replace(self, K=self.K.to(device), world_to_camera=self.world_to_camera.to(device))
 

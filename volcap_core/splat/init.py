@@ -384,9 +384,7 @@ def colour_scan(points: np.ndarray, views: Sequence, *, min_views: int = 1, spla
     pts = np.asarray(points, np.float64).reshape(-1, 3)
     samples = np.full((len(views), len(pts), 3), np.nan, np.float32)
     for k, v in enumerate(views):
-        K = v.camera.K.double().numpy().copy()
-        K[0, 2] -= 0.5   # to OpenCV's pixel centres at integers (what depth_buffer rounds to)
-        K[1, 2] -= 0.5
+        K = v.camera.opencv_K()
         W = v.camera.world_to_camera.double().numpy()
         w, h = v.camera.width, v.camera.height
         zbuf = depth_buffer(K, W, w, h, pts, splat_px=splat_px)

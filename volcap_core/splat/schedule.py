@@ -61,9 +61,7 @@ def view_weights(views: Sequence, points: Sequence, performer_weight: float) -> 
     out = np.empty(len(views))
     for i, v in enumerate(views):
         _, xyz = min(clouds, key=lambda c: abs(c[0] - v.time))
-        K = v.camera.K.double().numpy().copy()
-        K[0, 2] -= 0.5   # splat cameras put pixel centres at +0.5; depth_buffer at integers
-        K[1, 2] -= 0.5
+        K = v.camera.opencv_K()
         cover = moving_coverage(K, v.camera.world_to_camera.double().numpy(), v.camera.width, v.camera.height, xyz)
         out[i] = 1.0 + performer_weight * cover
     return out
