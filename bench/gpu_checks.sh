@@ -16,7 +16,8 @@
 #        budget, detail and PSNR per camera role against time, stopped within ZOOM_BUDGET_S (issue 28;
 #        $OUT/zoom/: curve.json, sheet.npz, log; read back with --report);
 #      P2S=DIR (`python bench/bench_pose2sim_heldout.py ... --gpu-prepare DIR`): issue 30's real capture at full
-#        resolution, gpu_zoom_curve's run over the prepared Pose2Sim segment within P2S_BUDGET_S ($OUT/p2s/);
+#        resolution, gpu_zoom_curve's run over the prepared Pose2Sim segment within P2S_BUDGET_S, scored
+#        P2S_EVALS times (full-resolution scoring is ~40 s a checkpoint, its floors ~140 s) ($OUT/p2s/);
 #      PAIRS=DIR (`python bench/gpu_facerig_pairs.py --prepare DIR`): the Face Rig pair stages' time and GPU
 #        memory at 1024² and 4096² within PAIRS_BUDGET_S (issue 29; $OUT/pairs/).
 #      PREPARED_ONLY=1 runs the build and the prepared runs alone (what a 15-minute lease holds).
@@ -68,7 +69,7 @@ prepared() {
     if [ -n "${P2S:-}" ]; then
         mkdir -p "$OUT/p2s"
         timeout "${P2S_S:-230}" python3 bench/gpu_zoom_curve.py --run "$P2S" --out "$OUT/p2s" --device cuda \
-            --budget-s "${P2S_BUDGET_S:-200}" 2>&1 | tee "$OUT/p2s/log" | tail -40
+            --budget-s "${P2S_BUDGET_S:-200}" --evals "${P2S_EVALS:-8}" 2>&1 | tee "$OUT/p2s/log" | tail -40
     fi
     if [ -n "${PAIRS:-}" ]; then
         mkdir -p "$OUT/pairs"
