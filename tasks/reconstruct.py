@@ -155,14 +155,17 @@ def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRe
     return ref
 
 
-@volcap_task(name="render-views", version="1", libraries=("torch", "OpenEXR"))
+@volcap_task(name="render-views", version="2", libraries=("torch", "OpenEXR"))
 def render_views(store: str, segment: ArtifactRef, views: list[ViewSpec], grids_of: str | None = None) -> list[ArtifactRef]:
     """Render a segment model from any cameras at any times (novel views, camera paths): linear
-    RGBA half-float EXRs. ``grids_of``: apply that training camera's exposure/black grids."""
+    RGBA half-float EXRs. ``grids_of``: apply that training camera's exposure/black grids. A view's
+    ``near_m`` clips what lies nearer (version 2: version 1 ignored it, so its renders of views with
+    a near plane are not reused)."""
     s = ArtifactStore(store)
     seg = s.get_record(segment, reconstruction.SegmentModel)
     return [s.put_bytes(render_segment_exr(s.get_bytes, seg, np.asarray(v.K), np.asarray(v.world_to_camera),
-                                           v.width, v.height, v.time_s, grids_of), MEDIA_EXR) for v in views]
+                                           v.width, v.height, v.time_s, grids_of, near_m=v.near_m), MEDIA_EXR)
+            for v in views]
 
 
 __all__ = ["ground_truth_calibration", "ground_truth_points", "train_segment_task", "render_views", "ViewSpec"]

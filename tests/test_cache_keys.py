@@ -252,6 +252,7 @@ def test_reconstruction_keys():
                                       width=100, height=100, time_s=0.5)
     assert_key_behaviour(reconstruct_tasks.render_views, dict(segment=ref("a"), views=[view]),
                          misses={"time": {"views": [view.model_copy(update={"time_s": 0.6})]},
+                                 "near plane": {"views": [view.model_copy(update={"near_m": 0.5})]},
                                  "grids": {"grids_of": "S001"}}, hits={})
 
 

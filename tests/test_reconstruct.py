@@ -196,6 +196,10 @@ def test_render_view_and_ply_export(reconstructed):
     px, ch = decode_exr(exr)
     assert ch == ("R", "G", "B", "A") and px.shape == (h, w, 4)
     assert torch.isfinite(torch.from_numpy(px)).all() and px[..., 3].max() > 0.5
+    # a view's near plane clips: one beyond the whole room draws nothing, a render that is reused
+    # under no key of the view without it
+    [clipped] = reconstruct_tasks.render_views.fn(store, seg_ref, [views[1].model_copy(update={"near_m": 50.0})])
+    assert clipped != refs[1] and decode_exr(s.get_bytes(clipped))[0][..., 3].max() == 0
 
     from volcap_core.splat import export_ply
     ply = export_ply(load_model(s.get_bytes(seg.model)), 0.0)

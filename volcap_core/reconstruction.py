@@ -74,17 +74,20 @@ class SegmentModel(Record):
         return self.frames[0] / self.fps, (self.frames[1] - 1) / self.fps
 
 
-def splat_camera(K: np.ndarray, world_to_camera: np.ndarray, width: int, height: int) -> Camera:
+def splat_camera(K: np.ndarray, world_to_camera: np.ndarray, width: int, height: int,
+                 near: float | None = None) -> Camera:
     """A calibration camera (OpenCV, top-left pixel centre at 0) as a splat :class:`Camera`.
 
     The rasterizer puts pixel centres at +0.5 (gsplat's convention), so cx, cy shift by 0.5.
+    ``near``: the near clipping plane in metres of camera depth (a view's ``ViewSpec.near_m``: what
+    lies nearer is not drawn); None: the renderer's default.
     """
     K = np.array(K, dtype=np.float64, copy=True)
     K[0, 2] += 0.5
     K[1, 2] += 0.5
     return Camera(K=torch.tensor(K, dtype=torch.float32),
                   world_to_camera=torch.tensor(np.asarray(world_to_camera), dtype=torch.float32),
-                  width=int(width), height=int(height))
+                  width=int(width), height=int(height), **({} if near is None else {"near": float(near)}))
 
 
 class FrameCache:

@@ -129,10 +129,12 @@ def _finite(x: float | None) -> float | None:
 
 
 def render_segment_exr(get_bytes: GetBytes, seg: reconstruction.SegmentModel, K: np.ndarray, w2c: np.ndarray,
-                       width: int, height: int, time_s: float, grids_of: str | None = None) -> bytes:
+                       width: int, height: int, time_s: float, grids_of: str | None = None,
+                       near_m: float | None = None) -> bytes:
     """The segment from camera (K [3, 3] OpenCV, world-to-camera [4, 4]) at ``time_s`` seconds on
     the take's clock: linear RGBA half-float EXR bytes, the camera in the header. ``grids_of``:
-    apply that training camera's exposure/black-level grids (what that camera would have recorded)."""
+    apply that training camera's exposure/black-level grids (what that camera would have recorded).
+    ``near_m``: the near clipping plane (metres of camera depth; None: the renderer's default)."""
     lo, hi = seg.time_range
     if not lo - 0.5 / seg.fps <= time_s <= hi + 0.5 / seg.fps:
         log.warning("time %.3f s is outside the segment's %.3f-%.3f s", time_s, lo, hi)
@@ -140,7 +142,7 @@ def render_segment_exr(get_bytes: GetBytes, seg: reconstruction.SegmentModel, K:
         raise ValueError(f"segment has no exposure grids for camera {grids_of!r} "
                          f"(it has {', '.join(seg.grid_cameras) or 'none'})")
     model = load_model(get_bytes(seg.model))
-    camera = reconstruction.splat_camera(K, w2c, width, height)
+    camera = reconstruction.splat_camera(K, w2c, width, height, near=near_m)
     with torch.no_grad():
         out = render(evaluate(model, time_s), camera)
         rgb = out["rgb"]

@@ -18,7 +18,6 @@ from __future__ import annotations
 import json
 import zlib
 from collections.abc import Sequence
-from dataclasses import replace
 
 import numpy as np
 import torch
@@ -49,8 +48,8 @@ def lq_gaussians_per_frame(lq_range: tuple[int, int], seed: int, subsequence: in
 
 def _camera(view: ViewSpec, device: torch.device):
     """The splat camera of ``view``, with its near plane when it has one (the renderer's default else)."""
-    cam = reconstruction.splat_camera(np.asarray(view.K), np.asarray(view.world_to_camera), view.width, view.height)
-    return (cam if view.near_m is None else replace(cam, near=float(view.near_m))).to(device)
+    return reconstruction.splat_camera(np.asarray(view.K), np.asarray(view.world_to_camera), view.width, view.height,
+                                       near=view.near_m).to(device)
 
 
 def render_path(model: Poly4DGS, views: Sequence[ViewSpec], *, colour=None, flow: bool = False,
