@@ -19,6 +19,9 @@ The truth is scene radiance: no sensor (gain, vignette, glare, black level, nois
 camera would see the stage. A capture camera's recorded values without noise are
 ``SensorModel.from_json(photometric).apply(radiance, None)``
 (:class:`~volcap_core.synth.sensor.SensorModel`; ``photometric`` from ``ground_truth/cameras.json``).
+:func:`capture_recording` composes them for a capture camera at a take index, sampled as the
+synthesizer sampled its footage: the camera's **noise-free recording** (the expected value of
+each footage pixel), or the same with noise drawn afresh from the camera's own noise model.
 """
 
 from __future__ import annotations
@@ -38,10 +41,11 @@ from volcap_core.capture import CaptureFolder
 from volcap_core.synth.geometry import PinholeCamera
 from volcap_core.synth.ground_truth import GroundTruthFiles
 from volcap_core.synth.render import World, draw_prims, performer_coverage, render
+from volcap_core.synth.sensor import SensorModel
 from volcap_core.synth.synthesize import synthetic_world
 
-__all__ = ["SCENE_FILE", "Truth", "capture_camera", "render_truth", "truth_world",
-           "truth_world_from_folder"]
+__all__ = ["SCENE_FILE", "Truth", "capture_camera", "capture_recording", "capture_sensor", "render_truth",
+           "truth_world", "truth_world_from_folder"]
 
 #: the ground-truth file the world is rebuilt from
 SCENE_FILE = "scene.json"
@@ -146,3 +150,40 @@ def capture_camera(cameras: Mapping[str, Any], camera_id: str, take_index: int) 
     w2c = np.asarray(f["world_to_camera"], np.float64)
     return PinholeCamera(int(cam["width"]), int(cam["height"]), float(f["fx"]), float(f["fy"]), float(f["cx"]),
                          float(f["cy"]), w2c[:3, :3], w2c[:3, 3], Distortion.from_json(f.get("distortion")))
+
+
+def capture_sensor(cameras: Mapping[str, Any], camera_id: str) -> SensorModel:
+    """The sensor of camera ``camera_id`` of ``ground_truth/cameras.json`` (parsed): its
+    ``photometric`` (gain, vignette, glare, black level, read and shot noise)."""
+    try:
+        cam = cameras["cameras"][camera_id]
+    except KeyError:
+        raise ValueError(f"ground truth has no camera {camera_id!r} "
+                         f"(it has {', '.join(sorted(cameras['cameras']))})") from None
+    if "photometric" not in cam:
+        raise ValueError(f"ground truth camera {camera_id}: no 'photometric' (its sensor is not recorded)")
+    return SensorModel.from_json(cam["photometric"])
+
+
+def capture_recording(world: World, cameras: Mapping[str, Any], camera_id: str, take_index: int, *,
+                      supersample: int = 2, noise: np.random.Generator | None = None) -> np.ndarray:
+    """What capture camera ``camera_id`` records at ``take_index``: ``[H, W, 3]`` float32, the
+    footage's values (linear, black level included).
+
+    The world seen through the camera's true lens and pose (:func:`capture_camera`) at
+    ``take_index / fps`` seconds, ``content="all"``, sampled as the synthesizer sampled the footage
+    (``supersample`` per pixel side, the capture's: ``volcap synth`` uses 2; the set at that rate for
+    a static camera, at 1 for a tracking one), then through the camera's sensor
+    (:func:`capture_sensor`). ``noise=None``: the **noise-free recording**, the expected value of
+    each footage pixel (what a model that matched the scene exactly and learned the camera's
+    exposure would render); a generator: noise drawn from it with the sensor's own law (read and
+    shot noise; a fresh draw, independent of the footage's unless given its generator)."""
+    cam = cameras["cameras"].get(camera_id)
+    if cam is None:
+        raise ValueError(f"ground truth has no camera {camera_id!r} "
+                         f"(it has {', '.join(sorted(cameras['cameras']))})")
+    sensor = capture_sensor(cameras, camera_id)
+    tracks = cam.get("tracking") is not None
+    truth = render_truth(world, capture_camera(cameras, camera_id, take_index), take_index / float(cameras["fps"]),
+                         content="all", supersample=supersample, set_supersample=1 if tracks else None)
+    return sensor.apply(truth.rgb, noise)
