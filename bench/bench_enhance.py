@@ -183,12 +183,14 @@ def load_pair_dataset(store_url: str, ref: str) -> tuple[list, list, dict]:
     PairDataset or a split is empty."""
     from volcap_core.enhance.production import PairDataset, load_pair_sets, pair_record
     from volcap_core.records import DIGEST_RE, ArtifactRef
-    from volcap_core.store import ArtifactStore
+    from volcap_core.store import ArtifactStore, StoreError
 
     s = ArtifactStore(store_url)
-    aref = ArtifactRef(digest=ref, size=0) if DIGEST_RE.match(ref) else s.get_ref(ref)
     try:
+        aref = ArtifactRef(digest=ref, size=0) if DIGEST_RE.match(ref) else s.get_ref(ref)
         ds = pair_record(aref, s.get_bytes)
+    except StoreError as e:
+        raise SystemExit(f"--pairs {ref}: {e}") from None
     except ValueError as e:
         raise SystemExit(f"--pairs {ref}: not a PairDataset ({str(e).splitlines()[0]})") from None
     if not isinstance(ds, PairDataset):

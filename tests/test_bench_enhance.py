@@ -87,6 +87,8 @@ def test_a_ref_that_is_not_a_pair_dataset_or_has_no_test_split_is_named(bench, d
     s.set_ref("datasets/no-test", empty)
     with pytest.raises(SystemExit, match="datasets/no-test: the test split of PairDataset .* is empty"):
         bench.load_pair_dataset(url, "datasets/no-test")
+    with pytest.raises(SystemExit, match="datasets/none: no ref named 'datasets/none'"):
+        bench.load_pair_dataset(url, "datasets/none")
     other = s.put_bytes(b"{}", "application/json")
     with pytest.raises(SystemExit, match=f"{other.digest}: not a PairDataset"):
         bench.load_pair_dataset(url, other.digest)
