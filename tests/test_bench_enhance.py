@@ -4,7 +4,7 @@ figures as held-out ones), and refuses a ref that is not a dataset it can score.
 
 The dataset: three sub-sequences of one rendered path each (the hand-made drifting blob of
 ``tests/enhance/test_splat_pairs.py``, 64 px, 4 frames), split by ``split_subsequences``; the
-bench at its ``--quick`` sizes with 2 training steps (~10 s on one thread).
+bench at its ``--quick`` sizes with 2 training steps (4-11 s on the shared 2-core machine).
 """
 
 from __future__ import annotations
