@@ -4,6 +4,8 @@ beside its floors, the paper's Table 2 ablations, and time and memory per frame 
     python bench/bench_enhance.py                 # the documented run (~80 min on 2 shared cores)
     python bench/bench_enhance.py --quick         # smoke run (< 2 min): tiny, numbers meaningless
     python bench/bench_enhance.py --json out.json --sheets docs/img   # docs/img/enhance_*.png
+    python bench/bench_enhance.py --pairs STORE_URL REF --json out.json --sheets docs/img
+                                                  # Table 2 on a stored PairDataset (splat pairs)
 
 Data: ``synthesize_face_capture(rig=..., seed=0, frames=F, write_depth=True)`` of the ``demo_face``
 rig with every camera's pixel grid ``render_scale`` times finer (:func:`scaled_rig`; the documented
@@ -70,6 +72,21 @@ the process's peak resident set size over the two frames (``VmHWM`` of ``/proc/s
 reset just before them through ``/proc/self/clear_refs``) minus its resident size then
 (``/proc/self/statm``): what the frames needed on top of the loaded model and inputs, torch's
 allocations included (``tracemalloc`` would not see them). The time is the second frame's.
+
+**Splat pairs** (``--pairs STORE_URL REF``, issue 29): the same training, rows, metrics and sheets on
+a stored :class:`~volcap_core.enhance.production.PairDataset` (the ``facerig_pairs`` flow's LQ/HQ
+Poly4DGS renders along camera paths; ``REF`` a digest or a ref name of the store, which is only
+read). Pairs are read by :func:`~volcap_core.enhance.production.load_pair_sets`, the loader
+``train-enhancer`` trains with: the VAE and both transformers train on the ``train`` split's
+sequences, every figure is on the ``test`` split's (the split is by sub-sequence, so nothing of a
+test sub-sequence is trained on; the ``validation`` split is not used). Whole frames (the dataset's
+resolution is the window); the capture, camera and window settings do not apply. Every row that
+warps the previous output (``untrained``, ``full``, ``full, from noise``) warps it with the
+dataset's own flow, the LQ's exact rendered flow (training uses it too: ``flow="auto"``), where the
+interim path has DIS on the LQ; the warp-error figure keeps the HQ's DIS flow of the interim table,
+so the metric is the same for every row and both paths. No timing against resolution (it does not
+depend on the data). Sheets: ``enhance_pairs_heldout.jpg`` and ``enhance_pairs_ablations.jpg``, the
+first ``sheet_sequences`` test sequences.
 """
 
 from __future__ import annotations
@@ -156,6 +173,43 @@ def make_pairs(workdir: Path, s: dict) -> tuple[list, list, dict]:
         raise SystemExit(f"need training and held-out cameras, got {[p.name for p in sets]}")
     return train, held, {"windows": windows, "train_cameras": [p.name for p in train],
                          "heldout_cameras": [p.name for p in held]}
+
+
+def load_pair_dataset(store_url: str, ref: str) -> tuple[list, list, dict]:
+    """The train and test split of the :class:`~volcap_core.enhance.production.PairDataset` ``ref``
+    (a ``blake3:`` digest or a ref name) of the store ``store_url``, read only: (train, test, info),
+    lists of :class:`~volcap_core.enhance.pairs.PairSet` (float32 ``[T, 4, H, W]``, exact flow
+    ``[T - 1, 2, H, W]``) named ``actor/sequence``. ``SystemExit`` naming ``ref`` when it is not a
+    PairDataset or a split is empty."""
+    from volcap_core.enhance.production import PairDataset, load_pair_sets, pair_record
+    from volcap_core.records import DIGEST_RE, ArtifactRef
+    from volcap_core.store import ArtifactStore, StoreError
+
+    s = ArtifactStore(store_url)
+    try:
+        aref = ArtifactRef(digest=ref, size=0) if DIGEST_RE.match(ref) else s.get_ref(ref)
+        ds = pair_record(aref, s.get_bytes)
+    except StoreError as e:
+        raise SystemExit(f"--pairs {ref}: {e}") from None
+    except ValueError as e:
+        raise SystemExit(f"--pairs {ref}: not a PairDataset ({str(e).splitlines()[0]})") from None
+    if not isinstance(ds, PairDataset):
+        raise SystemExit(f"--pairs {ref}: a {ds.kind} record (interim pairs, method {ds.method!r}), not a "
+                         f"{PairDataset.kind}: Table 2 on splat pairs needs the facerig_pairs flow's dataset")
+    for split in ("train", "test"):
+        if not ds.in_split(split):
+            raise SystemExit(f"--pairs {ref}: the {split} split of PairDataset {aref.digest} is empty "
+                             f"(split {ds.split})")
+    train = load_pair_sets([ds], s.get_bytes, split="train")
+    test = load_pair_sets([ds], s.get_bytes, split="test")
+    info = {"store": s.url, "dataset": aref.digest, "actor": ds.actor, "method": ds.method,
+            "resolution": ds.resolution, "lq_range": list(ds.lq_range),
+            "split_subsequences": {k: list(v) for k, v in ds.split.items()},
+            "train_sequences": [p.name for p in train], "test_sequences": [p.name for p in test],
+            "lq_gaussians": {q.name: q.lq_gaussians for q in ds.sequences},
+            "hq_gaussians": {q.name: q.hq_gaussians for q in ds.sequences},
+            "flow": "rendered: the dataset's exact LQ flow (training: flow='auto' takes it too)"}
+    return train, test, info
 
 
 # ------------------------------------------------------------------------------------ metrics
@@ -272,8 +326,11 @@ def _png_256_colours(image: np.ndarray) -> bytes:
     return buf.getvalue()
 
 
-def write_sheets(sheet_dir: Path, held: list, outputs: dict, scores_per: dict, frames: list[int]) -> list[str]:
-    from volcap_core.contact_sheet import SheetRow, contact_sheet
+def write_sheets(sheet_dir: Path, held: list, outputs: dict, scores_per: dict, frames: list[int],
+                 splat_pairs: bool = False) -> list[str]:
+    """The held-out and ablation sheets (truth HQ | output | error): ``enhance_*.png`` of every
+    held-out camera, or with ``splat_pairs`` ``enhance_pairs_*.jpg`` of the sequences ``held``."""
+    from volcap_core.contact_sheet import SheetRow, contact_sheet, encode_jpeg
     from volcap_core.enhance.metrics import psnr
     from volcap_core.enhance.temporal import to_display
 
@@ -285,6 +342,8 @@ def write_sheets(sheet_dir: Path, held: list, outputs: dict, scores_per: dict, f
     written = []
     groups = {"enhance_heldout.png": ["LQ input", "bicubic/unsharp", "untrained", "VAE round trip of HQ", "full"],
               "enhance_ablations.png": ["full", "full, from noise", "w/o OFW", "w/o OFW, w/o LFS"]}
+    if splat_pairs:
+        groups = {f"enhance_pairs_{k[8:-4]}.jpg": v for k, v in groups.items()}
     for fname, names in groups.items():
         rows = []
         for i, p in enumerate(held):
@@ -295,9 +354,10 @@ def write_sheets(sheet_dir: Path, held: list, outputs: dict, scores_per: dict, f
         # the widest sheet under 300 KB (docs/img), quantized to 256 colours (Pillow, which
         # diffusers requires): 256-px windows of smooth skin do not compress as 24-bit PNG
         for width in (780, 660, 560, 480, 400):
-            sheet = contact_sheet(rows, title=f"Detail enhancer, held-out ({fname[8:-4]}); footage = HQ",
+            what = f"splat pairs, test split ({fname[14:-4]})" if splat_pairs else f"held-out ({fname[8:-4]})"
+            sheet = contact_sheet(rows, title=f"Detail enhancer, {what}; footage = HQ",
                                   max_width=width, error_scale=0.25)
-            png = _png_256_colours(sheet)
+            png = encode_jpeg(sheet) if splat_pairs else _png_256_colours(sheet)
             if len(png) < 300_000:
                 break
         sheet_dir.mkdir(parents=True, exist_ok=True)
@@ -311,6 +371,11 @@ def write_sheets(sheet_dir: Path, held: list, outputs: dict, scores_per: dict, f
 def main(argv: list[str] | None = None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--pairs", nargs=2, metavar=("STORE_URL", "REF"),
+                    help="Table 2 on a stored PairDataset (digest or ref name; read only): train split "
+                    "for training, test split for the figures")
+    ap.add_argument("--vae-stages", type=json.loads, help='VAE stages after vae_steps, JSON [[steps, lr], ...]')
+    ap.add_argument("--sheet-sequences", type=int, default=2, help="with --pairs: test sequences on the sheets")
     ap.add_argument("--workdir", type=Path, help="capture folder (reused when it holds the same capture)")
     ap.add_argument("--json", type=Path)
     ap.add_argument("--sheets", type=Path, help="folder for enhance_*.png contact sheets")
@@ -326,9 +391,12 @@ def main(argv: list[str] | None = None) -> dict:
     args = ap.parse_args(argv)
     s = dict(QUICK if args.quick else FULL)
     for k in ("vae_steps", "steps", "sample_steps", "size", "frames", "batch", "crop", "render_scale",
-              "window_below_top", "lr", "vae_lr", "strength"):
+              "window_below_top", "lr", "vae_lr", "strength", "vae_stages"):
         if getattr(args, k) is not None:
             s[k] = getattr(args, k)
+    if args.pairs is not None:   # the capture, its cameras and windows do not apply
+        for k in ("frames", "cameras", "heldout", "render_scale", "window_below_top", "resolutions"):
+            s.pop(k)
     torch.set_num_threads(min(2, max(1, args.threads)))
 
     from volcap_core.enhance.inference import enhance_sequence
@@ -339,15 +407,23 @@ def main(argv: list[str] | None = None) -> dict:
 
     t_all = time.perf_counter()
     tmp = None
-    if args.workdir is None:
+    if args.pairs is not None:
+        train, held, info = load_pair_dataset(*args.pairs)
+        s["size"] = info["resolution"]
+        _log(f"pairs: PairDataset {info['dataset']}: train {info['train_sequences']} "
+             f"(sub-sequences {info['split_subsequences']['train']}), test {info['test_sequences']} "
+             f"(sub-sequences {info['split_subsequences']['test']}), {held[0].hq.shape[0]} frames of "
+             f"{s['size']}² each")
+    elif args.workdir is None:
         tmp = tempfile.TemporaryDirectory(prefix="bench_enhance_")
         workdir = Path(tmp.name)
     else:
         workdir = args.workdir
         workdir.mkdir(parents=True, exist_ok=True)
-    train, held, info = make_pairs(workdir, s)
-    _log(f"pairs: train {info['train_cameras']}, held-out {info['heldout_cameras']}, "
-         f"{s['frames']} frames of {s['size']}² each")
+    if args.pairs is None:
+        train, held, info = make_pairs(workdir, s)
+        _log(f"pairs: train {info['train_cameras']}, held-out {info['heldout_cameras']}, "
+             f"{s['frames']} frames of {s['size']}² each")
 
     cfg = EnhancerTrainConfig(steps=s["steps"], lr=s["lr"], warmup_steps=min(50, s["steps"] // 10),
                               lr_decay=((max(1, round(s["steps"] * s["lr_decay_at"])), s["lr_decay"]),),
@@ -397,10 +473,10 @@ def main(argv: list[str] | None = None) -> dict:
     methods = {
         "LQ input": lambda p: p.lq.clone(),
         "bicubic/unsharp": lambda p: bicubic_unsharp(p.lq),
-        "untrained": lambda p: enhance_sequence(untrained, p.lq, **sample),
+        "untrained": lambda p: enhance_sequence(untrained, p.lq, p.flow, **sample),
         "VAE round trip of HQ": None,
-        "full": lambda p: enhance_sequence(full.model, p.lq, **sample),
-        "full, from noise": lambda p: enhance_sequence(full.model, p.lq, **from_noise),
+        "full": lambda p: enhance_sequence(full.model, p.lq, p.flow, **sample),
+        "full, from noise": lambda p: enhance_sequence(full.model, p.lq, p.flow, **from_noise),
         "w/o OFW": lambda p: enhance_sequence(img.model, p.lq, temporal=False, **sample),
         "w/o OFW, w/o LFS": lambda p: enhance_sequence(img.model, p.lq, temporal=False, lowfreq_swap=False,
                                                        **sample),
@@ -419,7 +495,8 @@ def main(argv: list[str] | None = None) -> dict:
     secs: dict[str, float] = {m: 0.0 for m in methods}
     refs = {}
     n_frames = 0
-    _log("evaluating on the held-out cameras")
+    # p.flow: the splat pairs' exact rendered LQ flow; None on interim pairs (DIS on the LQ)
+    _log("evaluating on the " + ("test split's sequences" if args.pairs else "held-out cameras"))
     for p in held:
         flows, masks = hq_reference_flows(p.hq)
         refs[p.name] = {"flicker": score(p.hq, p.hq, flows, masks)["flicker"],
@@ -443,14 +520,15 @@ def main(argv: list[str] | None = None) -> dict:
         lines.append(f"{m:<24}{r['psnr']:7.2f}{r['ssim']:7.3f}{r['alpha_psnr']:7.2f}{r['tpsnr']:7.2f}"
                      f"{r['flicker']:8.4f}{r['warp_err_e3']:10.3f}{r['s_per_frame']:9.3f}")
     lines.append(f"{'HQ (reference)':<24}{'':7}{'':7}{'':7}{'':7}{hq_ref['flicker']:8.4f}{hq_ref['warp_err_e3']:10.3f}")
-    print("\nheld-out cameras " + ", ".join(info["heldout_cameras"]) + f" ({n_frames} frames):")
+    print("\n" + (f"test split, sub-sequences {info['split_subsequences']['test']}: " + ", ".join(info["test_sequences"])
+                  if args.pairs else "held-out cameras " + ", ".join(info["heldout_cameras"])) + f" ({n_frames} frames):")
     print("\n".join(lines))
     gain = table["full"]["psnr"] - table["LQ input"]["psnr"]
     print(f"\nfull model - LQ input: {gain:+.2f} dB PSNR; untrained - LQ input: "
           f"{table['untrained']['psnr'] - table['LQ input']['psnr']:+.2f} dB")
 
     timing = []
-    if not args.no_timing:
+    if not args.no_timing and args.pairs is None:
         _log(f"time and peak memory per frame against resolution ({s['sample_steps']} Euler steps)")
         timing = time_resolutions(s["resolutions"], s["sample_steps"], min(2, max(1, args.threads)))
         print(f"\n{'size':>6}{'s/frame':>10}{'first frame s':>15}{'peak RSS growth MiB':>21}")
@@ -459,7 +537,8 @@ def main(argv: list[str] | None = None) -> dict:
 
     sheets = []
     if args.sheets is not None:
-        sheets = write_sheets(args.sheets, held, outputs, per, s["sheet_frames"])
+        sheets = write_sheets(args.sheets, held[:args.sheet_sequences] if args.pairs else held, outputs, per,
+                              s["sheet_frames"], splat_pairs=args.pairs is not None)
         _log("sheets: " + ", ".join(sheets))
     result = {
         "settings": s, "data": info, "threads": min(2, max(1, args.threads)),
@@ -472,7 +551,8 @@ def main(argv: list[str] | None = None) -> dict:
                   "full_loss_last10": float(np.mean(full.losses[-10:])),
                   "image_loss_last10": float(np.mean(img.losses[-10:])),
                   "train_crop": full.model.config.train_crop},
-        "table": table, "hq_reference": hq_ref, "per_camera": per, "timing": timing, "sheets": sheets,
+        "table": table, "hq_reference": hq_ref, "per_sequence" if args.pairs else "per_camera": per,
+        "timing": timing, "sheets": sheets,
         "ablations_trained_separately": True, "wall_s": time.perf_counter() - t_all,
     }
     if args.json is not None:
