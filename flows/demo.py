@@ -44,7 +44,7 @@ from tasks.calibrate import calibration_errors
 from tasks.production import score_shot
 from tasks.reconstruct import render_views
 from volcap_core.capture import Capture
-from volcap_core.enhance.production import EnhancerModel, pair_record
+from volcap_core.enhance.production import EnhancerModel, PairDataset, pair_record
 from volcap_core.segment import tracking_frames
 from volcap_core.view import ViewSpec
 from volcap_core.calibration.record import Calibration, camera_at
@@ -286,8 +286,12 @@ def enhancer_budget(quality, train_wall_s: float | None) -> str:
 
 def enhancer_pairs(quality, pairs) -> str:
     """One line saying which pairs the enhancer trained on (``pairs``: its FacePairSet or
-    PairDataset), for the demo's output beside :func:`enhancer_budget`'s."""
+    PairDataset), for the demo's output beside :func:`enhancer_budget`'s. A PairDataset trains on
+    its train split only (``load_pair_sets``), so the line counts those sequences apart."""
     line = f"enhancer pairs: {quality.pair_method}, {pairs.method}, {len(pairs.sequences)} sequence(s)"
+    if isinstance(pairs, PairDataset):
+        line += (f", {len(pairs.in_split('train'))} of them trained on (the train split: sub-sequence(s) "
+                 f"{', '.join(map(str, pairs.split.get('train', ()))) or 'none'})")
     if quality.pair_method == "interim":
         line += ("; interim in the demo because Gaussian-splat pairs train two more Poly4DGS models per Face Rig "
                  "sub-sequence, CPU time the demo does not have")

@@ -237,3 +237,24 @@ def test_the_demo_says_which_pairs_its_enhancer_trained_on():
     assert line.startswith(f"enhancer pairs: interim, {INTERIM_PAIRS}, 4 sequence(s); interim in the demo because")
     splat = enhancer_pairs(demo.with_overrides(pair_method="splat"), SimpleNamespace(method=SPLAT_PAIRS, sequences=[0]))
     assert splat == f"enhancer pairs: splat, {SPLAT_PAIRS}, 1 sequence(s)" and "\n" not in line
+
+
+def test_the_demo_counts_the_pair_datasets_training_split_apart():
+    """A PairDataset trains its enhancer on its train split only: the demo's line says how many of
+    its sequences that is (the full bench's 18 sequences trained 6)."""
+    from flows.demo import enhancer_pairs
+    from volcap_core.enhance.production import SPLAT_PAIRS, PairDataset, SplatPairSequence, split_subsequences
+    from volcap_core.production.presets import named_preset
+    from volcap_core.records import ArtifactRef
+
+    ref = ArtifactRef(digest="blake3:" + "c" * 64, size=1)
+    seqs = tuple(SplatPairSequence(name=f"s{i:03d}-p{p:03d}", subsequence=i, path=p, frames=(0, 1), width=8, height=8,
+                                   lq=(ref, ref), hq=(ref, ref), flow=(ref,), path_params={}, lq_gaussians=1,
+                                   hq_gaussians=2, lq_model=ref, hq_model=ref) for i in range(3) for p in range(2))
+    split = split_subsequences(3, seed=0)
+    ds = PairDataset(actor="anna", group="anna", capture=ref, calibration=ref, colour=None, method=SPLAT_PAIRS,
+                     lq_range=(1, 2), lq_range_source="preset", resolution=8, parameters={}, split=split, sequences=seqs)
+    line = enhancer_pairs(named_preset("test").with_overrides(pair_method="splat"), ds)
+    [train] = split["train"]
+    assert line == (f"enhancer pairs: splat, {SPLAT_PAIRS}, 6 sequence(s), 2 of them trained on "
+                    f"(the train split: sub-sequence(s) {train})")
