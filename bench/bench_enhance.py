@@ -182,12 +182,11 @@ def load_pair_dataset(store_url: str, ref: str) -> tuple[list, list, dict]:
     ``[T - 1, 2, H, W]``) named ``actor/sequence``. ``SystemExit`` naming ``ref`` when it is not a
     PairDataset or a split is empty."""
     from volcap_core.enhance.production import PairDataset, load_pair_sets, pair_record
-    from volcap_core.records import DIGEST_RE, ArtifactRef
     from volcap_core.store import ArtifactStore, StoreError
 
     s = ArtifactStore(store_url)
     try:
-        aref = ArtifactRef(digest=ref, size=0) if DIGEST_RE.match(ref) else s.get_ref(ref)
+        aref = s.resolve(ref)
         ds = pair_record(aref, s.get_bytes)
     except StoreError as e:
         raise SystemExit(f"--pairs {ref}: {e}") from None
