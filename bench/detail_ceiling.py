@@ -58,7 +58,7 @@ if str(ROOT) not in sys.path:
     sys.path.insert(0, str(ROOT))
 
 from volcap_core.colour import srgb_encode_and_slope  # noqa: E402
-from volcap_core.splat.report import role_regions, spread_views  # noqa: E402
+from volcap_core.splat.report import role_regions, spread_views, view_regions  # noqa: E402
 from volcap_core.splat.scoring import cross_fitted_transforms  # noqa: E402
 from volcap_core.splat.train import View  # noqa: E402
 from volcap_core.synth.sensor import SensorModel  # noqa: E402
@@ -176,16 +176,6 @@ def protocol_outputs(views: Sequence[View], footage: Sequence[torch.Tensor], out
     return out
 
 
-def _regions(view: View, head_region: HeadRegion | None) -> dict[str, torch.Tensor]:
-    """The regions ``role_regions`` scores in ``view`` (the performers, the face)."""
-    perf = view.load_mask() >= 0.5
-    out = {"performers": perf}
-    if head_region is not None:
-        head = head_region(view)
-        out["face"] = perf & torch.as_tensor(head, dtype=torch.bool) if head is not None else torch.zeros_like(perf)
-    return out
-
-
 def predicted(view: View, noise_free: torch.Tensor, sensor: SensorModel, region: torch.Tensor
               ) -> tuple[float | None, float | None]:
     """What the sensor's noise model predicts on ``region`` of ``view`` for the noise-free recording
@@ -231,7 +221,7 @@ def ceiling(views: Sequence[View], footage: Sequence[torch.Tensor], noise_free: 
             for i in idx:
                 if roles.get(views[i].camera_id, "static") != role:
                     continue
-                for name, region in _regions(views[i], head_region).items():
+                for name, region in (view_regions(views[i], head_region) or {}).items():
                     preds.setdefault(name, []).append(predicted(views[i], noise_free[i], sensors[views[i].camera_id],
                                                                 region))
             r["predicted"] = {name: {"psnr": _mean([p[0] for p in ps]), "detail": _mean([p[1] for p in ps])}

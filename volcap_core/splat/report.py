@@ -52,7 +52,7 @@ from volcap_core.splat.train import (
     render_views,
 )
 
-__all__ = ["SegmentScores", "role_regions", "score_segment", "sheet_views", "spread_views"]
+__all__ = ["SegmentScores", "role_regions", "score_segment", "sheet_views", "spread_views", "view_regions"]
 
 
 @dataclass
@@ -199,6 +199,25 @@ def _floor(model: Poly4DGS | None, views: Sequence[View], config: TrainConfig, d
                                      transforms=tfs, valid=valid)
 
 
+def view_regions(view: View, head_region: Callable[[View], np.ndarray | None] | None) -> dict | None:
+    """The regions :func:`role_regions` scores in ``view``: ``performers`` (its performer mask >= 0.5,
+    within its valid pixels) and, with ``head_region``, ``face`` (the performers within the heads;
+    empty where ``head_region`` gives None), each ``[H, W]`` bool; None without a performer mask."""
+    m = view.load_mask()
+    if m is None:
+        return None
+    perf = m >= 0.5
+    valid = view.load_valid()
+    if valid is not None:
+        perf = perf & valid.to(perf.device)
+    regions = {"performers": perf}
+    if head_region is not None:
+        head = head_region(view)
+        regions["face"] = perf & torch.as_tensor(head, dtype=torch.bool).to(perf.device) \
+            if head is not None else torch.zeros_like(perf)
+    return regions
+
+
 def role_regions(views: Sequence[View], targets: Sequence[torch.Tensor], outputs: Mapping[str, Sequence[torch.Tensor]],
                  role_of: Mapping[str, str], head_region: Callable[[View], np.ndarray | None] | None) -> dict:
     """One view set's ``regions`` (see :meth:`SegmentScores.to_json`): role -> ``cameras`` and model
@@ -213,22 +232,7 @@ def role_regions(views: Sequence[View], targets: Sequence[torch.Tensor], outputs
         head_region: view -> ``[H, W]`` bool where the heads are (None: no head in it); None: no
             ``face`` region.
     """
-    per_view = []
-    for v in views:
-        m = v.load_mask()
-        if m is None:
-            per_view.append(None)
-            continue
-        perf = m >= 0.5
-        valid = v.load_valid()
-        if valid is not None:
-            perf = perf & valid.to(perf.device)
-        regions = {"performers": perf}
-        if head_region is not None:
-            head = head_region(v)
-            regions["face"] = perf & torch.as_tensor(head, dtype=torch.bool).to(perf.device) \
-                if head is not None else torch.zeros_like(perf)
-        per_view.append(regions)
+    per_view = [view_regions(v, head_region) for v in views]
     out: dict = {}
     for role in sorted({role_of.get(v.camera_id, "static") for v in views}):
         idx = [i for i, v in enumerate(views) if role_of.get(v.camera_id, "static") == role and per_view[i]]
