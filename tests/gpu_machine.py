@@ -1,6 +1,7 @@
 """The GPU machine's Python as the GPU benches' tests stand it in (``bench/gpu_*.py``): a lent GPU
 has no Prefect, pycolmap, OpenCV or OpenImageIO, so a bench's ``--run`` part is tested in a process
-where they cannot be imported, and its other parts are loaded from the script file."""
+where they cannot be imported, and its other parts are loaded from the script file
+(:func:`load_bench`, which every bench script's tests use)."""
 
 from __future__ import annotations
 

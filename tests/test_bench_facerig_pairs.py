@@ -5,24 +5,15 @@ frame (< 1 s)."""
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import pytest
 import torch
 
-BENCH = Path(__file__).resolve().parents[1] / "bench"
+from tests.gpu_machine import load_bench
 
 
 @pytest.fixture(scope="module")
 def bench():
-    sys.path.insert(0, str(BENCH))
-    try:
-        import bench_facerig_pairs
-
-        yield bench_facerig_pairs
-    finally:
-        sys.path.remove(str(BENCH))
+    return load_bench("bench_facerig_pairs")
 
 
 def test_flows_are_scored_on_the_pixels_every_flow_keeps_in_frame(bench):
