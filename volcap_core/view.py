@@ -17,7 +17,8 @@ class ViewSpec(BaseModel):
     ``near_m``: the near clipping plane (metres of camera depth): what lies nearer is not drawn.
     None: the renderer's default (:class:`~volcap_core.splat.camera.Camera`'s). The Face Rig's
     camera paths set it so that nothing between the path camera and the head is drawn
-    (``docs/enhancer.md``, "Camera paths"); :func:`~volcap_core.splat_pairs.render_path` honours it.
+    (``docs/enhancer.md``, "Camera paths"); :func:`~volcap_core.splat_pairs.render_path` and the
+    ``render-views`` task honour it (through ``reconstruction.splat_camera``).
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
