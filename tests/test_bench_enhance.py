@@ -69,6 +69,9 @@ def test_the_bench_trains_on_the_train_split_and_scores_the_test_split(bench, da
             "w/o OFW", "w/o OFW, w/o LFS"]
     assert list(result["table"]) == rows
     assert all(set(result["per_sequence"][m]) == test for m in rows)   # every figure is on the test split
+    # the fit: the input and the trained models on the training split's sequences, apart
+    assert {m: set(v) for m, v in result["train_split_psnr"].items()} == {m: train for m in ("LQ input", "full",
+                                                                                             "w/o OFW")}
     assert set(result["data"]["test_sequences"]) == test and set(result["data"]["train_sequences"]) == train
     assert result["data"]["split_subsequences"]["test"] == list(ds.split["test"])
     assert json.loads(out.read_text())["table"]["full"]["psnr"] == pytest.approx(result["table"]["full"]["psnr"])
