@@ -104,35 +104,17 @@ def prepare_synthetic(work: Path, width: int) -> dict:
             "ground_truth": str(folder / "ground_truth")}
 
 
-def pose2sim_rig(calib) -> dict:
-    """Pose2Sim's four cameras as a rig: each the imported pose as its mount (looking along its
-    axis), a 4 x 4 x 2.5 m stage around the treadmill (the origin of the Qualisys frame)."""
-    import numpy as np
-
-    cams = []
-    for c in calib.cameras:
-        W = np.asarray(c.world_to_camera, np.float64)
-        centre = -W[:3, :3].T @ W[:3, 3]
-        look = centre + 3.0 * W[2, :3]
-        fx = c.intrinsics[0]
-        cams.append({"id": c.id, "role": "static", "lens": {"focal_min_mm": 4.0, "focal_max_mm": 40.0},
-                     "sensor": {"width_mm": 10.0, "height_mm": 10.0 * c.height / c.width, "width_px": c.width,
-                                "height_px": c.height},
-                     "mount": {"kind": "tripod", "position_m": [round(float(v), 4) for v in centre],
-                               "look_at_m": [round(float(v), 4) for v in look]},
-                     "nominal_focal_mm": round(10.0 * fx / c.width, 3)})
-    return {"name": "pose2sim", "kind": "scene", "fps": 60.0, "stage_size_m": [4.0, 4.0, 2.5], "cameras": cams,
-            "lighting": {"description": "a lab's ceiling lights"}}
-
-
 #: Pose2Sim SinglePerson's frame sizes (cam01/cam02 re-encoded at 1080 wide)
 POSE2SIM_SIZES = {"cam01": (1080, 1920), "cam02": (1080, 1920), "cam03": (1088, 1920), "cam04": (1088, 1920)}
 
 
 def write_pose2sim_capture(root: Path, frames: int, start: int = 0):
-    """SinglePerson as a capture folder at ``root`` (its MP4s linked, :func:`pose2sim_rig`, a take of
-    ``frames`` frames from ``start``); returns its imported Qualisys ``Calibration``."""
+    """SinglePerson as a capture folder at ``root`` (its MP4s linked, the rig written from its imported
+    Qualisys calibration by ``rig_from_calibration`` as ``volcap import-calibration --write-rig`` does:
+    the studio's lens as measured intrinsics, its poses as mounts, a 4 x 4 x 2.5 m stage around the
+    treadmill, a take of ``frames`` frames from ``start``); returns the imported ``Calibration``."""
     from volcap_core.calibration.importers import calibration_from_qualisys
+    from volcap_core.calibration.rig_from_calibration import rig_from_calibration
 
     if not POSE2SIM.is_dir():
         raise SystemExit(f"{POSE2SIM} is absent (the shared data)")
@@ -144,7 +126,8 @@ def write_pose2sim_capture(root: Path, frames: int, start: int = 0):
         link = root / "videos" / f"{cid}.mp4"
         if not link.exists():
             link.symlink_to(POSE2SIM / "videos" / f"{cid}.mp4")
-    (root / "rig.json").write_text(json.dumps(pose2sim_rig(calib), indent=1))
+    rig = rig_from_calibration(calib, name="pose2sim", lighting="a lab's ceiling lights")
+    (root / "rig.json").write_text(json.dumps(rig.model_dump(mode="json"), indent=1))
     (root / "capture.json").write_text(json.dumps({
         "format": "volcap-capture/1", "name": "pose2sim", "rig": "rig.json", "fps": 60,
         "take": {"start_timecode": f"01:00:00:{start:02d}", "frame_count": frames},

@@ -38,7 +38,7 @@ def test_real_capture_prepare_run_report(prefect_api, tmp_path):
     points = p2s.dense_points(inputs, work, "cam02", 0.125, 70.0)
     src = tmp_path / "prep"
     args = argparse.Namespace(held="cam02", scale=1 / 16, dense_scale=0.125, steps=4, gaussians_per_frame=500,
-                              fill_shell=False, gpu_prepare=src)
+                              fill_shell=False, hull_oracle=False, gpu_prepare=src)
     p2s.gpu_prepare(inputs, points, args)
 
     meta = json.loads((src / "segment.json").read_text())

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from scipy import ndimage
 
 from flows.ingest import ingest_flow
 from flows.runtime import run_flow
@@ -133,3 +134,14 @@ def test_a_capture_with_masks_starts_from_its_performers_hull(prefect_api, tmp_p
     # a hull holds the true shape: drawn, it covers the performers; three cameras carve phantoms beside
     # them, yet its points are far likelier on the performers than the frame's share of them
     assert inside.mean() > 0.9 and covered > 0.9 and on_performer.mean() > 5 * mask.mean()
+
+    # the benchmarks' diagnostic (``carve_only``): the held-out camera's mask carves too, so the hull's
+    # points in its view fall on its performers (its mask closed and filled: a pixel or two beyond)
+    [oracle] = reconstruction.with_performer_hull([sweep], data, ["S003"], volume, carve_only=["S003"])
+    hull2 = oracle.xyz[2:].double().numpy()
+    pc2 = hull2 @ W[:3, :3].T + W[:3, 3]
+    uv2 = np.floor(pc2[:, :2] / pc2[:, 2:] @ K[:2, :2].T + K[:2, 2]).astype(int)
+    in2 = (uv2[:, 0] >= 0) & (uv2[:, 0] < w) & (uv2[:, 1] >= 0) & (uv2[:, 1] < h)
+    near = ndimage.binary_dilation(mask, iterations=2)
+    print(f"carved by S003 too: {len(hull2)} points, {near[uv2[in2, 1], uv2[in2, 0]].mean():.2f} on its performers")
+    assert len(hull2) > 100 and near[uv2[in2, 1], uv2[in2, 0]].mean() > 0.95 > near[uv[inside, 1], uv[inside, 0]].mean()

@@ -257,8 +257,8 @@ def segment_points(points: PointCloudSequence, frames: tuple[int, int],
 
 
 def segment_init(load_bytes: Callable[[ArtifactRef], bytes], capture: Capture, points: PointCloudSequence,
-                 data: SegmentData, held_out: Sequence[str] = (), zoom_stride_px: int | None = None
-                 ) -> list[PointsAtTime]:
+                 data: SegmentData, held_out: Sequence[str] = (), zoom_stride_px: int | None = None,
+                 hull_oracle_cameras: Sequence[str] = ()) -> list[PointsAtTime]:
     """What a segment's training starts from, built as the ``train-segment`` task builds it: the
     segment's dense points split static/moving, plus the capture's lidar scan coloured by the
     static training cameras (:func:`segment_points`, :func:`background_views`) or, for a capture
@@ -270,7 +270,9 @@ def segment_init(load_bytes: Callable[[ArtifactRef], bytes], capture: Capture, p
     mattes: :func:`has_performer_mattes`) gets the performers' visual hull as each frame's moving
     points, and loses the sweep's moving points outside the stage volume
     (:func:`with_performer_hull`). Anything that must reproduce a stored segment (a resumed run, a
-    check) calls this."""
+    check) calls this. ``hull_oracle_cameras`` is a benchmark's diagnostic that ``train-segment``
+    never sets: those held-out cameras' masks carve the hull too (:func:`with_performer_hull`'s
+    ``carve_only``)."""
     from volcap_core.pointcloud import decode_points
 
     background = background_views(data, capture, held_out)
@@ -287,7 +289,8 @@ def segment_init(load_bytes: Callable[[ArtifactRef], bytes], capture: Capture, p
     if has_performer_mattes(data, held_out):
         from volcap_core.stage import stage_volume
 
-        clouds = with_performer_hull(clouds, data, held_out, stage_volume(capture.rig.stage_size_m))
+        clouds = with_performer_hull(clouds, data, held_out, stage_volume(capture.rig.stage_size_m),
+                                     carve_only=hull_oracle_cameras)
     clouds = with_footprints(clouds, data, held_out)
     return clouds if zoom_stride_px is None else with_zoom_points(clouds, data, held_out, zoom_stride_px)
 
@@ -303,7 +306,7 @@ def has_performer_mattes(data: SegmentData, held_out: Sequence[str] = ()) -> boo
 
 
 def with_performer_hull(clouds: Sequence[PointsAtTime], data: SegmentData, held_out: Sequence[str],
-                        volume: tuple) -> list[PointsAtTime]:
+                        volume: tuple, *, carve_only: Sequence[str] = ()) -> list[PointsAtTime]:
     """Each frame's cloud with the performers' visual hull added as moving points and the sweep's
     moving points outside the stage ``volume`` dropped (static clouds, the scan or room shell, as
     they are).
@@ -322,10 +325,13 @@ def with_performer_hull(clouds: Sequence[PointsAtTime], data: SegmentData, held_
             two keeps its cloud as it is: one camera pins no depth).
         held_out: cameras whose masks carve nothing.
         volume: the stage volume (:func:`volcap_core.stage.stage_volume`), metres.
+        carve_only: held-out cameras whose masks carve all the same, colouring nothing: a
+            diagnostic (``bench/bench_pose2sim_heldout.py --hull-oracle``), the hull a held-out
+            camera's silhouette would give, to tell its geometry from its appearance.
     """
     from volcap_core.splat.init import colour_scan, filled_silhouette, visual_hull
 
-    held = set(held_out)
+    held = set(held_out) - set(carve_only)
     (x0, y0, z0), (x1, y1, z1) = volume
     out = []
     for p in clouds:
@@ -344,7 +350,7 @@ def with_performer_hull(clouds: Sequence[PointsAtTime], data: SegmentData, held_
             close = max(1, round(HULL_CLOSE_FRACTION * min(v.camera.width, v.camera.height)))
             cams.append((K, v.camera.world_to_camera.double().numpy(), filled_silhouette(m.numpy(), close_px=close)))
         hull = visual_hull(cams, volume)
-        rgb, seen = colour_scan(hull, [v for v, _ in mattes])
+        rgb, seen = colour_scan(hull, [v for v, _ in mattes if v.camera_id not in set(held_out)])
         hull = torch.from_numpy(hull[seen].astype(np.float32))
         out.append(replace(p, xyz=torch.cat([p.xyz[torch.from_numpy(keep)], hull]),
                            rgb=torch.cat([p.rgb[torch.from_numpy(keep)], torch.from_numpy(rgb[seen]).to(p.rgb.dtype)]),
