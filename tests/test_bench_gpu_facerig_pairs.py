@@ -62,8 +62,13 @@ def test_prepare_run_report(prefect_api, tmp_path):
         lq, hq = fig["stages"][f"render-lq-{px}"], fig["stages"][f"render-hq-{px}"]
         assert len(lq["per_frame"]) == len(hq["per_frame"]) == 3
         assert all(f["exr_bytes"] > 0 and f["render_s"] > 0 for f in lq["per_frame"] + hq["per_frame"])
-        # the LQ's flow: one per frame pair, the path's frames identical to the frames rendered one by one
+        # the LQ's flow: one per frame pair, the path's frames (the colour matrix applied inside
+        # render_path) identical to the frames rendered and colour-mapped one by one
         assert len(lq["flow"]["exr_bytes"]) == 2 and lq["flow"]["max_diff_to_per_frame_renders"] == 0
         assert "flow" not in hq
+        # the path's EXRs encoded together on the host's threads, as render-pairs encodes them
+        assert lq["threaded_encode"]["frames"] == hq["threaded_encode"]["frames"] == 3
+        assert lq["flow"]["threaded_encode"]["frames"] == 2 and lq["threaded_encode"]["threads"] >= 1
     table = bench.report(out)
     assert "| train-hq | 3000 Gaussians (1000 a frame)" in table and "| render-lq-48 | 48²" in table
+    assert "3 EXRs on" in table and "2 EXRs on" in table
