@@ -51,10 +51,13 @@ A GPU machine has no Prefect, pycolmap, OpenCV or artifact store, so the work is
    ``OUT/facerig_pairs.json`` and ``OUT/facerig_pairs.log``, nothing else (the EXRs' sizes are
    recorded, not the EXRs).
 3. ``--report OUT`` (here): a Markdown table for ``docs/benchmarks.md``.
+4. ``--encode-check PX`` (anywhere): whether the pair EXR encodes gain from host threads
+   (:func:`encode_check`).
 
     python bench/gpu_facerig_pairs.py --prepare .gpu-pairs
     timeout 180 python3 bench/gpu_facerig_pairs.py --run .gpu-pairs --out $OUT/pairs --device cuda --budget-s 150
     python bench/gpu_facerig_pairs.py --report OUT/pairs
+    nice python bench/gpu_facerig_pairs.py --encode-check 4096
 """
 
 from __future__ import annotations
@@ -610,12 +613,95 @@ def report(out: Path) -> str:
     return text
 
 
+# ------------------------------------------------------------------------------- encode check
+
+def _python_rate_beside(work) -> float:
+    """Iterations a second of a Python loop in this thread while ``work()`` runs in another."""
+    import threading
+
+    done = threading.Event()
+
+    def run():
+        work()
+        done.set()
+
+    n, t = 0, time.perf_counter()
+    threading.Thread(target=run).start()
+    while not done.is_set():
+        n += 1
+    return n / (time.perf_counter() - t)
+
+
+def encode_check(px: int, frames: int = 4, workers: int | None = None, repeats: int = 3) -> dict:
+    """Part 4 (any machine, no GPU, no prepared folder): whether a path's pair EXRs encode faster
+    on host threads at ``px``². ``frames`` encodes (:func:`~volcap_core.splat_pairs.encode_pair_frame`
+    of a synthetic premultiplied frame: a disc of smooth colour with 2 % noise, which compresses
+    worse than a render) one by one and through :func:`~volcap_core.splat_pairs.encode_frames` on
+    ``workers`` threads (None: the host's); beside them a control that runs side by side whenever
+    cores are free (sha256 of as many bytes: it releases the GIL), which tells a shared machine's
+    busy cores from a binding that holds the GIL; and the GIL itself: a Python loop's speed while
+    one encode runs in another thread, against while sha256 (releases it), ``sum(range)`` (holds
+    it) and a sleep run. Prints and returns the figures."""
+    import hashlib
+
+    from volcap_core.splat_pairs import encode_frames, encode_pair_frame, host_threads
+    from volcap_core.view import ViewSpec
+
+    workers = host_threads() if workers is None else workers
+    rng = np.random.default_rng(0)
+    yy, xx = np.mgrid[:px, :px].astype(np.float32) / px
+    alpha = ((xx - 0.5) ** 2 + (yy - 0.5) ** 2 < 0.16).astype(np.float32)[..., None]
+    images = [np.concatenate([(np.stack([0.7 * xx, 0.5 * yy, xx * yy], -1)
+                               + rng.normal(0, 0.02, (px, px, 3)).astype(np.float32)) * alpha, alpha], -1)
+              for _ in range(frames)]
+    view = ViewSpec(K=((float(px), 0.0, px / 2), (0.0, float(px), px / 2), (0.0, 0.0, 1.0)),
+                    world_to_camera=tuple(tuple(float(i == j) for j in range(4)) for i in range(4)),
+                    width=px, height=px, time_s=0.0)
+    views, attributes = [view] * frames, [{"volcap.frame": k} for k in range(frames)]
+    blobs = [np.random.default_rng(k).bytes(px * px * 8) for k in range(frames)]
+    sha = lambda b: hashlib.sha256(b).digest()  # noqa: E731
+
+    def timed(fn) -> float:
+        t = time.perf_counter()
+        fn()
+        return round(time.perf_counter() - t, 3)
+
+    encode_pair_frame(images[0], view, attributes[0])          # warm-up (imports, allocator)
+    rounds = []
+    for _ in range(repeats):   # each round's four timings back to back: a shared machine's load drifts
+        rounds.append({
+            "encode_one_by_one_s": timed(lambda: list(encode_frames(encode_pair_frame, images, views, attributes,
+                                                                    workers=1))),
+            "encode_threads_s": timed(lambda: list(encode_frames(encode_pair_frame, images, views, attributes,
+                                                                 workers=workers))),
+            "sha256_one_by_one_s": timed(lambda: [sha(b) for b in blobs]),
+            "sha256_threads_s": timed(lambda: list(encode_frames(sha, blobs, workers=workers)))})
+    f = {"px": px, "frames": frames, "workers": workers, "rounds": rounds,
+         **{k: statistics.median(r[k] for r in rounds) for k in rounds[0]},
+         "encode_speedup": round(statistics.median(r["encode_one_by_one_s"] / r["encode_threads_s"] for r in rounds), 2),
+         "sha256_speedup": round(statistics.median(r["sha256_one_by_one_s"] / r["sha256_threads_s"] for r in rounds), 2)}
+    idle = _python_rate_beside(lambda: time.sleep(0.5))
+    f["python_loop_beside"] = {name: round(_python_rate_beside(work) / idle, 2) for name, work in (
+        ("encode", lambda: encode_pair_frame(images[0], view, attributes[0])), ("sha256", lambda: sha(blobs[0])),
+        ("sum_range", lambda: sum(range(30_000_000))))}
+    print(f"{px}², medians of {repeats} rounds: {frames} half RGBA encodes one by one {f['encode_one_by_one_s']} s, "
+          f"on {workers} threads {f['encode_threads_s']} s ({f['encode_speedup']}x); control: sha256 of {frames} × "
+          f"{len(blobs[0]) / 2**20:.0f} MiB one by one {f['sha256_one_by_one_s']} s, on {workers} threads "
+          f"{f['sha256_threads_s']} s ({f['sha256_speedup']}x); a Python loop runs at "
+          + ", ".join(f"{v:.0%} beside {k}" for k, v in f["python_loop_beside"].items())
+          + " (of its speed beside a sleep)", flush=True)
+    return f
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     part = ap.add_mutually_exclusive_group(required=True)
     part.add_argument("--prepare", metavar="DIR", type=Path)
     part.add_argument("--run", metavar="DIR", type=Path)
     part.add_argument("--report", metavar="OUT", type=Path)
+    part.add_argument("--encode-check", metavar="PX", type=int,
+                      help="whether a path's EXR encodes gain from the host's threads at PX² (no GPU)")
+    ap.add_argument("--repeats", type=int, default=3, help="--encode-check: rounds (medians reported)")
     ap.add_argument("--store", default=STORE, help="--prepare: the store holding the captures (read only)")
     ap.add_argument("--capture", default=FACE_CAPTURE, help="--prepare: the Face Rig capture (ref name or digest)")
     ap.add_argument("--scene", default=SCENE_CAPTURE, help="--prepare: the Scene Rig capture (the colour matrix's)")
@@ -650,8 +736,10 @@ def main(argv: list[str] | None = None) -> None:
         run(args.run, args.out, torch.device(args.device), args.budget_s, hq_steps=args.hq_steps,
             lq_steps=args.lq_steps, backend=args.backend, sizes=tuple(args.sizes) if args.sizes else None,
             large_frames=args.large_frames or None)
-    else:
+    elif args.report:
         report(args.report)
+    else:
+        encode_check(args.encode_check, repeats=args.repeats)
 
 
 if __name__ == "__main__":
