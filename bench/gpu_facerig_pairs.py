@@ -583,7 +583,8 @@ def report(out: Path) -> str:
     def threaded(te: dict | None) -> str:
         if not te:
             return ""
-        return f", {te['frames']} EXRs on {te['threads']} threads {te['s']:.2f} s (one by one {te['one_by_one_s']:.2f} s)"
+        return (f", {te['frames']} EXRs on {te['threads']} threads {te['s']:.2f} s "
+                f"(one by one {te['one_by_one_s']:.2f} s)")
 
     for name, s in f["stages"].items():
         gib = "–" if s.get("peak_gpu_gib") is None else f"{s['peak_gpu_gib']:.2f} ({s.get('resident_gib', 0):.2f})"
@@ -641,7 +642,8 @@ def encode_check(px: int, frames: int = 4, workers: int | None = None, repeats: 
     cores are free (sha256 of as many bytes: it releases the GIL), which tells a shared machine's
     busy cores from a binding that holds the GIL; and the GIL itself: a Python loop's speed while
     one encode runs in another thread, against while sha256 (releases it), ``sum(range)`` (holds
-    it) and a sleep run. Prints and returns the figures."""
+    it) and a sleep run (telling only when an encode and a sha256 take much longer than the
+    interpreter's 5-ms switch interval: 2048² and more). Prints and returns the figures."""
     import hashlib
 
     from volcap_core.splat_pairs import encode_frames, encode_pair_frame, host_threads
@@ -664,7 +666,7 @@ def encode_check(px: int, frames: int = 4, workers: int | None = None, repeats: 
     def timed(fn) -> float:
         t = time.perf_counter()
         fn()
-        return round(time.perf_counter() - t, 3)
+        return time.perf_counter() - t
 
     encode_pair_frame(images[0], view, attributes[0])          # warm-up (imports, allocator)
     rounds = []
@@ -678,16 +680,17 @@ def encode_check(px: int, frames: int = 4, workers: int | None = None, repeats: 
             "sha256_threads_s": timed(lambda: list(encode_frames(sha, blobs, workers=workers)))})
     f = {"px": px, "frames": frames, "workers": workers, "rounds": rounds,
          **{k: statistics.median(r[k] for r in rounds) for k in rounds[0]},
-         "encode_speedup": round(statistics.median(r["encode_one_by_one_s"] / r["encode_threads_s"] for r in rounds), 2),
-         "sha256_speedup": round(statistics.median(r["sha256_one_by_one_s"] / r["sha256_threads_s"] for r in rounds), 2)}
+         **{f"{work}_speedup": round(statistics.median(r[f"{work}_one_by_one_s"] / r[f"{work}_threads_s"]
+                                                       for r in rounds), 2) for work in ("encode", "sha256")}}
     idle = _python_rate_beside(lambda: time.sleep(0.5))
     f["python_loop_beside"] = {name: round(_python_rate_beside(work) / idle, 2) for name, work in (
         ("encode", lambda: encode_pair_frame(images[0], view, attributes[0])), ("sha256", lambda: sha(blobs[0])),
         ("sum_range", lambda: sum(range(30_000_000))))}
-    print(f"{px}², medians of {repeats} rounds: {frames} half RGBA encodes one by one {f['encode_one_by_one_s']} s, "
-          f"on {workers} threads {f['encode_threads_s']} s ({f['encode_speedup']}x); control: sha256 of {frames} × "
-          f"{len(blobs[0]) / 2**20:.0f} MiB one by one {f['sha256_one_by_one_s']} s, on {workers} threads "
-          f"{f['sha256_threads_s']} s ({f['sha256_speedup']}x); a Python loop runs at "
+    print(f"{px}², medians of {repeats} rounds: {frames} half RGBA encodes one by one "
+          f"{f['encode_one_by_one_s']:.3f} s, on {workers} threads {f['encode_threads_s']:.3f} s "
+          f"({f['encode_speedup']}x); control: sha256 of {frames} × {len(blobs[0]) / 2**20:.1f} MiB one by one "
+          f"{f['sha256_one_by_one_s']:.3f} s, on {workers} threads "
+          f"{f['sha256_threads_s']:.3f} s ({f['sha256_speedup']}x); a Python loop runs at "
           + ", ".join(f"{v:.0%} beside {k}" for k, v in f["python_loop_beside"].items())
           + " (of its speed beside a sleep)", flush=True)
     return f
