@@ -36,21 +36,28 @@ A GPU machine has no Prefect, pycolmap, OpenCV or artifact store, so the work is
    ``--lq-steps`` / ``--hq-steps`` ordinary steps, timed one by one (their median and spread after
    a few of warm-up): the cost of a step at the budget, not a converged model. ``render-<model>-<px>``:
    the trained models rendered along the first camera path at each render size (all its frames at
-   1024 px and below, its first ``--large-frames`` above: at 4096² a frame's colour matrix and EXR
-   encode take seconds of CPU) by :func:`volcap_core.splat_pairs.render_path`, per frame the render
-   (with the copy to the host), the colour matrix (:func:`~volcap_core.calibration.colour.apply_colour_matrix`, as
-   ``render_path`` applies it), the EXR encode (:func:`~volcap_core.splat_pairs.encode_pair_frame`:
-   16-bit half RGBA, the pairs' writer) and, for the LQ, its exact flow (``render_path(...,
-   flow=True)`` over the path, less the frames' render time) and the flow EXR encode
-   (:func:`~volcap_core.splat_pairs.encode_flow_frame`). It stops before a stage or frame that the
-   time left cannot hold (``--budget-s``, loading counted), writing what it has after every stage:
+   1024 px and below, its first ``--large-frames`` above: at 4096² a frame's EXR encode takes
+   seconds of CPU) by :func:`volcap_core.splat_pairs.render_path`, per frame the render (with the
+   copy to the host), the colour matrix (:func:`~volcap_core.calibration.colour.apply_colour_matrix`
+   on the device, as ``render_path`` applies it before the copy, between two CUDA synchronisations),
+   the EXR encode (:func:`~volcap_core.splat_pairs.encode_pair_frame`: 16-bit half RGBA, the
+   pairs' writer), then the path's frames encoded again together on the host's threads
+   (:func:`~volcap_core.splat_pairs.encode_frames`, as ``render-pairs`` encodes them: the wall
+   time against the one-by-one sum), and, for the LQ, its exact flow (``render_path(...,
+   flow=True)`` over the path with the colour matrix, less the frames' render and colour time) and
+   the flow EXR encodes (:func:`~volcap_core.splat_pairs.encode_flow_frame`, one by one, then
+   together on the threads). It stops before a stage or frame that the time left cannot hold
+   (``--budget-s``, loading counted), writing what it has after every stage:
    ``OUT/facerig_pairs.json`` and ``OUT/facerig_pairs.log``, nothing else (the EXRs' sizes are
    recorded, not the EXRs).
 3. ``--report OUT`` (here): a Markdown table for ``docs/benchmarks.md``.
+4. ``--encode-check PX`` (anywhere): whether the pair EXR encodes gain from host threads
+   (:func:`encode_check`).
 
     python bench/gpu_facerig_pairs.py --prepare .gpu-pairs
     timeout 180 python3 bench/gpu_facerig_pairs.py --run .gpu-pairs --out $OUT/pairs --device cuda --budget-s 150
     python bench/gpu_facerig_pairs.py --report OUT/pairs
+    nice python bench/gpu_facerig_pairs.py --encode-check 4096
 """
 
 from __future__ import annotations
@@ -83,8 +90,8 @@ CHART_CAMERAS = ("F003", "S001")
 #: seconds kept back from the budget for writing the results
 RESERVE_S = 3.0
 #: above this many pixels a side the run renders only a path's first LARGE_FRAMES frames: at 4096²
-#: a frame's colour matrix and EXR encode (numpy and OpenEXR on the CPU) take seconds, and the
-#: budget must hold both models and the flow
+#: a frame's EXR encode (OpenEXR on the CPU) takes seconds, and the budget must hold both models
+#: and the flow
 LARGE, LARGE_FRAMES = 1024, 4
 #: the ordinary steps after growth not counted in the step statistics (warm-up)
 WARMUP_STEPS = 3
@@ -392,7 +399,7 @@ def render_stage(r: Run, prep: Prepared, label: str, model, px: int, flow: bool,
     """``model`` along the first camera path at ``px``² (its first ``max_frames`` frames; None: all;
     module doc); figures under ``stages[render-<label>-<px>]``."""
     from volcap_core.calibration.colour import apply_colour_matrix
-    from volcap_core.splat_pairs import encode_flow_frame, encode_pair_frame, render_path
+    from volcap_core.splat_pairs import encode_flow_frame, encode_frames, encode_pair_frame, host_threads, render_path
 
     path = prep.paths[px][0]
     views = path[:max_frames]
@@ -402,7 +409,7 @@ def render_stage(r: Run, prep: Prepared, label: str, model, px: int, flow: bool,
     r.reset_memory()
     stage["resident_gib"] = r.allocated_gib()
     start = time.perf_counter()
-    frames = []
+    frames, attributes = [], []
     for k, view in enumerate(views):
         est = max((sum(f[key] for key in ("render_s", "colour_s", "encode_s")) for f in stage["per_frame"]),
                   default=0.0)
@@ -412,31 +419,51 @@ def render_stage(r: Run, prep: Prepared, label: str, model, px: int, flow: bool,
         t = time.perf_counter()
         raw, _ = render_path(model, [view])
         t1 = time.perf_counter()
-        rgba = apply_colour_matrix(raw, prep.colour, premultiplied=True)
+        # the colour matrix as render_path applies it: on the device, before the copy (the raw
+        # frame goes back there untimed, so the render and the colour are timed apart)
+        on_device = torch.from_numpy(raw[0]).to(r.device)
+        r.sync()
+        tc = time.perf_counter()
+        mapped = apply_colour_matrix(on_device, prep.colour, premultiplied=True)
+        r.sync()
         t2 = time.perf_counter()
-        exr = encode_pair_frame(rgba[0], view, {"volcap.pair": label, "volcap.sequence": "s000-p000",
-                                                "volcap.frame": int(prep.meta["frames"][0] + k)})
+        rgba = mapped.cpu().numpy()
+        del on_device, mapped
+        attributes.append({"volcap.pair": label, "volcap.sequence": "s000-p000",
+                           "volcap.frame": int(prep.meta["frames"][0] + k)})
+        te = time.perf_counter()
+        exr = encode_pair_frame(rgba, view, attributes[-1])
         t3 = time.perf_counter()
-        frames.append(raw[0])
-        stage["per_frame"].append({"render_s": round(t1 - t, 4), "colour_s": round(t2 - t1, 4),
-                                   "encode_s": round(t3 - t2, 4), "exr_bytes": len(exr),
-                                   "alpha_mean": round(float(rgba[0][..., 3].mean()), 4)})
+        frames.append(rgba)
+        stage["per_frame"].append({"render_s": round(t1 - t, 4), "colour_s": round(t2 - tc, 4),
+                                   "encode_s": round(t3 - te, 4), "exr_bytes": len(exr),
+                                   "alpha_mean": round(float(rgba[..., 3].mean()), 4)})
+    threads = host_threads()
+    serial = sum(f["encode_s"] for f in stage["per_frame"])
+    if frames and r.left() < 1.5 * serial:
+        r.skip(f"{name} encodes on {threads} threads", f"{r.left():.1f} s left, one by one they took {serial:.2f} s")
+    elif frames:
+        t = time.perf_counter()
+        list(encode_frames(encode_pair_frame, frames, views, attributes))
+        stage["threaded_encode"] = {"threads": threads, "frames": len(frames), "s": round(time.perf_counter() - t, 4),
+                                    "one_by_one_s": round(serial, 4)}
     if flow and len(frames) == len(views) > 1:
-        render_total = sum(f["render_s"] for f in stage["per_frame"])
+        render_total = sum(f["render_s"] + f["colour_s"] for f in stage["per_frame"])
         if r.left() < 2.5 * render_total:
             r.skip(f"{name} flow", f"{r.left():.1f} s left, the path's renders took {render_total:.2f} s")
         else:
             t = time.perf_counter()
-            rgba, flows = render_path(model, views, flow=True)
+            rgba, flows = render_path(model, views, colour=prep.colour, flow=True)
             t1 = time.perf_counter()
+            flow_attributes = [{"volcap.sequence": "s000-p000", "volcap.frame": int(prep.meta["frames"][0] + i + 1)}
+                               for i in range(len(flows))]
             encodes, sizes = [], []
-            for i, f in enumerate(flows):
+            for f, a in zip(flows, flow_attributes):
                 if r.left() < 0:
-                    r.skip(f"{name} flow encodes {i}-{len(flows) - 1}", "budget")
+                    r.skip(f"{name} flow encodes {len(sizes)}-{len(flows) - 1}", "budget")
                     break
                 te = time.perf_counter()
-                sizes.append(len(encode_flow_frame(f, {"volcap.sequence": "s000-p000",
-                                                       "volcap.frame": int(prep.meta["frames"][0] + i + 1)})))
+                sizes.append(len(encode_flow_frame(f, a)))
                 encodes.append(time.perf_counter() - te)
             stage["flow"] = {"path_with_flow_s": round(t1 - t, 4),
                              "flow_s_per_pair": round(max(0.0, (t1 - t) - render_total) / len(flows), 4),
@@ -444,14 +471,22 @@ def render_stage(r: Run, prep: Prepared, label: str, model, px: int, flow: bool,
                              "mean_abs_px": round(float(np.abs(flows).mean()), 4),
                              "max_diff_to_per_frame_renders": max(float(np.abs(x - y).max())
                                                                   for x, y in zip(rgba, frames))}
+            if len(encodes) == len(flows) and r.left() > 1.5 * sum(encodes):
+                t = time.perf_counter()
+                list(encode_frames(encode_flow_frame, flows, flow_attributes))
+                stage["flow"]["threaded_encode"] = {"threads": threads, "frames": len(flows),
+                                                    "s": round(time.perf_counter() - t, 4),
+                                                    "one_by_one_s": round(sum(encodes), 4)}
     stage.update({"wall_s": round(time.perf_counter() - start, 2), "peak_gpu_gib": r.peak_gib(),
                   "render_s": _spread([f["render_s"] for f in stage["per_frame"]]),
                   "colour_s": _spread([f["colour_s"] for f in stage["per_frame"]]),
                   "encode_s": _spread([f["encode_s"] for f in stage["per_frame"]])})
     fl = stage.get("flow", {})
+    te = stage.get("threaded_encode")
     r.log(f"{name}: {len(stage['per_frame'])} frames in {stage['wall_s']} s, "
           f"render {stage['render_s'].get('median')} s, "
           f"colour {stage['colour_s'].get('median')} s, EXR {stage['encode_s'].get('median')} s a frame"
+          + (f" ({te['frames']} on {te['threads']} threads: {te['s']} s)" if te else "")
           + (f"; flow {fl['flow_s_per_pair']} s a pair, its EXR {fl['encode_s'].get('median')} s" if fl else "")
           + f"; peak {stage['peak_gpu_gib']} GiB")
     r.write()
@@ -545,6 +580,12 @@ def report(out: Path) -> str:
             return "–"
         return f"{1000 * sp['median']:.1f} ms ({1000 * sp['std']:.1f}, n {sp['n']})"
 
+    def threaded(te: dict | None) -> str:
+        if not te:
+            return ""
+        return (f", {te['frames']} EXRs on {te['threads']} threads {te['s']:.2f} s "
+                f"(one by one {te['one_by_one_s']:.2f} s)")
+
     for name, s in f["stages"].items():
         gib = "–" if s.get("peak_gpu_gib") is None else f"{s['peak_gpu_gib']:.2f} ({s.get('resident_gib', 0):.2f})"
         if name.startswith("train-"):
@@ -558,9 +599,11 @@ def report(out: Path) -> str:
             what = f"render {ms(s.get('render_s'))}, colour {ms(s.get('colour_s'))}, EXR {ms(s.get('encode_s'))}"
             if s.get("per_frame"):
                 what += f" ({np.mean([p['exr_bytes'] for p in s['per_frame']]) / 2**20:.1f} MiB)"
+            what += threaded(s.get("threaded_encode"))
             if "flow" in s:
                 fl = s["flow"]
-                what += f"; flow {1000 * fl['flow_s_per_pair']:.1f} ms a pair, its EXR {ms(fl['encode_s'])}"
+                what += (f"; flow {1000 * fl['flow_s_per_pair']:.1f} ms a pair, its EXR {ms(fl['encode_s'])}"
+                         + threaded(fl.get("threaded_encode")))
         lines.append(f"| {name} | {size} | {s.get('wall_s', '–')} | {what} | {gib} |")
     if f.get("skipped"):
         lines += ["", "Skipped: " + "; ".join(f["skipped"])]
@@ -571,12 +614,97 @@ def report(out: Path) -> str:
     return text
 
 
+# ------------------------------------------------------------------------------- encode check
+
+def _python_rate_beside(work) -> float:
+    """Iterations a second of a Python loop in this thread while ``work()`` runs in another."""
+    import threading
+
+    done = threading.Event()
+
+    def run():
+        work()
+        done.set()
+
+    n, t = 0, time.perf_counter()
+    threading.Thread(target=run).start()
+    while not done.is_set():
+        n += 1
+    return n / (time.perf_counter() - t)
+
+
+def encode_check(px: int, frames: int = 4, workers: int | None = None, repeats: int = 3) -> dict:
+    """Part 4 (any machine, no GPU, no prepared folder): whether a path's pair EXRs encode faster
+    on host threads at ``px``². ``frames`` encodes (:func:`~volcap_core.splat_pairs.encode_pair_frame`
+    of a synthetic premultiplied frame: a disc of smooth colour with 2 % noise, which compresses
+    worse than a render) one by one and through :func:`~volcap_core.splat_pairs.encode_frames` on
+    ``workers`` threads (None: the host's); beside them a control that runs side by side whenever
+    cores are free (sha256 of as many bytes: it releases the GIL), which tells a shared machine's
+    busy cores from a binding that holds the GIL; and the GIL itself: a Python loop's speed while
+    one encode runs in another thread, against while sha256 (releases it), ``sum(range)`` (holds
+    it) and a sleep run (telling only when an encode and a sha256 take much longer than the
+    interpreter's 5-ms switch interval: 2048² and more). Prints and returns the figures."""
+    import hashlib
+
+    from volcap_core.splat_pairs import encode_frames, encode_pair_frame, host_threads
+    from volcap_core.view import ViewSpec
+
+    workers = host_threads() if workers is None else workers
+    rng = np.random.default_rng(0)
+    yy, xx = np.mgrid[:px, :px].astype(np.float32) / px
+    alpha = ((xx - 0.5) ** 2 + (yy - 0.5) ** 2 < 0.16).astype(np.float32)[..., None]
+    images = [np.concatenate([(np.stack([0.7 * xx, 0.5 * yy, xx * yy], -1)
+                               + rng.normal(0, 0.02, (px, px, 3)).astype(np.float32)) * alpha, alpha], -1)
+              for _ in range(frames)]
+    view = ViewSpec(K=((float(px), 0.0, px / 2), (0.0, float(px), px / 2), (0.0, 0.0, 1.0)),
+                    world_to_camera=tuple(tuple(float(i == j) for j in range(4)) for i in range(4)),
+                    width=px, height=px, time_s=0.0)
+    views, attributes = [view] * frames, [{"volcap.frame": k} for k in range(frames)]
+    blobs = [np.random.default_rng(k).bytes(px * px * 8) for k in range(frames)]
+    sha = lambda b: hashlib.sha256(b).digest()  # noqa: E731
+
+    def timed(fn) -> float:
+        t = time.perf_counter()
+        fn()
+        return time.perf_counter() - t
+
+    encode_pair_frame(images[0], view, attributes[0])          # warm-up (imports, allocator)
+    rounds = []
+    for _ in range(repeats):   # each round's four timings back to back: a shared machine's load drifts
+        rounds.append({
+            "encode_one_by_one_s": timed(lambda: list(encode_frames(encode_pair_frame, images, views, attributes,
+                                                                    workers=1))),
+            "encode_threads_s": timed(lambda: list(encode_frames(encode_pair_frame, images, views, attributes,
+                                                                 workers=workers))),
+            "sha256_one_by_one_s": timed(lambda: [sha(b) for b in blobs]),
+            "sha256_threads_s": timed(lambda: list(encode_frames(sha, blobs, workers=workers)))})
+    f = {"px": px, "frames": frames, "workers": workers, "rounds": rounds,
+         **{k: statistics.median(r[k] for r in rounds) for k in rounds[0]},
+         **{f"{work}_speedup": round(statistics.median(r[f"{work}_one_by_one_s"] / r[f"{work}_threads_s"]
+                                                       for r in rounds), 2) for work in ("encode", "sha256")}}
+    idle = _python_rate_beside(lambda: time.sleep(0.5))
+    f["python_loop_beside"] = {name: round(_python_rate_beside(work) / idle, 2) for name, work in (
+        ("encode", lambda: encode_pair_frame(images[0], view, attributes[0])), ("sha256", lambda: sha(blobs[0])),
+        ("sum_range", lambda: sum(range(30_000_000))))}
+    print(f"{px}², medians of {repeats} rounds: {frames} half RGBA encodes one by one "
+          f"{f['encode_one_by_one_s']:.3f} s, on {workers} threads {f['encode_threads_s']:.3f} s "
+          f"({f['encode_speedup']}x); control: sha256 of {frames} × {len(blobs[0]) / 2**20:.1f} MiB one by one "
+          f"{f['sha256_one_by_one_s']:.3f} s, on {workers} threads "
+          f"{f['sha256_threads_s']:.3f} s ({f['sha256_speedup']}x); a Python loop runs at "
+          + ", ".join(f"{v:.0%} beside {k}" for k, v in f["python_loop_beside"].items())
+          + " (of its speed beside a sleep)", flush=True)
+    return f
+
+
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     part = ap.add_mutually_exclusive_group(required=True)
     part.add_argument("--prepare", metavar="DIR", type=Path)
     part.add_argument("--run", metavar="DIR", type=Path)
     part.add_argument("--report", metavar="OUT", type=Path)
+    part.add_argument("--encode-check", metavar="PX", type=int,
+                      help="whether a path's EXR encodes gain from the host's threads at PX² (no GPU)")
+    ap.add_argument("--repeats", type=int, default=3, help="--encode-check: rounds (medians reported)")
     ap.add_argument("--store", default=STORE, help="--prepare: the store holding the captures (read only)")
     ap.add_argument("--capture", default=FACE_CAPTURE, help="--prepare: the Face Rig capture (ref name or digest)")
     ap.add_argument("--scene", default=SCENE_CAPTURE, help="--prepare: the Scene Rig capture (the colour matrix's)")
@@ -611,8 +739,10 @@ def main(argv: list[str] | None = None) -> None:
         run(args.run, args.out, torch.device(args.device), args.budget_s, hq_steps=args.hq_steps,
             lq_steps=args.lq_steps, backend=args.backend, sizes=tuple(args.sizes) if args.sizes else None,
             large_frames=args.large_frames or None)
-    else:
+    elif args.report:
         report(args.report)
+    else:
+        encode_check(args.encode_check, repeats=args.repeats)
 
 
 if __name__ == "__main__":

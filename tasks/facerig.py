@@ -71,11 +71,14 @@ def render_pairs(store: str, hq: ArtifactRef, lq: ArtifactRef, paths: ArtifactRe
     backward flow per consecutive frame pair (float EXR ``flow.x``, ``flow.y``). One
     :class:`~volcap_core.enhance.production.SplatPairSequence` record per path, named
     ``s<subsequence>-p<path>``; each model is loaded once for all the paths. Version 2: each view's
-    ``near_m`` clips the colour and the flow (:func:`~volcap_core.splat_pairs.render_path`)."""
+    ``near_m`` clips the colour and the flow (:func:`~volcap_core.splat_pairs.render_path`). The
+    colour matrix is applied on the models' device and a path's EXRs are encoded on the host's
+    threads (:func:`~volcap_core.splat_pairs.encode_frames`): the same bytes, stored in the same
+    order, as one thread's."""
     import torch
 
     from volcap_core.splat import load_model
-    from volcap_core.splat_pairs import encode_flow_frame, encode_pair_frame, render_path
+    from volcap_core.splat_pairs import encode_flow_frame, encode_frames, encode_pair_frame, render_path
 
     s = ArtifactStore(store)
     device = "cuda" if torch.cuda.is_available() else "cpu"
@@ -93,13 +96,13 @@ def render_pairs(store: str, hq: ArtifactRef, lq: ArtifactRef, paths: ArtifactRe
         flows = None
         for label in ("hq", "lq"):
             rgba, flow = render_path(models[label], views, colour=matrix, flow=label == "lq")
-            refs[label] = tuple(s.put_bytes(encode_pair_frame(x, v, {"volcap.pair": label, "volcap.sequence": name,
-                                                                     "volcap.frame": int(f)}), MEDIA_EXR)
-                                for x, v, f in zip(rgba, views, frames))
+            attributes = [{"volcap.pair": label, "volcap.sequence": name, "volcap.frame": int(f)} for f in frames]
+            refs[label] = tuple(s.put_bytes(exr, MEDIA_EXR) for exr in encode_frames(encode_pair_frame, rgba, views,
+                                                                                     attributes))
+            del rgba                  # one model's frames on the host at a time
             flows = flow if flow is not None else flows
-        flow_refs = tuple(s.put_bytes(encode_flow_frame(f, {"volcap.sequence": name,
-                                                            "volcap.frame": int(frames[i + 1])}), MEDIA_EXR)
-                          for i, f in enumerate(flows))
+        attributes = [{"volcap.sequence": name, "volcap.frame": int(f)} for f in frames[1:]]
+        flow_refs = tuple(s.put_bytes(exr, MEDIA_EXR) for exr in encode_frames(encode_flow_frame, flows, attributes))
         out.append(s.put_record(SplatPairSequence(
             name=name, subsequence=subsequence, path=k, frames=tuple(frames), width=views[0].width,
             height=views[0].height, lq=refs["lq"], hq=refs["hq"], flow=flow_refs, path_params=path["params"],

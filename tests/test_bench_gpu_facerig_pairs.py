@@ -62,8 +62,25 @@ def test_prepare_run_report(prefect_api, tmp_path):
         lq, hq = fig["stages"][f"render-lq-{px}"], fig["stages"][f"render-hq-{px}"]
         assert len(lq["per_frame"]) == len(hq["per_frame"]) == 3
         assert all(f["exr_bytes"] > 0 and f["render_s"] > 0 for f in lq["per_frame"] + hq["per_frame"])
-        # the LQ's flow: one per frame pair, the path's frames identical to the frames rendered one by one
+        # the LQ's flow: one per frame pair, the path's frames (the colour matrix applied inside
+        # render_path) identical to the frames rendered and colour-mapped one by one
         assert len(lq["flow"]["exr_bytes"]) == 2 and lq["flow"]["max_diff_to_per_frame_renders"] == 0
         assert "flow" not in hq
+        # the path's EXRs encoded together on the host's threads, as render-pairs encodes them
+        assert lq["threaded_encode"]["frames"] == hq["threaded_encode"]["frames"] == 3
+        assert lq["flow"]["threaded_encode"]["frames"] == 2 and lq["threaded_encode"]["threads"] >= 1
     table = bench.report(out)
     assert "| train-hq | 3000 Gaussians (1000 a frame)" in table and "| render-lq-48 | 48²" in table
+    assert "3 EXRs on" in table and "2 EXRs on" in table
+
+
+def test_encode_check_times_encodes_beside_a_gil_free_control():
+    """``--encode-check`` (~2 s): the encodes one by one and on threads through encode_frames, the
+    sha256 control, and the GIL probe, whose GIL-holding reference does stall the loop."""
+    bench = load_bench("gpu_facerig_pairs")
+    f = bench.encode_check(48, frames=2, workers=2, repeats=1)
+    assert f["workers"] == 2 and len(f["rounds"]) == 1
+    assert all(f[k] > 0 for k in ("encode_one_by_one_s", "encode_threads_s", "sha256_one_by_one_s",
+                                  "sha256_threads_s", "encode_speedup", "sha256_speedup"))
+    assert set(f["python_loop_beside"]) == {"encode", "sha256", "sum_range"}
+    assert f["python_loop_beside"]["sum_range"] < 0.5          # a call that holds the GIL stops the loop

@@ -10,14 +10,16 @@ premultiplied RGBA with the Face Rig -> Scene Rig colour matrix applied, and, fo
 exact backward flow of each frame to the previous one
 (:func:`~volcap_core.splat.render.render_flow`: the same Gaussians at the previous frame's time
 through the previous camera). :func:`encode_pair_frame` / :func:`encode_flow_frame` write them
-as EXR.
+as EXR, :func:`encode_frames` a path's frames on several host threads.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import zlib
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
@@ -30,7 +32,8 @@ from volcap_core.splat import evaluate, render
 from volcap_core.splat.model import Poly4DGS
 from volcap_core.splat.render import Backend, gaussians_at, render_flow
 
-__all__ = ["FLOW_CHANNELS", "encode_flow_frame", "encode_pair_frame", "lq_gaussians_per_frame", "render_path"]
+__all__ = ["FLOW_CHANNELS", "encode_flow_frame", "encode_frames", "encode_pair_frame", "host_threads",
+           "lq_gaussians_per_frame", "render_path"]
 
 #: the channels of a flow frame (the render-shot frames' names, ``docs/shots.md``)
 FLOW_CHANNELS = ("flow.x", "flow.y")
@@ -62,34 +65,56 @@ def render_path(model: Poly4DGS, views: Sequence[ViewSpec], *, colour=None, flow
     ``cur(x, y) ≈ prev(x + fx, y + fy)``; 0 where the frame is empty), else None. A view's
     ``near_m`` is its camera's near plane for the colour and the flow alike (``Camera.near``, which
     both back-ends cull by): the Gaussians nearer than it at that frame are neither drawn nor
-    counted in its flow. Runs on the model's device."""
+    counted in its flow. Runs on the model's device, the colour matrix too, frame by frame before
+    its copy into the returned array (at 4096² a host-side matrix took longer than the render); the
+    host holds the returned arrays and one frame in flight, nothing more."""
     if not views:
         raise ValueError("a camera path needs at least one view")
     sizes = {(v.width, v.height) for v in views}
     if len(sizes) != 1:
         raise ValueError(f"the views of a path must share one size, got {sorted(sizes)}")
+    (w, h), = sizes
+    matrix, offset = (colour, None) if colour is None or hasattr(colour, "matrix") else colour
     device = model.params["means"].device
-    frames, flows = [], []
+    rgba = np.empty((len(views), h, w, 4), np.float32)
+    flows = np.zeros((len(views) - 1 if flow else 0, h, w, 2), np.float32)
     with torch.no_grad():
         prev = None
-        for view in views:
+        for t, view in enumerate(views):
             cam = _camera(view, device)
             g = evaluate(model, view.time_s)
             out = render(g, cam, backend=backend)
-            frames.append(torch.cat([out["rgb"], out["alpha"]], dim=-1).float().cpu().numpy())
+            frame = torch.cat([out["rgb"], out["alpha"]], dim=-1).float()
+            if colour is not None:
+                frame = apply_colour_matrix(frame, matrix, offset, premultiplied=True)
+            torch.from_numpy(rgba[t]).copy_(frame)
             if flow and prev is not None:
                 prev_view, prev_cam = prev
                 f = render_flow(g, gaussians_at(model, prev_view.time_s, g.ids), cam, prev_cam, backend=backend)
-                flows.append(f["flow"].float().cpu().numpy())
+                torch.from_numpy(flows[t - 1]).copy_(f["flow"].float())
             prev = (view, cam)
-    rgba = np.stack(frames)
-    if colour is not None:
-        rgba = apply_colour_matrix(rgba, colour, premultiplied=True) if hasattr(colour, "matrix") \
-            else apply_colour_matrix(rgba, colour[0], colour[1], premultiplied=True)
-    if not flow:
-        return rgba, None
-    h, w = rgba.shape[1:3]
-    return rgba, np.stack(flows) if flows else np.zeros((0, h, w, 2), np.float32)
+    return rgba, flows if flow else None
+
+
+def host_threads() -> int:
+    """The CPUs this process may run on: how many EXR encodes :func:`encode_frames` runs at once."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def encode_frames(encode: Callable[..., bytes], *per_frame: Sequence, workers: int | None = None
+                  ) -> Iterator[bytes]:
+    """``encode`` (:func:`encode_pair_frame`, :func:`encode_flow_frame`) of each frame's arguments
+    (``per_frame``: one sequence per argument, zipped), yielded in the frames' order, run on
+    ``workers`` host threads at once (None: :func:`host_threads`; 1: one after the other, in the caller's thread).
+    OpenEXR compresses with the GIL released, so a path's encodes, seconds each at 4096², run side
+    by side on as many cores (``docs/benchmarks.md``, "Face Rig pairs on a GPU"). Each encode in
+    flight holds a half copy of its frame besides the caller's arrays."""
+    workers = host_threads() if workers is None else workers
+    if workers <= 1:
+        yield from map(encode, *per_frame)
+        return
+    with ThreadPoolExecutor(workers, thread_name_prefix="exr-encode") as pool:
+        yield from pool.map(encode, *per_frame)
 
 
 def encode_pair_frame(rgba: np.ndarray, view: ViewSpec, attributes: dict[str, str | int | float]) -> bytes:

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import torch
 
 from flows.ingest import ingest_flow
 from flows.runtime import run_flow
@@ -152,6 +153,15 @@ def test_apply_colour_matrix_on_images():
     assert rgb.shape == (4, 5, 3) and rgb.dtype == np.float64
     with pytest.raises(ValueError, match="RGB or RGBA"):
         apply_colour_matrix(np.zeros((2, 2)), M)
+    # a torch image (a renderer's frame, mapped on its device): the array's values bit for bit, and
+    # the array's dtype rule (float32 stays float32, float64 stays float64)
+    t = apply_colour_matrix(torch.from_numpy(img), M, b, premultiplied=True)
+    assert isinstance(t, torch.Tensor) and t.dtype == torch.float32
+    np.testing.assert_array_equal(t.numpy(), pm)
+    t64 = apply_colour_matrix(torch.from_numpy(img[..., :3].astype(np.float64)), M)
+    assert t64.dtype == torch.float64 and np.array_equal(t64.numpy(), rgb)
+    with pytest.raises(ValueError, match="RGB or RGBA"):
+        apply_colour_matrix(torch.zeros(2, 2), M)
 
 
 def test_chart_grid_from_corners_is_the_projective_map():

@@ -13,6 +13,8 @@ import numpy as np
 import pytest
 import torch
 
+from volcap_core.calibration.colour import apply_colour_matrix
+from volcap_core.calibration.colour_step import ChartView, ColourMatrixRecord
 from volcap_core.enhance.metrics import warp_error
 from volcap_core.enhance.production import (PairDataset, SplatPairSequence, decode_splat_pair_sequence,
                                             load_pair_sets, pair_record, split_subsequences)
@@ -21,7 +23,8 @@ from volcap_core.records import MEDIA_EXR, ArtifactRef
 from volcap_core.view import ViewSpec
 from volcap_core.splat.camera import look_at
 from volcap_core.splat.model import Poly4DGS, Poly4DGSConfig
-from volcap_core.splat_pairs import encode_flow_frame, encode_pair_frame, lq_gaussians_per_frame, render_path
+from volcap_core.splat_pairs import (encode_flow_frame, encode_frames, encode_pair_frame, lq_gaussians_per_frame,
+                                     render_path)
 from volcap_core.store import ArtifactStore
 
 FPS = 24.0
@@ -137,6 +140,33 @@ def test_the_colour_matrix_maps_premultiplied_rgb_and_keeps_alpha(rendered):
     np.testing.assert_allclose(out[0, ..., 2], 0.5 * hq_rgba[0, ..., 2], rtol=1e-5, atol=1e-6)
 
 
+def test_the_colour_matrix_on_the_device_is_the_host_s_bit_for_bit(rendered):
+    """render_path maps each frame on the model's device before its copy to the host: the values
+    are apply_colour_matrix's on the host's copy of the same render, to the bit (so the pair EXRs'
+    bytes did not change when the matrix moved), and a transparent pixel stays 0 with an offset."""
+    hq, _, views, hq_rgba, _, _ = rendered
+    record = colour_record(((1.0341, -0.0412, 0.0123), (0.0231, 0.9812, -0.0045), (-0.0187, 0.0521, 1.0771)),
+                           (0.0031, -0.0012, 0.0007))
+    out, _ = render_path(hq, views, colour=record)
+    assert out.dtype == np.float32
+    np.testing.assert_array_equal(out, apply_colour_matrix(hq_rgba, record, premultiplied=True))
+    empty = hq_rgba[..., 3] == 0
+    assert empty.sum() > 100 and not out[empty].any()                   # transparent black, offset or not
+    assert (out[..., :3] != hq_rgba[..., :3]).any()                      # the matrix did map the rest
+
+
+def test_a_path_s_encodes_on_threads_come_back_in_the_frames_order(rendered):
+    _, lq, views, _, lq_rgba, lq_flow = rendered
+    attributes = [{"volcap.frame": k} for k in range(len(views))]
+    one = list(encode_frames(encode_pair_frame, lq_rgba, views, attributes, workers=1))
+    assert list(encode_frames(encode_pair_frame, lq_rgba, views, attributes, workers=3)) == one
+    assert len(set(one)) == len(views)                                   # four different frames, in order
+    flows = list(encode_frames(encode_flow_frame, lq_flow, workers=2))
+    assert flows == [encode_flow_frame(f) for f in lq_flow]
+    with pytest.raises(ValueError, match="does not match channels"):    # an encode's error reaches the caller
+        list(encode_frames(encode_pair_frame, lq_rgba[..., :3], views, attributes, workers=2))
+
+
 def test_the_rendered_flow_warps_the_previous_frame_better_than_zero_flow_and_dis(rendered):
     """Frame ``t - 1`` warped onto ``t``, over the pixels the LQ draws at ``t`` (where a flow is
     defined: an empty pixel's flow is 0 by the renderer's convention). Training warps the previous
@@ -200,6 +230,15 @@ def test_a_path_view_s_near_plane_hides_what_stands_between_the_camera_and_the_h
     assert np.abs(veiled_flow - head_flow)[head[1:]].mean() > 5.0         # px: the wall's parallax, not the head's
 
 
+def colour_record(matrix, offset) -> ColourMatrixRecord:
+    """A Face Rig -> Scene Rig colour-matrix record of ``matrix`` and ``offset`` (its chart views
+    are placeholders: only the matrix and offset are applied)."""
+    chart = ChartView(rig="face", image=ArtifactRef(digest="blake3:" + "c" * 64, size=1), patches_px=((1.0, 2.0),) * 4)
+    return ColourMatrixRecord(source_rig="face", reference_rig="scene", source=chart,
+                              reference=chart.model_copy(update={"rig": "scene"}), matrix=matrix, offset=offset,
+                              patches_used=(0, 1, 2, 3), before={}, after={}, delta_e2000=())
+
+
 def test_a_path_of_views_of_two_sizes_is_refused():
     views = path(2)
     views[1] = views[1].model_copy(update={"width": SIZE + 1})
@@ -255,6 +294,48 @@ def test_a_frame_of_the_wrong_size_is_named(tmp_path, rendered):
     seq = _sequence(s, rendered, 0).model_copy(update={"width": SIZE * 2})
     with pytest.raises(ValueError, match="pair sequence s000-p000: LQ frame 0: 64x64"):
         decode_splat_pair_sequence(seq, s.get_bytes)
+
+
+# ---------------------------------------------------------------------------------------------
+# The render-pairs task
+
+
+def test_render_pairs_stores_each_path_s_frames_in_order_colour_mapped(tmp_path, monkeypatch):
+    """render-pairs on a tiny store (the blob HQ and its LQ, two 3-frame paths, one with a near
+    plane, a colour matrix), its EXR encodes on three threads: every stored frame is the path's
+    render_path frame encoded as encode_pair_frame / encode_flow_frame encode it, in the frames'
+    order, the record's refs what one thread stored."""
+    import volcap_core.splat_pairs as splat_pairs
+    from tasks.facerig import render_pairs
+    from volcap_core.reconstruction import SegmentModel
+    from volcap_core.splat.model import save_model
+
+    torch.set_num_threads(1)
+    monkeypatch.setattr(splat_pairs, "host_threads", lambda: 3)
+    s = ArtifactStore(f"file://{tmp_path}/store")
+    some = ArtifactRef(digest="blake3:" + "a" * 64, size=1)
+    hq, lq = blob(1500), lq_of(blob(1500))
+    models = [s.put_record(SegmentModel(capture=some, calibration=some, frames=(4, 7), fps=FPS, gaussians=len(m),
+                                        model=s.put_bytes(save_model(m)), steps=1, wall_s=0.0, config={}))
+              for m in (hq, lq)]
+    paths = [path(3), [v.model_copy(update={"near_m": 2.0}) for v in path(3)]]   # the second cuts the blob
+    paths_ref = s.put_json({"paths": [{"views": [v.model_dump(mode="json") for v in p], "params": {"k": k}}
+                                      for k, p in enumerate(paths)]})
+    record = colour_record(((1.0341, -0.0412, 0.0123), (0.0231, 0.9812, -0.0045), (-0.0187, 0.0521, 1.0771)),
+                           (0.0031, -0.0012, 0.0007))
+    refs = render_pairs.fn(s.url, *models, paths_ref, 2, [4, 5, 6], 300, 1500, colour=s.put_record(record))
+    assert len(refs) == 2
+    for k, (ref, views) in enumerate(zip(refs, paths)):
+        q = s.get_record(ref, SplatPairSequence)
+        assert q.name == f"s002-p{k:03d}" and q.frames == (4, 5, 6) and q.path_params == {"k": k}
+        hq_rgba, _ = render_path(hq, views, colour=record)
+        lq_rgba, lq_flow = render_path(lq, views, colour=record, flow=True)
+        for label, rgba, stored in (("hq", hq_rgba, q.hq), ("lq", lq_rgba, q.lq)):
+            assert [s.get_bytes(r) for r in stored] == [
+                encode_pair_frame(x, v, {"volcap.pair": label, "volcap.sequence": q.name, "volcap.frame": f})
+                for x, v, f in zip(rgba, views, (4, 5, 6))], (q.name, label)
+        assert [s.get_bytes(r) for r in q.flow] == [encode_flow_frame(f, {"volcap.sequence": q.name, "volcap.frame": t})
+                                                     for f, t in zip(lq_flow, (5, 6))]
 
 
 # ---------------------------------------------------------------------------------------------

@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 #: linear Rec.709 / sRGB (D65) -> CIE XYZ (IEC 61966-2-1)
 RGB_TO_XYZ = np.array([[0.4124564, 0.3575761, 0.1804375],
@@ -65,8 +66,8 @@ def fit_colour_matrix(src: np.ndarray, ref: np.ndarray, *, offset: bool = True,
     return M, b
 
 
-def apply_colour_matrix(image: np.ndarray, M, b: np.ndarray | None = None, *,
-                        premultiplied: bool = False) -> np.ndarray:
+def apply_colour_matrix(image: np.ndarray | torch.Tensor, M, b: np.ndarray | None = None, *,
+                        premultiplied: bool = False) -> np.ndarray | torch.Tensor:
     """``rgb @ M.T + b`` (linear) on an RGB [..., 3] or RGBA [..., 4] image or colour array.
 
     ``M``: a [3, 3] matrix, or a colour-matrix record (anything with ``matrix`` and ``offset``, e.g.
@@ -74,6 +75,12 @@ def apply_colour_matrix(image: np.ndarray, M, b: np.ndarray | None = None, *,
     passed through unchanged; with ``premultiplied`` (colour already multiplied by alpha, as a
     Gaussian renderer's RGBA is) the offset is scaled by alpha, so a transparent pixel stays 0.
     float32 out for float32 / half images, else float64.
+
+    ``image`` a numpy array, or a torch tensor mapped where it lies (a renderer's frame on its GPU,
+    before the copy to the host, which a numpy map of a 4096² frame made the bottleneck) and
+    returned there. Both go through the one formula below in float64, so an image's float32 result
+    is the same either way (on the CPU bit for bit: a pair frame's EXR bytes do not depend on
+    where its colour was mapped; ``tests/enhance/test_splat_pairs.py``).
 
     This is what makes a Face Rig render comparable with a Scene Rig one: a pair renderer applies the
     ``calibrate-colour`` record to the rig it maps (its ``source_rig``) before pairing the images.
@@ -85,18 +92,25 @@ def apply_colour_matrix(image: np.ndarray, M, b: np.ndarray | None = None, *,
     M = np.asarray(M, np.float64)
     if M.shape != (3, 3):
         raise ValueError(f"colour matrix must be 3x3, got {M.shape}")
-    arr = np.asarray(image)
-    if arr.shape[-1] not in (3, 4):
-        raise ValueError(f"expected RGB or RGBA in the last axis, got shape {arr.shape}")
-    dtype = np.float32 if arr.dtype in (np.float32, np.float16) else np.float64
-    x = arr.astype(np.float64, copy=False)
+    tensor = isinstance(image, torch.Tensor)
+    image = image if tensor else np.asarray(image)
+    if image.shape[-1] not in (3, 4):
+        raise ValueError(f"expected RGB or RGBA in the last axis, got shape {tuple(image.shape)}")
+    off = None if b is None else np.asarray(b, np.float64)
+    if tensor:
+        x = image.to(torch.float64)
+        dtype = torch.float32 if image.dtype in (torch.float32, torch.float16, torch.bfloat16) else torch.float64
+        M, join = torch.tensor(M, device=x.device), torch.cat
+        off = None if off is None else torch.tensor(off, device=x.device)
+    else:
+        x = image.astype(np.float64, copy=False)
+        dtype, join = np.float32 if image.dtype in (np.float32, np.float16) else np.float64, np.concatenate
     out = x[..., :3] @ M.T
-    if b is not None:
-        off = np.asarray(b, np.float64)
-        out = out + (off * x[..., 3:4] if premultiplied and arr.shape[-1] == 4 else off)
-    if arr.shape[-1] == 4:
-        out = np.concatenate([out, x[..., 3:4]], axis=-1)
-    return out.astype(dtype, copy=False)
+    if off is not None:
+        out = out + (off * x[..., 3:4] if premultiplied and x.shape[-1] == 4 else off)
+    if x.shape[-1] == 4:
+        out = join([out, x[..., 3:4]], -1)
+    return out.to(dtype) if tensor else out.astype(dtype, copy=False)
 
 
 def linear_rgb_to_lab(rgb: np.ndarray, white: float = 1.0) -> np.ndarray:
