@@ -33,7 +33,8 @@ written for ``bench/gpu_zoom_curve.py --run DIR`` on a GPU (its module doc; the 
 ``docs/benchmarks.md``, "Pose2Sim: the held-out camera's performers").
 
 The sheet: the first held-out frame's footage | render | error, the middle one's raw render, a
-training camera, then every held-out frame's performer cropped at 1:1 of the training resolution.
+training camera, then every held-out frame's performer cropped at 1:1 of the training resolution,
+as scored and raw.
 ~8 min a run on 2 busy cores (load 15-20; the first run adds ~6 min of masks, ingest and sweep).
 """
 
@@ -310,6 +311,9 @@ def train(inputs: dict, points: str, args) -> dict:
             y0, y1, x0, x1 = box
             rows_crop.append(SheetRow(f"{v.camera_id} frame {v.frame} performer at 1:1", truth[y0:y1, x0:x1],
                                       out_img[y0:y1, x0:x1], m.numpy()[y0:y1, x0:x1]))
+            rows_crop.append(SheetRow(f"{v.camera_id} frame {v.frame} performer at 1:1, raw render (outside the "
+                                      f"protocol)", truth[y0:y1, x0:x1], r.detach().numpy()[y0:y1, x0:x1],
+                                      m.numpy()[y0:y1, x0:x1]))
     train_cam = min(c for c in data.camera_ids if c != args.held)
     tv = [v for v in data.views if v.camera_id == train_cam and v.frame == n // 2][0]
     tr = result.grids.apply(render_views(result.model, [tv], config, device="cpu")[0], tv.camera_id)
