@@ -35,7 +35,8 @@ def splats(n: int, width: int, height: int, *, seed: int, sigma=(1.0, 6.0), opac
     ``sigma``, opacities in ``opacity`` (the first ``opaque`` exactly 1), footprint radii by the projection's rule; random depths and
     ``values`` channels in [0, 1]."""
     g = torch.Generator().manual_seed(seed)
-    means = torch.rand(n, 2, generator=g) * torch.tensor([width + 2 * margin, height + 2 * margin]) - margin
+    grown = torch.tensor([width + 2 * margin, height + 2 * margin])
+    means = torch.rand(n, 2, generator=g) * grown - margin
     s = sigma[0] + torch.rand(n, 2, generator=g) * (sigma[1] - sigma[0])
     th = torch.rand(n, generator=g) * math.pi
     c, sn = torch.cos(th), torch.sin(th)
@@ -69,7 +70,8 @@ def brute_transmittance(means, conics, opac, width, height):
     dx = x.reshape(-1, 1).double() - means[:, 0].double()
     dy = y.reshape(-1, 1).double() - means[:, 1].double()
     a, b, c = conics.double().unbind(-1)
-    alpha = (opac.double() * torch.exp(-(0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy))).clamp(max=ALPHA_MAX)
+    sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+    alpha = (opac.double() * torch.exp(-sigma)).clamp(max=ALPHA_MAX)
     alpha = torch.where(alpha >= ALPHA_THRESHOLD, alpha, 0.0)
     return torch.prod(1 - alpha, dim=1).reshape(height, width)
 
