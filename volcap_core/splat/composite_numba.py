@@ -30,6 +30,7 @@ numba's user cache directory where that is read-only) and load in well under a s
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import numba
@@ -200,9 +201,22 @@ def _sum_per_gaussian(ids, grad_geom, grad_vals, g_means, g_conics, g_opacities,
             g_values[i, ch] += grad_vals[e, ch]
 
 
-def _use_torch_threads() -> None:
-    """Run the next kernels on the caller's thread budget (per calling thread in numba)."""
-    numba.set_num_threads(max(1, min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)))
+@contextlib.contextmanager
+def _torch_threads():
+    """Run the kernels inside on the caller's thread budget, ``torch.get_num_threads()`` (capped
+    at numba's maximum; per calling thread in numba), and leave torch's own setting as it was.
+
+    The restore matters: numba's OpenMP threading layer shares torch's OpenMP runtime, and
+    starting its thread pool sets that runtime's thread count to numba's maximum (all cores),
+    which every later torch op would then use (on a shared 2-core machine a 1-thread caller's
+    projection and binning ran ~20× slower after the first numba call).
+    """
+    n = torch.get_num_threads()
+    numba.set_num_threads(max(1, min(n, numba.config.NUMBA_NUM_THREADS)))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(n)
 
 
 def _arrays(*tensors: torch.Tensor) -> list[np.ndarray]:
@@ -222,9 +236,9 @@ class _CompositeNumba(torch.autograd.Function):
         out = np.zeros((height, width, C), np.float32)
         trans = np.ones((height, width), np.float32)
         walked = np.zeros((height, width), np.int64)
-        _use_torch_threads()
-        _forward(m, q, o, v, ids, starts, counts, bins.tiles_x, bins.tile_size, width, height,
-                 out, trans, walked)
+        with _torch_threads():
+            _forward(m, q, o, v, ids, starts, counts, bins.tiles_x, bins.tile_size, width, height,
+                     out, trans, walked)
         ctx.arrays = (m, q, o, v, ids, starts, counts, trans, walked)
         ctx.grid = (bins.tiles_x, bins.tile_size, width, height)
         return torch.from_numpy(out)
@@ -235,9 +249,9 @@ class _CompositeNumba(torch.autograd.Function):
         g = grad_acc.detach().to(torch.float32).contiguous().numpy()
         grad_geom = np.zeros((ids.shape[0], 6), np.float32)
         grad_vals = np.zeros((ids.shape[0], v.shape[1]), np.float32)
-        _use_torch_threads()
-        _backward(m, q, o, v, ids, starts, counts, *ctx.grid, trans, walked, g, grad_geom,
-                  grad_vals)
+        with _torch_threads():
+            _backward(m, q, o, v, ids, starts, counts, *ctx.grid, trans, walked, g, grad_geom,
+                      grad_vals)
         g_means, g_conics = np.zeros_like(m), np.zeros_like(q)
         g_opacities, g_values = np.zeros_like(o), np.zeros_like(v)
         _sum_per_gaussian(ids, grad_geom, grad_vals, g_means, g_conics, g_opacities, g_values)
