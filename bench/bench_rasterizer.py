@@ -10,7 +10,9 @@ A pair is a pixel of a tile times a Gaussian binned to that tile (what the raste
 before padding): the cost model that tile-based rasterizers share, so the figure compares with
 gsplat's and with the NOTES (60-120 ns per pair on one core). The scene is a random cloud of
 anisotropic Gaussians 4 m in front of a 50° camera, sized like a trained capture (σ 0.5-3 px).
-Timings are the minimum over repeats (the machine is shared). Prints a table; takes ~1-3 minutes.
+Timings are the minimum over repeats (the machine is shared); "cpu ms" is the process's CPU time
+for forward + backward (all its threads, spin-waits included), which a loaded machine disturbs
+less than the wall time. Prints a table; takes ~1-3 minutes.
 
 The numba back-end (``--backends numba``) composites the same binning with compiled per-pixel loops
 that stop where a pixel is opaque, so its ns/pair divides by the same candidate pairs and partly
@@ -59,7 +61,7 @@ def bench(n: int, size: int, tile: int, repeats: int, backend: str = "torch",
     g0 = scene(n)
     g0 = Gaussians3D(*(t.to(device) for t in (g0.means, g0.quats, g0.scales, g0.opacities, g0.sh)),
                      ids=g0.ids.to(device))
-    fwd, tot = [], []
+    fwd, tot, cpu = [], [], []
     stats = TileStats()
     for r in range(repeats + 1):  # first run warms up allocators and caches
         leaves = [t.clone().requires_grad_(True) for t in
@@ -67,16 +69,17 @@ def bench(n: int, size: int, tile: int, repeats: int, backend: str = "torch",
         g = Gaussians3D(*leaves, ids=g0.ids)
         stats = TileStats()
         _sync(device)
-        t0 = time.perf_counter()
+        c0, t0 = time.process_time(), time.perf_counter()
         out = render(g, cam, backend=backend, tile_size=tile, stats=stats)
         _sync(device)
         t1 = time.perf_counter()
         (out["rgb"].sum() + out["alpha"].sum()).backward()
         _sync(device)
-        t2 = time.perf_counter()
+        t2, c2 = time.perf_counter(), time.process_time()
         if r:
             fwd.append(t1 - t0)
             tot.append(t2 - t0)
+            cpu.append(c2 - c0)
     if backend == "gsplat":  # gsplat's own binning: 16-px tiles, counted by ours (no grad needed)
         tile, stats = 16, TileStats()
         with torch.no_grad():
@@ -84,6 +87,7 @@ def bench(n: int, size: int, tile: int, repeats: int, backend: str = "torch",
     return {"backend": backend, "device": str(device), "threads": threads, "n": n, "size": size,
             "tile": tile,
             "pairs": stats.pairs, "padded": stats.padded_pairs, "fwd_s": min(fwd), "total_s": min(tot),
+            "cpu_s": min(cpu),
             "ns_pair": min(tot) / stats.pairs * 1e9, "ns_pair_fwd": min(fwd) / stats.pairs * 1e9}
 
 
@@ -102,7 +106,7 @@ def main() -> None:
     where = torch.cuda.get_device_name(device) if device.type == "cuda" else "CPU"
     print(f"torch {torch.__version__}, {where}, min of {args.repeats} runs")
     print(f"{'backend':>7} {'thr':>3} {'gaussians':>9} {'image':>7} {'tile':>4} {'pairs':>10} {'padded':>10} "
-          f"{'fwd ms':>8} {'fwd+bwd ms':>10} {'ns/pair fwd':>11} {'ns/pair f+b':>11}")
+          f"{'fwd ms':>8} {'fwd+bwd ms':>10} {'cpu ms':>7} {'ns/pair fwd':>11} {'ns/pair f+b':>11}")
     rows = []
     for threads in args.threads:
         torch.set_num_threads(threads)  # the numba back-end takes torch's thread count at call time
@@ -114,7 +118,7 @@ def main() -> None:
                         rows.append(r)
                         print(f"{backend:>7} {threads:>3} {r['n']:>9} {f'{size}²':>7} {r['tile']:>4} "
                               f"{r['pairs']:>10} {r['padded']:>10} {r['fwd_s'] * 1e3:>8.1f} "
-                              f"{r['total_s'] * 1e3:>10.1f} {r['ns_pair_fwd']:>11.3g} {r['ns_pair']:>11.3g}",
+                              f"{r['total_s'] * 1e3:>10.1f} {r['cpu_s'] * 1e3:>7.1f} {r['ns_pair_fwd']:>11.3g} {r['ns_pair']:>11.3g}",
                               flush=True)
                         if args.json:
                             args.json.write_text(json.dumps(rows, indent=1))

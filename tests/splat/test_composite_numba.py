@@ -125,10 +125,11 @@ def test_nothing_drawn_gives_the_background_and_zero_gradients(case):
         assert g is not None and g.shape == t.shape and bool((g == 0).all())
 
 
-def test_results_do_not_depend_on_the_thread_count_and_stats_count_the_pairs():
+def test_results_do_not_depend_on_the_thread_count_which_stays_torchs_and_stats_count_pairs():
     W, H = 40, 32
     inputs = splats(200, W, H, seed=4)
     one = composite(rasterize_tiles_numba, *inputs, W, H)
+    assert torch.get_num_threads() == 1                       # the caller's setting is kept
     torch.set_num_threads(2)                                  # the fixture restores it
     two = composite(rasterize_tiles_numba, *inputs, W, H)
     for a, b in zip([one[0], one[1], *one[2]], [two[0], two[1], *two[2]]):
