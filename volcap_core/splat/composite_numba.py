@@ -63,25 +63,49 @@ _SIGMA_MARGIN = np.float32(1e-3)
 _LN_255 = np.float32(math.log(255.0))
 
 
+#: Gaussians whose σ at a pixel are computed together: a loop without branches, which the compiler
+#: turns into SIMD instructions; the compositing then walks the block one fragment at a time
+_BLOCK = 32
+
+
 @numba.njit(cache=True, inline="always")
 def _pack_tile(means2d, conics, opacities, values, ids, start, count, geom, vals):
-    """Copy one tile's Gaussians, front to back, into the contiguous ``geom [K, 7]`` (mx, my, a,
-    b, c, o, σ beyond which α < 1/255 for sure) and ``vals [K, C]``."""
+    """Copy one tile's Gaussians, front to back, into the contiguous rows of ``geom [7, K]`` (mx,
+    my, a, b, c, o, σ beyond which α < 1/255 for sure) and ``vals [K, C]``."""
     C = values.shape[1]
     for j in range(count):
         i = ids[start + j]
         o = opacities[i]
-        geom[j, 0] = means2d[i, 0]
-        geom[j, 1] = means2d[i, 1]
-        geom[j, 2] = conics[i, 0]
-        geom[j, 3] = conics[i, 1]
-        geom[j, 4] = conics[i, 2]
-        geom[j, 5] = o
-        # o <= 1/255 (or NaN) never reaches the threshold: -1 skips every pair (σ >= 0 or not)
-        geom[j, 6] = np.float32(np.log(o)) + _LN_255 + _SIGMA_MARGIN if o > _ALPHA_THRESHOLD \
+        geom[0, j] = means2d[i, 0]
+        geom[1, j] = means2d[i, 1]
+        geom[2, j] = conics[i, 0]
+        geom[3, j] = conics[i, 1]
+        geom[4, j] = conics[i, 2]
+        geom[5, j] = o
+        # o <= 1/255 (or NaN) never reaches the threshold: -inf skips every pair
+        geom[6, j] = np.float32(np.log(o)) + _LN_255 + _SIGMA_MARGIN if o > _ALPHA_THRESHOLD \
             else np.float32(-np.inf)
         for ch in range(C):
             vals[j, ch] = values[i, ch]
+
+
+@numba.njit(cache=True, inline="always")
+def _candidates(geom, j0, m, fx, fy, sigma, hits):
+    """σ of Gaussians ``j0 .. j0 + m - 1`` at pixel centre ``(fx, fy)`` into ``sigma[:m]``, and the
+    block offsets of those that may reach α >= 1/255 into ``hits``; returns how many. The same
+    float32 expression in forward and backward, so both take the same decisions. Branch-free: most
+    pairs of a tile are outside the Gaussian's ellipse, in no predictable pattern, and a branch per
+    pair would cost a misprediction each time."""
+    n = 0
+    for jj in range(m):
+        j = j0 + jj
+        dx = fx - geom[0, j]
+        dy = fy - geom[1, j]
+        s = _HALF * (geom[2, j] * dx * dx + geom[4, j] * dy * dy) + geom[3, j] * dx * dy
+        sigma[jj] = s
+        hits[n] = jj
+        n += np.int64(s <= geom[6, j])
+    return n
 
 
 @numba.njit(cache=True, parallel=True)
@@ -95,8 +119,10 @@ def _forward(means2d, conics, opacities, values, ids, starts, counts, tiles_x, t
         k = counts[t]
         if k == 0:
             continue
-        geom = np.empty((k, 7), np.float32)
+        geom = np.empty((7, k), np.float32)
         vals = np.empty((k, C), np.float32)
+        sig = np.empty(_BLOCK, np.float32)
+        hits = np.empty(_BLOCK, np.int64)
         _pack_tile(means2d, conics, opacities, values, ids, starts[t], k, geom, vals)
         x0 = (t % tiles_x) * tile_size
         y0 = (t // tiles_x) * tile_size
@@ -106,24 +132,28 @@ def _forward(means2d, conics, opacities, values, ids, starts, counts, tiles_x, t
                 fx = np.float32(px) + _PIXEL_CENTRE
                 T = _ONE
                 n = 0
-                for j in range(k):
-                    dx = fx - geom[j, 0]
-                    dy = fy - geom[j, 1]
-                    sigma = _HALF * (geom[j, 2] * dx * dx + geom[j, 4] * dy * dy) \
-                        + geom[j, 3] * dx * dy
-                    if not sigma <= geom[j, 6]:
-                        continue
-                    alpha = min(_ALPHA_MAX, geom[j, 5] * np.exp(-sigma))
-                    if alpha < _ALPHA_THRESHOLD:
-                        continue
-                    next_T = T * (_ONE - alpha)
-                    if next_T <= _T_MIN:
+                j0 = 0
+                while j0 < k:
+                    m = min(_BLOCK, k - j0)
+                    stop = False
+                    for h in range(_candidates(geom, j0, m, fx, fy, sig, hits)):
+                        j = j0 + hits[h]
+                        sigma = sig[hits[h]]
+                        alpha = min(_ALPHA_MAX, geom[5, j] * np.exp(-sigma))
+                        if alpha < _ALPHA_THRESHOLD:
+                            continue
+                        next_T = T * (_ONE - alpha)
+                        if next_T <= _T_MIN:
+                            stop = True
+                            break
+                        w = alpha * T
+                        for ch in range(C):
+                            out[py, px, ch] += w * vals[j, ch]
+                        T = next_T
+                        n = j + 1
+                    if stop:
                         break
-                    w = alpha * T
-                    for ch in range(C):
-                        out[py, px, ch] += w * vals[j, ch]
-                    T = next_T
-                    n = j + 1
+                    j0 += m
                 trans[py, px] = T
                 walked[py, px] = n
 
@@ -140,8 +170,10 @@ def _backward(means2d, conics, opacities, values, ids, starts, counts, tiles_x, 
         if k == 0:
             continue
         s = starts[t]
-        geom = np.empty((k, 7), np.float32)
+        geom = np.empty((7, k), np.float32)
         vals = np.empty((k, C), np.float32)
+        sig = np.empty(_BLOCK, np.float32)
+        hits = np.empty(_BLOCK, np.int64)
         _pack_tile(means2d, conics, opacities, values, ids, s, k, geom, vals)
         x0 = (t % tiles_x) * tile_size
         y0 = (t // tiles_x) * tile_size
@@ -151,37 +183,39 @@ def _backward(means2d, conics, opacities, values, ids, starts, counts, tiles_x, 
                 fx = np.float32(px) + _PIXEL_CENTRE
                 T = trans[py, px]
                 suffix = _ZERO                                   # Σ_{j>i} w_j c_j
-                for j in range(walked[py, px] - 1, -1, -1):
-                    dx = fx - geom[j, 0]
-                    dy = fy - geom[j, 1]
-                    sigma = _HALF * (geom[j, 2] * dx * dx + geom[j, 4] * dy * dy) \
-                        + geom[j, 3] * dx * dy
-                    if not sigma <= geom[j, 6]:
-                        continue
-                    e = np.exp(-sigma)
-                    raw = geom[j, 5] * e
-                    alpha = min(_ALPHA_MAX, raw)
-                    if alpha < _ALPHA_THRESHOLD:
-                        continue
-                    one_minus = _ONE - alpha
-                    T = T / one_minus                            # T_j, in front of fragment j
-                    w = alpha * T
-                    c = _ZERO
-                    for ch in range(C):
-                        g = grad_out[py, px, ch]
-                        c += g * vals[j, ch]
-                        grad_vals[s + j, ch] += w * g
-                    g_alpha = T * c - suffix / one_minus
-                    suffix += w * c
-                    if raw < _ALPHA_MAX:                         # no gradient through the clamp
-                        g_q = g_alpha * alpha                    # ∂L/∂(ln o - σ)
-                        grad_geom[s + j, 0] += g_q * (geom[j, 2] * dx + geom[j, 3] * dy)
-                        grad_geom[s + j, 1] += g_q * (geom[j, 3] * dx + geom[j, 4] * dy)
-                        grad_geom[s + j, 2] -= g_q * _HALF * dx * dx
-                        grad_geom[s + j, 3] -= g_q * dx * dy
-                        grad_geom[s + j, 4] -= g_q * _HALF * dy * dy
-                        grad_geom[s + j, 5] += g_alpha * e       # ∂α/∂o = exp(-σ)
-    return
+                j1 = walked[py, px]
+                while j1 > 0:
+                    j0 = max(0, j1 - _BLOCK)
+                    m = j1 - j0
+                    for h in range(_candidates(geom, j0, m, fx, fy, sig, hits) - 1, -1, -1):
+                        j = j0 + hits[h]
+                        sigma = sig[hits[h]]
+                        e = np.exp(-sigma)
+                        raw = geom[5, j] * e
+                        alpha = min(_ALPHA_MAX, raw)
+                        if alpha < _ALPHA_THRESHOLD:
+                            continue
+                        one_minus = _ONE - alpha
+                        T = T / one_minus                        # T_j, in front of fragment j
+                        w = alpha * T
+                        c = _ZERO
+                        for ch in range(C):
+                            g = grad_out[py, px, ch]
+                            c += g * vals[j, ch]
+                            grad_vals[s + j, ch] += w * g
+                        g_alpha = T * c - suffix / one_minus
+                        suffix += w * c
+                        if raw < _ALPHA_MAX:                     # no gradient through the clamp
+                            dx = fx - geom[0, j]
+                            dy = fy - geom[1, j]
+                            g_q = g_alpha * alpha                # ∂L/∂(ln o - σ)
+                            grad_geom[s + j, 0] += g_q * (geom[2, j] * dx + geom[3, j] * dy)
+                            grad_geom[s + j, 1] += g_q * (geom[3, j] * dx + geom[4, j] * dy)
+                            grad_geom[s + j, 2] -= g_q * _HALF * dx * dx
+                            grad_geom[s + j, 3] -= g_q * dx * dy
+                            grad_geom[s + j, 4] -= g_q * _HALF * dy * dy
+                            grad_geom[s + j, 5] += g_alpha * e   # ∂α/∂o = exp(-σ)
+                    j1 = j0
 
 
 @numba.njit(cache=True)
