@@ -69,24 +69,62 @@ _BLOCK = 32
 
 
 @numba.njit(cache=True, inline="always")
-def _pack_tile(means2d, conics, opacities, values, ids, start, count, geom, vals):
-    """Copy one tile's Gaussians, front to back, into the contiguous rows of ``geom [7, K]`` (mx,
-    my, a, b, c, o, σ beyond which α < 1/255 for sure) and ``vals [K, C]``."""
+def _min_sigma(mx, my, a, b, c, xlo, xhi, ylo, yhi):
+    """Smallest σ of the Gaussian (mean ``(mx, my)``, conic ``(a, b, c)``) over the rectangle
+    ``[xlo, xhi] × [ylo, yhi]`` of a tile's pixel centres, in float64; -inf for a conic that is not
+    positive definite (never culled). σ is convex: 0 inside, else its minimum lies on an edge, where
+    it is a 1-D quadratic minimised in closed form and clamped to the edge."""
+    if not (a > 0.0 and c > 0.0 and a * c - b * b > 0.0):
+        return -np.inf
+    if xlo <= mx <= xhi and ylo <= my <= yhi:
+        return 0.0
+    best = np.inf
+    for xe in (xlo, xhi):
+        dx = xe - mx
+        dy = min(max(-b * dx / c, ylo - my), yhi - my)
+        best = min(best, 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy)
+    for ye in (ylo, yhi):
+        dy = ye - my
+        dx = min(max(-b * dy / a, xlo - mx), xhi - mx)
+        best = min(best, 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy)
+    return best
+
+
+@numba.njit(cache=True, inline="always")
+def _pack_tile(means2d, conics, opacities, values, ids, start, count, xlo, xhi, ylo, yhi, geom,
+               vals, slot):
+    """Copy the tile's Gaussians that reach ``α >= 1/255`` at one of its pixel centres
+    (``[xlo, xhi] × [ylo, yhi]``), front to back, into the contiguous rows of ``geom [7, K]`` (mx,
+    my, a, b, c, o, σ beyond which α < 1/255 for sure) and ``vals [K, C]``, with ``slot [K]`` their
+    offsets in the tile's run of ``ids``; returns K. The binning's footprint box holds the whole
+    ellipse, so a tile at a corner of the box is often missed entirely: dropped here, its pairs
+    cost nothing (in both passes, which pack identically)."""
     C = values.shape[1]
+    k = 0
     for j in range(count):
         i = ids[start + j]
         o = opacities[i]
-        geom[0, j] = means2d[i, 0]
-        geom[1, j] = means2d[i, 1]
-        geom[2, j] = conics[i, 0]
-        geom[3, j] = conics[i, 1]
-        geom[4, j] = conics[i, 2]
-        geom[5, j] = o
-        # o <= 1/255 (or NaN) never reaches the threshold: -inf skips every pair
-        geom[6, j] = np.float32(np.log(o)) + _LN_255 + _SIGMA_MARGIN if o > _ALPHA_THRESHOLD \
-            else np.float32(-np.inf)
+        # o <= 1/255 (or NaN) never reaches the threshold
+        if not o > _ALPHA_THRESHOLD:
+            continue
+        lim = np.float32(np.log(o)) + _LN_255 + _SIGMA_MARGIN
+        # the margin (1e-3) dwarfs the float32 rounding of a pixel's σ, so culling on the exact
+        # minimum drops no pair the per-pixel test would keep
+        if _min_sigma(np.float64(means2d[i, 0]), np.float64(means2d[i, 1]), np.float64(conics[i, 0]),
+                      np.float64(conics[i, 1]), np.float64(conics[i, 2]), xlo, xhi, ylo, yhi) > lim:
+            continue
+        geom[0, k] = means2d[i, 0]
+        geom[1, k] = means2d[i, 1]
+        geom[2, k] = conics[i, 0]
+        geom[3, k] = conics[i, 1]
+        geom[4, k] = conics[i, 2]
+        geom[5, k] = o
+        geom[6, k] = lim
         for ch in range(C):
-            vals[j, ch] = values[i, ch]
+            vals[k, ch] = values[i, ch]
+        slot[k] = j
+        k += 1
+    return k
 
 
 @numba.njit(cache=True, inline="always")
@@ -119,16 +157,20 @@ def _forward(means2d, conics, opacities, values, ids, starts, counts, tiles_x, t
         k = counts[t]
         if k == 0:
             continue
-        geom = np.empty((7, k), np.float32)
-        vals = np.empty((k, C), np.float32)
-        sig = np.empty(_BLOCK, np.float32)
-        hits = np.empty(_BLOCK, np.int64)
-        _pack_tile(means2d, conics, opacities, values, ids, starts[t], k, geom, vals)
         x0 = (t % tiles_x) * tile_size
         y0 = (t // tiles_x) * tile_size
-        for py in range(y0, min(y0 + tile_size, height)):
+        x1 = min(x0 + tile_size, width)
+        y1 = min(y0 + tile_size, height)
+        geom = np.empty((7, k), np.float32)
+        vals = np.empty((k, C), np.float32)
+        slot = np.empty(k, np.int64)
+        sig = np.empty(_BLOCK, np.float32)
+        hits = np.empty(_BLOCK, np.int64)
+        k = _pack_tile(means2d, conics, opacities, values, ids, starts[t], k, x0 + 0.5, x1 - 0.5,
+                       y0 + 0.5, y1 - 0.5, geom, vals, slot)
+        for py in range(y0, y1):
             fy = np.float32(py) + _PIXEL_CENTRE
-            for px in range(x0, min(x0 + tile_size, width)):
+            for px in range(x0, x1):
                 fx = np.float32(px) + _PIXEL_CENTRE
                 T = _ONE
                 n = 0
@@ -170,16 +212,20 @@ def _backward(means2d, conics, opacities, values, ids, starts, counts, tiles_x, 
         if k == 0:
             continue
         s = starts[t]
-        geom = np.empty((7, k), np.float32)
-        vals = np.empty((k, C), np.float32)
-        sig = np.empty(_BLOCK, np.float32)
-        hits = np.empty(_BLOCK, np.int64)
-        _pack_tile(means2d, conics, opacities, values, ids, s, k, geom, vals)
         x0 = (t % tiles_x) * tile_size
         y0 = (t // tiles_x) * tile_size
-        for py in range(y0, min(y0 + tile_size, height)):
+        x1 = min(x0 + tile_size, width)
+        y1 = min(y0 + tile_size, height)
+        geom = np.empty((7, k), np.float32)
+        vals = np.empty((k, C), np.float32)
+        slot = np.empty(k, np.int64)
+        sig = np.empty(_BLOCK, np.float32)
+        hits = np.empty(_BLOCK, np.int64)
+        k = _pack_tile(means2d, conics, opacities, values, ids, s, k, x0 + 0.5, x1 - 0.5,
+                       y0 + 0.5, y1 - 0.5, geom, vals, slot)
+        for py in range(y0, y1):
             fy = np.float32(py) + _PIXEL_CENTRE
-            for px in range(x0, min(x0 + tile_size, width)):
+            for px in range(x0, x1):
                 fx = np.float32(px) + _PIXEL_CENTRE
                 T = trans[py, px]
                 suffix = _ZERO                                   # Σ_{j>i} w_j c_j
@@ -190,11 +236,12 @@ def _backward(means2d, conics, opacities, values, ids, starts, counts, tiles_x, 
                     for h in range(_candidates(geom, j0, m, fx, fy, sig, hits) - 1, -1, -1):
                         j = j0 + hits[h]
                         sigma = sig[hits[h]]
-                        e = np.exp(-sigma)
-                        raw = geom[5, j] * e
+                        ex = np.exp(-sigma)
+                        raw = geom[5, j] * ex
                         alpha = min(_ALPHA_MAX, raw)
                         if alpha < _ALPHA_THRESHOLD:
                             continue
+                        e = s + slot[j]                          # the intersection
                         one_minus = _ONE - alpha
                         T = T / one_minus                        # T_j, in front of fragment j
                         w = alpha * T
@@ -202,19 +249,19 @@ def _backward(means2d, conics, opacities, values, ids, starts, counts, tiles_x, 
                         for ch in range(C):
                             g = grad_out[py, px, ch]
                             c += g * vals[j, ch]
-                            grad_vals[s + j, ch] += w * g
+                            grad_vals[e, ch] += w * g
                         g_alpha = T * c - suffix / one_minus
                         suffix += w * c
                         if raw < _ALPHA_MAX:                     # no gradient through the clamp
                             dx = fx - geom[0, j]
                             dy = fy - geom[1, j]
                             g_q = g_alpha * alpha                # ∂L/∂(ln o - σ)
-                            grad_geom[s + j, 0] += g_q * (geom[2, j] * dx + geom[3, j] * dy)
-                            grad_geom[s + j, 1] += g_q * (geom[3, j] * dx + geom[4, j] * dy)
-                            grad_geom[s + j, 2] -= g_q * _HALF * dx * dx
-                            grad_geom[s + j, 3] -= g_q * dx * dy
-                            grad_geom[s + j, 4] -= g_q * _HALF * dy * dy
-                            grad_geom[s + j, 5] += g_alpha * e   # ∂α/∂o = exp(-σ)
+                            grad_geom[e, 0] += g_q * (geom[2, j] * dx + geom[3, j] * dy)
+                            grad_geom[e, 1] += g_q * (geom[3, j] * dx + geom[4, j] * dy)
+                            grad_geom[e, 2] -= g_q * _HALF * dx * dx
+                            grad_geom[e, 3] -= g_q * dx * dy
+                            grad_geom[e, 4] -= g_q * _HALF * dy * dy
+                            grad_geom[e, 5] += g_alpha * ex  # ∂α/∂o = exp(-σ)
                     j1 = j0
 
 
