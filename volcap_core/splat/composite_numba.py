@@ -13,7 +13,10 @@ Why it exists: the PyTorch compositor evaluates every padded (pixel, Gaussian) p
 behind opaque surfaces, in ~10 passes over memory. Here each pixel walks its tile's list once, front
 to back, and stops where it is opaque; the backward walks the same fragments back to front from the
 final transmittance (``T_i = T_{i+1} / (1 - α_i)``), so nothing per pair is stored between the
-passes: per pixel only the final transmittance and the count of fragments walked.
+passes: per pixel only the final transmittance and the count of fragments walked. Within a tile,
+the Gaussians whose ellipse misses every pixel centre are dropped first, and each pixel tests 32
+Gaussians at a time without branches before it composites the ones that can reach 1/255
+(figures: ``docs/benchmarks.md``, "Rasterizer").
 
 Gradients (the maths of ``rasterize._Composite.backward``): with ``w_i = α_i T_i``,
 ``c_i = ⟨∂L/∂acc, v_i⟩`` and ``S_i = Σ_{j>i} w_j c_j``, ``∂L/∂v_i = w_i ∂L/∂acc`` and
@@ -104,8 +107,8 @@ def _pack_tile(means2d, conics, opacities, values, ids, start, count, xlo, xhi, 
     for j in range(count):
         i = ids[start + j]
         o = opacities[i]
-        # o <= 1/255 (or NaN) never reaches the threshold
-        if not o > _ALPHA_THRESHOLD:
+        # o < 1/255 (or NaN) never reaches the threshold
+        if not o >= _ALPHA_THRESHOLD:
             continue
         lim = np.float32(np.log(o)) + _LN_255 + _SIGMA_MARGIN
         # the margin (1e-3) dwarfs the float32 rounding of a pixel's σ, so culling on the exact
@@ -301,6 +304,7 @@ def _torch_threads():
 
 
 def _arrays(*tensors: torch.Tensor) -> list[np.ndarray]:
+    """Contiguous numpy views (copies only where not contiguous) for the kernels."""
     return [t.detach().contiguous().numpy() for t in tensors]
 
 

@@ -1,4 +1,4 @@
-"""Render 3D Gaussians into a camera: THE entry point, one function, two back-ends.
+"""Render 3D Gaussians into a camera: THE entry point, one function, three back-ends.
 
     out = render(gaussians, camera)   # {"rgb": [H,W,3] linear, "alpha": [H,W,1], "depth": [H,W,1]}
 
