@@ -184,12 +184,10 @@ def test_numba_is_chosen_only_when_asked_and_only_for_cpu_tensors():
         rasterize_tiles_numba(means, conics, opac, depths, radii, values.double(), 8, 8)
 
 
-@pytest.mark.slow
 def test_a_segment_trains_through_numba_as_through_torch():
     """The first half of the CPU training test's run (tests/splat/test_splat_train.py: 120 of its
-    240 steps, ~30 s in all) through each back-end: the numba one must learn as much (held-out PSNR
-    within 0.5 dB of torch's; 28.35 against 28.36 dB when written, 22.50 untrained; 5.5 s of
-    training against 20.3)."""
+    240 steps, ~3 s in all) through each back-end: the numba one must learn as much (held-out PSNR
+    within 0.5 dB of torch's; 28.35 against 28.36 dB when written, 22.50 untrained)."""
     from volcap_core.splat.model import Poly4DGSConfig
     from volcap_core.splat.train import TrainConfig, train_segment
 
