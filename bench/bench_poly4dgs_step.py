@@ -1,6 +1,7 @@
 """Time per optimisation step of Poly4DGS against a static 3DGS with the same number of Gaussians.
 
     python bench/bench_poly4dgs_step.py --device cpu     # 5000 Gaussians, 128², torch back-end
+    python bench/bench_poly4dgs_step.py --device cpu --backend numba --gaussians 60000 --size 240
     python bench/bench_poly4dgs_step.py --device cuda --json out.json  # 100k and 1M, 1024², gsplat
     python bench/bench_poly4dgs_step.py --device cuda --frames 1 8     # and a layout over 8 frames
 
@@ -231,7 +232,7 @@ def main() -> None:
     ap.add_argument("--fps", type=float, default=30.0)
     ap.add_argument("--distance", type=float, default=3.0, help="camera to scene centre (m)")
     ap.add_argument("--sh-degree", type=int, default=Poly4DGSConfig().sh_degree)
-    ap.add_argument("--backend", choices=["gsplat", "torch"],
+    ap.add_argument("--backend", choices=["gsplat", "torch", "numba"],
                     help="default gsplat on CUDA, torch on CPU")
     ap.add_argument("--warmup", type=int, default=3)
     ap.add_argument("--steps", type=int, default=20, help="timed steps per config (the median)")

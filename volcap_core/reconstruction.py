@@ -65,7 +65,7 @@ class SegmentModel(Record):
     config: dict[str, Any]
     #: the rasterizer that trained it and why (``TrainResult.backend``: ``config["backend"]`` is
     #: what was asked for, this is what ran); None in records written before it was kept
-    backend: Literal["gsplat", "torch"] | None = None
+    backend: Literal["gsplat", "torch", "numba"] | None = None
     backend_reason: str | None = None
 
     @property

@@ -38,8 +38,8 @@ import torch.nn.functional as F
 
 from volcap_core.splat.camera import Camera
 
-__all__ = ["Projected", "TileStats", "project_gaussians", "quat_scale_to_covar",
-           "rasterize_tiles"]
+__all__ = ["Projected", "TileBins", "TileStats", "bin_tiles", "project_gaussians",
+           "quat_scale_to_covar", "rasterize_tiles"]
 
 ALPHA_THRESHOLD = 1.0 / 255.0
 ALPHA_MAX = 0.999
@@ -308,6 +308,69 @@ def _tile_range(lo: torch.Tensor, hi: torch.Tensor, ts: int, n: int):
     return first, torch.maximum(last, first)
 
 
+@dataclass
+class TileBins:
+    """Projected Gaussians binned to square tiles, front to back within each tile: what every
+    compositor reads (:func:`rasterize_tiles`, :func:`volcap_core.splat.composite_numba
+    .rasterize_tiles_numba`).
+
+    Tiles are numbered row-major, ``tile = ty * tiles_x + tx``, tile ``(tx, ty)`` covering pixels
+    ``[tx·s, (tx+1)·s) × [ty·s, (ty+1)·s)`` (``s = tile_size``; the last row and column may reach
+    past the image).
+
+    Attributes:
+        tile_size: tile edge (px). tiles_x, tiles_y: the tile grid.
+        ids: ``[I]`` int64 Gaussian index of each (tile, Gaussian) intersection, grouped by tile in
+            tile order, front to back (ascending depth, ties in input order) within a tile.
+        starts: ``[tiles]`` int64 offset of each tile's run in ``ids``.
+        counts: ``[tiles]`` int64 length of each tile's run (0 for an empty tile).
+    """
+
+    tile_size: int
+    tiles_x: int
+    tiles_y: int
+    ids: torch.Tensor
+    starts: torch.Tensor
+    counts: torch.Tensor
+
+
+def bin_tiles(means2d: torch.Tensor, depths: torch.Tensor, radii: torch.Tensor, width: int,
+              height: int, tile_size: int = 8) -> TileBins:
+    """Bin each Gaussian to every tile its footprint box touches and sort each tile by depth.
+
+    Args:
+        means2d: ``[M, 2]`` px. depths: ``[M]`` sort key, front = smaller. radii: ``[M, 2]`` int
+            footprint half-extents (px), not clamped to the image: the tile range is clipped to
+            the grid instead, and a NaN centre bins nowhere.
+        width, height: image size (px). tile_size: tile edge (px).
+    Returns:
+        :class:`TileBins` (no gradient: binning only selects).
+    """
+    ts = tile_size
+    tw, th = -(-width // ts), -(-height // ts)
+    with torch.no_grad():
+        # tile ranges in float64 (exact for int32 radii and float32 means, no overflow whatever
+        # the footprint), clipped to the tile grid before the cast (a NaN gives an empty range)
+        r = radii.to(torch.float64)
+        m = means2d.detach().to(torch.float64)
+        x0, x1 = _tile_range(m[:, 0] - r[:, 0], m[:, 0] + r[:, 0], ts, tw)
+        y0, y1 = _tile_range(m[:, 1] - r[:, 1], m[:, 1] + r[:, 1], ts, th)
+        nx = x1 - x0
+        count = nx * (y1 - y0)
+        order = torch.argsort(depths.detach(), stable=True)   # front to back
+        cnt_o = count[order]
+        n_isect = int(cnt_o.sum())
+        gid = torch.repeat_interleave(order, cnt_o)
+        start = torch.repeat_interleave(torch.cumsum(cnt_o, 0) - cnt_o, cnt_o)
+        local = torch.arange(n_isect, device=means2d.device) - start
+        tile = (y0[gid] + local // nx[gid]) * tw + x0[gid] + local % nx[gid]
+        tile, perm = torch.sort(tile, stable=True)            # stable: keeps depth order per tile
+        gid = gid[perm]
+        counts = torch.bincount(tile, minlength=tw * th)
+        starts = torch.cumsum(counts, 0) - counts
+    return TileBins(ts, tw, th, gid, starts, counts)
+
+
 def rasterize_tiles(means2d: torch.Tensor, conics: torch.Tensor, opacities: torch.Tensor,
                     depths: torch.Tensor, radii: torch.Tensor, values: torch.Tensor,
                     width: int, height: int, *, tile_size: int = 8,
@@ -333,30 +396,14 @@ def rasterize_tiles(means2d: torch.Tensor, conics: torch.Tensor, opacities: torc
     device, dtype = means2d.device, means2d.dtype
     D = values.shape[1]
     ts = tile_size
-    tw, th = -(-width // ts), -(-height // ts)
+    bins = bin_tiles(means2d, depths, radii, width, height, ts)
+    tw, th = bins.tiles_x, bins.tiles_y
     n_tiles = tw * th
     P = ts * ts
     M = means2d.shape[0]
+    gid, tile_start, counts = bins.ids, bins.starts, bins.counts
+    n_isect = gid.shape[0]
     with torch.no_grad():
-        # tile ranges in float64 (exact for int32 radii and float32 means, no overflow whatever
-        # the footprint), clipped to the tile grid before the cast (a NaN gives an empty range)
-        r = radii.to(torch.float64)
-        m = means2d.detach().to(torch.float64)
-        x0, x1 = _tile_range(m[:, 0] - r[:, 0], m[:, 0] + r[:, 0], ts, tw)
-        y0, y1 = _tile_range(m[:, 1] - r[:, 1], m[:, 1] + r[:, 1], ts, th)
-        nx = x1 - x0
-        count = nx * (y1 - y0)
-        order = torch.argsort(depths, stable=True)            # front to back
-        cnt_o = count[order]
-        n_isect = int(cnt_o.sum())
-        gid = torch.repeat_interleave(order, cnt_o)
-        start = torch.repeat_interleave(torch.cumsum(cnt_o, 0) - cnt_o, cnt_o)
-        local = torch.arange(n_isect, device=device) - start
-        tile = (y0[gid] + local // nx[gid]) * tw + x0[gid] + local % nx[gid]
-        tile, perm = torch.sort(tile, stable=True)            # stable: keeps depth order per tile
-        gid = gid[perm]
-        counts = torch.bincount(tile, minlength=n_tiles)
-        tile_start = torch.cumsum(counts, 0) - counts
         busy = torch.nonzero(counts).squeeze(1)
         busy = busy[torch.argsort(counts[busy], descending=True, stable=True)]
         busy_counts = counts[busy].cpu().numpy()

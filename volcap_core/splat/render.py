@@ -1,4 +1,4 @@
-"""Render 3D Gaussians into a camera: THE entry point, one function, two back-ends.
+"""Render 3D Gaussians into a camera: THE entry point, one function, three back-ends.
 
     out = render(gaussians, camera)   # {"rgb": [H,W,3] linear, "alpha": [H,W,1], "depth": [H,W,1]}
 
@@ -23,13 +23,17 @@ Back-ends:
   culled: exactly zero contribution and zero gradient, so one NaN Gaussian cannot poison the
   image or the other parameters' gradients. Zero Gaussians render the background (alpha 0,
   depth 0), still differentiable.
+* ``"numba"`` — the same projection, culling and binning as torch, composited by the compiled
+  per-pixel kernels of :mod:`volcap_core.splat.composite_numba` (same rules and outputs, several
+  times faster on a CPU); float32 CPU tensors only. Only when asked for: ``"auto"`` never picks it.
 * ``"auto"`` (default) — gsplat when the tensors are on CUDA and gsplat is usable, else torch.
 
 Which back-end runs is decided by :func:`resolve_backend`, never silently:
 
 * an explicit ``"gsplat"`` that cannot be honoured (tensors not on CUDA, gsplat not installed, its
   CUDA extension failing to load or build) raises :class:`BackendUnavailable` naming the cause,
-  chained from gsplat's own exception;
+  chained from gsplat's own exception; so does an explicit ``"numba"`` for tensors not on the CPU
+  or a numba that does not import;
 * ``"auto"`` falling back to torch for CUDA tensors is logged as a WARNING with gsplat's exception
   (the pure-PyTorch rasterizer is much slower than gsplat's kernels); its other choices are
   logged at INFO. Each (back-end, reason) is logged once per process, not per render;
@@ -72,8 +76,8 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-Backend = Literal["auto", "gsplat", "torch"]
-BackendName = Literal["gsplat", "torch"]
+Backend = Literal["auto", "gsplat", "torch", "numba"]
+BackendName = Literal["gsplat", "torch", "numba"]
 
 #: Longest exception summary put in a reason: a failed JIT build's message carries the whole
 #: compiler log, which belongs in the traceback (chained, or logged once), not in every record.
@@ -90,7 +94,7 @@ class BackendChoice:
     """The back-end that rasterizes, and why: what a render used and what a result records.
 
     Attributes:
-        name: ``"gsplat"`` or ``"torch"``.
+        name: ``"gsplat"``, ``"torch"`` or ``"numba"``.
         reason: one line, e.g. ``"auto: CUDA tensors, gsplat 1.5.3"``, ``"requested"``, or
             ``"auto: CUDA tensors but gsplat is unusable (ModuleNotFoundError: No module named
             'gsplat')"``.
@@ -171,30 +175,54 @@ def _announce(level: int, choice: BackendChoice, exc: BaseException | None = Non
     return choice
 
 
+def _numba_compositor():
+    """:func:`~volcap_core.splat.composite_numba.rasterize_tiles_numba`, imported on first use:
+    importing numba costs ~0.5 s, which a process that never asks for it should not pay.
+
+    Raises:
+        BackendUnavailable: numba does not import (chained from its exception).
+    """
+    try:
+        from volcap_core.splat.composite_numba import rasterize_tiles_numba
+    except ImportError as e:
+        raise BackendUnavailable(f"backend 'numba' was requested but numba cannot be imported: "
+                                 f"{type(e).__name__}: {e}") from e
+    return rasterize_tiles_numba
+
+
 def resolve_backend(requested: Backend, device: torch.device | str) -> BackendChoice:
     """Which back-end rasterizes tensors on ``device`` when ``requested`` is asked for, and why.
 
     Args:
-        requested: ``"auto"``, ``"gsplat"`` or ``"torch"``.
+        requested: ``"auto"``, ``"gsplat"``, ``"torch"`` or ``"numba"``.
         device: where the Gaussians' tensors are (``"cuda"`` and ``"cuda:0"`` are the same here).
     Returns:
         :class:`BackendChoice`:
 
         * ``"torch"``: torch, always (any device); reason ``"requested"``.
+        * ``"numba"``: numba, for CPU tensors; reason ``"requested"``.
         * ``"gsplat"``: gsplat, for CUDA tensors with a usable gsplat.
         * ``"auto"``: gsplat for CUDA tensors when usable, else torch. The torch fallback for CUDA
           tensors is logged as a WARNING with gsplat's exception; the other choices at INFO;
           each once per process.
     Raises:
         BackendUnavailable: ``"gsplat"`` requested for tensors not on CUDA, or gsplat unusable
-            (chained from its import/build exception).
+            (chained from its import/build exception); ``"numba"`` requested for tensors not on
+            the CPU, or numba not importable.
         ValueError: an unknown ``requested``.
     """
     if requested == "torch":
         return BackendChoice("torch", "requested")
-    if requested not in ("auto", "gsplat"):
-        raise ValueError(f"unknown backend {requested!r}: choose 'auto', 'gsplat' or 'torch'")
+    if requested not in ("auto", "gsplat", "numba"):
+        raise ValueError(f"unknown backend {requested!r}: choose 'auto', 'gsplat', 'torch' or "
+                         "'numba'")
     device = torch.device(device)
+    if requested == "numba":
+        if device.type != "cpu":
+            raise BackendUnavailable(f"backend 'numba' composites on the CPU, these tensors are on "
+                                     f"{device}")
+        _numba_compositor()
+        return BackendChoice("numba", "requested")
     if device.type != "cuda":
         if requested == "gsplat":
             why = ("" if torch.cuda.is_available() else
@@ -238,28 +266,37 @@ def render(gaussians: Gaussians3D, camera: Camera, *, backend: Backend = "auto",
     Args:
         gaussians: M Gaussians at one instant (:func:`volcap_core.splat.model.evaluate`).
         camera: the view (OpenCV axes, pixels).
-        backend: ``"auto"``, ``"gsplat"`` or ``"torch"``, resolved by :func:`resolve_backend`
-            (an explicit ``"gsplat"`` that cannot run raises :class:`BackendUnavailable`).
+        backend: ``"auto"``, ``"gsplat"``, ``"torch"`` or ``"numba"``, resolved by
+            :func:`resolve_backend` (an explicit back-end that cannot run raises
+            :class:`BackendUnavailable`).
         background: ``[3]`` linear colour behind the Gaussians (default black), added as
             ``(1 - alpha) · background``.
-        tile_size: tile edge of the torch back-end (px).
-        stats: filled with the torch back-end's work counts (benchmarks).
+        tile_size: tile edge of the torch and numba back-ends (px).
+        stats: filled with the torch or numba back-end's work counts (benchmarks).
     Returns:
         ``{"rgb": [H, W, 3] linear, "alpha": [H, W, 1] in [0, 1], "depth": [H, W, 1]}``; depth is
         the expected camera-space z of the visible Gaussians (metres; accumulated z over alpha,
         0 where nothing is drawn), gsplat's ``"RGB+ED"``.
     """
     cam = camera.to(gaussians.means.device)
-    if resolve_backend(backend, gaussians.means.device).name == "gsplat":
+    name = resolve_backend(backend, gaussians.means.device).name
+    if name == "gsplat":
         rgb, alpha, depth = _render_gsplat(gaussians, cam)
     else:
-        rgb, alpha, depth = _render_torch(gaussians, cam, tile_size, stats)
+        rgb, alpha, depth = _render_torch(gaussians, cam, tile_size, stats, _compositor(name))
     if background is not None:
         rgb = rgb + (1.0 - alpha) * background.to(rgb)
     return {"rgb": rgb, "alpha": alpha, "depth": depth}
 
 
-def _render_torch(g: Gaussians3D, cam: Camera, tile_size: int, stats: TileStats | None):
+def _compositor(name: BackendName):
+    """The tile compositor of back-end ``"torch"`` or ``"numba"`` (same signature and outputs)."""
+    return _numba_compositor() if name == "numba" else rasterize_tiles
+
+
+def _render_torch(g: Gaussians3D, cam: Camera, tile_size: int, stats: TileStats | None,
+                  composite=rasterize_tiles):
+    """Projection, culling and colours in PyTorch, then ``composite`` (:func:`_compositor`)."""
     # geometry: project_gaussians culls (without gradient) anything non-finite or degenerate
     proj = project_gaussians(g.means, g.quats, g.scales, g.opacities, cam, eps2d=EPS2D,
                              antialiased=True)
@@ -276,9 +313,8 @@ def _render_torch(g: Gaussians3D, cam: Camera, tile_size: int, stats: TileStats 
                          depths=proj.depths[keep], radii=proj.radii[keep])
         colours = gaussian_colours(g.select(proj.ids), cam)
     values = torch.cat([colours, proj.depths[:, None]], dim=-1)
-    acc, trans = rasterize_tiles(proj.means2d, proj.conics, proj.opacities, proj.depths,
-                                 proj.radii, values, cam.width, cam.height, tile_size=tile_size,
-                                 stats=stats)
+    acc, trans = composite(proj.means2d, proj.conics, proj.opacities, proj.depths, proj.radii,
+                           values, cam.width, cam.height, tile_size=tile_size, stats=stats)
     alpha = (1.0 - trans)[..., None]
     depth = acc[..., 3:4] / alpha.clamp(min=1e-10)
     return acc[..., :3], alpha, depth
@@ -423,7 +459,7 @@ def render_flow(gaussians: Gaussians3D, previous: Gaussians3D, camera: Camera, p
             model have no correspondence: across a segment boundary there is no exact flow.
         camera, prev_camera: the cameras of frames ``t`` and ``t-1``.
         backend, tile_size: as :func:`render` (the gsplat back-end rasterizes the 7 flow values
-            as N-channel colours, which gsplat pads to 8).
+            as N-channel colours, which gsplat pads to 8; numba composites them like colours).
         min_alpha: pixels whose accumulated alpha of Gaussians with a defined displacement is
             below it get flow **0** (nothing there moves; a shot frame is a render over nothing,
             so there is no background whose camera motion would matter). A displacement is
@@ -443,10 +479,11 @@ def render_flow(gaussians: Gaussians3D, previous: Gaussians3D, camera: Camera, p
                           for f in ("means", "quats", "scales", "opacities", "sh", "ids")},
                        colour_space=previous.colour_space)
     with torch.no_grad():
-        if resolve_backend(backend, dev).name == "gsplat":
+        name = resolve_backend(backend, dev).name
+        if name == "gsplat":
             acc = _render_flow_gsplat(gaussians, prev, cam, prev_cam)
         else:
-            acc = _render_flow_torch(gaussians, prev, cam, prev_cam, tile_size)
+            acc = _render_flow_torch(gaussians, prev, cam, prev_cam, tile_size, _compositor(name))
         h, w = acc.shape[:2]
         # pixel centres in K's frame (+0.5), relative to the image centre (_flow_values' o)
         px = torch.arange(w, device=dev, dtype=acc.dtype)[None, :] + 0.5 - w / 2.0
@@ -460,7 +497,7 @@ def render_flow(gaussians: Gaussians3D, previous: Gaussians3D, camera: Camera, p
 
 
 def _render_flow_torch(g: Gaussians3D, prev: Gaussians3D, cam: Camera, prev_cam: Camera,
-                       tile_size: int) -> torch.Tensor:
+                       tile_size: int, composite=rasterize_tiles) -> torch.Tensor:
     # the survivors of _render_torch exactly: projection culling, then non-finite colours
     proj = project_gaussians(g.means, g.quats, g.scales, g.opacities, cam, eps2d=EPS2D,
                              antialiased=True)
@@ -471,8 +508,8 @@ def _render_flow_torch(g: Gaussians3D, prev: Gaussians3D, cam: Camera, prev_cam:
                          conics=proj.conics[keep], opacities=proj.opacities[keep],
                          depths=proj.depths[keep], radii=proj.radii[keep])
     values = _flow_values(g.select(proj.ids), prev.select(proj.ids), cam, prev_cam)
-    acc, _ = rasterize_tiles(proj.means2d, proj.conics, proj.opacities, proj.depths, proj.radii,
-                             values.to(proj.means2d.dtype), cam.width, cam.height, tile_size=tile_size)
+    acc, _ = composite(proj.means2d, proj.conics, proj.opacities, proj.depths, proj.radii,
+                       values.to(proj.means2d.dtype), cam.width, cam.height, tile_size=tile_size)
     return acc
 
 

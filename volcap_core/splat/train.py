@@ -309,7 +309,8 @@ class TrainConfig(BaseModel):
     checkpoint_every: int = Field(1000, ge=0)
     eval_every: int = Field(1000, ge=0, description="0: only at the end")
     eval_max_views: int = Field(24, gt=0)
-    backend: Literal["auto", "gsplat", "torch"] = "auto"
+    #: the rasterizer (:func:`~volcap_core.splat.render.resolve_backend`); "numba" only when asked
+    backend: Literal["auto", "gsplat", "torch", "numba"] = "auto"
     tile_size: int = Field(8, ge=1)
 
     @model_serializer(mode="wrap")
@@ -668,8 +669,8 @@ def train_segment(views: SegmentData, init_points: Sequence[PointsAtTime], confi
     Returns:
         :class:`TrainResult` (model, training grids, evaluation history, the back-end used).
     Raises:
-        BackendUnavailable: ``config.backend == "gsplat"`` and gsplat cannot run on ``device``;
-            raised before any other work.
+        BackendUnavailable: ``config.backend`` cannot run on ``device`` (``"gsplat"`` off CUDA or
+            unusable, ``"numba"`` off the CPU); raised before any other work.
     """
     device = torch.device(device or ("cuda" if torch.cuda.is_available() else "cpu"))
     # once, before anything else: an explicit back-end that cannot run fails here rather than
