@@ -7,6 +7,8 @@ Modules, one concern each (see ``docs/poly4dgs.md``):
 - :mod:`~volcap_core.splat.render` — :func:`render`, the one rasterization entry point, and
   :func:`render_flow` (the exact backward flow between two instants, for the enhancer).
 - :mod:`~volcap_core.splat.rasterize` — the pure-PyTorch back-end (gsplat conventions).
+- :mod:`~volcap_core.splat.composite_numba` — the compiled CPU compositor (back-end ``"numba"``),
+  the same rules and gradients on :mod:`rasterize`'s tile bins.
 - :mod:`~volcap_core.splat.grids` — per-camera exposure / black-level grids.
 - :mod:`~volcap_core.splat.loss` — L1 + SSIM in unbounded sRGB, regularisers, display metrics.
 - :mod:`~volcap_core.splat.mcmc` — 3DGS-MCMC relocation, growth, noise, regularisers.
