@@ -58,7 +58,7 @@ def test_prepare_run_report(prefect_api, tmp_path):
                                                  "--evals", "2", "--budget-s", "600"])
     assert proc.returncode == 0, proc.stderr[-3000:]
     curve = json.loads((out / "curve.json").read_text())
-    assert curve["backend"] == "torch" and curve["stopped"] == "steps"
+    assert curve["backend"] == "numba" and curve["stopped"] == "steps"
     assert [p["step"] for p in curve["points"]] == [0, 2, 4]
     walls = [p["wall_s"] for p in curve["points"]]
     assert walls[0] == 0 and walls[1] > 0 and walls[2] > walls[1]

@@ -174,9 +174,10 @@ def test_render_flow_through_numba_matches_torch():
     assert torch.allclose(ours["flow"], ref["flow"], atol=1e-3)
 
 
-def test_numba_is_chosen_only_when_asked_and_only_for_cpu_tensors():
+def test_numba_is_chosen_for_float32_cpu_tensors_only():
     assert resolve_backend("numba", "cpu").name == "numba"
-    assert resolve_backend("auto", "cpu").name == "torch"
+    assert resolve_backend("auto", "cpu").name == "numba"                 # since 2026-11-28
+    assert resolve_backend("auto", "cpu", torch.float64).name == "torch"   # references in float64
     with pytest.raises(BackendUnavailable, match="backend 'numba' composites on the CPU"):
         resolve_backend("numba", "cuda")
     means, conics, opac, depths, radii, values = splats(3, 8, 8, seed=0)

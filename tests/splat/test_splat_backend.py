@@ -83,18 +83,48 @@ def test_torch_is_always_honoured_and_unknown_names_fail():
         resolve_backend("cuda", "cpu")
 
 
-def test_auto_on_cpu_picks_torch_logs_once_and_never_probes_gsplat(monkeypatch, caplog):
+AUTO_CPU = BackendChoice("numba", "auto: float32 CPU tensors, the compiled compositor")
+
+
+def test_auto_on_cpu_picks_numba_logs_once_and_never_probes_gsplat(monkeypatch, caplog):
     calls = _fake_probe(monkeypatch, GsplatProbe(None, "1.5.3"))
     caplog.set_level(logging.DEBUG, logger=LOGGER)
     g, cam = random_gaussians(6), ring_cameras(1, size=8)[0]
     for _ in range(3):
         choice = resolve_backend("auto", torch.device("cpu"))
-        render(g, cam)  # auto
-    assert choice == BackendChoice("torch", "auto: tensors on cpu, gsplat needs CUDA")
+        out = render(g, cam)  # auto
+    assert choice == AUTO_CPU
+    assert torch.allclose(out["rgb"], render(g, cam, backend="numba")["rgb"])
     assert calls == []
     logged = _records(caplog)
     assert len(logged) == 1 and logged[0].levelno == logging.INFO
-    assert "'torch'" in logged[0].getMessage() and "tensors on cpu" in logged[0].getMessage()
+    assert "'numba'" in logged[0].getMessage() and "float32 CPU tensors" in logged[0].getMessage()
+
+
+def test_auto_on_cpu_renders_float64_through_torch(caplog):
+    """The compiled compositor takes float32: a float64 render (a reference) goes to torch."""
+    caplog.set_level(logging.DEBUG, logger=LOGGER)
+    choice = resolve_backend("auto", "cpu", torch.float64)
+    assert choice.name == "torch" and "float64" in choice.reason
+    g, cam = random_gaussians(6), ring_cameras(1, size=8)[0]
+    g64 = type(g)(**{f: getattr(g, f).double() if getattr(g, f).is_floating_point() else getattr(g, f)
+                     for f in ("means", "quats", "scales", "opacities", "sh", "ids")}, colour_space=g.colour_space)
+    out = render(g64, cam)                                    # auto: no error, torch in float64
+    assert out["rgb"].dtype == torch.float64
+    assert torch.allclose(out["rgb"].float(), render(g, cam, backend="torch")["rgb"], atol=1e-5)
+
+
+def test_auto_on_cpu_without_numba_warns_and_picks_torch(monkeypatch, caplog):
+    error = ImportError("No module named 'numba'")
+
+    def unavailable():
+        raise BackendUnavailable("numba cannot be imported") from error
+    monkeypatch.setattr(render_mod, "_numba_compositor", unavailable)
+    caplog.set_level(logging.DEBUG, logger=LOGGER)
+    choice = resolve_backend("auto", "cpu")
+    assert choice.name == "torch" and "numba cannot be imported" in choice.reason
+    [record] = _records(caplog, logging.WARNING)
+    assert record.exc_info[1] is error
 
 
 def test_auto_on_cuda_with_unusable_gsplat_warns_with_the_reason_and_picks_torch(monkeypatch, caplog):
@@ -163,7 +193,7 @@ def _tiny_config(**kw):
 def test_training_records_the_backend_it_used(single_thread):
     data, points, _ = moving_scene(n=12, frames=(0, 2), size=16, cameras=3)
     res = train_segment(data, points, _tiny_config(), seed=0, device="cpu")
-    assert res.backend == BackendChoice("torch", "auto: tensors on cpu, gsplat needs CUDA")
+    assert res.backend == AUTO_CPU
     res = train_segment(data, points, _tiny_config(backend="torch"), seed=0, device="cpu")
     assert res.backend == BackendChoice("torch", "requested")
 

@@ -25,8 +25,10 @@ Back-ends:
   depth 0), still differentiable.
 * ``"numba"`` — the same projection, culling and binning as torch, composited by the compiled
   per-pixel kernels of :mod:`volcap_core.splat.composite_numba` (same rules and outputs, several
-  times faster on a CPU); float32 CPU tensors only. Only when asked for: ``"auto"`` never picks it.
-* ``"auto"`` (default) — gsplat when the tensors are on CUDA and gsplat is usable, else torch.
+  times faster on a CPU); float32 CPU tensors only.
+* ``"auto"`` (default) — gsplat when the tensors are on CUDA and gsplat is usable; numba for
+  float32 CPU tensors when numba imports; else torch (float64 renders, a GPU without gsplat, a CPU
+  without numba).
 
 Which back-end runs is decided by :func:`resolve_backend`, never silently:
 
@@ -35,7 +37,8 @@ Which back-end runs is decided by :func:`resolve_backend`, never silently:
   chained from gsplat's own exception; so does an explicit ``"numba"`` for tensors not on the CPU
   or a numba that does not import;
 * ``"auto"`` falling back to torch for CUDA tensors is logged as a WARNING with gsplat's exception
-  (the pure-PyTorch rasterizer is much slower than gsplat's kernels); its other choices are
+  (the pure-PyTorch rasterizer is much slower than gsplat's kernels), and for float32 CPU tensors
+  with numba's import error (slower than the compiled compositor); its other choices are
   logged at INFO. Each (back-end, reason) is logged once per process, not per render;
 * the answer is a :class:`BackendChoice` (name and reason) that results record
   (:attr:`~volcap_core.splat.train.TrainResult.backend`, which the ``train-segment`` task copies
@@ -190,21 +193,24 @@ def _numba_compositor():
     return rasterize_tiles_numba
 
 
-def resolve_backend(requested: Backend, device: torch.device | str) -> BackendChoice:
+def resolve_backend(requested: Backend, device: torch.device | str,
+                    dtype: torch.dtype = torch.float32) -> BackendChoice:
     """Which back-end rasterizes tensors on ``device`` when ``requested`` is asked for, and why.
 
     Args:
         requested: ``"auto"``, ``"gsplat"``, ``"torch"`` or ``"numba"``.
         device: where the Gaussians' tensors are (``"cuda"`` and ``"cuda:0"`` are the same here).
+        dtype: the Gaussians' floating type (``"auto"`` gives numba float32 only).
     Returns:
         :class:`BackendChoice`:
 
         * ``"torch"``: torch, always (any device); reason ``"requested"``.
         * ``"numba"``: numba, for CPU tensors; reason ``"requested"``.
         * ``"gsplat"``: gsplat, for CUDA tensors with a usable gsplat.
-        * ``"auto"``: gsplat for CUDA tensors when usable, else torch. The torch fallback for CUDA
-          tensors is logged as a WARNING with gsplat's exception; the other choices at INFO;
-          each once per process.
+        * ``"auto"``: gsplat for CUDA tensors when usable; numba for float32 CPU tensors when it
+          imports; else torch. The torch fallbacks (CUDA tensors without gsplat, float32 CPU
+          tensors without numba) are logged as a WARNING with the exception; the other choices
+          at INFO; each once per process.
     Raises:
         BackendUnavailable: ``"gsplat"`` requested for tensors not on CUDA, or gsplat unusable
             (chained from its import/build exception); ``"numba"`` requested for tensors not on
@@ -229,8 +235,17 @@ def resolve_backend(requested: Backend, device: torch.device | str) -> BackendCh
                    "; CUDA is not available in this process (torch.cuda.is_available() is False)")
             raise BackendUnavailable(
                 f"backend 'gsplat' needs CUDA tensors, these are on {device}{why}")
-        return _announce(logging.INFO, BackendChoice(
-            "torch", f"auto: tensors on {device.type}, gsplat needs CUDA"))
+        if device.type != "cpu" or dtype != torch.float32:
+            return _announce(logging.INFO, BackendChoice(
+                "torch", f"auto: {dtype} tensors on {device.type}, the compiled compositor takes float32 "
+                         "CPU tensors and gsplat CUDA ones"))
+        try:
+            _numba_compositor()
+        except BackendUnavailable as e:
+            return _announce(logging.WARNING, BackendChoice(
+                "torch", "auto: CPU tensors but numba cannot be imported; the pure-PyTorch compositor is "
+                         "~2x slower"), e.__cause__)
+        return _announce(logging.INFO, BackendChoice("numba", "auto: float32 CPU tensors, the compiled compositor"))
     probe = probe_gsplat()
     if requested == "gsplat":
         if not probe.usable:
@@ -279,7 +294,7 @@ def render(gaussians: Gaussians3D, camera: Camera, *, backend: Backend = "auto",
         0 where nothing is drawn), gsplat's ``"RGB+ED"``.
     """
     cam = camera.to(gaussians.means.device)
-    name = resolve_backend(backend, gaussians.means.device).name
+    name = resolve_backend(backend, gaussians.means.device, gaussians.means.dtype).name
     if name == "gsplat":
         rgb, alpha, depth = _render_gsplat(gaussians, cam)
     else:
@@ -479,7 +494,7 @@ def render_flow(gaussians: Gaussians3D, previous: Gaussians3D, camera: Camera, p
                           for f in ("means", "quats", "scales", "opacities", "sh", "ids")},
                        colour_space=previous.colour_space)
     with torch.no_grad():
-        name = resolve_backend(backend, dev).name
+        name = resolve_backend(backend, dev, gaussians.means.dtype).name
         if name == "gsplat":
             acc = _render_flow_gsplat(gaussians, prev, cam, prev_cam)
         else:
