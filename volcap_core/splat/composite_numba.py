@@ -149,6 +149,22 @@ def _candidates(geom, j0, m, fx, fy, sigma, hits):
     return n
 
 
+@numba.njit(cache=True, inline="always")
+def _tile_box(t, tiles_x, tile_size, width, height):
+    """Tile ``t``'s pixels ``[x0, x1) × [y0, y1)`` (row-major tiles, clipped to the image)."""
+    x0 = (t % tiles_x) * tile_size
+    y0 = (t // tiles_x) * tile_size
+    return x0, y0, min(x0 + tile_size, width), min(y0 + tile_size, height)
+
+
+@numba.njit(cache=True, inline="always")
+def _tile_buffers(k, C):
+    """A tile's working arrays for ``k`` Gaussians of ``C`` values: packed geometry ``[7, k]``,
+    values ``[k, C]``, their slots ``[k]``, and one block's σ and hit indices ``[_BLOCK]``."""
+    return (np.empty((7, k), np.float32), np.empty((k, C), np.float32), np.empty(k, np.int64),
+            np.empty(_BLOCK, np.float32), np.empty(_BLOCK, np.int64))
+
+
 @numba.njit(cache=True, parallel=True)
 def _forward(means2d, conics, opacities, values, ids, starts, counts, tiles_x, tile_size, width,
              height, out, trans, walked):
@@ -160,15 +176,8 @@ def _forward(means2d, conics, opacities, values, ids, starts, counts, tiles_x, t
         k = counts[t]
         if k == 0:
             continue
-        x0 = (t % tiles_x) * tile_size
-        y0 = (t // tiles_x) * tile_size
-        x1 = min(x0 + tile_size, width)
-        y1 = min(y0 + tile_size, height)
-        geom = np.empty((7, k), np.float32)
-        vals = np.empty((k, C), np.float32)
-        slot = np.empty(k, np.int64)
-        sig = np.empty(_BLOCK, np.float32)
-        hits = np.empty(_BLOCK, np.int64)
+        x0, y0, x1, y1 = _tile_box(t, tiles_x, tile_size, width, height)
+        geom, vals, slot, sig, hits = _tile_buffers(k, C)
         k = _pack_tile(means2d, conics, opacities, values, ids, starts[t], k, x0 + 0.5, x1 - 0.5,
                        y0 + 0.5, y1 - 0.5, geom, vals, slot)
         for py in range(y0, y1):
@@ -215,15 +224,8 @@ def _backward(means2d, conics, opacities, values, ids, starts, counts, tiles_x, 
         if k == 0:
             continue
         s = starts[t]
-        x0 = (t % tiles_x) * tile_size
-        y0 = (t // tiles_x) * tile_size
-        x1 = min(x0 + tile_size, width)
-        y1 = min(y0 + tile_size, height)
-        geom = np.empty((7, k), np.float32)
-        vals = np.empty((k, C), np.float32)
-        slot = np.empty(k, np.int64)
-        sig = np.empty(_BLOCK, np.float32)
-        hits = np.empty(_BLOCK, np.int64)
+        x0, y0, x1, y1 = _tile_box(t, tiles_x, tile_size, width, height)
+        geom, vals, slot, sig, hits = _tile_buffers(k, C)
         k = _pack_tile(means2d, conics, opacities, values, ids, s, k, x0 + 0.5, x1 - 0.5,
                        y0 + 0.5, y1 - 0.5, geom, vals, slot)
         for py in range(y0, y1):
