@@ -24,8 +24,8 @@ Back-ends:
   image or the other parameters' gradients. Zero Gaussians render the background (alpha 0,
   depth 0), still differentiable.
 * ``"numba"`` — the same projection, culling and binning as torch, composited by the compiled
-  per-pixel kernels of :mod:`volcap_core.splat.composite_numba` (same rules and outputs, several
-  times faster on a CPU); float32 CPU tensors only.
+  per-pixel kernels of :mod:`volcap_core.splat.composite_numba` (same rules and outputs, faster on
+  a CPU: ``docs/benchmarks.md``, "Rasterizer"); float32 CPU tensors only.
 * ``"auto"`` (default) — gsplat when the tensors are on CUDA and gsplat is usable; numba for
   float32 CPU tensors when numba imports; else torch (float64 renders, a GPU without gsplat, a CPU
   without numba).
