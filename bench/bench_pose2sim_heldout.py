@@ -149,10 +149,10 @@ def filled_shell(data, cap, held_out, time_s: float):
 
 
 def performers_colour_fits(renders: dict, views) -> dict:
-    """Diagnostic, outside the protocol: the held-out performers' PSNR (sRGB, masks >= 0.5) under a
-    gain/offset fitted on performer pixels only, per model (``renders``: name -> the views' linear
-    renders): ``cross_fitted`` on the other fold's performers (the protocol's folds), and
-    ``oracle``, fitted on the view's own performers. The protocol fits the whole frame, where a
+    """Diagnostics, outside the protocol: the held-out performers' PSNR (sRGB, masks >= 0.5) per
+    model (``renders``: name -> the views' linear renders): ``raw`` (no colour transform), and under
+    a gain/offset fitted on performer pixels only, ``cross_fitted`` on the other fold's performers
+    (the protocol's folds) and ``oracle``, fitted on the view's own performers. The protocol fits the whole frame, where a
     room the training cameras never saw can pull the gain to 0; the oracle is what the best colour
     transform could score on these pixels whatever the rest of the frame, so a trained model that
     stays near the empty model's oracle is not held back by its background."""
@@ -173,7 +173,7 @@ def performers_colour_fits(renders: dict, views) -> dict:
     for name, rs in renders.items():
         folds = cross_fitted_transforms(rs, truths, [v.camera_id for v in views], [v.frame for v in views], masks)
         own = [fit_colour_transform([r[m]], [t[m]]) for r, t, m in zip(rs, truths, masks)]
-        out[name] = {"cross_fitted": psnr([tf.apply(r) for tf, r in zip(folds, rs)]),
+        out[name] = {"raw": psnr(rs), "cross_fitted": psnr([tf.apply(r) for tf, r in zip(folds, rs)]),
                      "oracle": psnr([tf.apply(r) for tf, r in zip(own, rs)])}
     return out
 
@@ -275,20 +275,17 @@ def train(inputs: dict, points: str, args) -> dict:
     # the sheet: a held-out frame whole, its raw render, a training camera, the performer cropped at 1:1
     held_views = [v for v in data.views if v.camera_id == args.held]
     renders = render_views(result.model, held_views, config, device="cpu")
-    # diagnostic, outside the protocol: the raw renders' PSNR on the performers (no colour transform)
-    from volcap_core.colour import srgb_encode
-    from volcap_core.image_metrics import region_psnr
+    # diagnostics, outside the protocol: the performers raw and under a colour fit of their own
     from volcap_core.splat.train import frame_interval, init_model
     initial = init_model(init, config, frame_interval_s=frame_interval(data.times),
                          generator=torch.Generator().manual_seed(0))
     raw = {"trained": renders, "initial": render_views(initial, held_views, config, device="cpu"),
            "empty": [torch.zeros_like(r) for r in renders]}
-    out["performers_raw_psnr"] = {
-        k: round(float(np.mean([region_psnr(srgb_encode(r).clamp(0, 1), srgb_encode(v.load()[..., :3]).clamp(0, 1),
-                                            v.load_mask() >= 0.5) for r, v in zip(rs, held_views)])), 3)
-        for k, rs in raw.items()} if all(v.load_mask() is not None for v in held_views) else None
-    if out["performers_raw_psnr"] is not None:
-        out["performers_colour_fit_diagnostic"] = performers_colour_fits(raw, held_views)
+    out["performers_raw_psnr"] = None
+    if all(v.load_mask() is not None for v in held_views):
+        fits = performers_colour_fits(raw, held_views)
+        out["performers_raw_psnr"] = {k: f.pop("raw") for k, f in fits.items()}
+        out["performers_colour_fit_diagnostic"] = fits
     from volcap_core.splat import save_model
     (args.workdir / f"model_{args.held}_{args.tag}.safetensors").write_bytes(save_model(result.model))
     tfs = cross_fitted_transforms(renders, [v.load()[..., :3] for v in held_views],
