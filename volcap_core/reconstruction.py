@@ -331,7 +331,8 @@ def with_performer_hull(clouds: Sequence[PointsAtTime], data: SegmentData, held_
     """
     from volcap_core.splat.init import colour_scan, filled_silhouette, visual_hull
 
-    held = set(held_out) - set(carve_only)
+    uncoloured = set(held_out)
+    held = uncoloured - set(carve_only)
     (x0, y0, z0), (x1, y1, z1) = volume
     out = []
     for p in clouds:
@@ -350,7 +351,7 @@ def with_performer_hull(clouds: Sequence[PointsAtTime], data: SegmentData, held_
             close = max(1, round(HULL_CLOSE_FRACTION * min(v.camera.width, v.camera.height)))
             cams.append((K, v.camera.world_to_camera.double().numpy(), filled_silhouette(m.numpy(), close_px=close)))
         hull = visual_hull(cams, volume)
-        rgb, seen = colour_scan(hull, [v for v, _ in mattes if v.camera_id not in set(held_out)])
+        rgb, seen = colour_scan(hull, [v for v, _ in mattes if v.camera_id not in uncoloured])
         hull = torch.from_numpy(hull[seen].astype(np.float32))
         out.append(replace(p, xyz=torch.cat([p.xyz[torch.from_numpy(keep)], hull]),
                            rgb=torch.cat([p.rgb[torch.from_numpy(keep)], torch.from_numpy(rgb[seen]).to(p.rgb.dtype)]),

@@ -180,7 +180,7 @@ def _announce(level: int, choice: BackendChoice, exc: BaseException | None = Non
 
 def _numba_compositor():
     """:func:`~volcap_core.splat.composite_numba.rasterize_tiles_numba`, imported on first use:
-    importing numba costs ~0.5 s, which a process that never asks for it should not pay.
+    importing numba costs ~0.5 s, which a process that never renders on a CPU should not pay.
 
     Raises:
         BackendUnavailable: numba does not import (chained from its exception).

@@ -309,7 +309,8 @@ class TrainConfig(BaseModel):
     checkpoint_every: int = Field(1000, ge=0)
     eval_every: int = Field(1000, ge=0, description="0: only at the end")
     eval_max_views: int = Field(24, gt=0)
-    #: the rasterizer (:func:`~volcap_core.splat.render.resolve_backend`); "numba" only when asked
+    #: the rasterizer (:func:`~volcap_core.splat.render.resolve_backend`; "auto": gsplat on CUDA,
+    #: the compiled compositor for float32 CPU tensors)
     backend: Literal["auto", "gsplat", "torch", "numba"] = "auto"
     tile_size: int = Field(8, ge=1)
 

@@ -178,12 +178,8 @@ def capture_recording(world: World, cameras: Mapping[str, Any], camera_id: str, 
     each footage pixel (what a model that matched the scene exactly and learned the camera's
     exposure would render); a generator: noise drawn from it with the sensor's own law (read and
     shot noise; a fresh draw, independent of the footage's unless given its generator)."""
-    cam = cameras["cameras"].get(camera_id)
-    if cam is None:
-        raise ValueError(f"ground truth has no camera {camera_id!r} "
-                         f"(it has {', '.join(sorted(cameras['cameras']))})")
-    sensor = capture_sensor(cameras, camera_id)
-    tracks = cam.get("tracking") is not None
+    sensor = capture_sensor(cameras, camera_id)   # refuses a camera the ground truth lacks
+    tracks = cameras["cameras"][camera_id].get("tracking") is not None
     truth = render_truth(world, capture_camera(cameras, camera_id, take_index), take_index / float(cameras["fps"]),
                          content="all", supersample=supersample, set_supersample=1 if tracks else None)
     return sensor.apply(truth.rgb, noise)
