@@ -125,14 +125,34 @@ def test_nothing_drawn_gives_the_background_and_zero_gradients(case):
         assert g is not None and g.shape == t.shape and bool((g == 0).all())
 
 
-def test_results_do_not_depend_on_the_thread_count_which_stays_torchs_and_stats_count_pairs():
+def test_results_do_not_depend_on_the_thread_count_and_torch_keeps_its_one_thread(monkeypatch):
+    """Reproducible training runs torch on one thread; the kernels run on numba's count (all
+    cores), forward and backward, with the same bits as on one thread, and leave torch at one."""
+    import numba
+
+    import volcap_core.splat.composite_numba as cn
+
     W, H = 40, 32
     inputs = splats(200, W, H, seed=4)
-    one = composite(rasterize_tiles_numba, *inputs, W, H)
+    seen: list[int] = []
+    forward, backward = cn._forward, cn._backward
+
+    def spy(kernel):
+        def run(*a):
+            seen.append(numba.get_num_threads())
+            return kernel(*a)
+        return run
+
+    monkeypatch.setattr(cn, "_forward", spy(forward))
+    monkeypatch.setattr(cn, "_backward", spy(backward))
+    cores = numba.config.NUMBA_NUM_THREADS
+    all_cores = composite(rasterize_tiles_numba, *inputs, W, H)
     assert torch.get_num_threads() == 1                       # the caller's setting is kept
-    torch.set_num_threads(2)                                  # the fixture restores it
-    two = composite(rasterize_tiles_numba, *inputs, W, H)
-    for a, b in zip([one[0], one[1], *one[2]], [two[0], two[1], *two[2]]):
+    assert seen == [cores, cores]
+    monkeypatch.setattr(numba.config, "NUMBA_NUM_THREADS", 1)
+    one = composite(rasterize_tiles_numba, *inputs, W, H)
+    assert seen[2:] == [1, 1]
+    for a, b in zip([one[0], one[1], *one[2]], [all_cores[0], all_cores[1], *all_cores[2]]):
         assert torch.equal(a, b)
     ours, ref = TileStats(), TileStats()
     rasterize_tiles_numba(*inputs, W, H, stats=ours)

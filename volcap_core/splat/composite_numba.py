@@ -23,8 +23,8 @@ Gradients (the maths of ``rasterize._Composite.backward``): with ``w_i = α_i T_
 ``∂L/∂α_i = T_i c_i - S_i / (1 - α_i)``; through ``α = o·exp(-σ)`` (unclamped fragments only) to the
 opacity, the conic ``(a, b, c)`` and the 2-D mean.
 
-Parallel over tiles (``numba.prange``), with ``torch.get_num_threads()`` threads at call time (the
-caller's budget; capped at numba's own maximum). Each tile is owned by one thread, which writes its
+Parallel over tiles (``numba.prange``) on :func:`kernel_threads` threads: all cores unless
+``NUMBA_NUM_THREADS`` says fewer, also while torch trains on one thread for reproducibility. Each tile is owned by one thread, which writes its
 pixels and its intersections' gradients; the per-Gaussian sums are then made serially in
 intersection order, so results do not depend on the thread count. float32 CPU tensors only.
 ``cache=True``: the kernels compile once per machine (into ``__pycache__`` beside this file, or
@@ -287,18 +287,33 @@ def _sum_per_gaussian(ids, grad_geom, grad_vals, g_means, g_conics, g_opacities,
             g_values[i, ch] += grad_vals[e, ch]
 
 
+def kernel_threads() -> int:
+    """The compiled kernels' thread count: ``NUMBA_NUM_THREADS`` (numba's own setting, all cores
+    unless the environment caps it), whatever torch's.
+
+    Why not torch's count: reproducible CPU training runs torch on one thread (the processes'
+    ``OMP_NUM_THREADS=1``, ``volcap_core.checkpoint.deterministic_torch``), which leaves the other
+    cores idle; these kernels give the same bits on any number of threads (each output written by
+    one thread, every sum in a fixed order), so they take the cores back without breaking
+    bit-identical resumption. A process sharing its machine (a worker per core) sets
+    ``NUMBA_NUM_THREADS``.
+    """
+    return max(1, int(numba.config.NUMBA_NUM_THREADS))
+
+
 @contextlib.contextmanager
-def _torch_threads():
-    """Run the kernels inside on the caller's thread budget, ``torch.get_num_threads()`` (capped
-    at numba's maximum; per calling thread in numba), and leave torch's own setting as it was.
+def kernel_threads_scope():
+    """Run the compiled kernels inside on :func:`kernel_threads` threads (numba's setting is per
+    calling thread) and leave torch's own setting as it was.
 
     The restore matters: numba's OpenMP threading layer shares torch's OpenMP runtime, and
-    starting its thread pool sets that runtime's thread count to numba's maximum (all cores),
-    which every later torch op would then use (on a shared 2-core machine a 1-thread caller's
-    projection and binning ran ~20× slower after the first numba call).
+    starting its thread pool or widening it sets that runtime's thread count for torch too, which
+    every later torch op would then use (on a shared 2-core machine a 1-thread caller's projection
+    and binning ran ~20× slower after the first numba call), and a one-thread training would no
+    longer be reproducible.
     """
     n = torch.get_num_threads()
-    numba.set_num_threads(max(1, min(n, numba.config.NUMBA_NUM_THREADS)))
+    numba.set_num_threads(kernel_threads())
     try:
         yield
     finally:
@@ -323,7 +338,7 @@ class _CompositeNumba(torch.autograd.Function):
         out = np.zeros((height, width, C), np.float32)
         trans = np.ones((height, width), np.float32)
         walked = np.zeros((height, width), np.int64)
-        with _torch_threads():
+        with kernel_threads_scope():
             _forward(m, q, o, v, ids, starts, counts, bins.tiles_x, bins.tile_size, width, height,
                      out, trans, walked)
         ctx.arrays = (m, q, o, v, ids, starts, counts, trans, walked)
@@ -336,7 +351,7 @@ class _CompositeNumba(torch.autograd.Function):
         g = grad_acc.detach().to(torch.float32).contiguous().numpy()
         grad_geom = np.zeros((ids.shape[0], 6), np.float32)
         grad_vals = np.zeros((ids.shape[0], v.shape[1]), np.float32)
-        with _torch_threads():
+        with kernel_threads_scope():
             _backward(m, q, o, v, ids, starts, counts, *ctx.grid, trans, walked, g, grad_geom,
                       grad_vals)
         g_means, g_conics = np.zeros_like(m), np.zeros_like(q)
