@@ -23,7 +23,7 @@ Gradients (the maths of ``rasterize._Composite.backward``): with ``w_i = α_i T_
 ``∂L/∂α_i = T_i c_i - S_i / (1 - α_i)``; through ``α = o·exp(-σ)`` (unclamped fragments only) to the
 opacity, the conic ``(a, b, c)`` and the 2-D mean.
 
-Parallel over tiles (``numba.prange``) on :func:`kernel_threads` threads: all cores unless
+Parallel over tiles (``numba.prange``) on :func:`~volcap_core.kernel_threads.kernel_threads` threads: all cores unless
 ``NUMBA_NUM_THREADS`` says fewer, also while torch trains on one thread for reproducibility. Each tile is owned by one thread, which writes its
 pixels and its intersections' gradients; the per-Gaussian sums are then made serially in
 intersection order, so results do not depend on the thread count. float32 CPU tensors only.
@@ -33,13 +33,13 @@ numba's user cache directory where that is read-only) and load in well under a s
 
 from __future__ import annotations
 
-import contextlib
 import math
 
 import numba
 import numpy as np
 import torch
 
+from volcap_core.kernel_threads import kernel_threads_scope
 from volcap_core.splat.rasterize import (
     ALPHA_MAX,
     ALPHA_THRESHOLD,
@@ -285,39 +285,6 @@ def _sum_per_gaussian(ids, grad_geom, grad_vals, g_means, g_conics, g_opacities,
         g_opacities[i] += grad_geom[e, 5]
         for ch in range(C):
             g_values[i, ch] += grad_vals[e, ch]
-
-
-def kernel_threads() -> int:
-    """The compiled kernels' thread count: ``NUMBA_NUM_THREADS`` (numba's own setting, all cores
-    unless the environment caps it), whatever torch's.
-
-    Why not torch's count: reproducible CPU training runs torch on one thread (the processes'
-    ``OMP_NUM_THREADS=1``, ``volcap_core.checkpoint.deterministic_torch``), which leaves the other
-    cores idle; these kernels give the same bits on any number of threads (each output written by
-    one thread, every sum in a fixed order), so they take the cores back without breaking
-    bit-identical resumption. A process sharing its machine (a worker per core) sets
-    ``NUMBA_NUM_THREADS``.
-    """
-    return max(1, int(numba.config.NUMBA_NUM_THREADS))
-
-
-@contextlib.contextmanager
-def kernel_threads_scope():
-    """Run the compiled kernels inside on :func:`kernel_threads` threads (numba's setting is per
-    calling thread) and leave torch's own setting as it was.
-
-    The restore matters: numba's OpenMP threading layer shares torch's OpenMP runtime, and
-    starting its thread pool or widening it sets that runtime's thread count for torch too, which
-    every later torch op would then use (on a shared 2-core machine a 1-thread caller's projection
-    and binning ran ~20× slower after the first numba call), and a one-thread training would no
-    longer be reproducible.
-    """
-    n = torch.get_num_threads()
-    numba.set_num_threads(kernel_threads())
-    try:
-        yield
-    finally:
-        torch.set_num_threads(n)
 
 
 def _arrays(*tensors: torch.Tensor) -> list[np.ndarray]:
