@@ -186,6 +186,23 @@ def _forward(means, quats, scales, opacities, Rw, tw, fx, fy, cx, cy, lim, width
 
 
 @numba.njit(cache=True, parallel=True)
+def _survivors(ids, means2d, conics, opac, depths, radii):
+    """The rows ``ids [M]`` of the forward's per-Gaussian outputs, as new compact arrays (numpy's
+    fancy indexing of five arrays cost half the kernel's time)."""
+    M = ids.shape[0]
+    m2, cn, op = np.empty((M, 2), np.float32), np.empty((M, 3), np.float32), np.empty(M, np.float32)
+    dp, rd = np.empty(M, np.float32), np.empty((M, 2), np.int32)
+    for k in numba.prange(M):
+        i = ids[k]
+        m2[k, 0], m2[k, 1] = means2d[i, 0], means2d[i, 1]
+        cn[k, 0], cn[k, 1], cn[k, 2] = conics[i, 0], conics[i, 1], conics[i, 2]
+        op[k] = opac[i]
+        dp[k] = depths[i]
+        rd[k, 0], rd[k, 1] = radii[i, 0], radii[i, 1]
+    return m2, cn, op, dp, rd
+
+
+@numba.njit(cache=True, parallel=True)
 def _backward(ids, means, quats, scales, opacities, Rw, tw, fx, fy, lim, eps2d, antialiased,
               g_means2d, g_conics, g_opac, g_depths, g_means, g_quats, g_scales, g_opacities):
     """Gradients of the survivors ``ids [M]`` (their output gradients ``g_* [M, ...]``) to their
@@ -346,12 +363,13 @@ class _ProjectNumba(torch.autograd.Function):
                      np.float32(camera.height), np.float32(camera.near), np.float32(camera.far),
                      np.float32(eps2d), bool(antialiased), means2d, conics, opac, depths, radii,
                      keep)
-        ids = np.flatnonzero(keep)
+            ids = np.flatnonzero(keep).astype(np.int64)
+            kept = _survivors(ids, means2d, conics, opac, depths, radii)
         ctx.arrays = (ids, m, q, s, o, Rw, tw, fx, fy, lim, np.float32(eps2d), bool(antialiased))
-        ids_t, radii_t = torch.from_numpy(ids.astype(np.int64)), torch.from_numpy(radii[ids])
-        ctx.mark_non_differentiable(ids_t, radii_t)
-        return (torch.from_numpy(means2d[ids]), torch.from_numpy(conics[ids]),
-                torch.from_numpy(opac[ids]), torch.from_numpy(depths[ids]), ids_t, radii_t)
+        means2d, conics, opac, depths, radii = (torch.from_numpy(a) for a in kept)
+        ids_t = torch.from_numpy(ids)
+        ctx.mark_non_differentiable(ids_t, radii)
+        return means2d, conics, opac, depths, ids_t, radii
 
     @staticmethod
     def backward(ctx, g_means2d, g_conics, g_opac, g_depths, _g_ids, _g_radii):
