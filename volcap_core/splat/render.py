@@ -23,9 +23,11 @@ Back-ends:
   culled: exactly zero contribution and zero gradient, so one NaN Gaussian cannot poison the
   image or the other parameters' gradients. Zero Gaussians render the background (alpha 0,
   depth 0), still differentiable.
-* ``"numba"`` — the same projection, culling and binning as torch, composited by the compiled
-  per-pixel kernels of :mod:`volcap_core.splat.composite_numba` (same rules and outputs, faster on
-  a CPU: ``docs/benchmarks.md``, "Rasterizer"); float32 CPU tensors only.
+* ``"numba"`` — the same rules and outputs as torch, compiled for the CPU: the projection and
+  culling by the per-Gaussian kernels of :mod:`volcap_core.splat.project_numba` (forward and
+  analytic backward), the same binning, composited by the per-pixel kernels of
+  :mod:`volcap_core.splat.composite_numba`; SH colours and the binning stay PyTorch. Faster on a
+  CPU (``docs/benchmarks.md``, "Rasterizer"); float32 CPU tensors only.
 * ``"auto"`` (default) — gsplat when the tensors are on CUDA and gsplat is usable; numba for
   float32 CPU tensors when numba imports; else torch (float64 renders, a GPU without gsplat, a CPU
   without numba).
@@ -193,6 +195,14 @@ def _numba_compositor():
     return rasterize_tiles_numba
 
 
+def _numba_projector():
+    """:func:`~volcap_core.splat.project_numba.project_gaussians_numba`, imported on first use
+    (numba's import cost, as :func:`_numba_compositor`; :func:`resolve_backend` has checked that
+    numba imports)."""
+    from volcap_core.splat.project_numba import project_gaussians_numba
+    return project_gaussians_numba
+
+
 def resolve_backend(requested: Backend, device: torch.device | str,
                     dtype: torch.dtype = torch.float32) -> BackendChoice:
     """Which back-end rasterizes tensors on ``device`` when ``requested`` is asked for, and why.
@@ -298,7 +308,8 @@ def render(gaussians: Gaussians3D, camera: Camera, *, backend: Backend = "auto",
     if name == "gsplat":
         rgb, alpha, depth = _render_gsplat(gaussians, cam)
     else:
-        rgb, alpha, depth = _render_torch(gaussians, cam, tile_size, stats, _compositor(name))
+        rgb, alpha, depth = _render_torch(gaussians, cam, tile_size, stats, _compositor(name),
+                                          _projector(name))
     if background is not None:
         rgb = rgb + (1.0 - alpha) * background.to(rgb)
     return {"rgb": rgb, "alpha": alpha, "depth": depth}
@@ -309,12 +320,17 @@ def _compositor(name: BackendName):
     return _numba_compositor() if name == "numba" else rasterize_tiles
 
 
+def _projector(name: BackendName):
+    """The projection of back-end ``"torch"`` or ``"numba"`` (same signature and outputs)."""
+    return _numba_projector() if name == "numba" else project_gaussians
+
+
 def _render_torch(g: Gaussians3D, cam: Camera, tile_size: int, stats: TileStats | None,
-                  composite=rasterize_tiles):
-    """Projection, culling and colours in PyTorch, then ``composite`` (:func:`_compositor`)."""
-    # geometry: project_gaussians culls (without gradient) anything non-finite or degenerate
-    proj = project_gaussians(g.means, g.quats, g.scales, g.opacities, cam, eps2d=EPS2D,
-                             antialiased=True)
+                  composite=rasterize_tiles, project=project_gaussians):
+    """``project`` (:func:`_projector`), colours in PyTorch, then ``composite``
+    (:func:`_compositor`)."""
+    # geometry: the projection culls (without gradient) anything non-finite or degenerate
+    proj = project(g.means, g.quats, g.scales, g.opacities, cam, eps2d=EPS2D, antialiased=True)
     # colours only for the survivors: SH of culled Gaussians is never needed
     colours = gaussian_colours(g.select(proj.ids), cam)
     finite = torch.isfinite(colours.detach()).all(-1)
@@ -498,7 +514,8 @@ def render_flow(gaussians: Gaussians3D, previous: Gaussians3D, camera: Camera, p
         if name == "gsplat":
             acc = _render_flow_gsplat(gaussians, prev, cam, prev_cam)
         else:
-            acc = _render_flow_torch(gaussians, prev, cam, prev_cam, tile_size, _compositor(name))
+            acc = _render_flow_torch(gaussians, prev, cam, prev_cam, tile_size, _compositor(name),
+                                     _projector(name))
         h, w = acc.shape[:2]
         # pixel centres in K's frame (+0.5), relative to the image centre (_flow_values' o)
         px = torch.arange(w, device=dev, dtype=acc.dtype)[None, :] + 0.5 - w / 2.0
@@ -512,10 +529,10 @@ def render_flow(gaussians: Gaussians3D, previous: Gaussians3D, camera: Camera, p
 
 
 def _render_flow_torch(g: Gaussians3D, prev: Gaussians3D, cam: Camera, prev_cam: Camera,
-                       tile_size: int, composite=rasterize_tiles) -> torch.Tensor:
+                       tile_size: int, composite=rasterize_tiles,
+                       project=project_gaussians) -> torch.Tensor:
     # the survivors of _render_torch exactly: projection culling, then non-finite colours
-    proj = project_gaussians(g.means, g.quats, g.scales, g.opacities, cam, eps2d=EPS2D,
-                             antialiased=True)
+    proj = project(g.means, g.quats, g.scales, g.opacities, cam, eps2d=EPS2D, antialiased=True)
     finite = torch.isfinite(gaussian_colours(g.select(proj.ids), cam)).all(-1)
     if not bool(finite.all()):
         keep = torch.nonzero(finite).squeeze(1)
