@@ -71,14 +71,18 @@ def test_compiled_noise_bits_do_not_depend_on_the_thread_count(monkeypatch):
 
     monkeypatch.setattr(mcmc_numba, "_add_noise", spy)
     cores = numba.config.NUMBA_NUM_THREADS
+    small = _model()
+    _noise(small)                                               # 2000 Gaussians: one thread
+    monkeypatch.setattr(mcmc_numba, "_PARALLEL_MIN", 1000)
     all_cores = _model()
     _noise(all_cores)
     assert torch.get_num_threads() == 1                        # the caller's setting is kept
     monkeypatch.setattr(numba.config, "NUMBA_NUM_THREADS", 1)
     one = _model()
     _noise(one)
-    assert seen == [cores, 1]
+    assert seen == [1, cores, 1]
     assert torch.equal(all_cores.params["means"], one.params["means"])
+    assert torch.equal(small.params["means"], one.params["means"])
 
 
 def test_float64_models_take_the_torch_code(monkeypatch):

@@ -7,7 +7,8 @@ operations (:func:`~volcap_core.splat.rasterize.quat_scale_to_covar`) and two ba
 products, each a pass over memory on the one thread reproducible training gives torch. Here each
 Gaussian is read and written once, parallel over the Gaussians on
 :func:`~volcap_core.kernel_threads.kernel_threads` threads (all cores); each Gaussian's move depends
-only on its own inputs, so the bits do not depend on the thread count. Figures:
+only on its own inputs, so the bits do not depend on the thread count (a model of fewer than
+:data:`_PARALLEL_MIN` Gaussians moves on the calling thread). Figures:
 ``docs/benchmarks.md`` ("Rasterizer", "The compiled optimiser").
 
 The same bits as torch: every float32 operation is the one torch performs, in its order, and
@@ -38,6 +39,10 @@ __all__ = ["add_position_noise", "takes"]
 _ZERO = np.float32(0.0)
 _ONE = np.float32(1.0)
 _TWO = np.float32(2.0)
+#: the fewest Gaussians moved on all the kernels' threads (fewer: on the calling thread; the bits are
+#: the same either way): 512 k, whose serial pass (~8 ms) outlasts waking a thread whose core
+#: another process holds (~6 ms measured on the shared 2-core machine); the demo's 80 000 take 1.3 ms
+_PARALLEL_MIN = 1 << 19
 #: ``quat_scale_to_covar``'s normalisation eps: a zero quaternion gives R = I
 _QUAT_EPS = np.float32(1e-8)
 
@@ -125,6 +130,8 @@ def add_position_noise(means: torch.Tensor, quats: torch.Tensor, scales: torch.T
     m = means.detach().numpy()
     q, s, e, k = (t.detach().contiguous().numpy() for t in (quats, scales, eta, gated_step))
     with kernel_threads_scope():
+        if means.shape[0] < _PARALLEL_MIN:
+            numba.set_num_threads(1)
         _add_noise(m, q, s, e, k)
     # the write went through numpy: tell autograd, as torch's in-place add_ does
     torch.autograd.graph.increment_version(means)
