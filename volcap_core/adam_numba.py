@@ -107,8 +107,8 @@ def takes(p: torch.Tensor, g: torch.Tensor, m: torch.Tensor, v: torch.Tensor,
     rate float32 on the CPU), and torch's CPU kernels fused as this module's are (capability AVX2
     or AVX512)."""
     tensors = (p, g, m, v)
-    if not all(t.device.type == "cpu" and t.dtype == torch.float32 and t.is_contiguous()
-               and t.shape == p.shape for t in tensors):
+    if not all(t.device.type == "cpu" and t.layout == torch.strided and t.dtype == torch.float32
+               and t.is_contiguous() and t.shape == p.shape for t in tensors):
         return False
     if isinstance(lr, torch.Tensor) and not (lr.device.type == "cpu" and lr.dtype == torch.float32):
         return False
@@ -141,9 +141,12 @@ def adam_update(p: torch.Tensor, g: torch.Tensor, m: torch.Tensor, v: torch.Tens
         if isinstance(lr, torch.Tensor):
             rows = p.shape[0] if p.ndim else 1
             # lr / bc1 in torch: the bits of the torch code's rate; then one row of it when it
-            # is the same for every row of p (the trainer's [1, n, 1]), else a row per row of p
-            rate = (lr / bc1).expand(p.shape).reshape(rows, -1)
-            rate = (rate[:1] if _same_rows(lr, p) else rate).contiguous().numpy()
+            # is the same for every row of p (the trainer's [1, n, 1]: sliced before the reshape,
+            # which copies), else a row per row of p
+            rate = (lr / bc1).expand(p.shape)
+            if p.ndim and _same_rows(lr, p):
+                rate = rate[:1]
+            rate = rate.reshape(rate.shape[0] if rate.ndim else 1, -1).contiguous().numpy()
             _step_tensor_rate(pa.reshape(rows, -1), ma.reshape(rows, -1), ra.reshape(rows, -1),
                               f32(eps), rate)
         else:
@@ -167,6 +170,6 @@ def _threads_for(p: torch.Tensor):
 
 
 def _same_rows(lr: torch.Tensor, p: torch.Tensor) -> bool:
-    """True when the rate ``lr`` broadcast to ``p`` is the same in every row (its first dimension
-    is missing or 1)."""
-    return p.ndim == 0 or lr.ndim < p.ndim or lr.shape[0] == 1
+    """True when the rate ``lr`` broadcast to ``p`` (at least 1-D) is the same in every row of
+    ``p`` (its first dimension is missing or 1)."""
+    return lr.ndim < p.ndim or lr.shape[0] == 1
