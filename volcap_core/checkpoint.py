@@ -150,9 +150,9 @@ def adam_step(params: Mapping[str, torch.Tensor], lrs: Mapping[str, float | torc
     rate); the enhancer passes 1e-8.
 
     float32 CPU parameters (contiguous, as their grads and moments) are updated by the compiled
-    kernels of :mod:`volcap_core.adam_numba` where numba imports: one fused pass per parameter on
-    all cores, the same bits as the torch code below, which updates every other parameter (CUDA,
-    float64, no numba)."""
+    kernels of :mod:`volcap_core.adam_numba` where numba imports: two fused passes per parameter
+    around torch's square root, the same bits as the torch code below, which updates every other
+    parameter (CUDA, float64, no numba, a CPU without AVX2)."""
     state.step += 1
     b1, b2 = betas
     bc1 = 1.0 - b1 ** state.step

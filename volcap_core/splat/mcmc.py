@@ -242,8 +242,8 @@ def inject_noise(model: Poly4DGS, lr_means: float, cfg: MCMCConfig,
         scene_scale: the scene's scale ``s`` (metres), the one ``lr_means`` was multiplied by.
 
     float32 CPU Gaussians move by the compiled kernel of :mod:`volcap_core.splat.mcmc_numba`
-    where numba imports (covariance, product and move fused in one pass on all cores, the same
-    bits as the torch code here, which moves every other model: CUDA, float64, no numba).
+    where numba imports (covariance, product and move fused in one pass, the same bits as the
+    torch code here, which moves every other model: CUDA, float64, no numba).
     """
     if cfg.noise_lr <= 0 or lr_means <= 0:
         return
