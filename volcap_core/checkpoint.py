@@ -20,6 +20,7 @@ and what was measured, is in ``docs/poly4dgs.md`` ("Reproducibility").
 
 from __future__ import annotations
 
+import functools
 import json
 from collections.abc import Mapping
 from contextlib import contextmanager
@@ -126,6 +127,17 @@ class AdamState:
         return cls(moments("m"), moments("v"), int(step))
 
 
+@functools.cache
+def _compiled_adam():
+    """:mod:`volcap_core.adam_numba`, imported on first use (importing numba costs ~0.5 s, which a
+    process that never trains on a CPU should not pay); None where numba does not import."""
+    try:
+        from volcap_core import adam_numba
+    except ImportError:
+        return None
+    return adam_numba
+
+
 @torch.no_grad()
 def adam_step(params: Mapping[str, torch.Tensor], lrs: Mapping[str, float | torch.Tensor],
               state: AdamState, *, betas: tuple[float, float] = (0.9, 0.999),
@@ -135,7 +147,12 @@ def adam_step(params: Mapping[str, torch.Tensor], lrs: Mapping[str, float | torc
     (e.g. ``[1, n, 1]``: one rate per polynomial order). Exactly ``torch.optim.Adam``'s update
     (bias-corrected, ``eps`` added to the corrected ``sqrt(v)``). ``eps = 1e-15`` as in 3DGS
     (Gaussian parameters have tiny gradients; a larger eps would silently lower their learning
-    rate); the enhancer passes 1e-8."""
+    rate); the enhancer passes 1e-8.
+
+    float32 CPU parameters (contiguous, as their grads and moments) are updated by the compiled
+    kernels of :mod:`volcap_core.adam_numba` where numba imports: two fused passes per parameter
+    around torch's square root, the same bits as the torch code below, which updates every other
+    parameter (CUDA, float64, no numba, a CPU without AVX2)."""
     state.step += 1
     b1, b2 = betas
     bc1 = 1.0 - b1 ** state.step
@@ -146,6 +163,10 @@ def adam_step(params: Mapping[str, torch.Tensor], lrs: Mapping[str, float | torc
             continue
         g = p.grad
         m, v = state.exp_avg[name], state.exp_avg_sq[name]
+        compiled = _compiled_adam() if p.device.type == "cpu" else None
+        if compiled is not None and compiled.takes(p, g, m, v, lr):
+            compiled.adam_update(p, g, m, v, lr, betas=betas, bc1=bc1, bc2=bc2, eps=eps)
+            continue
         m.mul_(b1).add_(g, alpha=1.0 - b1)
         v.mul_(b2).addcmul_(g, g, value=1.0 - b2)
         denom = (v / bc2).sqrt_().add_(eps)

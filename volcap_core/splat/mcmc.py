@@ -1,4 +1,5 @@
-"""3DGS-MCMC (Kheradmand et al. 2024) for Poly4DGS, pure torch.
+"""3DGS-MCMC (Kheradmand et al. 2024) for Poly4DGS, in torch (the position noise of float32 CPU
+models in one compiled pass: :mod:`volcap_core.splat.mcmc_numba`).
 
 What it does, with the defaults of :class:`MCMCConfig` (gsplat's ``MCMCStrategy`` values):
 
@@ -239,6 +240,10 @@ def inject_noise(model: Poly4DGS, lr_means: float, cfg: MCMCConfig,
         cfg: ``noise_lr``, ``min_opacity``.
         generator: the RNG of ``η``.
         scene_scale: the scene's scale ``s`` (metres), the one ``lr_means`` was multiplied by.
+
+    float32 CPU Gaussians move by the compiled kernel of :mod:`volcap_core.splat.mcmc_numba`
+    where numba imports (covariance, product and move fused in one pass, the same bits as the
+    torch code here, which moves every other model: CUDA, float64, no numba).
     """
     if cfg.noise_lr <= 0 or lr_means <= 0:
         return
@@ -247,13 +252,29 @@ def inject_noise(model: Poly4DGS, lr_means: float, cfg: MCMCConfig,
     p = model.params
     o0 = torch.sigmoid(p["opacities"])
     gate = torch.sigmoid(-100.0 * (o0 - cfg.min_opacity))
-    cov = quat_scale_to_covar(p["quats"], torch.exp(p["scales"].clamp(LOG_SCALE_MIN,
-                                                                       LOG_SCALE_MAX)))
+    scales = torch.exp(p["scales"].clamp(LOG_SCALE_MIN, LOG_SCALE_MAX))
     eta = torch.randn(p["means"].shape, generator=generator,
                       dtype=p["means"].dtype).to(p["means"].device)
     step = lr_means * cfg.noise_lr / (scene_scale * scene_scale)
-    noise = (cov @ (eta * (gate * step)[:, None])[..., None])[..., 0]
+    gated_step = gate * step
+    compiled = _compiled_noise() if p["means"].device.type == "cpu" else None
+    if compiled is not None and compiled.takes(p["means"], p["quats"], scales, eta, gated_step):
+        compiled.add_position_noise(p["means"], p["quats"], scales, eta, gated_step)
+        return
+    cov = quat_scale_to_covar(p["quats"], scales)
+    noise = (cov @ (eta * gated_step[:, None])[..., None])[..., 0]
     p["means"].add_(noise)
+
+
+@functools.cache
+def _compiled_noise():
+    """:mod:`volcap_core.splat.mcmc_numba`, imported on first use (importing numba costs ~0.5 s,
+    which a process that never trains on a CPU should not pay); None where numba does not import."""
+    try:
+        from volcap_core.splat import mcmc_numba
+    except ImportError:
+        return None
+    return mcmc_numba
 
 
 def mcmc_regulariser(model: Poly4DGS, cfg: MCMCConfig) -> torch.Tensor:
