@@ -54,9 +54,11 @@ _Y2 = tuple(_f(c) for c in _C2)
 _Y3 = tuple(_f(c) for c in _C3)
 _BREAK, _OFFSET, _SCALE = _f(SRGB_DECODE_BREAK), _f(_A), _f(1.0 + _A)
 _SLOPE32, _GAMMA32, _GAMMA_M1 = _f(_SLOPE), _f(_GAMMA), _f(_GAMMA - 1.0)
+_INV_SLOPE = _ONE / _SLOPE32
+_JIT = dict(cache=True, error_model="numpy")      # IEEE division (x/0 = inf), as torch: no raise
 
 
-@numba.njit(cache=True)
+@numba.njit(**_JIT)
 def _basis(x, y, z, K):
     """The K (1, 4, 9 or 16) SH basis values at unit direction ``(x, y, z)`` as a 16-tuple (the
     unused ones 0), in the PyTorch order of products."""
@@ -80,7 +82,7 @@ def _basis(x, y, z, K):
     return (_Y0, b1, b2, b3, b4, b5, b6, b7, b8, b9, b10, b11, b12, b13, b14, b15)
 
 
-@numba.njit(cache=True)
+@numba.njit(**_JIT)
 def _direction(means, i, centre):
     """The unit direction centre -> mean ``i`` (eps 1e-12), and the norm's divisor."""
     vx, vy, vz = means[i, 0] - centre[0], means[i, 1] - centre[1], means[i, 2] - centre[2]
@@ -89,7 +91,7 @@ def _direction(means, i, centre):
     return vx / n, vy / n, vz / n, norm, n
 
 
-@numba.njit(cache=True)
+@numba.njit(**_JIT)
 def _raw_colour(sh, i, c, B):
     """``Σ_k B_k sh[i, k, c] + 0.5``, the sum in order of k."""
     acc = _ZERO
@@ -98,16 +100,17 @@ def _raw_colour(sh, i, c, B):
     return acc + _HALF
 
 
-@numba.njit(cache=True)
+@numba.njit(**_JIT)
 def _row_dot(sh, i, k, g0, g1, g2):
     """``⟨sh[i, k], (g0, g1, g2)⟩``."""
     return sh[i, k, 0] * g0 + sh[i, k, 1] * g1 + sh[i, k, 2] * g2
 
 
-@numba.njit(cache=True, parallel=True)
-def _forward(ids, sh, means, centre, decode, out):
+@numba.njit(parallel=True, **_JIT)
+def _forward(ids, sh, means, centre, decode, out, d_out):
     """``out [S, 3]``: the colours of the Gaussians ``ids [S]`` of ``sh [M, K, 3]`` and
-    ``means [M, 3]``."""
+    ``means [M, 3]``; ``d_out [S, 3]`` the decode's derivative at each (1 without decode), so the
+    backward evaluates no power."""
     K = sh.shape[1]
     for s in numba.prange(ids.shape[0]):
         i = ids[s]
@@ -117,18 +120,23 @@ def _forward(ids, sh, means, centre, decode, out):
         B = _basis(x, y, z, K)
         for c in range(3):
             v = _raw_colour(sh, i, c, B)
+            d = _ONE
             if decode:
                 if v < _BREAK:
-                    v = v / _SLOPE32
+                    v, d = v / _SLOPE32, _INV_SLOPE
                 else:
-                    v = np.float32(((max(v, _BREAK) + _OFFSET) / _SCALE) ** _GAMMA32)
+                    b = (max(v, _BREAK) + _OFFSET) / _SCALE
+                    v = np.float32(b ** _GAMMA32)
+                    d = _GAMMA32 * np.float32(b ** _GAMMA_M1) / _SCALE
             out[s, c] = v
+            d_out[s, c] = d
 
 
-@numba.njit(cache=True, parallel=True)
-def _backward(ids, sh, means, centre, decode, g_out, g_sh, g_means):
+@numba.njit(parallel=True, **_JIT)
+def _backward(ids, sh, means, centre, d_out, g_out, g_sh, g_means):
     """Writes rows ``ids[s]`` of ``g_sh [M, K, 3]`` and ``g_means [M, 3]`` (zeros in) from the
-    colours' gradient ``g_out [S, 3]``. Recomputes the forward."""
+    colours' gradient ``g_out [S, 3]`` and the decode's derivative ``d_out [S, 3]``. Recomputes
+    the basis."""
     K = sh.shape[1]
     for s in numba.prange(ids.shape[0]):
         i = ids[s]
@@ -137,22 +145,7 @@ def _backward(ids, sh, means, centre, decode, g_out, g_sh, g_means):
         if K > 1:
             x, y, z, norm, n = _direction(means, i, centre)
         B = _basis(x, y, z, K)
-        g0, g1, g2 = g_out[s, 0], g_out[s, 1], g_out[s, 2]
-        if decode:
-            v0, v1, v2 = _raw_colour(sh, i, 0, B), _raw_colour(sh, i, 1, B), _raw_colour(sh, i, 2,
-                                                                                         B)
-            if v0 < _BREAK:
-                g0 = g0 / _SLOPE32
-            else:
-                g0 = g0 * _GAMMA32 * np.float32(((v0 + _OFFSET) / _SCALE) ** _GAMMA_M1) / _SCALE
-            if v1 < _BREAK:
-                g1 = g1 / _SLOPE32
-            else:
-                g1 = g1 * _GAMMA32 * np.float32(((v1 + _OFFSET) / _SCALE) ** _GAMMA_M1) / _SCALE
-            if v2 < _BREAK:
-                g2 = g2 / _SLOPE32
-            else:
-                g2 = g2 * _GAMMA32 * np.float32(((v2 + _OFFSET) / _SCALE) ** _GAMMA_M1) / _SCALE
+        g0, g1, g2 = g_out[s, 0] * d_out[s, 0], g_out[s, 1] * d_out[s, 1], g_out[s, 2] * d_out[s, 2]
         for k in range(K):
             g_sh[i, k, 0] = B[k] * g0
             g_sh[i, k, 1] = B[k] * g1
@@ -205,19 +198,20 @@ class _SurvivorColours(torch.autograd.Function):
     def forward(ctx, sh, means, ids, centre: np.ndarray, decode: bool):
         a_sh, a_means = (t.detach().contiguous().numpy() for t in (sh, means))
         a_ids = ids.detach().contiguous().numpy()
-        out = np.empty((a_ids.shape[0], 3), np.float32)
+        out, d_out = np.empty((a_ids.shape[0], 3), np.float32), np.empty((a_ids.shape[0], 3),
+                                                                         np.float32)
         with kernel_threads_scope():
-            _forward(a_ids, a_sh, a_means, centre, decode, out)
-        ctx.arrays = (a_ids, a_sh, a_means, centre, decode)
+            _forward(a_ids, a_sh, a_means, centre, decode, out, d_out)
+        ctx.arrays = (a_ids, a_sh, a_means, centre, d_out)
         return torch.from_numpy(out)
 
     @staticmethod
     def backward(ctx, g_out):
-        a_ids, a_sh, a_means, centre, decode = ctx.arrays
+        a_ids, a_sh, a_means, centre, d_out = ctx.arrays
         g = g_out.detach().to(torch.float32).contiguous().numpy()
         g_sh, g_means = np.zeros_like(a_sh), np.zeros_like(a_means)
         with kernel_threads_scope():
-            _backward(a_ids, a_sh, a_means, centre, decode, g, g_sh, g_means)
+            _backward(a_ids, a_sh, a_means, centre, d_out, g, g_sh, g_means)
         directional = a_sh.shape[1] > 1                     # degree 0 does not see the means
         return (torch.from_numpy(g_sh) if ctx.needs_input_grad[0] else None,
                 torch.from_numpy(g_means) if ctx.needs_input_grad[1] and directional else None,

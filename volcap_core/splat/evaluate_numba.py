@@ -68,7 +68,10 @@ _QUAT_EPS = np.float32(1e-8)
 _DT_FLOOR = np.float32(1e-30)
 
 
-@numba.njit(cache=True)
+_JIT = dict(cache=True, error_model="numpy")      # IEEE division (x/0 = inf), as torch: no raise
+
+
+@numba.njit(**_JIT)
 def _dt(t, t0, temporal, i, max_abs_dt):
     """``clamp(t - t0[i], ±max_abs_dt)`` (0 without ``t0``) and whether the clamp passed it."""
     if not temporal:
@@ -77,57 +80,57 @@ def _dt(t, t0, temporal, i, max_abs_dt):
     return min(max(raw, -max_abs_dt), max_abs_dt), (raw >= -max_abs_dt and raw <= max_abs_dt)
 
 
-@numba.njit(cache=True)
-def _log_sigmoid(x):
-    """``logsigmoid(x) = min(x, 0) - log1p(exp(-|x|))``, torch's CPU formula."""
-    return min(x, _ZERO) - np.float32(math.log1p(np.float32(math.exp(-abs(x)))))
-
-
-@numba.njit(cache=True)
-def _opacity(logit, log_lambdas, i, dt, log_term_cap):
-    """The opacity at ``dt`` of Gaussian ``i`` (``opacity_envelope`` of ``logsigmoid(logit)``)."""
-    a = _log_sigmoid(logit)
-    n_o = log_lambdas.shape[1]
-    if n_o:
-        log_abs_dt = np.float32(math.log(max(abs(dt), _DT_FLOOR)))
-        s = _ZERO
-        for j in range(n_o):
-            s += np.float32(math.exp(min(log_lambdas[i, j] + np.float32(2 * (j + 1)) * log_abs_dt,
-                                         log_term_cap)))
-        a = a - _HALF * s
-    return np.float32(math.exp(a))
-
-
-@numba.njit(cache=True)
+@numba.njit(**_JIT)
 def _poly(base, coeffs, i, c, dt):
     """``base[i, c] + Σ_j coeffs[i, j, c] dt^(j+1)``, the powers by repeated product (torch's
     cumprod) and the sum in order of degree."""
+    if coeffs.shape[1] == 0:
+        return base[i, c]
     acc = _ZERO
     pw = _ONE
     for j in range(coeffs.shape[1]):
         pw = pw * dt
         acc += coeffs[i, j, c] * pw
-    return base[i, c] + acc if coeffs.shape[1] else base[i, c]
+    return base[i, c] + acc
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(parallel=True, **_JIT)
 def _live(t, t0, temporal, logits, log_lambdas, max_abs_dt, log_term_cap, min_opacity, opac,
-          keep):
+          keep, d_logit, d_terms):
     """Every Gaussian's opacity at ``t`` (``opac [N]``) and whether it is kept (``keep [N]``:
-    ``opac >= min_opacity``, False for NaN)."""
+    ``opac >= min_opacity``, False for NaN); for the backward, ``d_logit [N]`` = ∂logsigmoid/∂x
+    and ``d_terms [N, n_o]`` = each envelope term ``exp(l_j)`` where ``l_j <= cap`` (else 0: the
+    cap passes no gradient), so the backward evaluates no transcendental function."""
+    n_o = log_lambdas.shape[1]
     for i in numba.prange(logits.shape[0]):
         dt, _ = _dt(t, t0, temporal, i, max_abs_dt)
-        o = _opacity(logits[i], log_lambdas, i, dt, log_term_cap)
+        x = logits[i]
+        # logsigmoid(x) = min(x, 0) - log1p(exp(-|x|)), torch's CPU formula, and its derivative
+        z = np.float32(math.exp(-abs(x)))
+        a = min(x, _ZERO) - np.float32(math.log1p(z))
+        r = z / (_ONE + z)
+        d_logit[i] = _ONE - r if x < _ZERO else r
+        if n_o:
+            log_abs_dt = np.float32(math.log(max(abs(dt), _DT_FLOOR)))
+            acc = _ZERO
+            for j in range(n_o):
+                raw = log_lambdas[i, j] + np.float32(2 * (j + 1)) * log_abs_dt
+                e = np.float32(math.exp(min(raw, log_term_cap)))
+                acc += e
+                d_terms[i, j] = e if raw <= log_term_cap else _ZERO
+            a = a - _HALF * acc
+        o = np.float32(math.exp(a))
         opac[i] = o
         keep[i] = o >= min_opacity
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(parallel=True, **_JIT)
 def _slice(ids, t, t0, temporal, max_abs_dt, log_scale_min, log_scale_max, means, means_t, quats,
            quats_t, scales, scales_t, opac, sh0, shN, o_means, o_quats, o_scales, o_opac, o_sh):
     """The live Gaussians ``ids [M]`` at ``t``: ``o_means [M, 3]``, ``o_quats [M, 4]`` (unit),
-    ``o_scales [M, 3]`` (metres), ``o_opac [M]`` (from ``opac [N]``), ``o_sh [M, K, 3]``."""
-    K1 = shN.shape[1]
+    ``o_scales [M, 3]`` (metres), ``o_opac [M]`` (from ``opac [N]``), ``o_sh [M, 3K]`` (the rows
+    of ``sh0 [N, 3]`` then ``shN [N, 3(K-1)]``, flattened)."""
+    L = shN.shape[1]
     for k in numba.prange(ids.shape[0]):
         i = ids[k]
         dt, _ = _dt(t, t0, temporal, i, max_abs_dt)
@@ -142,14 +145,12 @@ def _slice(ids, t, t0, temporal, max_abs_dt, log_scale_min, log_scale_max, means
         n = max(np.float32(math.sqrt(q0 * q0 + q1 * q1 + q2 * q2 + q3 * q3)), _QUAT_EPS)
         o_quats[k, 0], o_quats[k, 1], o_quats[k, 2], o_quats[k, 3] = q0 / n, q1 / n, q2 / n, q3 / n
         o_opac[k] = opac[i]
-        for c in range(3):
-            o_sh[k, 0, c] = sh0[i, 0, c]
-        for j in range(K1):
-            for c in range(3):
-                o_sh[k, 1 + j, c] = shN[i, j, c]
+        o_sh[k, 0], o_sh[k, 1], o_sh[k, 2] = sh0[i, 0], sh0[i, 1], sh0[i, 2]
+        for j in range(L):
+            o_sh[k, 3 + j] = shN[i, j]
 
 
-@numba.njit(cache=True)
+@numba.njit(**_JIT)
 def _poly_backward(g, coeffs, i, c, dt, g_base, g_coeffs):
     """Writes ``∂base[i, c] = g`` and ``∂coeffs[i, j, c] = g dt^(j+1)``; returns ``∂dt``."""
     g_base[i, c] = g
@@ -162,17 +163,18 @@ def _poly_backward(g, coeffs, i, c, dt, g_base, g_coeffs):
     return g_dt
 
 
-@numba.njit(cache=True, parallel=True)
-def _backward(ids, t, t0, temporal, max_abs_dt, log_term_cap, log_scale_min, log_scale_max,
-              quats, quats_t, scales, scales_t, logits, log_lambdas, means_t,
+@numba.njit(parallel=True, **_JIT)
+def _backward(ids, t, t0, temporal, max_abs_dt, log_scale_min, log_scale_max, quats, quats_t,
+              scales, scales_t, means_t, d_logit, d_terms, o_scales, o_opac,
               g_o_means, g_o_quats, g_o_scales, g_o_opac, g_o_sh,
               g_means, g_means_t, g_quats, g_quats_t, g_scales, g_scales_t, g_logits,
               g_log_lambdas, g_t0, g_sh0, g_shN):
     """Gradients of the live Gaussians ``ids [M]`` (their output gradients ``g_o_* [M, ...]``) to
     their parameters, written to rows ``ids[k]`` of the zero-filled full-size ``g_*`` (dropped
-    Gaussians keep zero). Recomputes the forward."""
-    K1 = g_shN.shape[1]
-    n_o = log_lambdas.shape[1]
+    Gaussians keep zero). Recomputes the polynomials; takes the transcendental factors from the
+    forward (``d_logit``, ``d_terms``, the outputs ``o_scales``, ``o_opac``)."""
+    L = g_shN.shape[1]
+    n_o = d_terms.shape[1]
     for k in numba.prange(ids.shape[0]):
         i = ids[k]
         dt, inside = _dt(t, t0, temporal, i, max_abs_dt)
@@ -182,7 +184,7 @@ def _backward(ids, t, t0, temporal, max_abs_dt, log_term_cap, log_scale_min, log
             v = _poly(scales, scales_t, i, c, dt)
             g_v = _ZERO
             if v >= log_scale_min and v <= log_scale_max:
-                g_v = g_o_scales[k, c] * np.float32(math.exp(v))
+                g_v = g_o_scales[k, c] * o_scales[k, c]
             g_dt += _poly_backward(g_v, scales_t, i, c, dt, g_scales, g_scales_t)
 
         # ---- quaternion normalisation
@@ -203,37 +205,24 @@ def _backward(ids, t, t0, temporal, max_abs_dt, log_term_cap, log_scale_min, log
         g_dt += _poly_backward(gq3 / n, quats_t, i, 3, dt, g_quats, g_quats_t)
 
         # ---- opacity: o = exp(a), a = logsigmoid(x) - ½ Σ exp(min(l_j, cap))
-        x = logits[i]
-        o = _opacity(x, log_lambdas, i, dt, log_term_cap)
-        g_a = g_o_opac[k] * o
-        z = np.float32(math.exp(-abs(x)))
-        if x < _ZERO:
-            g_logits[i] = g_a * (_ONE - z / (_ONE + z))
-        else:
-            g_logits[i] = g_a * (z / (_ONE + z))
+        g_a = g_o_opac[k] * o_opac[k]
+        g_logits[i] = g_a * d_logit[i]
         if n_o:
-            abs_dt = abs(dt)
-            log_abs_dt = np.float32(math.log(max(abs_dt, _DT_FLOOR)))
             g_log_abs_dt = _ZERO
             for j in range(n_o):
-                two_i = np.float32(2 * (j + 1))
-                raw = log_lambdas[i, j] + two_i * log_abs_dt
-                g_l = _ZERO
-                if raw <= log_term_cap:
-                    g_l = -_HALF * g_a * np.float32(math.exp(raw))
+                g_l = -_HALF * g_a * d_terms[i, j]
                 g_log_lambdas[i, j] = g_l
-                g_log_abs_dt += two_i * g_l
+                g_log_abs_dt += np.float32(2 * (j + 1)) * g_l
+            abs_dt = abs(dt)
             if abs_dt >= _DT_FLOOR:
                 g_abs = g_log_abs_dt / abs_dt
                 g_dt += g_abs if dt > _ZERO else -g_abs
 
         if temporal:
             g_t0[i] = -g_dt if inside else _ZERO
-        for c in range(3):
-            g_sh0[i, 0, c] = g_o_sh[k, 0, c]
-        for j in range(K1):
-            for c in range(3):
-                g_shN[i, j, c] = g_o_sh[k, 1 + j, c]
+        g_sh0[i, 0], g_sh0[i, 1], g_sh0[i, 2] = g_o_sh[k, 0], g_o_sh[k, 1], g_o_sh[k, 2]
+        for j in range(L):
+            g_shN[i, j] = g_o_sh[k, 3 + j]
 
 
 def _placeholder(n: int, name: str) -> np.ndarray:
@@ -255,44 +244,48 @@ class _SliceNumba(torch.autograd.Function):
         a = [_placeholder(n, name) if p is None else p.detach().contiguous().numpy()
              for name, p in zip(PARAM_NAMES, params)]
         means, means_t, quats, quats_t, scales, scales_t, logits, log_lambdas, t0, sh0, shN = a
+        sh0, shN = sh0.reshape(n, 3), shN.reshape(n, 3 * shN.shape[1])   # flat rows
         temporal = params[PARAM_NAMES.index("t0")] is not None
         t32 = np.float32(t)
         max_abs_dt, log_term_cap, log_scale_min, log_scale_max = (np.float32(g) for g in guards)
-        opac = np.empty(n, np.float32)
-        keep = np.empty(n, np.bool_)
+        opac, keep, d_logit = np.empty(n, np.float32), np.empty(n, np.bool_), np.empty(n, np.float32)
+        d_terms = np.empty((n, log_lambdas.shape[1]), np.float32)
         with kernel_threads_scope():
             _live(t32, t0, temporal, logits, log_lambdas, max_abs_dt, log_term_cap,
-                  np.float32(min_opacity), opac, keep)
+                  np.float32(min_opacity), opac, keep, d_logit, d_terms)
             ids = np.flatnonzero(keep).astype(np.int64)
-            M, K = ids.shape[0], 1 + shN.shape[1]
+            M, F = ids.shape[0], 3 + shN.shape[1]
             out = (np.empty((M, 3), np.float32), np.empty((M, 4), np.float32),
                    np.empty((M, 3), np.float32), np.empty(M, np.float32),
-                   np.empty((M, K, 3), np.float32))
+                   np.empty((M, F), np.float32))
             _slice(ids, t32, t0, temporal, max_abs_dt, log_scale_min, log_scale_max, means,
                    means_t, quats, quats_t, scales, scales_t, opac, sh0, shN, *out)
-        ctx.arrays = (ids, t32, temporal, max_abs_dt, log_term_cap, log_scale_min, log_scale_max,
-                      a)
+        ctx.arrays = (ids, t32, temporal, max_abs_dt, log_scale_min, log_scale_max, a, d_logit,
+                      d_terms, out[2], out[3])
         ids_t = torch.from_numpy(ids)
         ctx.mark_non_differentiable(ids_t)
-        return (*(torch.from_numpy(o) for o in out), ids_t)
+        o_means, o_quats, o_scales, o_opac, o_sh = (torch.from_numpy(o) for o in out)
+        return o_means, o_quats, o_scales, o_opac, o_sh.view(M, F // 3, 3), ids_t
 
     @staticmethod
     def backward(ctx, *grads):
-        ids, t32, temporal, max_abs_dt, log_term_cap, log_scale_min, log_scale_max, a = ctx.arrays
+        (ids, t32, temporal, max_abs_dt, log_scale_min, log_scale_max, a, d_logit, d_terms,
+         o_scales, o_opac) = ctx.arrays
         means, means_t, quats, quats_t, scales, scales_t, logits, log_lambdas, t0, sh0, shN = a
-        M, K = ids.shape[0], 1 + shN.shape[1]
+        n, M, F = means.shape[0], ids.shape[0], 3 + 3 * shN.shape[1]
 
         def grad(g, shape):                                 # None (output unused) is zero
             if g is None:
                 return np.zeros(shape, np.float32)
-            return g.detach().to(torch.float32).contiguous().numpy()
+            return g.detach().to(torch.float32).contiguous().numpy().reshape(shape)
 
-        g_out = [grad(g, s) for g, s in zip(grads[:5], ((M, 3), (M, 4), (M, 3), (M,), (M, K, 3)))]
+        g_out = [grad(g, s) for g, s in zip(grads[:5], ((M, 3), (M, 4), (M, 3), (M,), (M, F)))]
         g_params = [np.zeros_like(p) for p in a]
         with kernel_threads_scope():
-            _backward(ids, t32, t0, temporal, max_abs_dt, log_term_cap, log_scale_min,
-                      log_scale_max, quats, quats_t, scales, scales_t, logits, log_lambdas,
-                      means_t, *g_out, *g_params)
+            _backward(ids, t32, t0, temporal, max_abs_dt, log_scale_min, log_scale_max, quats,
+                      quats_t, scales, scales_t, means_t, d_logit, d_terms, o_scales, o_opac,
+                      *g_out, *g_params[:9], g_params[9].reshape(n, 3),
+                      g_params[10].reshape(n, 3 * shN.shape[1]))
         needs = ctx.needs_input_grad[3:]
         return (None, None, None, *(torch.from_numpy(g) if need else None
                                     for g, need in zip(g_params, needs)))

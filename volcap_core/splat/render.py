@@ -25,8 +25,10 @@ Back-ends:
   depth 0), still differentiable.
 * ``"numba"`` — the same rules and outputs as torch, compiled for the CPU: the projection and
   culling by the per-Gaussian kernels of :mod:`volcap_core.splat.project_numba` (forward and
-  analytic backward), the same binning, composited by the per-pixel kernels of
-  :mod:`volcap_core.splat.composite_numba`; SH colours and the binning stay PyTorch. Faster on a
+  analytic backward), the survivors' colours by the per-Gaussian kernels of
+  :mod:`volcap_core.splat.colour_numba` (SH and decode, analytic backward, the same non-finite
+  colour rule), the same binning, composited by the per-pixel kernels of
+  :mod:`volcap_core.splat.composite_numba`; the binning stays PyTorch. Faster on a
   CPU (``docs/benchmarks.md``, "Rasterizer"); float32 CPU tensors only.
 * ``"auto"`` (default) — gsplat when the tensors are on CUDA and gsplat is usable; numba for
   float32 CPU tensors when numba imports; else torch (float64 renders, a GPU without gsplat, a CPU
