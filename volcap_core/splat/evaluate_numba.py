@@ -1,5 +1,5 @@
-"""Compiled CPU slicing of a Poly4DGS model at time t (numba): :func:`~volcap_core.splat.model.evaluate`'s
-forward and backward in two loops over the Gaussians.
+"""Compiled CPU slicing of a Poly4DGS model at time t (numba): the forward and backward of
+:func:`~volcap_core.splat.model.evaluate` in a few loops over the Gaussians.
 
 :func:`slice_poly4dgs_numba` takes a model's parameter tensors (``Poly4DGS.params``, the names and
 shapes of :mod:`volcap_core.splat.model`'s module doc) and gives what ``evaluate`` gives, under the
@@ -17,7 +17,9 @@ scatters it all back (``index_put``): the largest items of a CPU training step's
 compiled projection, on the one thread a reproducible training gives torch. Here one parallel loop
 computes every Gaussian's opacity and the keep mask, a second gathers and evaluates the live ones,
 and the backward is one loop writing each live Gaussian's rows of the parameters' full-size
-gradients. Figures: ``docs/benchmarks.md``, "Rasterizer".
+gradients; it recomputes the polynomials and takes the exponentials' factors from the forward
+(the transcendental functions, one call each per Gaussian, are most of the kernels' time).
+Figures: ``docs/benchmarks.md``, "Rasterizer".
 
 Gradients, from the outputs ``(means, quats, scales, opacities, sh)`` of each live Gaussian back to
 its parameters (the chain of the forward in reverse, as autograd differentiates the PyTorch ops,
@@ -53,10 +55,10 @@ import torch
 
 from volcap_core.kernel_threads import kernel_threads_scope
 
-__all__ = ["PARAM_NAMES", "slice_poly4dgs_numba"]
+__all__ = ["slice_poly4dgs_numba"]
 
 #: The parameter tensors the kernels take, in their argument order (absent ones are empty).
-PARAM_NAMES = ("means", "means_t", "quats", "quats_t", "scales", "scales_t", "opacities",
+_PARAM_NAMES = ("means", "means_t", "quats", "quats_t", "scales", "scales_t", "opacities",
                "log_lambdas", "t0", "sh0", "shN")
 
 # float32 constants (numba freezes globals with their types: a float64 literal would promote the
@@ -234,21 +236,22 @@ def _placeholder(n: int, name: str) -> np.ndarray:
 
 class _SliceNumba(torch.autograd.Function):
     """The compiled slice as an autograd node: ``(means [M, 3], quats [M, 4], scales [M, 3],
-    opacities [M], sh [M, K, 3], ids [M])`` from the parameter tensors in :data:`PARAM_NAMES`
+    opacities [M], sh [M, K, 3], ids [M])`` from the parameter tensors in ``_PARAM_NAMES``
     order (absent ones as ``None``); ids not differentiable. Keeps numpy views of the parameters
-    (the backward recomputes the forward per live Gaussian)."""
+    and the forward's factors (the backward recomputes the polynomials per live Gaussian)."""
 
     @staticmethod
     def forward(ctx, t: float, min_opacity: float, guards: tuple, *params):
         n = params[0].shape[0]
         a = [_placeholder(n, name) if p is None else p.detach().contiguous().numpy()
-             for name, p in zip(PARAM_NAMES, params)]
+             for name, p in zip(_PARAM_NAMES, params)]
         means, means_t, quats, quats_t, scales, scales_t, logits, log_lambdas, t0, sh0, shN = a
         sh0, shN = sh0.reshape(n, 3), shN.reshape(n, 3 * shN.shape[1])   # flat rows
-        temporal = params[PARAM_NAMES.index("t0")] is not None
+        temporal = params[_PARAM_NAMES.index("t0")] is not None
         t32 = np.float32(t)
         max_abs_dt, log_term_cap, log_scale_min, log_scale_max = (np.float32(g) for g in guards)
-        opac, keep, d_logit = np.empty(n, np.float32), np.empty(n, np.bool_), np.empty(n, np.float32)
+        opac, keep = np.empty(n, np.float32), np.empty(n, np.bool_)
+        d_logit = np.empty(n, np.float32)
         d_terms = np.empty((n, log_lambdas.shape[1]), np.float32)
         with kernel_threads_scope():
             _live(t32, t0, temporal, logits, log_lambdas, max_abs_dt, log_term_cap,
@@ -315,4 +318,4 @@ def slice_poly4dgs_numba(params: dict[str, torch.Tensor], t: float, min_opacity:
             raise ValueError(f"the numba slice takes float32 CPU tensors: {name} is {p.dtype} on "
                              f"{p.device}")
     guards = (max_abs_dt, log_term_cap, log_scale_min, log_scale_max)
-    return _SliceNumba.apply(t, min_opacity, guards, *(params.get(k) for k in PARAM_NAMES))
+    return _SliceNumba.apply(t, min_opacity, guards, *(params.get(k) for k in _PARAM_NAMES))
