@@ -191,8 +191,8 @@ def _backward(ids, sh, means, centre, d_out, g_out, g_sh, g_means):
 
 class _SurvivorColours(torch.autograd.Function):
     """The compiled colours as an autograd node: ``[S, 3]`` from ``sh [M, K, 3]`` and
-    ``means [M, 3]`` at ``ids [S]``; keeps numpy views of the inputs (the backward recomputes the
-    forward per survivor)."""
+    ``means [M, 3]`` at ``ids [S]``; keeps numpy views of the inputs and the decode's derivative
+    (the backward recomputes the basis per survivor)."""
 
     @staticmethod
     def forward(ctx, sh, means, ids, centre: np.ndarray, decode: bool):
