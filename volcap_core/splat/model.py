@@ -41,6 +41,7 @@ floor on the norm.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, fields
 from typing import Literal
@@ -290,11 +291,27 @@ def opacity_envelope(log_o0: torch.Tensor, log_lambdas: torch.Tensor | None,
     return (log_o0 - 0.5 * log_terms.exp().sum(dim=1)).exp()
 
 
+@functools.cache
+def _numba_slicer():
+    """:func:`~volcap_core.splat.evaluate_numba.slice_poly4dgs_numba`, imported on first use
+    (numba's import costs ~0.5 s; a GPU machine has no numba), or None where numba does not
+    import."""
+    try:
+        from volcap_core.splat.evaluate_numba import slice_poly4dgs_numba
+    except ImportError:
+        return None
+    return slice_poly4dgs_numba
+
+
 def evaluate(model: Poly4DGS, t: float, *, min_opacity: float = ALPHA_MIN) -> Gaussians3D:
     """Slice the model at time ``t`` (seconds): the 3D Gaussians a rasterizer takes.
 
     Gaussians whose opacity at ``t`` is below ``min_opacity`` are dropped (they would not produce
     a single kept fragment), and their polynomials are not evaluated at all.
+
+    float32 CPU parameters are sliced by the compiled kernels of
+    :mod:`volcap_core.splat.evaluate_numba` when numba imports (the same values within float32
+    rounding, an analytic backward); CUDA, float64 or no numba: the PyTorch ops below.
 
     Args:
         model: the model; gradients flow to its parameters.
@@ -304,6 +321,14 @@ def evaluate(model: Poly4DGS, t: float, *, min_opacity: float = ALPHA_MIN) -> Ga
         :class:`Gaussians3D` with M <= N Gaussians; ``ids`` maps them back into the model.
     """
     p, c = model.params, model.config
+    slicer = _numba_slicer() if all(v.dtype == torch.float32 and v.device.type == "cpu"
+                                    for v in p.values()) else None
+    if slicer is not None:
+        means, quats, scales, opacities, sh, ids = slicer(
+            p, t, min_opacity, max_abs_dt=MAX_ABS_DT, log_term_cap=_LOG_TERM_CAP,
+            log_scale_min=LOG_SCALE_MIN, log_scale_max=LOG_SCALE_MAX)
+        return Gaussians3D(means=means, quats=quats, scales=scales, opacities=opacities, sh=sh,
+                           ids=ids, colour_space=c.colour_space)
     n = len(model)
     dev = p["means"].device
     if c.temporal:

@@ -25,8 +25,10 @@ Back-ends:
   depth 0), still differentiable.
 * ``"numba"`` — the same rules and outputs as torch, compiled for the CPU: the projection and
   culling by the per-Gaussian kernels of :mod:`volcap_core.splat.project_numba` (forward and
-  analytic backward), the same binning, composited by the per-pixel kernels of
-  :mod:`volcap_core.splat.composite_numba`; SH colours and the binning stay PyTorch. Faster on a
+  analytic backward), the survivors' colours by the per-Gaussian kernels of
+  :mod:`volcap_core.splat.colour_numba` (SH and decode, analytic backward, the same non-finite
+  colour rule), the same binning, composited by the per-pixel kernels of
+  :mod:`volcap_core.splat.composite_numba`; the binning stays PyTorch. Faster on a
   CPU (``docs/benchmarks.md``, "Rasterizer"); float32 CPU tensors only.
 * ``"auto"`` (default) — gsplat when the tensors are on CUDA and gsplat is usable; numba for
   float32 CPU tensors when numba imports; else torch (float64 renders, a GPU without gsplat, a CPU
@@ -309,7 +311,7 @@ def render(gaussians: Gaussians3D, camera: Camera, *, backend: Backend = "auto",
         rgb, alpha, depth = _render_gsplat(gaussians, cam)
     else:
         rgb, alpha, depth = _render_torch(gaussians, cam, tile_size, stats, _compositor(name),
-                                          _projector(name))
+                                          _projector(name), _colourer(name))
     if background is not None:
         rgb = rgb + (1.0 - alpha) * background.to(rgb)
     return {"rgb": rgb, "alpha": alpha, "depth": depth}
@@ -325,14 +327,36 @@ def _projector(name: BackendName):
     return _numba_projector() if name == "numba" else project_gaussians
 
 
+def _survivor_colours(g: Gaussians3D, cam: Camera, ids: torch.Tensor) -> torch.Tensor:
+    """Back-end ``"torch"``'s colours of the Gaussians ``ids`` of ``g``: :func:`gaussian_colours`
+    of their rows."""
+    return gaussian_colours(g.select(ids), cam)
+
+
+def _numba_survivor_colours(g: Gaussians3D, cam: Camera, ids: torch.Tensor) -> torch.Tensor:
+    """Back-end ``"numba"``'s colours of the Gaussians ``ids`` of ``g``
+    (:func:`~volcap_core.splat.colour_numba.survivor_colours_numba`, imported on first use as
+    :func:`_numba_projector`): :func:`gaussian_colours`'s values, without gathering the rows."""
+    from volcap_core.splat.colour_numba import survivor_colours_numba
+    return survivor_colours_numba(g.sh, g.means, ids, cam.centre,
+                                  linearise=g.colour_space != "linear")
+
+
+def _colourer(name: BackendName):
+    """The survivors' colours of back-end ``"torch"`` or ``"numba"`` (same signature and
+    outputs)."""
+    return _numba_survivor_colours if name == "numba" else _survivor_colours
+
+
 def _render_torch(g: Gaussians3D, cam: Camera, tile_size: int, stats: TileStats | None,
-                  composite=rasterize_tiles, project=project_gaussians):
-    """``project`` (:func:`_projector`), colours in PyTorch, then ``composite``
-    (:func:`_compositor`)."""
+                  composite=rasterize_tiles, project=project_gaussians,
+                  colour=_survivor_colours):
+    """``project`` (:func:`_projector`), the survivors' ``colour`` (:func:`_colourer`), then
+    ``composite`` (:func:`_compositor`)."""
     # geometry: the projection culls (without gradient) anything non-finite or degenerate
     proj = project(g.means, g.quats, g.scales, g.opacities, cam, eps2d=EPS2D, antialiased=True)
     # colours only for the survivors: SH of culled Gaussians is never needed
-    colours = gaussian_colours(g.select(proj.ids), cam)
+    colours = colour(g, cam, proj.ids)
     finite = torch.isfinite(colours.detach()).all(-1)
     if not bool(finite.all()):
         # a non-finite colour (NaN/inf SH, or a decode overflow) is culled like a culled
@@ -342,7 +366,7 @@ def _render_torch(g: Gaussians3D, cam: Camera, tile_size: int, stats: TileStats 
         proj = Projected(ids=proj.ids[keep], means2d=proj.means2d[keep],
                          conics=proj.conics[keep], opacities=proj.opacities[keep],
                          depths=proj.depths[keep], radii=proj.radii[keep])
-        colours = gaussian_colours(g.select(proj.ids), cam)
+        colours = colour(g, cam, proj.ids)
     values = torch.cat([colours, proj.depths[:, None]], dim=-1)
     acc, trans = composite(proj.means2d, proj.conics, proj.opacities, proj.depths, proj.radii,
                            values, cam.width, cam.height, tile_size=tile_size, stats=stats)
