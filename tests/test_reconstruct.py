@@ -223,11 +223,17 @@ def test_demo_and_test_presets_train_as_they_were_measured():
     from volcap_core.splat.train import TrainConfig
 
     demo = PRESETS["demo"].train_config(held_out=["S004"], max_gaussians=80_000)
-    assert demo == TrainConfig(steps=820, grid_size=8, eval_every=164, eval_max_views=4, checkpoint_every=164,
-                               mcmc=MCMCConfig(refine_start=149, refine_every=149, refine_stop=745, cap_max=80_000),
+    assert demo == TrainConfig(steps=1640, grid_size=8, eval_every=328, eval_max_views=4, checkpoint_every=328,
+                               mcmc=MCMCConfig(refine_start=298, refine_every=298, refine_stop=1490, cap_max=80_000),
                                init_max_points=80_000, held_out_cameras=["S004"])
-    # the demo's figures before 2026-11-28's 820 steps were measured at 550: `--steps 550` gives back
-    # that schedule exactly, and the 1300-step row's is the 550-step one stretched by 1300 / 550
+    # the demo's figures of 2026-11-28 before its 1640 steps were measured at 820: `--steps 820`
+    # gives back that schedule exactly
+    assert PRESETS["demo"].with_steps(820).train_config(held_out=["S004"], max_gaussians=80_000) == \
+        demo.model_copy(update={"steps": 820, "eval_every": 164, "checkpoint_every": 164,
+                                "mcmc": MCMCConfig(refine_start=149, refine_every=149, refine_stop=745,
+                                                   cap_max=80_000)})
+    # before that date at 550: `--steps 550` gives back that schedule exactly, and the 1300-step
+    # row's is the 550-step one stretched by 1300 / 550
     before = PRESETS["demo"].with_steps(550).train_config(held_out=["S004"], max_gaussians=80_000)
     assert before == TrainConfig(steps=550, grid_size=8, eval_every=110, eval_max_views=4, checkpoint_every=110,
                                  mcmc=MCMCConfig(refine_start=100, refine_every=100, refine_stop=500, cap_max=80_000),
@@ -296,8 +302,8 @@ def test_segment_data_at_a_fraction_of_the_resolution(ingested):
 
 
 def test_steps_stretch_the_preset_schedule_and_keep_the_budget():
-    cfg = PRESETS["demo"].with_steps(1640).train_config(max_gaussians=5000)
-    assert cfg.steps == 1640 and cfg.mcmc.cap_max == 5000 and cfg.init_max_points == 5000
+    cfg = PRESETS["demo"].with_steps(3280).train_config(max_gaussians=5000)
+    assert cfg.steps == 3280 and cfg.mcmc.cap_max == 5000 and cfg.init_max_points == 5000
     base = PRESETS["demo"].train_config()
     assert cfg.eval_every == 2 * base.eval_every and cfg.mcmc.refine_stop == 2 * base.mcmc.refine_stop
     # "evaluate only at the end" stays so at any length
