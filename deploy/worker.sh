@@ -40,6 +40,8 @@ export PREFECT_FLOWS_HEARTBEAT_FREQUENCY="${PREFECT_FLOWS_HEARTBEAT_FREQUENCY:-6
 # one OpenMP/MKL thread per process, before any flow run imports torch (flows/runtime.py
 # reproducible_cpu_defaults: bit-reproducible CPU work); set them to trade that for speed
 export OMP_NUM_THREADS="${OMP_NUM_THREADS:-1}" MKL_NUM_THREADS="${MKL_NUM_THREADS:-1}"
+# the compiled (numba) kernels' OpenMP threads sleep between kernels instead of spinning
+export OMP_WAIT_POLICY="${OMP_WAIT_POLICY:-PASSIVE}"
 
 if [[ -z "$GPU_LIST" ]]; then
   if ! command -v nvidia-smi >/dev/null 2>&1; then

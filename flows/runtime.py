@@ -33,9 +33,16 @@ def reproducible_cpu_defaults() -> None:
     ``volcap worker`` hands to its flow runs), ``deploy/worker.sh``, the deployments' job
     environment (``deploy/prefect.yaml``) and ``tests/conftest.py``. Set ``OMP_NUM_THREADS`` to
     trade this for speed.
+
+    The compiled kernels (numba) still run on every core (:mod:`volcap_core.kernel_threads`: their
+    bits do not depend on the thread count), and ``OMP_WAIT_POLICY=PASSIVE`` makes their OpenMP
+    threads sleep between kernels instead of spinning: two training processes on 2 cores took the
+    demo segment's 150 steps in 30.7 s each instead of 38.0, one alone in 24.3 instead of 24.0
+    (docs/benchmarks.md, "Rasterizer").
     """
     os.environ.setdefault("OMP_NUM_THREADS", "1")
     os.environ.setdefault("MKL_NUM_THREADS", "1")
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
 #: The temporary server's process: it asks the kernel for SIGTERM when the command's process dies

@@ -14,6 +14,9 @@ import pytest
 # training; see flows.runtime.reproducible_cpu_defaults).
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 os.environ.setdefault("MKL_NUM_THREADS", "1")
+# the compiled kernels' OpenMP threads sleep between kernels instead of spinning on a core the
+# other pytest-xdist worker needs (flows.runtime.reproducible_cpu_defaults)
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 os.environ.setdefault("DO_NOT_TRACK", "1")
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")

@@ -78,6 +78,7 @@ class Cluster:
                     "PREFECT_WORKER_QUERY_SECONDS": "2", "PREFECT_WORKER_PREFETCH_SECONDS": "2",
                     "PREFECT_FLOWS_HEARTBEAT_FREQUENCY": "30",
                     "VOLCAP_HOME": str(REPO), "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1",
+                    "OMP_WAIT_POLICY": "PASSIVE",
                     "PYTHONPATH": str(REPO)}
         self.env.pop("PREFECT_PROFILES_PATH", None)
         self.procs: dict[str, subprocess.Popen] = {}

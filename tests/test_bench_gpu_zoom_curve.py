@@ -83,6 +83,12 @@ def test_prepare_run_report(prefect_api, tmp_path):
     bench.main(["--report", str(out), "--sheet", str(sheet)])
     assert sheet.stat().st_size > 1000
 
+    # bench_train_time on the same folder: a training's wall time, loss thirds and model digest,
+    # the same digest run after run (the CPU training is bit-reproducible)
+    timer = load_bench("bench_train_time")
+    one, two = (timer.run_once(bench.Prepared(src), 6) for _ in range(2))
+    assert one["wall_s"] > 0 and len(one["loss_thirds"]) == 3 and one["digest"] == two["digest"]
+
     # a budget spent before the first checkpoint: training stops, the floors and step 0 are written
     spent = bench.run(src, tmp_path / "spent", torch.device("cpu"), budget_s=1e-3, steps=4, evals=2)
     assert spent["stopped"] == "budget" and [p["step"] for p in spent["points"]] == [0]
