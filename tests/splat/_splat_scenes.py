@@ -77,3 +77,19 @@ def moving_scene(n: int = 40, *, frames=(0, 3), fps: float = 10.0, cameras: int 
         xyz = at(f / fps).means.repeat(3, 1) + 0.05 * torch.randn(3 * n, 3, generator=g)
         points.append(PointsAtTime(f / fps, xyz, linear.repeat(3, 1)))
     return data, points, cams
+
+
+def record_kernel_threads(monkeypatch, module, *kernels: str) -> list[int]:
+    """Wrap the compiled ``kernels`` (names in ``module``) so each call records numba's thread
+    count at that moment; returns the record (one int per call, in call order)."""
+    import numba
+
+    seen: list[int] = []
+    for name in kernels:
+        kernel = getattr(module, name)
+
+        def run(*a, _kernel=kernel):
+            seen.append(numba.get_num_threads())
+            return _kernel(*a)
+        monkeypatch.setattr(module, name, run)
+    return seen

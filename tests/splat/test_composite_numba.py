@@ -11,7 +11,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _splat_scenes, any import mode
 
-from _splat_scenes import moving_scene, random_gaussians, ring_cameras, single_thread  # noqa: E402, F401
+from _splat_scenes import record_kernel_threads, moving_scene, random_gaussians, ring_cameras, single_thread  # noqa: E402, F401
 
 from volcap_core.splat.composite_numba import rasterize_tiles_numba  # noqa: E402
 from volcap_core.splat.model import Gaussians3D  # noqa: E402
@@ -134,17 +134,7 @@ def test_results_do_not_depend_on_the_thread_count_and_torch_keeps_its_one_threa
 
     W, H = 40, 32
     inputs = splats(200, W, H, seed=4)
-    seen: list[int] = []
-    forward, backward = cn._forward, cn._backward
-
-    def spy(kernel):
-        def run(*a):
-            seen.append(numba.get_num_threads())
-            return kernel(*a)
-        return run
-
-    monkeypatch.setattr(cn, "_forward", spy(forward))
-    monkeypatch.setattr(cn, "_backward", spy(backward))
+    seen = record_kernel_threads(monkeypatch, cn, "_forward", "_backward")
     cores = numba.config.NUMBA_NUM_THREADS
     all_cores = composite(rasterize_tiles_numba, *inputs, W, H)
     assert torch.get_num_threads() == 1                       # the caller's setting is kept

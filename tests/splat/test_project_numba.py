@@ -11,7 +11,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _splat_scenes, any import mode
 
-from _splat_scenes import random_gaussians, ring_cameras, single_thread  # noqa: E402, F401
+from _splat_scenes import record_kernel_threads, random_gaussians, ring_cameras, single_thread  # noqa: E402, F401
 
 from volcap_core.splat.camera import Camera  # noqa: E402
 from volcap_core.splat.model import Gaussians3D  # noqa: E402
@@ -168,17 +168,7 @@ def test_results_do_not_depend_on_the_thread_count(monkeypatch):
 
     params = scene(300, seed=4)
     cam = ring_cameras(1, size=40)[0]
-    seen: list[int] = []
-    forward, backward = pn._forward, pn._backward
-
-    def spy(kernel):
-        def run(*a):
-            seen.append(numba.get_num_threads())
-            return kernel(*a)
-        return run
-
-    monkeypatch.setattr(pn, "_forward", spy(forward))
-    monkeypatch.setattr(pn, "_backward", spy(backward))
+    seen = record_kernel_threads(monkeypatch, pn, "_forward", "_backward")
     cores = numba.config.NUMBA_NUM_THREADS
     all_cores = project(project_gaussians_numba, params, cam)
     assert torch.get_num_threads() == 1                       # the caller's setting is kept

@@ -42,6 +42,7 @@ import torch
 
 from volcap_core.colour import _A, _GAMMA, _SLOPE, SRGB_DECODE_BREAK
 from volcap_core.kernel_threads import kernel_threads_scope
+from volcap_core.splat.kernel_tensors import require_float32_cpu
 from volcap_core.splat.sh import _C1, _C2, _C3, SH_C0
 
 __all__ = ["survivor_colours_numba"]
@@ -237,10 +238,7 @@ def survivor_colours_numba(sh: torch.Tensor, means: torch.Tensor, ids: torch.Ten
     Raises:
         ValueError: a tensor not float32 or not on the CPU, or an unsupported K.
     """
-    for name, t in (("sh", sh), ("means", means)):
-        if t.dtype != torch.float32 or t.device.type != "cpu":
-            raise ValueError(f"the numba colours take float32 CPU tensors: {name} is {t.dtype} "
-                             f"on {t.device}")
+    require_float32_cpu("colour kernel", {"sh": sh, "means": means})
     if sh.shape[1] not in (1, 4, 9, 16):
         raise ValueError(f"unsupported number of SH coefficients {sh.shape[1]}")
     c = centre.detach().to(torch.float32).cpu().numpy()

@@ -40,6 +40,7 @@ import numpy as np
 import torch
 
 from volcap_core.kernel_threads import kernel_threads_scope
+from volcap_core.splat.kernel_tensors import as_arrays, require_float32_cpu
 from volcap_core.splat.rasterize import (
     ALPHA_MAX,
     ALPHA_THRESHOLD,
@@ -287,11 +288,6 @@ def _sum_per_gaussian(ids, grad_geom, grad_vals, g_means, g_conics, g_opacities,
             g_values[i, ch] += grad_vals[e, ch]
 
 
-def _arrays(*tensors: torch.Tensor) -> list[np.ndarray]:
-    """Contiguous numpy views (copies only where not contiguous) for the kernels."""
-    return [t.detach().contiguous().numpy() for t in tensors]
-
-
 class _CompositeNumba(torch.autograd.Function):
     """The compiled compositor as an autograd node: ``acc [H, W, C]`` from the Gaussians'
     ``means2d``, ``conics``, ``opacities`` and ``values [M, C]`` binned in ``bins``. Keeps per
@@ -300,7 +296,7 @@ class _CompositeNumba(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, opacities, values, bins: TileBins, width: int, height: int):
         C = values.shape[1]
-        m, q, o, v, ids, starts, counts = _arrays(means2d, conics, opacities, values, bins.ids,
+        m, q, o, v, ids, starts, counts = as_arrays(means2d, conics, opacities, values, bins.ids,
                                                   bins.starts, bins.counts)
         out = np.zeros((height, width, C), np.float32)
         trans = np.ones((height, width), np.float32)
@@ -351,11 +347,8 @@ def rasterize_tiles_numba(means2d: torch.Tensor, conics: torch.Tensor, opacities
     Raises:
         ValueError: a tensor not float32 or not on the CPU.
     """
-    for name, t in (("means2d", means2d), ("conics", conics), ("opacities", opacities),
-                    ("values", values)):
-        if t.dtype != torch.float32 or t.device.type != "cpu":
-            raise ValueError(f"the numba compositor takes float32 CPU tensors: {name} is "
-                             f"{t.dtype} on {t.device}")
+    require_float32_cpu("compositor", {"means2d": means2d, "conics": conics, "opacities": opacities,
+                                       "values": values})
     bins = bin_tiles(means2d, depths, radii, width, height, tile_size)
     D = values.shape[1]
     # a column of ones accumulates the pixel alpha (Σ α_i T_i) in the same walk

@@ -54,6 +54,7 @@ import numpy as np
 import torch
 
 from volcap_core.kernel_threads import kernel_threads_scope
+from volcap_core.splat.kernel_tensors import require_float32_cpu
 
 __all__ = ["slice_poly4dgs_numba"]
 
@@ -313,9 +314,6 @@ def slice_poly4dgs_numba(params: dict[str, torch.Tensor], t: float, min_opacity:
     Raises:
         ValueError: a tensor not float32 or not on the CPU.
     """
-    for name, p in params.items():
-        if p.dtype != torch.float32 or p.device.type != "cpu":
-            raise ValueError(f"the numba slice takes float32 CPU tensors: {name} is {p.dtype} on "
-                             f"{p.device}")
+    require_float32_cpu("slice", params)
     guards = (max_abs_dt, log_term_cap, log_scale_min, log_scale_max)
     return _SliceNumba.apply(t, min_opacity, guards, *(params.get(k) for k in _PARAM_NAMES))

@@ -51,6 +51,7 @@ import numpy as np
 import torch
 
 from volcap_core.kernel_threads import kernel_threads_scope
+from volcap_core.splat.kernel_tensors import as_arrays, require_float32_cpu
 from volcap_core.splat.camera import Camera
 from volcap_core.splat.rasterize import ALPHA_THRESHOLD, EPS2D, EXTEND_MAX, RADIUS_MAX, Projected
 
@@ -335,11 +336,6 @@ def _camera_arrays(camera: Camera):
             tuple(f32(v) for v in lim.tolist()))
 
 
-def _arrays(*tensors: torch.Tensor) -> list[np.ndarray]:
-    """Contiguous numpy views (copies only where not contiguous) for the kernels."""
-    return [t.detach().contiguous().numpy() for t in tensors]
-
-
 class _ProjectNumba(torch.autograd.Function):
     """The compiled projection as an autograd node: ``(means2d [M, 2], conics [M, 3],
     opacities [M], depths [M], ids [M], radii [M, 2])`` of the M survivors from ``means [N, 3]``,
@@ -349,7 +345,7 @@ class _ProjectNumba(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, camera: Camera, eps2d: float,
                 antialiased: bool):
-        m, q, s, o = _arrays(means, quats, scales, opacities)
+        m, q, s, o = as_arrays(means, quats, scales, opacities)
         N = m.shape[0]
         Rw, tw, fx, fy, cx, cy, lim = _camera_arrays(camera)
         means2d = np.empty((N, 2), np.float32)
@@ -410,11 +406,8 @@ def project_gaussians_numba(means: torch.Tensor, quats: torch.Tensor, scales: to
     Raises:
         ValueError: a tensor not float32 or not on the CPU.
     """
-    for name, t in (("means", means), ("quats", quats), ("scales", scales),
-                    ("opacities", opacities)):
-        if t.dtype != torch.float32 or t.device.type != "cpu":
-            raise ValueError(f"the numba projection takes float32 CPU tensors: {name} is "
-                             f"{t.dtype} on {t.device}")
+    require_float32_cpu("projection", {"means": means, "quats": quats, "scales": scales,
+                                       "opacities": opacities})
     means2d, conics, opac, depths, ids, radii = _ProjectNumba.apply(
         means, quats, scales, opacities, camera, eps2d, antialiased)
     return Projected(ids=ids, means2d=means2d, conics=conics, opacities=opac, depths=depths,
