@@ -17,6 +17,12 @@ os.environ.setdefault("MKL_NUM_THREADS", "1")
 # the compiled kernels' OpenMP threads sleep between kernels instead of spinning on a core the
 # other pytest-xdist worker needs (flows.runtime.reproducible_cpu_defaults)
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# Under pytest-xdist (`make test`: one worker per core) each worker's compiled kernels keep to one
+# thread: two workers each on every core slowed the other worker's tests (the lego calibration
+# fixture 299 s -> 357 s). The kernels' thread-count tests then run in a process of their own on two
+# threads (tests/splat/test_composite_numba.py).
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    os.environ.setdefault("NUMBA_NUM_THREADS", "1")
 os.environ.setdefault("DO_NOT_TRACK", "1")
 os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
 os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")

@@ -3,6 +3,7 @@ alpha and depth and the same gradients, where pixels stop early, where Gaussians
 image, and where nothing is drawn; and a segment trains through it as through torch."""
 
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -148,6 +149,29 @@ def test_results_do_not_depend_on_the_thread_count_and_torch_keeps_its_one_threa
     rasterize_tiles_numba(*inputs, W, H, stats=ours)
     rasterize_tiles(*inputs, W, H, stats=ref)
     assert (ours.pairs, ours.intersections) == (ref.pairs, ref.intersections) and ours.pairs > 0
+
+
+def test_every_compiled_kernels_thread_test_runs_on_two_threads():
+    """The thread-count tests of every compiled module, in a process whose kernels may use two
+    threads (under `make test`'s workers they have one: tests/conftest.py), so "the same bits on
+    one and all threads" compares one thread with two. ~15 s."""
+    import subprocess
+    import sys
+
+    repo = Path(__file__).resolve().parents[2]
+    files = ["tests/splat/test_composite_numba.py", "tests/splat/test_project_numba.py",
+             "tests/splat/test_colour_numba.py", "tests/splat/test_evaluate_numba.py",
+             "tests/splat/test_mcmc_numba.py", "tests/test_adam_numba.py"]
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PYTEST_XDIST")}
+    env["NUMBA_NUM_THREADS"] = "2"
+    probe = subprocess.run([sys.executable, "-c", "import numba; print(numba.config.NUMBA_NUM_THREADS)"],
+                           capture_output=True, text=True, env=env, cwd=repo, timeout=120)
+    assert probe.stdout.strip() == "2", probe.stderr
+    res = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:xdist", "-p", "no:cacheprovider",
+                          "-k", "thread and not two_threads", *files],
+                         capture_output=True, text=True, env=env, cwd=repo, timeout=600)
+    assert res.returncode == 0, res.stdout[-3000:] + res.stderr[-2000:]
+    assert "6 passed" in res.stdout, res.stdout[-2000:]
 
 
 def test_render_through_numba_matches_torch_rgb_alpha_depth_and_3d_gradients():
