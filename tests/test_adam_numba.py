@@ -3,10 +3,17 @@ and tensor rates, over several steps (the bias correction changes), for frozen p
 parameters without a gradient, on one thread or all; float64 and non-contiguous parameters take
 the torch code."""
 
+import sys
+from pathlib import Path
+
 import pytest
 import torch
 
 numba = pytest.importorskip("numba")
+
+sys.path.insert(0, str(Path(__file__).resolve().parent / "splat"))  # _splat_scenes, any import mode
+
+from _splat_scenes import record_kernel_threads, single_thread  # noqa: E402, F401  (fixture)
 
 from volcap_core import adam_numba, checkpoint  # noqa: E402
 from volcap_core.checkpoint import AdamState, adam_step  # noqa: E402
@@ -16,13 +23,7 @@ if torch.backends.cpu.get_cpu_capability() not in adam_numba._FUSED_CAPABILITIES
                 allow_module_level=True)
 
 
-@pytest.fixture(autouse=True)
-def single_thread():
-    """Torch on one thread, as reproducible training runs it (restored after)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("single_thread")
 
 
 def _params(dtype=torch.float32):
@@ -73,9 +74,7 @@ def _assert_same(a, b):
 
 @pytest.mark.parametrize("eps", [1e-15, 1e-8])          # the splat trainer's, the enhancer's
 def test_compiled_adam_is_the_torch_update_bit_for_bit(monkeypatch, eps):
-    updated = []
-    update = adam_numba.adam_update
-    monkeypatch.setattr(adam_numba, "adam_update", lambda p, *a, **k: (updated.append(p), update(p, *a, **k)))
+    updated = record_kernel_threads(monkeypatch, adam_numba, "adam_update")
     compiled = _train(eps=eps)
     # every parameter with a gradient and a rate went through the kernels, 4 steps each
     assert len(updated) == 4 * 5
@@ -92,14 +91,7 @@ def test_compiled_adam_is_the_torch_update_bit_for_bit(monkeypatch, eps):
 
 
 def test_compiled_adam_bits_do_not_depend_on_the_thread_count(monkeypatch):
-    seen = []
-    moments = adam_numba._moments
-
-    def spy(*a):
-        seen.append(numba.get_num_threads())
-        return moments(*a)
-
-    monkeypatch.setattr(adam_numba, "_moments", spy)
+    seen = record_kernel_threads(monkeypatch, adam_numba, "_moments")
     cores = numba.config.NUMBA_NUM_THREADS
     monkeypatch.setattr(adam_numba, "_PARALLEL_MIN", 1000)      # all but the smallest on all cores
     all_cores = _train(steps=2)

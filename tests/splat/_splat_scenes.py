@@ -38,8 +38,10 @@ import pytest  # noqa: E402
 
 @pytest.fixture(autouse=False)
 def single_thread():
-    """Run a test on one intra-op thread: on a shared 2-core machine OpenMP spin-waits make small
-    tensor ops ~10x slower with 2 threads when the other core is busy. Restores the setting."""
+    """Run a test on one intra-op thread: as reproducible training runs torch (the compiled kernels'
+    tests check that they keep the caller's setting), and on a shared 2-core machine OpenMP
+    spin-waits make small tensor ops ~10x slower with 2 threads when the other core is busy.
+    Restores the setting."""
     n = torch.get_num_threads()
     torch.set_num_threads(1)
     yield
@@ -88,8 +90,40 @@ def record_kernel_threads(monkeypatch, module, *kernels: str) -> list[int]:
     for name in kernels:
         kernel = getattr(module, name)
 
-        def run(*a, _kernel=kernel):
+        def run(*a, _kernel=kernel, **kw):
             seen.append(numba.get_num_threads())
-            return _kernel(*a)
+            return _kernel(*a, **kw)
         monkeypatch.setattr(module, name, run)
     return seen
+
+
+def assert_numba_render_matches_torch(gaussians: Gaussians3D, camera: Camera):
+    """Render ``gaussians`` into ``camera`` through back-ends "numba" and "torch" and backpropagate
+    one fixed random weighting of the ``[H, W, 5]`` rgb, alpha and depth to the 3-D parameters.
+    Asserts numba's rgb and alpha within 1e-5 of torch's (finite), its depth within 1e-5 relative
+    where torch's alpha > 0.01 (some pixel is) and its gradients to means, quats, scales,
+    opacities and sh finite and within 1e-3 relative of torch's. Returns numba's (outputs
+    detached, gradients by parameter name)."""
+    from volcap_core.splat.render import render
+
+    weights = torch.rand(camera.height, camera.width, 5, generator=torch.Generator().manual_seed(5))
+    results = {}
+    for backend in ("numba", "torch"):
+        leaves = {k: getattr(gaussians, k).clone().requires_grad_(True)
+                  for k in ("means", "quats", "scales", "opacities", "sh")}
+        out = render(Gaussians3D(**leaves, ids=gaussians.ids), camera, backend=backend)
+        loss = (torch.cat([out["rgb"], out["alpha"], out["depth"]], -1) * weights).sum()
+        loss.backward()
+        results[backend] = ({k: v.detach() for k, v in out.items()},
+                            {k: v.grad for k, v in leaves.items()})
+    (o, gn), (r, gt) = results["numba"], results["torch"]
+    assert bool(torch.isfinite(o["rgb"]).all())
+    assert torch.allclose(o["rgb"], r["rgb"], atol=1e-5), float((o["rgb"] - r["rgb"]).abs().max())
+    assert torch.allclose(o["alpha"], r["alpha"], atol=1e-5), float((o["alpha"] - r["alpha"]).abs().max())
+    hit = r["alpha"] > 0.01
+    assert bool(hit.any())
+    assert float(((o["depth"] - r["depth"]).abs() / r["depth"].abs())[hit].max()) < 1e-5
+    for k in gn:
+        assert bool(torch.isfinite(gn[k]).all()), k
+        assert float((gn[k] - gt[k]).abs().max() / gt[k].abs().max()) < 1e-3, k
+    return o, gn

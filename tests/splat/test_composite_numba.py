@@ -12,7 +12,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _splat_scenes, any import mode
 
-from _splat_scenes import record_kernel_threads, moving_scene, random_gaussians, ring_cameras, single_thread  # noqa: E402, F401
+from _splat_scenes import assert_numba_render_matches_torch, moving_scene, random_gaussians, record_kernel_threads, ring_cameras, single_thread  # noqa: E402, F401  (single_thread: fixture)
 
 from volcap_core.splat.composite_numba import rasterize_tiles_numba  # noqa: E402
 from volcap_core.splat.model import Gaussians3D  # noqa: E402
@@ -24,7 +24,7 @@ from volcap_core.splat.rasterize import (  # noqa: E402
     TileStats,
     rasterize_tiles,
 )
-from volcap_core.splat.render import BackendUnavailable, render, render_flow, resolve_backend  # noqa: E402
+from volcap_core.splat.render import BackendUnavailable, render_flow, resolve_backend  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("single_thread")
 
@@ -175,25 +175,8 @@ def test_every_compiled_kernels_thread_test_runs_on_two_threads():
 
 
 def test_render_through_numba_matches_torch_rgb_alpha_depth_and_3d_gradients():
-    g0 = random_gaussians(300, seed=3, scale=(0.02, 0.2))
-    cam = ring_cameras(1, size=40)[0]
-    weights = torch.rand(40, 40, 5, generator=torch.Generator().manual_seed(5))
-    results = {}
-    for backend in ("numba", "torch"):
-        leaves = {k: getattr(g0, k).clone().requires_grad_(True)
-                  for k in ("means", "quats", "scales", "opacities", "sh")}
-        out = render(Gaussians3D(**leaves, ids=g0.ids), cam, backend=backend)
-        loss = (torch.cat([out["rgb"], out["alpha"], out["depth"]], -1) * weights).sum()
-        loss.backward()
-        results[backend] = out, {k: v.grad for k, v in leaves.items()}
-    (o, gn), (r, gt) = results["numba"], results["torch"]
-    assert torch.allclose(o["rgb"], r["rgb"], atol=1e-5) and torch.allclose(o["alpha"], r["alpha"], atol=1e-5)
-    o, r = ({k: v.detach() for k, v in d.items()} for d in (o, r))
-    hit = r["alpha"] > 0.01
-    assert bool(hit.any())
-    assert float(((o["depth"] - r["depth"]).abs() / r["depth"].abs())[hit].max()) < 1e-5
-    for k in gn:
-        assert float((gn[k] - gt[k]).abs().max() / gt[k].abs().max()) < 1e-3, k
+    assert_numba_render_matches_torch(random_gaussians(300, seed=3, scale=(0.02, 0.2)),
+                                      ring_cameras(1, size=40)[0])
 
 
 def test_render_flow_through_numba_matches_torch():

@@ -2,23 +2,24 @@
 Gaussian bit for bit as the torch code does and leaves the generator where the torch code leaves
 it, on one thread or all; float64 models take the torch code."""
 
+import sys
+from pathlib import Path
+
 import pytest
 import torch
 
 numba = pytest.importorskip("numba")
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # _splat_scenes, any import mode
+
+from _splat_scenes import record_kernel_threads, single_thread  # noqa: E402, F401  (fixture)
 
 from volcap_core.splat import mcmc, mcmc_numba  # noqa: E402
 from volcap_core.splat.mcmc import MCMCConfig, inject_noise  # noqa: E402
 from volcap_core.splat.model import LOG_SCALE_MAX, LOG_SCALE_MIN, Poly4DGS, Poly4DGSConfig  # noqa: E402
 
 
-@pytest.fixture(autouse=True)
-def single_thread():
-    """Torch on one thread, as reproducible training runs it (restored after)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("single_thread")
 
 
 def _model(n: int = 2000, seed: int = 0) -> Poly4DGS:
@@ -46,12 +47,10 @@ def _noise(model: Poly4DGS, seed: int = 5) -> torch.Generator:
 
 
 def test_compiled_noise_is_the_torch_move_bit_for_bit(monkeypatch):
-    calls = []
-    add = mcmc_numba.add_position_noise
-    monkeypatch.setattr(mcmc_numba, "add_position_noise", lambda *a: (calls.append(1), add(*a)))
+    calls = record_kernel_threads(monkeypatch, mcmc_numba, "add_position_noise")
     compiled, start = _model(), _model()
     gen_compiled = _noise(compiled)
-    assert calls == [1]
+    assert len(calls) == 1
     monkeypatch.setattr(mcmc, "_compiled_noise", lambda: None)
     reference = _model()
     gen_reference = _noise(reference)
@@ -62,14 +61,7 @@ def test_compiled_noise_is_the_torch_move_bit_for_bit(monkeypatch):
 
 
 def test_compiled_noise_bits_do_not_depend_on_the_thread_count(monkeypatch):
-    seen = []
-    kernel = mcmc_numba._add_noise
-
-    def spy(*a):
-        seen.append(numba.get_num_threads())
-        return kernel(*a)
-
-    monkeypatch.setattr(mcmc_numba, "_add_noise", spy)
+    seen = record_kernel_threads(monkeypatch, mcmc_numba, "_add_noise")
     cores = numba.config.NUMBA_NUM_THREADS
     small = _model()
     _noise(small)                                               # 2000 Gaussians: one thread

@@ -11,13 +11,11 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # _splat_scenes, any import mode
 
-from _splat_scenes import record_kernel_threads, random_gaussians, ring_cameras, single_thread  # noqa: E402, F401
+from _splat_scenes import assert_numba_render_matches_torch, random_gaussians, record_kernel_threads, ring_cameras, single_thread  # noqa: E402, F401  (single_thread: fixture)
 
 from volcap_core.splat.camera import Camera  # noqa: E402
-from volcap_core.splat.model import Gaussians3D  # noqa: E402
 from volcap_core.splat.project_numba import project_gaussians_numba  # noqa: E402
 from volcap_core.splat.rasterize import project_gaussians  # noqa: E402
-from volcap_core.splat.render import render  # noqa: E402
 
 pytestmark = pytest.mark.usefixtures("single_thread")
 
@@ -185,28 +183,10 @@ def test_results_do_not_depend_on_the_thread_count(monkeypatch):
 def test_render_through_numba_projects_with_the_compiled_kernels_and_matches_torch(monkeypatch):
     import volcap_core.splat.project_numba as pn
 
-    calls = []
-    kernel = pn._forward
-    monkeypatch.setattr(pn, "_forward", lambda *a: calls.append(1) or kernel(*a))
-    g0 = random_gaussians(300, seed=11, spread=1.2, scale=(0.02, 0.25))
-    cam = ring_cameras(2, size=40)[1]
-    weights = torch.rand(40, 40, 5, generator=torch.Generator().manual_seed(5))
-    results = {}
-    for backend in ("numba", "torch"):
-        leaves = {k: getattr(g0, k).clone().requires_grad_(True)
-                  for k in ("means", "quats", "scales", "opacities", "sh")}
-        out = render(Gaussians3D(**leaves, ids=g0.ids), cam, backend=backend)
-        loss = (torch.cat([out["rgb"], out["alpha"], out["depth"]], -1) * weights).sum()
-        loss.backward()
-        results[backend] = {k: v.detach() for k, v in out.items()}, {k: v.grad for k, v in leaves.items()}
-    assert calls == [1]                                       # numba's render, not torch's
-    (o, gn), (r, gt) = results["numba"], results["torch"]
-    assert torch.allclose(o["rgb"], r["rgb"], atol=1e-5) and torch.allclose(o["alpha"], r["alpha"], atol=1e-5)
-    hit = r["alpha"] > 0.01
-    assert bool(hit.any())
-    assert float(((o["depth"] - r["depth"]).abs() / r["depth"].abs())[hit].max()) < 1e-5
-    for k in gn:
-        assert float((gn[k] - gt[k]).abs().max() / gt[k].abs().max()) < 1e-3, k
+    calls = record_kernel_threads(monkeypatch, pn, "_forward")
+    assert_numba_render_matches_torch(random_gaussians(300, seed=11, spread=1.2, scale=(0.02, 0.25)),
+                                      ring_cameras(2, size=40)[1])
+    assert len(calls) == 1                                    # numba's render, not torch's
 
 
 def test_float32_cpu_tensors_only():
