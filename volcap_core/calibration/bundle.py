@@ -573,6 +573,17 @@ def _covariance(S: torch.Tensor, ncam: int) -> tuple[torch.Tensor, int, np.ndarr
     return (V[:, keep] / ev[keep]) @ V[:, keep].T, int(together.sum()), alone
 
 
+def _compiled_point_blocks():
+    """:func:`~volcap_core.calibration.bundle_numba.subtract_point_blocks` (the Schur complement's
+    pair blocks, the torch code's bits), imported on first use, or None where numba does not import:
+    then the torch code forms them."""
+    try:
+        from volcap_core.calibration.bundle_numba import subtract_point_blocks
+    except ImportError:
+        return None
+    return subtract_point_blocks
+
+
 def _reduced_system(state, prob: _Problem, oc, op, uv, plane_n, plane_d, on_lidar, pairs, lam, ncam, npt):
     """The normal equations with the points eliminated (Schur complement), damped by ``lam``:
     the reduced camera system ``S`` [Cn, Cn] and its right-hand side [Cn], and what the points'
@@ -651,9 +662,13 @@ def _reduced_system(state, prob: _Problem, oc, op, uv, plane_n, plane_d, on_lida
     Hpp_inv = torch.linalg.inv(Hpp_d)
     # Schur complement on the points
     a, b = pairs
-    blocks = Hcp[a] @ Hpp_inv[op[a]] @ Hcp[b].transpose(1, 2)              # [Q, n, n]
     S = torch.zeros(ncam * ncam, n, n, dtype=z.dtype, device=z.device)
-    S.index_add_(0, oc[a] * ncam + oc[b], -blocks)
+    compiled = _compiled_point_blocks() if S.device.type == "cpu" else None
+    if compiled is not None:
+        compiled(S.numpy(), Hcp.numpy(), Hpp_inv.numpy(), oc.numpy(), op.numpy(), a.numpy(), b.numpy(), ncam)
+    else:
+        blocks = Hcp[a] @ Hpp_inv[op[a]] @ Hcp[b].transpose(1, 2)          # [Q, n, n]
+        S.index_add_(0, oc[a] * ncam + oc[b], -blocks)
     S = S.view(ncam, ncam, n, n)
     S[torch.arange(ncam), torch.arange(ncam)] += Hcc_d
     S = S.permute(0, 2, 1, 3).reshape(ncam * n, ncam * n)

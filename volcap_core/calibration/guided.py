@@ -143,6 +143,16 @@ def _ncc(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return (a * b).sum(-1) / (a.norm(dim=-1) * b.norm(dim=-1) + 1e-6)
 
 
+def _compiled_scores():
+    """:func:`~volcap_core.calibration.guided_numba.shifted_ncc`, imported on first use (numba's
+    import costs ~0.5 s), or None where numba does not import: then the torch code scores."""
+    try:
+        from volcap_core.calibration.guided_numba import shifted_ncc
+    except ImportError:
+        return None
+    return shifted_ncc
+
+
 def _match_patches(image: torch.Tensor, template: torch.Tensor, warped: np.ndarray,
                    options: GuidedMatchOptions) -> tuple[np.ndarray, np.ndarray]:
     """Where each warped template sits in ``image``: the NCC peak over shifts within
@@ -152,18 +162,24 @@ def _match_patches(image: torch.Tensor, template: torch.Tensor, warped: np.ndarr
     ``warped`` [n, Q, 2] the template's pixels mapped into this camera (OpenCV px, the centre pixel
     at ``Q // 2``). Returns the matches [n, 2] (OpenCV px) and which of them are good [n]: a peak
     above ``min_ncc``, inside the window, and sharp. Anchors go ``chunk_anchors`` at a time, so
-    the memory is bounded whatever their number.
+    the memory is bounded whatever their number. The scores of float32 inputs come from the
+    compiled kernel where numba imports (:mod:`~volcap_core.calibration.guided_numba`: the same
+    NCC to float32 rounding, docs/benchmarks.md "Guided matching"), else from ``_sample`` and ``_ncc``.
     """
     steps = torch.arange(-options.search_px, options.search_px + 1e-9, options.search_step_px)
     ns = len(steps)
     shifts = torch.stack(torch.meshgrid(steps, steps, indexing="xy"), -1).reshape(-1, 2)     # [S, 2]
     n, centre_q = len(warped), warped.shape[1] // 2
+    compiled = _compiled_scores() if image.dtype == torch.float32 and template.dtype == torch.float32 else None
     matches, good = np.zeros((n, 2)), np.zeros(n, bool)
     for lo in range(0, n, options.chunk_anchors):
         hi = min(n, lo + options.chunk_anchors)
         w = torch.as_tensor(warped[lo:hi], dtype=torch.float32)
-        values = _sample(image, w[:, None] + shifts[None, :, None, :])                        # [m, S, Q]
-        score = _ncc(template[lo:hi, None], values).reshape(hi - lo, ns, ns)                  # [m, y, x]
+        if compiled is not None:
+            score = torch.from_numpy(compiled(image.numpy(), template[lo:hi].numpy(), w.numpy(), steps.numpy()))
+        else:
+            values = _sample(image, w[:, None] + shifts[None, :, None, :])                    # [m, S, Q]
+            score = _ncc(template[lo:hi, None], values).reshape(hi - lo, ns, ns)              # [m, y, x]
         peak, best = score.reshape(hi - lo, -1).max(1)
         by, bx = best // ns, best % ns
         ok = (peak > options.min_ncc) & (by > 0) & (by < ns - 1) & (bx > 0) & (bx < ns - 1)
