@@ -13,13 +13,13 @@ pytest.importorskip("numba")
 from tests.calibration.test_bundle_lens_groups import _adjust, _problem, _rectified_views  # noqa: E402
 from volcap_core.calibration import bundle  # noqa: E402
 from volcap_core.calibration.bundle import BundleOptions, bundle_adjust  # noqa: E402
-from volcap_core.calibration.bundle_numba import subtract_point_blocks  # noqa: E402
+from volcap_core.calibration.bundle_numba import add_observation_blocks, subtract_point_blocks  # noqa: E402
 
 
 def _both(monkeypatch, run):
     """``run()`` through the compiled blocks, then through the torch code."""
     ours = run()
-    monkeypatch.setattr(bundle, "_compiled_point_blocks", lambda: None)
+    monkeypatch.setattr(bundle, "_compiled_normal_equations", lambda: None)
     return ours, run()
 
 
@@ -38,6 +38,23 @@ def test_the_blocks_are_the_torch_products_bit_for_bit():
     subtract_point_blocks(ours.numpy(), Hcp.numpy(), Hpp_inv.numpy(), oc.numpy(), op.numpy(), a.numpy(), b.numpy(),
                           ncam)
     assert len(a) > 200 and torch.equal(ours, ref)
+
+
+def test_the_observation_blocks_are_the_torch_sums_bit_for_bit():
+    g = torch.Generator().manual_seed(1)
+    ncam, npt, n, M = 3, 20, 9, 300
+    oc, op = torch.randint(0, ncam, (M,), generator=g), torch.randint(0, npt, (M,), generator=g)
+    Jc, Jp, rw = (torch.randn(*shape, generator=g, dtype=torch.float64) for shape in ((M, 2, n), (M, 2, 3), (M, 2)))
+    ref = [torch.zeros(ncam, n, n, dtype=torch.float64), torch.zeros(ncam, n, dtype=torch.float64),
+           torch.zeros(npt, 3, 3, dtype=torch.float64), torch.zeros(npt, 3, dtype=torch.float64)]
+    ref[0].index_add_(0, oc, Jc.transpose(1, 2) @ Jc)
+    ref[1].index_add_(0, oc, (Jc.transpose(1, 2) @ rw[..., None])[..., 0])
+    ref[2].index_add_(0, op, Jp.transpose(1, 2) @ Jp)
+    ref[3].index_add_(0, op, (Jp.transpose(1, 2) @ rw[..., None])[..., 0])
+    ours = [torch.zeros_like(t) for t in ref]
+    Hcp = add_observation_blocks(Jc.numpy(), Jp.numpy(), rw.numpy(), oc.numpy(), op.numpy(), *(t.numpy() for t in ours))
+    assert torch.equal(torch.from_numpy(Hcp), Jc.transpose(1, 2) @ Jp)
+    assert all(torch.equal(a, b) for a, b in zip(ours, ref))
 
 
 def test_an_adjustment_is_the_same_through_both_paths(monkeypatch):

@@ -573,15 +573,14 @@ def _covariance(S: torch.Tensor, ncam: int) -> tuple[torch.Tensor, int, np.ndarr
     return (V[:, keep] / ev[keep]) @ V[:, keep].T, int(together.sum()), alone
 
 
-def _compiled_point_blocks():
-    """:func:`~volcap_core.calibration.bundle_numba.subtract_point_blocks` (the Schur complement's
-    pair blocks, the torch code's bits), imported on first use, or None where numba does not import:
-    then the torch code forms them."""
+def _compiled_normal_equations():
+    """:mod:`~volcap_core.calibration.bundle_numba` (the normal equations' blocks, the torch code's
+    bits), imported on first use, or None where numba does not import: then the torch code forms them."""
     try:
-        from volcap_core.calibration.bundle_numba import subtract_point_blocks
+        from volcap_core.calibration import bundle_numba
     except ImportError:
         return None
-    return subtract_point_blocks
+    return bundle_numba
 
 
 def _reduced_system(state, prob: _Problem, oc, op, uv, plane_n, plane_d, on_lidar, pairs, lam, ncam, npt):
@@ -621,13 +620,19 @@ def _reduced_system(state, prob: _Problem, oc, op, uv, plane_n, plane_d, on_lida
     rw = r * w[:, None]
     Hcc = torch.zeros(ncam, n, n, dtype=z.dtype, device=z.device)
     gc = torch.zeros(ncam, n, dtype=z.dtype, device=z.device)
-    Hcc.index_add_(0, oc, Jc.transpose(1, 2) @ Jc)
-    gc.index_add_(0, oc, (Jc.transpose(1, 2) @ rw[..., None])[..., 0])
     Hpp = torch.zeros(npt, 3, 3, dtype=z.dtype, device=z.device)
     gp = torch.zeros(npt, 3, dtype=z.dtype, device=z.device)
-    Hpp.index_add_(0, op, Jp.transpose(1, 2) @ Jp)
-    gp.index_add_(0, op, (Jp.transpose(1, 2) @ rw[..., None])[..., 0])
-    Hcp = Jc.transpose(1, 2) @ Jp                                           # [M, n, 3]
+    compiled = _compiled_normal_equations() if z.device.type == "cpu" else None
+    if compiled is not None:
+        Hcp = torch.from_numpy(compiled.add_observation_blocks(Jc.numpy(), Jp.numpy(), rw.numpy(), oc.numpy(),
+                                                               op.numpy(), Hcc.numpy(), gc.numpy(), Hpp.numpy(),
+                                                               gp.numpy()))
+    else:
+        Hcc.index_add_(0, oc, Jc.transpose(1, 2) @ Jc)
+        gc.index_add_(0, oc, (Jc.transpose(1, 2) @ rw[..., None])[..., 0])
+        Hpp.index_add_(0, op, Jp.transpose(1, 2) @ Jp)
+        gp.index_add_(0, op, (Jp.transpose(1, 2) @ rw[..., None])[..., 0])
+        Hcp = Jc.transpose(1, 2) @ Jp                                       # [M, n, 3]
     if plane_n is not None and on_lidar.any():
         rl = ((plane_n * state.X).sum(1) - plane_d) / o.lidar_sigma_m
         wl = _cauchy_weight(rl ** 2) * on_lidar.to(rl.dtype)
@@ -663,9 +668,9 @@ def _reduced_system(state, prob: _Problem, oc, op, uv, plane_n, plane_d, on_lida
     # Schur complement on the points
     a, b = pairs
     S = torch.zeros(ncam * ncam, n, n, dtype=z.dtype, device=z.device)
-    compiled = _compiled_point_blocks() if S.device.type == "cpu" else None
     if compiled is not None:
-        compiled(S.numpy(), Hcp.numpy(), Hpp_inv.numpy(), oc.numpy(), op.numpy(), a.numpy(), b.numpy(), ncam)
+        compiled.subtract_point_blocks(S.numpy(), Hcp.numpy(), Hpp_inv.numpy(), oc.numpy(), op.numpy(), a.numpy(),
+                                       b.numpy(), ncam)
     else:
         blocks = Hcp[a] @ Hpp_inv[op[a]] @ Hcp[b].transpose(1, 2)          # [Q, n, n]
         S.index_add_(0, oc[a] * ncam + oc[b], -blocks)

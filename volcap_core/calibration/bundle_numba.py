@@ -1,18 +1,20 @@
-"""Compiled CPU Schur complement of the bundle adjustment (numba): the points' elimination from the
-normal equations, what :func:`volcap_core.calibration.bundle._reduced_system` computes with
-batched products and ``index_add_``.
+"""Compiled CPU assembly of the bundle adjustment's normal equations (numba): the per-observation
+blocks summed into the cameras' and points' blocks, and the points' elimination (Schur complement),
+what :func:`volcap_core.calibration.bundle._reduced_system` computes with batched products and
+``index_add_``.
 
-Why it exists: for every ordered pair of observations of one point the torch code forms the block
-``Hcp[a] Hpp⁻¹ Hcp[b]ᵀ`` ([n, n], n = 9-11 camera parameters) as a batched product of tiny matrices
-(~2 µs a pair on one core) and keeps every block in memory before summing it into the reduced
-camera system: a calibration's step-5 adjustment over ~300 000 pairs (the lego capture's guided
-tracks) spent most of its time there, every Levenberg-Marquardt iteration. Here each pair's block
-is summed into its camera pair's block of ``S`` as it is formed, nothing else is stored.
+Why it exists: the torch code forms every observation's ``JcᵀJc``, ``JpᵀJp``, ``JcᵀJp`` and, for every
+ordered pair of observations of one point, the block ``Hcp[a] Hpp⁻¹ Hcp[b]ᵀ`` ([n, n], n = 9-11
+camera parameters), each as a batched product of tiny float64 matrices (~1-2 µs a matrix on one
+core, transposed operands copied first), and keeps them all in memory before summing them: a
+calibration's step-5 adjustment (the lego capture's ~58 000 guided observations, ~300 000 pairs)
+spent most of every Levenberg-Marquardt iteration there. Here each block is summed where it
+belongs as it is formed.
 
-The torch code's bits: each entry of ``Hcp[a] Hpp⁻¹`` and of its product with ``Hcp[b]ᵀ`` is a
-sum of three products from 0, in order (torch's batched product of 3-wide matrices computes them
-so, float64, without fused multiply-adds, as numba without ``fastmath``), and the blocks are
-subtracted from ``S`` in the pairs' order, as ``index_add_`` adds them. Serial: one thread writes
+The torch code's bits: each entry of a product is a sum of its two (observation blocks) or three
+(point blocks) products from 0, in order (torch's batched product of such small matrices computes
+them so, float64, without fused multiply-adds, as numba without ``fastmath``), and the blocks are
+added in the observations' (pairs') order, as ``index_add_`` adds them. Serial: one thread writes
 every block, so the bits do not depend on the thread count.
 
 Imports numba: :mod:`volcap_core.calibration.bundle` imports it on first use, for CPU tensors,
@@ -24,7 +26,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["subtract_point_blocks"]
+__all__ = ["add_observation_blocks", "subtract_point_blocks"]
 
 
 @numba.njit(cache=True)
@@ -70,3 +72,56 @@ def subtract_point_blocks(S: np.ndarray, Hcp: np.ndarray, Hpp_inv: np.ndarray, o
     _subtract(S, np.ascontiguousarray(Hcp), np.ascontiguousarray(Hpp_inv), np.ascontiguousarray(oc, np.int64),
               np.ascontiguousarray(op, np.int64), np.ascontiguousarray(a, np.int64),
               np.ascontiguousarray(b, np.int64), int(ncam))
+
+
+@numba.njit(cache=True)
+def _observations(Jc, Jp, rw, oc, op, Hcc, gc, Hpp, gp, Hcp):
+    m_count, _, n = Jc.shape
+    for m in range(m_count):
+        c = oc[m]
+        p = op[m]
+        for i in range(n):
+            for j in range(n):
+                acc = 0.0
+                acc += Jc[m, 0, i] * Jc[m, 0, j]
+                acc += Jc[m, 1, i] * Jc[m, 1, j]
+                Hcc[c, i, j] += acc
+            acc = 0.0
+            acc += Jc[m, 0, i] * rw[m, 0]
+            acc += Jc[m, 1, i] * rw[m, 1]
+            gc[c, i] += acc
+            for j in range(3):
+                acc = 0.0
+                acc += Jc[m, 0, i] * Jp[m, 0, j]
+                acc += Jc[m, 1, i] * Jp[m, 1, j]
+                Hcp[m, i, j] = acc
+        for i in range(3):
+            for j in range(3):
+                acc = 0.0
+                acc += Jp[m, 0, i] * Jp[m, 0, j]
+                acc += Jp[m, 1, i] * Jp[m, 1, j]
+                Hpp[p, i, j] += acc
+            acc = 0.0
+            acc += Jp[m, 0, i] * rw[m, 0]
+            acc += Jp[m, 1, i] * rw[m, 1]
+            gp[p, i] += acc
+
+
+def add_observation_blocks(Jc: np.ndarray, Jp: np.ndarray, rw: np.ndarray, oc: np.ndarray, op: np.ndarray,
+                           Hcc: np.ndarray, gc: np.ndarray, Hpp: np.ndarray, gp: np.ndarray) -> np.ndarray:
+    """Each observation's weighted blocks added into the cameras' and points' blocks, in place:
+    ``Hcc[oc] += JcᵀJc``, ``gc[oc] += Jcᵀ rw``, ``Hpp[op] += JpᵀJp``, ``gp[op] += Jpᵀ rw``.
+
+    Args:
+        Jc: ``[M, 2, n]`` float64, the weighted residuals' derivatives by the camera parameters.
+        Jp: ``[M, 2, 3]`` float64, by the point.
+        rw: ``[M, 2]`` float64, the weighted residuals.
+        oc, op: ``[M]`` int64, each observation's camera and point.
+        Hcc ``[C, n, n]``, gc ``[C, n]``, Hpp ``[P, 3, 3]``, gp ``[P, 3]``: float64, added into.
+    Returns:
+        ``Hcp [M, n, 3]`` float64, each observation's ``JcᵀJp``.
+    """
+    Hcp = np.empty((Jc.shape[0], Jc.shape[2], 3))
+    _observations(np.ascontiguousarray(Jc), np.ascontiguousarray(Jp), np.ascontiguousarray(rw),
+                  np.ascontiguousarray(oc, np.int64), np.ascontiguousarray(op, np.int64), Hcc, gc, Hpp, gp, Hcp)
+    return Hcp
