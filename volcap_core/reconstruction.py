@@ -388,8 +388,8 @@ def with_zoom_points(clouds: Sequence[PointsAtTime], data: SegmentData, held_out
             seen = z > 0.1
             if not seen.any() or float(np.median(z[seen])) / float(K[0, 0]) * stride_px > 0.5 * spacing:
                 continue   # this camera resolves the performers no finer than the sweep did
-            others = [(o.camera.opencv_K(), o.camera.world_to_camera.double().numpy(), o.load()[..., :3].numpy())
-                      for o in at if o.camera_id != v.camera_id]
+            others = [(o.camera.opencv_K(), o.camera.world_to_camera.double().numpy(), o.camera.width,
+                       o.camera.height, lambda o=o: o.load()[..., :3].numpy()) for o in at if o.camera_id != v.camera_id]
             add.append(zoom_points(xyz, K, W, v.load()[..., :3].numpy(), stride_px=stride_px, neighbours=others))
         if not add:
             out.append(p)

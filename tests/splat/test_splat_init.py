@@ -188,7 +188,8 @@ def test_zoom_points_lie_on_the_clouds_surface_at_the_cameras_resolution():
 
 def _textured_plane_view(camera, rng_phases):
     """The footage of the plane z = 0 painted with a band-limited texture (waves of 4-20 cm, what a
-    1 cm pixel still resolves), seen by a splat ``camera``: ``(K, world_to_camera, image [H, W, 3])``."""
+    1 cm pixel still resolves), seen by a splat ``camera``: ``(K, world_to_camera, width, height,
+    load)`` as ``photo_depth`` takes its neighbours."""
     K, W = camera.opencv_K(), camera.world_to_camera.double().numpy()
     v, u = np.mgrid[0:camera.height, 0:camera.width].astype(np.float64)
     rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T @ W[:3, :3]      # world directions
@@ -196,15 +197,16 @@ def _textured_plane_view(camera, rng_phases):
     hit = centre + rays * (-centre[2] / rays[..., 2:3])
     grey = 0.4 + sum(0.08 * np.sin(2 * np.pi * (hit[..., 0] * kx + hit[..., 1] * ky) + ph)
                      for kx, ky, ph in rng_phases)
-    return K, W, np.repeat(grey[..., None], 3, -1) * np.array([1.0, 0.9, 0.8])
+    image = np.repeat(grey[..., None], 3, -1) * np.array([1.0, 0.9, 0.8])
+    return K, W, camera.width, camera.height, lambda: image
 
 
 def test_zoom_points_take_the_depth_their_neighbours_confirm():
-    """~1 s. A textured floor seen by a zoom camera (~2 mm a pixel) and three wide cameras around it
-    (~11 mm a pixel), and a coarse cloud 4 cm above the floor (a sweep's surface off the true one):
-    lifted to the cloud's z-buffer the zoom points float 4 cm above the floor; with the wide cameras
-    as neighbours each takes the depth they confirm by photo-consistency, on the floor to a few
-    millimetres, and the pixels no neighbour sees are dropped."""
+    """Under a second. A textured floor seen by a zoom camera (~2 mm a pixel) and three wide cameras
+    around it (~11 mm a pixel), and a coarse cloud 4 cm above the floor (a sweep's surface off the
+    true one): lifted to the cloud's z-buffer the zoom points float 4 cm above the floor; with the
+    wide cameras as neighbours each takes the depth they confirm by photo-consistency, on the floor
+    to a few millimetres, and the pixels no neighbour sees are dropped."""
     from volcap_core.splat.init import zoom_points
 
     g = np.random.default_rng(3)
@@ -212,7 +214,8 @@ def test_zoom_points_take_the_depth_their_neighbours_confirm():
     zoom = look_at((0.1, -0.2, 1.5), (0, 0, 0), up=(0, 1, 0), fov_x_deg=9.0, width=96, height=96)
     wide = [look_at((1.2 * np.cos(a), 1.2 * np.sin(a), 1.6), (0, 0, 0), up=(0, 0, 1), fov_x_deg=40.0,
                     width=128, height=128) for a in (0.3, 2.4, 4.4)]
-    Kz, Wz, image = _textured_plane_view(zoom, waves)
+    Kz, Wz, _, _, load = _textured_plane_view(zoom, waves)
+    image = load()
     neighbours = [_textured_plane_view(c, waves) for c in wide]
     c = np.arange(-0.3, 0.3001, 0.02)
     x, y = np.meshgrid(c, c, indexing="ij")

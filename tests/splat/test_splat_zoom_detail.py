@@ -107,7 +107,7 @@ pytestmark = pytest.mark.usefixtures("single_thread")
 
 
 def test_the_route_keeps_a_zoom_cameras_detail():
-    """~10 s of CPU (15-45 s wall on the loaded 2 cores): two 40-step trainings of a 5-camera,
+    """~3 s on 2 quiet cores (15-45 s on the loaded ones): two 40-step trainings of a 5-camera,
     48-px scene."""
     detail, psnr = _zoom_detail(_config(**ROUTE), zoom_points=True)
     # the demo preset as it is: the dense points alone, uniform schedule, one thinning grid

@@ -32,7 +32,7 @@ import numpy as np
 
 __all__ = ["InitSplit", "classify_static", "colour_scan", "drop_isolated", "finest_footprint",
            "footprint_levels", "initial_gaussians", "neighbour_scale", "room_shell", "visual_hull", "voxel_thin",
-           "photo_depth", "zoom_points"]
+           "Neighbour", "photo_depth", "zoom_points"]
 
 
 def neighbour_scale(xyz: np.ndarray, k: int = 3) -> np.ndarray:
@@ -85,9 +85,13 @@ def footprint_levels(footprint: np.ndarray, coarse: float, finest_level: int) ->
 ZOOM_DEPTH_BAND_M = 0.1
 
 
+#: another camera at the same instant: ``(K [3, 3], world_to_camera [4, 4], width, height, load)``,
+#: ``load() -> [height, width, 3]`` linear footage (called only for the neighbours chosen)
+Neighbour = tuple[np.ndarray, np.ndarray, int, int, Callable[[], np.ndarray]]
+
+
 def photo_depth(depth: np.ndarray, K: np.ndarray, world_to_camera: np.ndarray, image: np.ndarray,
-                neighbours: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]], *,
-                band_m: float = ZOOM_DEPTH_BAND_M) -> np.ndarray:
+                neighbours: Sequence[Neighbour], *, band_m: float = ZOOM_DEPTH_BAND_M) -> np.ndarray:
     """A camera's depth ``[H, W]`` (metres along its axis) searched by photo-consistency within
     ``band_m`` of a prior ``depth`` (e.g. a coarse cloud's z-buffer; inf where it has none); NaN
     where the neighbours do not confirm one.
@@ -105,7 +109,7 @@ def photo_depth(depth: np.ndarray, K: np.ndarray, world_to_camera: np.ndarray, i
     Args:
         depth: ``[H, W]`` prior depth. K: ``[3, 3]`` OpenCV intrinsics. world_to_camera: ``[4, 4]``.
         image: ``[H, W, 3]`` linear footage.
-        neighbours: ``(K, world_to_camera, image [h, w, 3])`` of other cameras at the same instant.
+        neighbours: the other cameras at the same instant (:data:`Neighbour`).
     """
     from dataclasses import replace
 
@@ -126,15 +130,14 @@ def photo_depth(depth: np.ndarray, K: np.ndarray, world_to_camera: np.ndarray, i
     surface = (W[:3, :3].T @ (surface - W[:3, 3:4])).T                   # [P, 3] world
     # the neighbours that hold (nearly all of) the prior's surface, and their footprint there
     seen, foot = {}, []
-    for i, (Kn, Wn, img) in enumerate(neighbours):
+    for i, (Kn, Wn, wn, hn, load) in enumerate(neighbours):
         Kn, Wn = np.asarray(Kn, np.float64), np.asarray(Wn, np.float64)
         pc = surface @ Wn[:3, :3].T + Wn[:3, 3]
         front = pc[:, 2] > 0.1
         uv = pc[front, :2] / pc[front, 2:3] @ Kn[:2, :2].T + Kn[:2, 2]
-        hn, wn = img.shape[:2]
         inside = (uv[:, 0] >= 0) & (uv[:, 0] <= wn - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= hn - 1)
         if front.mean() > 0.95 and inside.mean() > 0.9:
-            seen[f"n{i}"] = (Kn, Wn, img)
+            seen[f"n{i}"] = (Kn, Wn, load)
             foot.append(float(np.median(pc[front, 2])) / float(np.sqrt(Kn[0, 0] * Kn[1, 1])))
     if not seen:
         return out
@@ -148,7 +151,7 @@ def photo_depth(depth: np.ndarray, K: np.ndarray, world_to_camera: np.ndarray, i
     nbs = choose_neighbours(cameras, "ref", 3, scene_depth=float(np.median(d)))
     if not nbs:
         return out
-    images = {"ref": small, **{c: seen[c][2] for c in nbs}}
+    images = {"ref": small, **{c: np.asarray(seen[c][2]())[..., :3] for c in nbs}}
     lo = max(0.2, float(np.percentile(d, 2)) - band_m)
     hi = float(np.percentile(d, 98)) + band_m
     dm = depth_map(images, cameras, "ref", nbs, replace(DenseOptions(), depth_min=lo, depth_max=hi))
@@ -163,7 +166,7 @@ def photo_depth(depth: np.ndarray, K: np.ndarray, world_to_camera: np.ndarray, i
 
 
 def zoom_points(xyz: np.ndarray, K: np.ndarray, world_to_camera: np.ndarray, image: np.ndarray, *,
-                stride_px: int = 2, neighbours: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray]] = (),
+                stride_px: int = 2, neighbours: Sequence[Neighbour] = (),
                 band_m: float = ZOOM_DEPTH_BAND_M) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Points at a camera's own resolution on the surface of a cloud: the camera's view of the
     cloud's surface, sampled every ``stride_px`` pixels and coloured by its footage.
@@ -185,7 +188,7 @@ def zoom_points(xyz: np.ndarray, K: np.ndarray, world_to_camera: np.ndarray, ima
     Args:
         K: ``[3, 3]`` OpenCV intrinsics (top-left pixel centre at 0). world_to_camera: ``[4, 4]``.
         image: ``[H, W, 3]`` linear footage of that camera at the cloud's frame.
-        neighbours: ``(K, world_to_camera, image)`` of other cameras at the same instant.
+        neighbours: the other cameras at the same instant (:data:`Neighbour`).
         band_m: how far (metres) a pixel's depth may lie from the buffer's.
     Returns:
         ``(xyz [M, 3], rgb [M, 3] linear, footprint [M] metres per pixel)``.
