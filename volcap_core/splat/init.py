@@ -80,8 +80,8 @@ def footprint_levels(footprint: np.ndarray, coarse: float, finest_level: int) ->
 
 
 #: how far (metres) a zoom pixel's photo-consistent depth may lie from the static cameras' cloud:
-#: the sweep's surface lies a few centimetres off a face (measured on the demo in
-#: ``docs/poly4dgs.md``, "The zoom points' depth"); beyond this a match is more likely wrong
+#: a few times how far that cloud lies off the performers (``docs/poly4dgs.md``, "The zoom points'
+#: depth"); not tuned
 ZOOM_DEPTH_BAND_M = 0.1
 
 
