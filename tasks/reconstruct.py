@@ -84,7 +84,7 @@ def ground_truth_points(store: str, capture: ArtifactRef, calibration: ArtifactR
                                            method=f"ground-truth depth, {points_per_frame} per frame"))
 
 
-@volcap_task(name="train-segment", version="11", retries=1, libraries=RECONSTRUCTION_LIBRARIES)
+@volcap_task(name="train-segment", version="12", retries=1, libraries=RECONSTRUCTION_LIBRARIES)
 def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRef, points: ArtifactRef,
                        frames: list[int], config: TrainConfig, seed: int) -> ArtifactRef:
     """Train one Poly4DGS segment, score it against its floors and draw its contact sheet
@@ -102,7 +102,11 @@ def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRe
     Version 9: the initial points may add the zoom cameras' own (``TrainConfig.init_zoom_stride_px``,
     the demo preset's; issue 28), and TrainConfig gained the fields of that route. Version 10: a
     capture without a lidar scan (real footage) starts from a room shell coloured by the static
-    training cameras beside its dense points (``reconstruction.segment_init``; issue 30).
+    training cameras beside its dense points (``reconstruction.segment_init``; issue 30). Version 11:
+    a capture with its own performer masks starts from the performers' visual hull. Version 12: the
+    zoom cameras' points (``init_zoom_stride_px``; no preset sets it) take the depth the frame's
+    other training cameras confirm by photo-consistency, the unconfirmed ones dropped
+    (``splat.init.photo_depth``; issue 28).
     """
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)

@@ -365,7 +365,9 @@ def with_zoom_points(clouds: Sequence[PointsAtTime], data: SegmentData, held_out
     """Each frame's moving points joined by the points of the training cameras that resolve them
     finer than their spacing (the tracking cameras framing the faces;
     :func:`~volcap_core.splat.init.zoom_points`, every ``stride_px`` pixels, coloured by their
-    footage at that frame). Needs :func:`with_footprints` first."""
+    footage at that frame, each at the depth the frame's other training cameras confirm by
+    photo-consistency: :func:`~volcap_core.splat.init.photo_depth`). Needs :func:`with_footprints`
+    first."""
     from volcap_core.splat.init import neighbour_scale, zoom_points
 
     held = set(held_out)
@@ -378,16 +380,17 @@ def with_zoom_points(clouds: Sequence[PointsAtTime], data: SegmentData, held_out
         xyz = p.xyz.double().numpy()[moving]
         spacing = float(np.median(neighbour_scale(xyz)))
         add = []
-        for v in data.views:
-            if v.camera_id in held or abs(v.time - p.time) > 1e-6:
-                continue
+        at = [v for v in data.views if v.camera_id not in held and abs(v.time - p.time) <= 1e-6]
+        for v in at:
             K = v.camera.opencv_K()
             W = v.camera.world_to_camera.double().numpy()
             z = xyz @ W[2, :3] + W[2, 3]
             seen = z > 0.1
             if not seen.any() or float(np.median(z[seen])) / float(K[0, 0]) * stride_px > 0.5 * spacing:
                 continue   # this camera resolves the performers no finer than the sweep did
-            add.append(zoom_points(xyz, K, W, v.load()[..., :3].numpy(), stride_px=stride_px))
+            others = [(o.camera.opencv_K(), o.camera.world_to_camera.double().numpy(), o.camera.width,
+                       o.camera.height, lambda o=o: o.load()[..., :3].numpy()) for o in at if o.camera_id != v.camera_id]
+            add.append(zoom_points(xyz, K, W, v.load()[..., :3].numpy(), stride_px=stride_px, neighbours=others))
         if not add:
             out.append(p)
             continue

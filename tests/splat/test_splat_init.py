@@ -184,3 +184,54 @@ def test_zoom_points_lie_on_the_clouds_surface_at_the_cameras_resolution():
     assert set(level[: len(cloud)]) == {0} and set(level[len(cloud):]) == {-3}
     assert drop_isolated(both, groups=level)[: len(cloud)].mean() > 0.9
     assert drop_isolated(both)[: len(cloud)].mean() < 0.7     # judged against the zoom's density
+
+
+def _textured_plane_view(camera, rng_phases):
+    """The footage of the plane z = 0 painted with a band-limited texture (waves of 4-20 cm, what a
+    1 cm pixel still resolves), seen by a splat ``camera``: ``(K, world_to_camera, width, height,
+    load)`` as ``photo_depth`` takes its neighbours."""
+    K, W = camera.opencv_K(), camera.world_to_camera.double().numpy()
+    v, u = np.mgrid[0:camera.height, 0:camera.width].astype(np.float64)
+    rays = np.stack([u, v, np.ones_like(u)], -1) @ np.linalg.inv(K).T @ W[:3, :3]      # world directions
+    centre = -W[:3, :3].T @ W[:3, 3]
+    hit = centre + rays * (-centre[2] / rays[..., 2:3])
+    grey = 0.4 + sum(0.08 * np.sin(2 * np.pi * (hit[..., 0] * kx + hit[..., 1] * ky) + ph)
+                     for kx, ky, ph in rng_phases)
+    image = np.repeat(grey[..., None], 3, -1) * np.array([1.0, 0.9, 0.8])
+    return K, W, camera.width, camera.height, lambda: image
+
+
+def test_zoom_points_take_the_depth_their_neighbours_confirm():
+    """Under a second. A textured floor seen by a zoom camera (~2 mm a pixel) and three wide cameras
+    around it (~11 mm a pixel), and a coarse cloud 4 cm above the floor (a sweep's surface off the
+    true one): lifted to the cloud's z-buffer the zoom points float 4 cm above the floor; with the
+    wide cameras as neighbours each takes the depth they confirm by photo-consistency, on the floor
+    to a few millimetres, and the pixels no neighbour sees are dropped."""
+    from volcap_core.splat.init import zoom_points
+
+    g = np.random.default_rng(3)
+    waves = [(kx, ky, g.uniform(0, 2 * np.pi)) for kx, ky in g.uniform(-1, 1, (8, 2)) * 25]   # 1/m
+    zoom = look_at((0.1, -0.2, 1.5), (0, 0, 0), up=(0, 1, 0), fov_x_deg=9.0, width=96, height=96)
+    wide = [look_at((1.2 * np.cos(a), 1.2 * np.sin(a), 1.6), (0, 0, 0), up=(0, 0, 1), fov_x_deg=40.0,
+                    width=128, height=128) for a in (0.3, 2.4, 4.4)]
+    Kz, Wz, _, _, load = _textured_plane_view(zoom, waves)
+    image = load()
+    neighbours = [_textured_plane_view(c, waves) for c in wide]
+    c = np.arange(-0.3, 0.3001, 0.02)
+    x, y = np.meshgrid(c, c, indexing="ij")
+    cloud = np.stack([x.ravel(), y.ravel(), np.full(x.size, 0.04)], 1)
+
+    lifted, _, _ = zoom_points(cloud, Kz, Wz, image, stride_px=2)
+    own, rgb, foot = zoom_points(cloud, Kz, Wz, image, stride_px=2, neighbours=neighbours)
+    assert np.median(np.abs(lifted[:, 2] - 0.04)) < 0.003          # the buffer: fronto-parallel splats
+    assert len(own) > 0.8 * len(lifted)
+    assert np.median(np.abs(own[:, 2])) < 0.003 and np.percentile(np.abs(own[:, 2]), 90) < 0.01
+    # the points stay on their own pixels' rays
+    pc = own @ Wz[:3, :3].T + Wz[:3, 3]
+    uv = pc[:, :2] / pc[:, 2:] @ Kz[:2, :2].T + Kz[:2, 2]
+    assert np.abs((uv - 0.5 + 1) % 2 - 1).max() < 1e-4                 # block centres
+    assert np.allclose(foot, pc[:, 2] / Kz[0, 0])
+    # no neighbour sees it: nothing is confirmed
+    elsewhere = [_textured_plane_view(look_at((5.0, 5.0, 1.6), (6, 6, 0), up=(0, 0, 1), fov_x_deg=40.0,
+                                               width=96, height=96), waves)]
+    assert len(zoom_points(cloud, Kz, Wz, image, stride_px=2, neighbours=elsewhere)[0]) == 0

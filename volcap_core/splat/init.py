@@ -32,7 +32,7 @@ import numpy as np
 
 __all__ = ["InitSplit", "classify_static", "colour_scan", "drop_isolated", "finest_footprint",
            "footprint_levels", "initial_gaussians", "neighbour_scale", "room_shell", "visual_hull", "voxel_thin",
-           "zoom_points"]
+           "Neighbour", "photo_depth", "zoom_points"]
 
 
 def neighbour_scale(xyz: np.ndarray, k: int = 3) -> np.ndarray:
@@ -79,8 +79,95 @@ def footprint_levels(footprint: np.ndarray, coarse: float, finest_level: int) ->
     return np.clip(lv, finest_level, 0).astype(np.int64)
 
 
+#: how far (metres) a zoom pixel's photo-consistent depth may lie from the static cameras' cloud:
+#: a few times how far that cloud lies off the performers (``docs/poly4dgs.md``, "The zoom points'
+#: depth"); not tuned
+ZOOM_DEPTH_BAND_M = 0.1
+
+
+#: another camera at the same instant: ``(K [3, 3], world_to_camera [4, 4], width, height, load)``,
+#: ``load() -> [height, width, 3]`` linear footage (called only for the neighbours chosen)
+Neighbour = tuple[np.ndarray, np.ndarray, int, int, Callable[[], np.ndarray]]
+
+
+def photo_depth(depth: np.ndarray, K: np.ndarray, world_to_camera: np.ndarray, image: np.ndarray,
+                neighbours: Sequence[Neighbour], *, band_m: float = ZOOM_DEPTH_BAND_M) -> np.ndarray:
+    """A camera's depth ``[H, W]`` (metres along its axis) searched by photo-consistency within
+    ``band_m`` of a prior ``depth`` (e.g. a coarse cloud's z-buffer; inf where it has none); NaN
+    where the neighbours do not confirm one.
+
+    The plane sweep of the dense points (:func:`volcap_core.calibration.dense.depth_map`: NCC over
+    5-pixel windows, the best of all but one neighbour, a parabola through the best costs) with
+    this camera as reference over the prior's depth range, at a scale both resolve: a zoom camera
+    sees a face 3-8× finer than the static cameras around it, so its image is first averaged over
+    ``2^k``-pixel blocks, the largest no coarser than the neighbours' median footprint there.
+    Neighbours are those of ``neighbours`` whose image holds the prior's surface, up to three at
+    the best triangulation angles
+    (:func:`~volcap_core.calibration.dense.choose_neighbours`). A pixel keeps the sweep's depth
+    where the sweep found one (NCC and texture high enough) within ``band_m`` of its prior.
+
+    Args:
+        depth: ``[H, W]`` prior depth. K: ``[3, 3]`` OpenCV intrinsics. world_to_camera: ``[4, 4]``.
+        image: ``[H, W, 3]`` linear footage.
+        neighbours: the other cameras at the same instant (:data:`Neighbour`).
+    """
+    from dataclasses import replace
+
+    from scipy.ndimage import map_coordinates
+
+    from volcap_core.calibration.dense import DenseOptions, choose_neighbours, depth_map
+
+    h, w = depth.shape
+    out = np.full((h, w), np.nan)
+    prior = np.isfinite(depth)
+    if prior.sum() < 16:
+        return out
+    W = np.asarray(world_to_camera, np.float64)
+    K = np.asarray(K, np.float64)
+    v, u = np.nonzero(prior)
+    d = depth[v, u]
+    surface = (np.linalg.solve(K, np.stack([u, v, np.ones_like(d)])) * d)
+    surface = (W[:3, :3].T @ (surface - W[:3, 3:4])).T                   # [P, 3] world
+    # the neighbours that hold (nearly all of) the prior's surface, and their footprint there
+    seen, foot = {}, []
+    for i, (Kn, Wn, wn, hn, load) in enumerate(neighbours):
+        Kn, Wn = np.asarray(Kn, np.float64), np.asarray(Wn, np.float64)
+        pc = surface @ Wn[:3, :3].T + Wn[:3, 3]
+        front = pc[:, 2] > 0.1
+        uv = pc[front, :2] / pc[front, 2:3] @ Kn[:2, :2].T + Kn[:2, 2]
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] <= wn - 1) & (uv[:, 1] >= 0) & (uv[:, 1] <= hn - 1)
+        if front.mean() > 0.95 and inside.mean() > 0.9:
+            seen[f"n{i}"] = (Kn, Wn, load)
+            foot.append(float(np.median(pc[front, 2])) / float(np.sqrt(Kn[0, 0] * Kn[1, 1])))
+    if not seen:
+        return out
+    own = float(np.median(d)) / float(np.sqrt(K[0, 0] * K[1, 1]))
+    k = int(np.clip(math.floor(math.log2(max(float(np.median(foot)) / own, 1.0))), 0, 3))
+    r = 2 ** k
+    hh, ww = h // r, w // r
+    small = np.asarray(image[: hh * r, : ww * r, :3], np.float32).reshape(hh, r, ww, r, 3).mean(axis=(1, 3))
+    Ks = np.array([[1 / r, 0, 0.5 / r - 0.5], [0, 1 / r, 0.5 / r - 0.5], [0, 0, 1]]) @ K   # block centres
+    cameras = {"ref": (Ks, W), **{c: (Kn, Wn) for c, (Kn, Wn, _) in seen.items()}}
+    nbs = choose_neighbours(cameras, "ref", 3, scene_depth=float(np.median(d)))
+    if not nbs:
+        return out
+    images = {"ref": small, **{c: np.asarray(seen[c][2]())[..., :3] for c in nbs}}
+    lo = max(0.2, float(np.percentile(d, 2)) - band_m)
+    hi = float(np.percentile(d, 98)) + band_m
+    dm = depth_map(images, cameras, "ref", nbs, replace(DenseOptions(), depth_min=lo, depth_max=hi))
+    # back at full resolution: each pixel interpolates the depths found around it (none: NaN)
+    found = (dm.depth > 0).astype(np.float64)
+    coords = np.stack([(v + 0.5) / r - 0.5, (u + 0.5) / r - 0.5])
+    weight = map_coordinates(found, coords, order=1, mode="nearest")
+    sweep = map_coordinates(dm.depth.astype(np.float64), coords, order=1, mode="nearest") / np.maximum(weight, 1e-9)
+    ok = (weight > 0.99) & (np.abs(sweep - d) <= band_m)
+    out[v[ok], u[ok]] = sweep[ok]
+    return out
+
+
 def zoom_points(xyz: np.ndarray, K: np.ndarray, world_to_camera: np.ndarray, image: np.ndarray, *,
-                stride_px: int = 2) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                stride_px: int = 2, neighbours: Sequence[Neighbour] = (),
+                band_m: float = ZOOM_DEPTH_BAND_M) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Points at a camera's own resolution on the surface of a cloud: the camera's view of the
     cloud's surface, sampled every ``stride_px`` pixels and coloured by its footage.
 
@@ -91,9 +178,18 @@ def zoom_points(xyz: np.ndarray, K: np.ndarray, world_to_camera: np.ndarray, ima
     block. A tracking camera framing a face resolves it 4-8× finer than the sweep's spacing: its
     points carry what the dense points cannot (eyes, brows, hair pattern).
 
+    With ``neighbours`` (the other training cameras at that frame) each pixel takes a depth of its
+    own instead, searched by photo-consistency within ``band_m`` of the buffer's
+    (:func:`photo_depth`), and pixels whose depth the neighbours do not confirm are dropped: the
+    buffer of a 1-2 cm cloud lies centimetres off the surface a 3 mm zoom pixel sees, and points
+    there, coloured from the zoom camera, smear what every other camera sees of them
+    (``docs/poly4dgs.md``, "The zoom points' depth").
+
     Args:
         K: ``[3, 3]`` OpenCV intrinsics (top-left pixel centre at 0). world_to_camera: ``[4, 4]``.
         image: ``[H, W, 3]`` linear footage of that camera at the cloud's frame.
+        neighbours: the other cameras at the same instant (:data:`Neighbour`).
+        band_m: how far (metres) a pixel's depth may lie from the buffer's.
     Returns:
         ``(xyz [M, 3], rgb [M, 3] linear, footprint [M] metres per pixel)``.
     """
@@ -116,6 +212,9 @@ def zoom_points(xyz: np.ndarray, K: np.ndarray, world_to_camera: np.ndarray, ima
     splat = int(min(32, max(1, math.ceil(0.5 * float(np.median(spacing_px))))))
     zbuf = depth_buffer(K, W, w, h, xyz, splat_px=splat)
     inside = binary_erosion(np.isfinite(zbuf), structure=np.ones((2 * splat + 1, 2 * splat + 1), bool))
+    if len(neighbours):
+        zbuf = photo_depth(np.where(inside, zbuf, np.inf), K, W, image, neighbours, band_m=band_m)
+        inside = np.isfinite(zbuf)
     s = max(1, int(stride_px))
     hh, ww = h // s, w // s
     blocks = np.asarray(image[: hh * s, : ww * s, :3], np.float64).reshape(hh, s, ww, s, 3).mean(axis=(1, 3))
