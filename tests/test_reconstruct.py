@@ -218,27 +218,44 @@ def test_train_config_presets():
 
 def test_demo_and_test_presets_train_as_they_were_measured():
     """The demo's figures (docs/poly4dgs.md "The demo") and the reconstruct tests' floors were
-    measured with exactly these TrainConfigs: `volcap reconstruct --preset demo|test [--steps N]`."""
+    measured with exactly these TrainConfigs: `volcap reconstruct --preset demo|test [--steps N]`
+    (the figures before issue 28's route: the preset with its three settings overridden)."""
     from volcap_core.splat.mcmc import MCMCConfig
     from volcap_core.splat.train import TrainConfig
 
     demo = PRESETS["demo"].train_config(held_out=["S004"], max_gaussians=80_000)
+    # issue 28's route since 2026-11-28 (docs/poly4dgs.md, "The zoom points' depth"): the zoom
+    # cameras' points, the performer-weighted camera schedule, MCMC's moving weight
     assert demo == TrainConfig(steps=1640, grid_size=8, eval_every=328, eval_max_views=4, checkpoint_every=328,
-                               mcmc=MCMCConfig(refine_start=298, refine_every=298, refine_stop=1490, cap_max=80_000),
-                               init_max_points=80_000, held_out_cameras=["S004"])
-    # the demo's figures of 2026-11-28 before its 1640 steps were measured at 820: `--steps 820`
-    # gives back that schedule exactly
-    assert PRESETS["demo"].with_steps(820).train_config(held_out=["S004"], max_gaussians=80_000) == \
-        demo.model_copy(update={"steps": 820, "eval_every": 164, "checkpoint_every": 164,
-                                "mcmc": MCMCConfig(refine_start=149, refine_every=149, refine_stop=745,
-                                                   cap_max=80_000)})
+                               mcmc=MCMCConfig(refine_start=298, refine_every=298, refine_stop=1490, cap_max=80_000,
+                                               moving_weight=4.0),
+                               init_max_points=80_000, held_out_cameras=["S004"], init_zoom_stride_px=2,
+                               performer_view_weight=1.5)
+
+    def unrouted(steps: int) -> TrainConfig:
+        """The demo preset at ``steps`` without the route: the demo as measured before it."""
+        return PRESETS["demo"].with_steps(steps).with_overrides(
+            init_zoom_stride_px=None, performer_view_weight=0.0, moving_weight=1.0).train_config(
+            held_out=["S004"], max_gaussians=80_000)
+
+    # the figures of 2026-11-28 before the route, at 1640 steps and before them at 820: the same
+    # schedules without the route
+    assert unrouted(1640) == TrainConfig(steps=1640, grid_size=8, eval_every=328, eval_max_views=4,
+                                         checkpoint_every=328, mcmc=MCMCConfig(refine_start=298, refine_every=298,
+                                                                               refine_stop=1490, cap_max=80_000),
+                                         init_max_points=80_000, held_out_cameras=["S004"])
+    assert unrouted(820) == unrouted(1640).model_copy(update={
+        "steps": 820, "eval_every": 164, "checkpoint_every": 164,
+        "mcmc": MCMCConfig(refine_start=149, refine_every=149, refine_stop=745, cap_max=80_000)})
     # before that date at 550: `--steps 550` gives back that schedule exactly, and the 1300-step
     # row's is the 550-step one stretched by 1300 / 550
-    before = PRESETS["demo"].with_steps(550).train_config(held_out=["S004"], max_gaussians=80_000)
+    before = unrouted(550)
     assert before == TrainConfig(steps=550, grid_size=8, eval_every=110, eval_max_views=4, checkpoint_every=110,
                                  mcmc=MCMCConfig(refine_start=100, refine_every=100, refine_stop=500, cap_max=80_000),
                                  init_max_points=80_000, held_out_cameras=["S004"])
-    longer = PRESETS["demo"].with_steps(550).with_steps(1300).train_config(held_out=["S004"], max_gaussians=80_000)
+    longer = PRESETS["demo"].with_steps(550).with_steps(1300).with_overrides(
+        init_zoom_stride_px=None, performer_view_weight=0.0, moving_weight=1.0).train_config(
+        held_out=["S004"], max_gaussians=80_000)
     assert longer == before.model_copy(update={
         "steps": 1300, "eval_every": 260, "checkpoint_every": 260,
         "mcmc": MCMCConfig(refine_start=236, refine_every=236, refine_stop=1182, cap_max=80_000)})

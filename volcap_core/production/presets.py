@@ -307,11 +307,14 @@ PRESETS: dict[str, QualityPreset] = {
     # 1640 steps since the compiled CPU training step (projection, slice, colours, Adam, all cores for
     # the compositing): ~3.7 min of training on 2 quiet cores, issue 28's ~4 minutes; the 820-step
     # schedule doubled (820 steps before, 550 before the compiled compositor: `with_steps` gives
-    # both back exactly)
+    # both schedules back exactly). Issue 28's route since 2026-11-28 (docs/poly4dgs.md, "The zoom
+    # points' depth"): the zoom cameras' own points every 2 px at a photo-consistent depth, views
+    # drawn by their performer coverage (1.5) and MCMC growing the moving Gaussians 4x as readily
     "demo": QualityPreset(train_steps=1640, grid_size=8, eval_every=328, eval_max_views=4, checkpoint_every=328,
                           refine_start=298, refine_every=298, refine_stop=1490,
                           gaussians_per_frame=10_000, max_gaussians_per_segment=80_000, overlap=2,
-                          held_out_tracking=1, **_CPU_FACE),
+                          held_out_tracking=1, init_zoom_stride_px=2, performer_view_weight=1.5, moving_weight=4.0,
+                          **_CPU_FACE),
     # dailies: half resolution, short training, one 24 GB GPU per segment
     "preview": QualityPreset(train_steps=3_000, eval_every=500, checkpoint_every=500,
                              refine_start=300, refine_every=100, refine_stop=2_500,
