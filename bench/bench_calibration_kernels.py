@@ -16,7 +16,7 @@ fixture). Two kernels replace its hot loops (``volcap_core/calibration/guided_nu
    a tenth of them (~58 000 observations at the defaults, the lego capture's count), 0.1 px of noise, through both
    paths; prints seconds and the largest pose difference (the kernel's design: none).
 
-Figures: ``docs/benchmarks.md`` ("Guided matching and the bundle adjustment, compiled").
+Figures: ``docs/benchmarks.md`` ("Calibration's step 5, compiled").
 """
 
 from __future__ import annotations

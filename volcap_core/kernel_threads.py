@@ -2,9 +2,10 @@
 
 One concept: these kernels give the same bits on any number of threads (each output is written by
 one thread, every sum runs in a fixed order), so unlike torch they may use every core while a
-reproducible training keeps torch on one thread. Used by the compiled compositor
-(:mod:`volcap_core.splat.composite_numba`); a module at the bottom of ``volcap_core`` so any layer's
-compiled kernels can share it. Imports numba: import it only where numba is used.
+reproducible training keeps torch on one thread. Used by the splat kernels (the compositor
+:mod:`volcap_core.splat.composite_numba` and its neighbours) and the calibration's guided matching
+(:mod:`volcap_core.calibration.guided_numba`); a module at the bottom of ``volcap_core`` so any
+layer's compiled kernels can share it. Imports numba: import it only where numba is used.
 """
 
 from __future__ import annotations

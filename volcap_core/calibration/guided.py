@@ -164,7 +164,8 @@ def _match_patches(image: torch.Tensor, template: torch.Tensor, warped: np.ndarr
     above ``min_ncc``, inside the window, and sharp. Anchors go ``chunk_anchors`` at a time, so
     the memory is bounded whatever their number. The scores of float32 inputs come from the
     compiled kernel where numba imports (:mod:`~volcap_core.calibration.guided_numba`: the same
-    NCC to float32 rounding, docs/benchmarks.md "Guided matching"), else from ``_sample`` and ``_ncc``.
+    NCC to float32 rounding; docs/benchmarks.md "Calibration's step 5, compiled"), else from
+    ``_sample`` and ``_ncc``.
     """
     steps = torch.arange(-options.search_px, options.search_px + 1e-9, options.search_step_px)
     ns = len(steps)
