@@ -74,6 +74,15 @@ def subtract_point_blocks(S: np.ndarray, Hcp: np.ndarray, Hpp_inv: np.ndarray, o
               np.ascontiguousarray(b, np.int64), int(ncam))
 
 
+@numba.njit(cache=True, inline="always")
+def _dot2(a0, a1, b0, b1):
+    """``a·b`` of two 2-vectors as torch's small batched product sums it: from 0, in order."""
+    acc = 0.0
+    acc += a0 * b0
+    acc += a1 * b1
+    return acc
+
+
 @numba.njit(cache=True)
 def _observations(Jc, Jp, rw, oc, op, Hcc, gc, Hpp, gp, Hcp):
     m_count, _, n = Jc.shape
@@ -82,29 +91,14 @@ def _observations(Jc, Jp, rw, oc, op, Hcc, gc, Hpp, gp, Hcp):
         p = op[m]
         for i in range(n):
             for j in range(n):
-                acc = 0.0
-                acc += Jc[m, 0, i] * Jc[m, 0, j]
-                acc += Jc[m, 1, i] * Jc[m, 1, j]
-                Hcc[c, i, j] += acc
-            acc = 0.0
-            acc += Jc[m, 0, i] * rw[m, 0]
-            acc += Jc[m, 1, i] * rw[m, 1]
-            gc[c, i] += acc
+                Hcc[c, i, j] += _dot2(Jc[m, 0, i], Jc[m, 1, i], Jc[m, 0, j], Jc[m, 1, j])
+            gc[c, i] += _dot2(Jc[m, 0, i], Jc[m, 1, i], rw[m, 0], rw[m, 1])
             for j in range(3):
-                acc = 0.0
-                acc += Jc[m, 0, i] * Jp[m, 0, j]
-                acc += Jc[m, 1, i] * Jp[m, 1, j]
-                Hcp[m, i, j] = acc
+                Hcp[m, i, j] = _dot2(Jc[m, 0, i], Jc[m, 1, i], Jp[m, 0, j], Jp[m, 1, j])
         for i in range(3):
             for j in range(3):
-                acc = 0.0
-                acc += Jp[m, 0, i] * Jp[m, 0, j]
-                acc += Jp[m, 1, i] * Jp[m, 1, j]
-                Hpp[p, i, j] += acc
-            acc = 0.0
-            acc += Jp[m, 0, i] * rw[m, 0]
-            acc += Jp[m, 1, i] * rw[m, 1]
-            gp[p, i] += acc
+                Hpp[p, i, j] += _dot2(Jp[m, 0, i], Jp[m, 1, i], Jp[m, 0, j], Jp[m, 1, j])
+            gp[p, i] += _dot2(Jp[m, 0, i], Jp[m, 1, i], rw[m, 0], rw[m, 1])
 
 
 def add_observation_blocks(Jc: np.ndarray, Jp: np.ndarray, rw: np.ndarray, oc: np.ndarray, op: np.ndarray,
