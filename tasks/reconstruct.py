@@ -104,7 +104,7 @@ def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRe
     capture without a lidar scan (real footage) starts from a room shell coloured by the static
     training cameras beside its dense points (``reconstruction.segment_init``; issue 30). Version 11:
     a capture with its own performer masks starts from the performers' visual hull. Version 12: the
-    zoom cameras' points (``init_zoom_stride_px``; no preset sets it) take the depth the frame's
+    zoom cameras' points (``init_zoom_stride_px``, the demo preset's) take the depth the frame's
     other training cameras confirm by photo-consistency, the unconfirmed ones dropped
     (``splat.init.photo_depth``; issue 28).
     """

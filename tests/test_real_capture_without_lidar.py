@@ -30,10 +30,10 @@ from 10.75 to 14.7 min.
 The calibration is compared with the exact poses in the stage frame the calibration itself chose
 (from the mounts: no re-alignment to the truth); the similarity-aligned figures are printed for
 reference. Skips with a message when ``../shared/data`` is absent. Both tests are slow and share one
-reconstruct run, which calibrates the capture (~5 min: guided matching over all 39 x 38 camera
-pairs, the bundle adjustment, the stand-in surface's sweep), matches the frame's dense points at
-the test preset's half resolution and trains (~80 s): 8 min in all under load on the 2-core
-machine at one torch thread (10 min 45 s when the dense points were matched at full resolution).
+reconstruct run, which calibrates the capture (~100 s since step 5's kernels were compiled, 318 s
+before: guided matching over all 39 x 38 camera pairs, the bundle adjustments, the stand-in
+surface's sweep), matches the frame's dense points at the test preset's half resolution and
+trains: 170 s in all on the quiet 2-core machine at one torch thread (2026-11-28; 327 s before).
 The contact sheet is written to
 ``/tmp/h27/lego_contact_sheet.png``.
 """

@@ -1,7 +1,7 @@
 """A zoom camera's detail survives reconstruction (issue 28) with the route to the performers at
 the tracking cameras' resolution: the zoom cameras' points, thinned finer where they resolve
 finer, small initial scales there (``docs/poly4dgs.md``, "Performers at the tracking cameras'
-resolution"; off in the presets, where its cost in held-out performer PSNR is measured).
+resolution"; the demo preset's since 2026-11-28, "The zoom points' depth").
 
 The scene: a textured card (8 mm squares of random colour under 4 cm patches of light and shade)
 seen by four wide "static" cameras (~2.6 cm per pixel there) and one narrow "zoom" camera (~4 mm
