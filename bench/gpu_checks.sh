@@ -37,9 +37,16 @@ set -u
 OUT=${OUT:-/tmp/volcap-gpu}
 mkdir -p "$OUT"
 export PYTHONUNBUFFERED=1
+# Installed once per machine. On 2026-11-28 a second call on the warm machine, which reinstalled the
+# wheels, built gsplat's extension again (98 s): the install rewrites gsplat's sources, and its JIT
+# build (ninja) goes by file times (the likely cause; not checked further).
 if compgen -G ".whl/*.whl" > /dev/null; then
-    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
-        || { echo "wheel install failed"; exit 1; }
+    wheels=$(ls .whl/*.whl | sort | md5sum | cut -c1-32)
+    if [ "$(cat /tmp/site/.wheels 2>/dev/null)" != "$wheels" ]; then
+        python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
+            || { echo "wheel install failed"; exit 1; }
+        echo "$wheels" > /tmp/site/.wheels
+    fi
     export PYTHONPATH=/tmp/site
 fi
 export PYTHONPATH=${PYTHONPATH:+$PYTHONPATH:}$PWD
