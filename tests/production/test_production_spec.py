@@ -240,6 +240,22 @@ def test_quality_overrides_reach_the_plan_and_the_training():
     assert again.parameters.grid_size == 16 != train.parameters.grid_size
 
 
+def test_the_alpha_loss_is_a_quality_field_whose_default_leaves_the_journal_as_it_was():
+    """``quality: {mask_alpha_weight: 1, mask_alpha_every: 4}`` reaches the segment's TrainConfig and
+    the train-segment step; left at their defaults (off) the step's JSON, which the production's
+    journal fingerprints, holds neither field, as before they existed."""
+    data = base_spec()
+    data["quality"] = {"preset": "production"}
+    train = next(s for s in needed_steps(parse_spec(data), facts(), shots=["wide"]) if s.kind == "train-segment")
+    assert not any(k.startswith("mask_alpha") for k in train.parameters.as_json())
+    data["quality"].update(mask_alpha_weight=1.0, mask_alpha_every=4)
+    spec = parse_spec(data)
+    train = next(s for s in needed_steps(spec, facts(), shots=["wide"]) if s.kind == "train-segment")
+    assert (train.parameters.as_json()["mask_alpha_weight"], train.parameters.as_json()["mask_alpha_every"]) == (1.0, 4)
+    cfg = spec.quality_preset().train_config(held_out=["S004"])
+    assert (cfg.mask_alpha_weight, cfg.mask_alpha_every) == (1.0, 4)
+
+
 def test_plan_order_stability_and_reconstruct():
     spec = parse_spec(base_spec())
     a, b = needed_steps(spec, facts()), needed_steps(spec, facts())

@@ -1,5 +1,6 @@
-"""The alpha loss on performer masks (``TrainConfig.mask_alpha_weight``): the performers' alpha
-(the moving Gaussians' coverage, the set in front occluding) is pulled toward each view's mask."""
+"""The alpha loss on performer masks (``TrainConfig.mask_alpha_weight``, on every
+``mask_alpha_every``-th step): the performers' alpha (the moving Gaussians' coverage, the set in
+front occluding) is pulled toward each view's mask."""
 
 import sys
 from pathlib import Path
@@ -95,8 +96,26 @@ def test_the_mask_alpha_loss_pulls_the_performers_alpha_toward_the_mask():
     assert with_ < 0.8 * without and with_ < 0.8 * initial
 
 
+def test_the_loss_can_run_on_every_nth_step_only():
+    """``mask_alpha_every`` 3: the term (its extra render) is on steps 3, 6, 9 and no other, and it
+    still pulls the alpha toward the masks."""
+    data, points = _scene()
+    base = dict(model=Poly4DGSConfig.paper(sh_degree=0), grid_size=4, checkpoint_every=0, eval_every=0,
+                held_out_cameras=[], mcmc=dict(refine_start=1000, cap_max=400))
+    seen = []
+    train_segment(data, points, TrainConfig(**base, steps=9, mask_alpha_weight=1.0, mask_alpha_every=3), seed=0,
+                  progress=lambda s, n, info: seen.append((s, "matte" in info)))
+    assert [s for s, on in seen if on] == [3, 6, 9]
+    sparse = train_segment(data, points, TrainConfig(**base, steps=60, mask_alpha_weight=1.0, mask_alpha_every=3),
+                           seed=0)
+    without = train_segment(data, points, TrainConfig(**base, steps=60), seed=0)
+    assert _matte_error(sparse, data) < 0.9 * _matte_error(without, data)
+
+
 def test_off_the_field_leaves_the_config_json_as_it_was():
-    """A train-segment key and a stored record hold the config's JSON: off, the field is not in it."""
-    assert "mask_alpha_weight" not in TrainConfig().model_dump_json()
+    """A train-segment key and a stored record hold the config's JSON: off, the fields are not in it."""
+    assert "mask_alpha" not in TrainConfig().model_dump_json()
+    assert "mask_alpha" not in TrainConfig(mask_alpha_every=1).model_dump_json()
     assert TrainConfig(mask_alpha_weight=0.5).model_dump()["mask_alpha_weight"] == 0.5
+    assert TrainConfig(mask_alpha_weight=0.5, mask_alpha_every=4).model_dump()["mask_alpha_every"] == 4
     assert TrainConfig.model_validate_json(TrainConfig().model_dump_json()) == TrainConfig()

@@ -44,7 +44,7 @@ DEGREES = {"poly4dgs": Poly4DGSConfig.paper, "rotor4d": Poly4DGSConfig.rotor4d, 
 TRAINING_FIELDS = ("train_steps", "grid_size", "eval_every", "eval_max_views", "checkpoint_every",
                    "refine_start", "refine_every", "refine_stop", "train_scale", "sh_degree", "held_out_tracking",
                    "init_static_share", "init_zoom_stride_px", "init_finest_level", "init_moving_scale_px",
-                   "performer_view_weight", "moving_weight")
+                   "performer_view_weight", "moving_weight", "mask_alpha_weight", "mask_alpha_every")
 
 #: The preset fields that shape the enhancer's training (a train-enhancer step carries them).
 ENHANCER_TRAINING_FIELDS = ("enhancer_architecture", "enhancer_weights", "enhancer_steps", "enhancer_finetune",
@@ -91,6 +91,12 @@ class QualityPreset(BaseModel):
                                          description="camera schedule weight of the views' performer coverage")
     moving_weight: float = Field(_MCMC["moving_weight"].default, gt=0,
                                  description="MCMC relocation/growth weight of moving Gaussians")
+    # -- the performers' alpha (what a shot composites) against the capture's own masks, where it has
+    #    them (docs/poly4dgs.md "Performer masks as an alpha loss"); a capture without masks trains as before
+    mask_alpha_weight: float = Field(_TRAIN["mask_alpha_weight"].default, ge=0,
+                                     description="L1 weight of the performers' alpha against the capture's masks (0: off)")
+    mask_alpha_every: int = Field(_TRAIN["mask_alpha_every"].default, ge=1,
+                                  description="the alpha loss on every N-th training step only")
     # -- segments
     held_out_tracking: int = Field(0, ge=0, description="tracking cameras held out of every segment for "
                                    "scoring, beside one static camera (reconstruction.default_held_out); the "
@@ -255,7 +261,8 @@ class QualityPreset(BaseModel):
             "image_scale": self.train_scale, "model": DEGREES[degrees](sh_degree=self.sh_degree),
             "held_out_cameras": list(held_out), "init_static_share": self.init_static_share,
             "init_zoom_stride_px": self.init_zoom_stride_px, "init_finest_level": self.init_finest_level,
-            "init_moving_scale_px": self.init_moving_scale_px, "performer_view_weight": self.performer_view_weight}
+            "init_moving_scale_px": self.init_moving_scale_px, "performer_view_weight": self.performer_view_weight,
+            "mask_alpha_weight": self.mask_alpha_weight, "mask_alpha_every": self.mask_alpha_every}
         if max_gaussians is not None:
             mcmc["cap_max"] = max_gaussians
             values["init_max_points"] = max_gaussians

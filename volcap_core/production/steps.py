@@ -111,6 +111,15 @@ class TrainSegment(_preset_fields("TrainingSchedule", TRAINING_FIELDS)):
     gaussians: int
     memory_bytes: int
 
+    def as_json(self) -> dict[str, Any]:
+        # the alpha loss's fields at their defaults (off) are left out: the journals of plans made
+        # before they existed keep their fingerprints
+        out = super().as_json()
+        for name in ("mask_alpha_weight", "mask_alpha_every"):
+            if out.get(name) == QualityPreset.model_fields[name].default:
+                del out[name]
+        return out
+
     @classmethod
     def for_segment(cls, capture: str, segment: Segment, overlap: int, quality: QualityPreset) -> "TrainSegment":
         return cls(capture=capture, segment=segment.index, frames=segment.frames, core=segment.core,

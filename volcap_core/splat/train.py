@@ -280,6 +280,9 @@ class TrainConfig(BaseModel):
     mask_alpha_weight: float = Field(0.0, ge=0, description="L1 between the performers' alpha (the coverage "
                                      "of the moving Gaussians, in front of the set) and the view's performer "
                                      "mask (View.matte: the capture's masks), where a view has one; 0: off")
+    mask_alpha_every: int = Field(1, ge=1, description="the alpha loss on every N-th step only (its extra render "
+                                  "and backward cost ~60 % of a CPU step: docs/poly4dgs.md, 'Performer masks as "
+                                  "an alpha loss')")
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     held_out_cameras: list[str] = Field(default_factory=list)
     init_opacity: float = Field(0.5, gt=0, lt=1)
@@ -316,11 +319,14 @@ class TrainConfig(BaseModel):
 
     @model_serializer(mode="wrap")
     def _omit_off_mask_alpha(self, handler):
-        # off, the field is left out of the JSON: configs (a train-segment key, a stored record's
-        # config) written before it existed keep their bytes
+        # at their defaults the alpha loss's fields are left out of the JSON: configs (a
+        # train-segment key, a stored record's config) written before they existed keep their bytes
         out = handler(self)
-        if isinstance(out, dict) and out.get("mask_alpha_weight") == 0.0:
-            del out["mask_alpha_weight"]
+        if isinstance(out, dict):
+            if out.get("mask_alpha_weight") == 0.0:
+                del out["mask_alpha_weight"]
+            if out.get("mask_alpha_every") == 1:
+                del out["mask_alpha_every"]
         return out
 
 
@@ -737,7 +743,8 @@ def train_segment(views: SegmentData, init_points: Sequence[PointsAtTime], confi
         loss, parts = step_loss(model, view.time, view.camera, target, view.load_valid(),
                                 grid_params["exposure"], row, grid_params["black"], config,
                                 backend=backend.name, background=bg,
-                                matte=view.load_matte() if config.mask_alpha_weight else None)
+                                matte=view.load_matte() if config.mask_alpha_weight
+                                and step % config.mask_alpha_every == 0 else None)
         if not torch.isfinite(loss.detach()):
             raise FloatingPointError(
                 f"step {step}: loss is {float(loss.detach())} on view {view.camera_id}@{view.frame} "
