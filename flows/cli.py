@@ -227,6 +227,7 @@ def reconstruct(capture: Annotated[str, typer.Argument(help="capture ref name (c
                 known_points: Annotated[Optional[Path], typer.Option(help="JSON of named scene points and their measured distance for the calibration run here (no --calibration), as volcap calibrate --known-points")] = None,
                 min_pair_inliers: Annotated[Optional[int], typer.Option(min=8, help="for the calibration run here (no --calibration), as volcap calibrate --min-pair-inliers")] = None,
                 seed: Annotated[int, typer.Option()] = 0,
+                mask_alpha: Annotated[Optional[str], typer.Option(help="WEIGHT[:EVERY]: train the performers' alpha toward the capture's own masks (imported or from volcap masks) with this L1 weight, on every EVERY-th step (default 1); the preset's mask_alpha_weight / mask_alpha_every replaced. A capture without masks trains as without it")] = None,
                 out: Annotated[Path, typer.Option(help="folder for each segment's contact sheet PNG")] = Path("reconstruct"),
                 store: StoreOpt = DEFAULT_STORE, json_out: JsonOpt = False) -> None:
     """Train the Poly4DGS segments of an ingested capture; reports held-out PSNR/SSIM (per-camera gain/offset
@@ -237,6 +238,7 @@ def reconstruct(capture: Annotated[str, typer.Argument(help="capture ref name (c
 
     span = _frame_span(frames)
     held = [c for c in held_out.split(",") if c] if held_out is not None else None
+    alpha = _mask_alpha(mask_alpha) if mask_alpha is not None else None
     distance, marks = _scale_options(known_distance, known_points)
     given = [o for o, v in (("--allow-unregistered", allow_unregistered), ("--known-distance", distance),
                             ("--known-points", marks), ("--min-pair-inliers", min_pair_inliers)) if v]
@@ -249,7 +251,7 @@ def reconstruct(capture: Annotated[str, typer.Argument(help="capture ref name (c
     summary = _run(reconstruct_flow, store=_store_url(store), capture=capture, frames=span, preset=preset,
                    degrees=degrees, segment_frames=segment_frames, calibration=calibration, points=points,
                    held_out=held, seed=seed, ground_truth=ground_truth, steps=steps, max_gaussians=max_gaussians,
-                   **extra)
+                   mask_alpha=alpha, **extra)
     result = summary.result
     st = _open(_store_url(store))
     lines = []
@@ -317,6 +319,18 @@ def _frame_span(frames: str | None) -> tuple[int, int] | None:
     except ValueError:
         raise typer.BadParameter("expected A:B, e.g. 0:24", param_hint="--frames") from None
     return a, b
+
+
+def _mask_alpha(value: str) -> tuple[float, int]:
+    """``--mask-alpha WEIGHT[:EVERY]`` -> (weight, every); every defaults to 1."""
+    weight, _, every = value.partition(":")
+    try:
+        w, n = float(weight), int(every) if every else 1
+    except ValueError:
+        raise typer.BadParameter(f"expected WEIGHT[:EVERY], e.g. 1 or 1:4, not {value!r}", param_hint="--mask-alpha") from None
+    if w < 0 or n < 1:
+        raise typer.BadParameter(f"WEIGHT must be >= 0 and EVERY >= 1, not {value!r}", param_hint="--mask-alpha")
+    return w, n
 
 
 # ---------------------------------------------------------------------------------------------

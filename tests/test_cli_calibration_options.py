@@ -85,6 +85,21 @@ def test_reconstruct_passes_the_calibration_options_to_its_flow(flow_calls, tmp_
     assert _invoke("calibrate", "captures/x", "--min-pair-inliers", "3").exit_code == 2
 
 
+def test_reconstruct_passes_the_mask_alpha_loss_to_its_flow(flow_calls, tmp_path):
+    """`--mask-alpha WEIGHT[:EVERY]` (the alpha loss on the capture's own masks, not a calibration
+    option, checked here with the same interception): parsed, passed, refused when malformed."""
+    assert _invoke("reconstruct", "captures/x", "--out", str(tmp_path)).exit_code == 0
+    assert flow_calls[-1]["mask_alpha"] is None
+    for given, parsed in (("1", (1.0, 1)), ("0.5:4", (0.5, 4))):
+        res = _invoke("reconstruct", "captures/x", "--mask-alpha", given, "--out", str(tmp_path))
+        assert res.exit_code == 0 and flow_calls[-1]["mask_alpha"] == parsed, res.output
+    calls = len(flow_calls)
+    for bad in ("x", "1:0", "-1", "1:2.5"):
+        res = _invoke("reconstruct", "captures/x", "--mask-alpha", bad, "--out", str(tmp_path))
+        assert res.exit_code == 2 and "--mask-alpha" in res.output, (bad, res.output)
+    assert len(flow_calls) == calls
+
+
 def test_conflicting_or_bad_options_are_refused_before_any_flow(flow_calls, tmp_path):
     marks = tmp_path / "marks.json"
     marks.write_text(json.dumps(MARKS))

@@ -283,6 +283,11 @@ def test_reconstruct_trains_each_segment_to_its_plans_budget():
     assert {c.steps for c in configs} == {40}
     given = segment_configs(plan, "test", max_gaussians=30_000)
     assert {(c.mcmc.cap_max, c.init_max_points) for c in given} == {(30_000, 30_000)}
+    # --mask-alpha W:N: the alpha loss on the capture's masks, the rest of the config the preset's
+    masked = segment_configs(plan, "test", mask_alpha=(1.0, 4))
+    assert {(c.mask_alpha_weight, c.mask_alpha_every) for c in masked} == {(1.0, 4)}
+    assert [c.model_copy(update={"mask_alpha_weight": 0.0, "mask_alpha_every": 1}) for c in masked] == \
+        segment_configs(plan, "test")
 
 
 @flow
