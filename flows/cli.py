@@ -109,6 +109,7 @@ def synth(out_dir: Annotated[Path, typer.Argument(help="folder to write the capt
           lidar: Annotated[bool, typer.Option("--lidar/--no-lidar", help="give the capture its lidar scan (--no-lidar: none, as a studio without a scanner; scene rigs)")] = True,
           static_only: Annotated[bool, typer.Option("--static-only", help="render the rig's static cameras only (no tracking cameras)")] = False,
           actor_of: Annotated[Optional[str], typer.Option("--actor-of", metavar="SCENE_CAPTURE_DIR:N", help="face rigs: film actor N of that synthetic Scene Rig capture (same person, own expressions)")] = None,
+          plates: Annotated[bool, typer.Option("--plates", help="scene rigs: also write each static camera's clean plate, plates/<camera>.exr (the empty set through its sensor), for volcap masks --plates")] = False,
           json_out: JsonOpt = False) -> None:
     """Render a synthetic capture (scene or face rig) in the layout ingest reads."""
     from hardware.rig import load_rig
@@ -131,6 +132,10 @@ def synth(out_dir: Annotated[Path, typer.Argument(help="folder to write the capt
         if not folder or not index.isdigit():
             raise CommandError(f"--actor-of {actor_of!r}: expected SCENE_CAPTURE_DIR:N (N an actor index, 0, 1, ...)")
         extra["actor_of"] = (Path(folder), int(index))
+    if plates:
+        if kind == "face":
+            raise CommandError("--plates is for scene rigs (a Face Rig capture has no static cameras' plates)")
+        extra["plates"] = True
     progress, update = _progress(f"rendering {rig}")
     with progress:
         fn = synthetic.synthesize_face_capture if kind == "face" else synthetic.synthesize_capture
@@ -193,7 +198,7 @@ def demo(store: StoreOpt = DEFAULT_STORE,
     capture_dir = out / "capture"
     if not (capture_dir / "capture.json").exists():
         with CANCEL.nested():  # its line is not the demo's result: a signal still cancels
-            synth(capture_dir, rig="demo_scene", seed=0, frames=frames, depth=True, json_out=False)
+            synth(capture_dir, rig="demo_scene", seed=0, frames=frames, depth=True, plates=True, json_out=False)
     summary = _run(demo_flow, store=_store_url(store), capture_dir=str(capture_dir.resolve()),
                    out_dir=str(out.resolve()), enhancer=enhancer_preset)
     refs = summary.result

@@ -1,6 +1,7 @@
 """The demo: every stage that exists, run on the built-in synthetic capture.
 
-ingest → calibrate (static cameras, tracking cameras, dense points of the frames reconstructed) →
+the static cameras' performer masks against the synthesizer's clean plates (``volcap masks --plates``)
+→ ingest → calibrate (static cameras, tracking cameras, dense points of the frames reconstructed) →
 reconstruct (Poly4DGS, one segment of the first 8 frames to the preset's Gaussian budget, on the
 estimated calibration, scored on held-out cameras (the demo preset holds out one static and one tracking
 camera: S004 and S010) against the empty- and untrained-model floors) → the segment's contact sheet
@@ -45,6 +46,7 @@ from tasks.production import score_shot
 from tasks.reconstruct import render_views
 from volcap_core.capture import Capture
 from volcap_core.enhance.production import EnhancerModel, PairDataset, pair_record
+from volcap_core.masks import write_plate_masks
 from volcap_core.segment import tracking_frames
 from volcap_core.view import ViewSpec
 from volcap_core.calibration.record import Calibration, camera_at
@@ -52,6 +54,7 @@ from volcap_core.production.presets import named_preset
 from volcap_core.reconstruction import SegmentModel
 from volcap_core.splat import export_ply, load_model
 from volcap_core.store import ArtifactStore
+from volcap_core.synth.synthesize import PLATES_DIR
 
 #: The production the demo writes and runs (its journal and refs in the store are named after it).
 PRODUCTION = "demo-closeup"
@@ -92,6 +95,12 @@ def demo_flow(store: str, capture_dir: str, out_dir: str, preset: str = "demo", 
         raise ValueError(f"unknown enhancer run {enhancer!r}: choose one of {', '.join(ENHANCER_RUNS)}")
     log = get_run_logger()
     s = ArtifactStore(store)
+    plates = Path(capture_dir) / PLATES_DIR
+    if plates.is_dir():
+        # the static cameras' performer masks against their clean plates, as `volcap masks --plates`
+        # writes them: the capture's own masks, which start each segment from the performers' visual
+        # hull and train their alpha (the demo preset's mask_alpha_weight; docs/poly4dgs.md)
+        write_plate_masks(capture_dir, plates=plates)
     capture = ingest_flow(store=store, capture_dir=capture_dir)
     # The first third of the take, one segment at the preset's budget (the demo preset's 10,000
     # Gaussians a frame): at demo size a whole take spreads the Gaussians too thin per instant (each

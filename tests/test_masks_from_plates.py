@@ -1,40 +1,20 @@
 """Masks computed against background plates (``volcap masks``) agree with a synthetic capture's
-ground-truth masks. The synthesizer writes no plate, so the test renders one: the empty stage
-through each camera's own sensor model, as the synthesizer renders its frames."""
+ground-truth masks. The plates are the synthesizer's (``plates=True``: the empty set through each
+static camera's own sensor model, rendered as its frames are)."""
 
 from __future__ import annotations
 
 import json
-import zlib
 from pathlib import Path
 
 import numpy as np
 
 from volcap_core.capture import CaptureFolder
 from volcap_core.imageio.read import read_exr_native
-from volcap_core.imageio.write import write_exr
 from volcap_core.masks import write_plate_masks
 from volcap_core.synth import synthesize_capture
-from volcap_core.synth.render import World, render
-from volcap_core.synth.sensor import SensorModel
-from volcap_core.synth.truth import capture_camera, truth_world_from_folder
 
 SEED, CAMERAS, FRAMES = 1, ["S000", "S003"], 12
-
-
-def _clean_plates(root: Path, out: Path) -> Path:
-    """``<out>/<camera>.exr``: each static camera's view of the set without actors, through its
-    sensor (exposure, vignette, glare, and noise of a stream of its own), scene-linear like its
-    frames: the capture's own world and cameras rebuilt from its ground truth."""
-    cameras = json.loads((root / "ground_truth" / "cameras.json").read_text())
-    empty = World(truth_world_from_folder(root).stage, [])
-    out.mkdir()
-    for cam in CAMERAS:
-        radiance = render(empty, capture_camera(cameras, cam, 0), 0.0, 1)[0]
-        sensor = SensorModel.from_json(cameras["cameras"][cam]["photometric"])
-        noise = np.random.default_rng(zlib.crc32(f"plate/{cam}".encode()))
-        write_exr(out / f"{cam}.exr", sensor.apply(radiance, noise), ("R", "G", "B"))
-    return out
 
 
 def _iou(root: Path) -> dict[str, float]:
@@ -54,8 +34,9 @@ def _iou(root: Path) -> dict[str, float]:
 def test_masks_against_plates_agree_with_the_ground_truth(tmp_path):
     """~8 s: 2 static cameras, 12 frames at 320x180."""
     root = synthesize_capture(tmp_path / "cap", rig="demo_scene", seed=SEED, frames=FRAMES, cameras=CAMERAS,
-                              supersample=1, write_depth=True).parent
-    written = write_plate_masks(root, plates=_clean_plates(root, tmp_path / "plates"))
+                              supersample=1, write_depth=True, plates=True).parent
+    assert sorted(p.name for p in (root / "plates").iterdir()) == [f"{c}.exr" for c in CAMERAS]
+    written = write_plate_masks(root, plates=root / "plates")
     assert written == {"S000": FRAMES, "S003": FRAMES}
     assert json.loads((root / "capture.json").read_text())["masks"] == "masks"
     assert CaptureFolder.open(root).mask_cameras == CAMERAS
@@ -94,3 +75,21 @@ def test_a_video_cameras_plate_can_come_from_its_whole_recording(tmp_path):
     assert json.loads(res.output.strip().splitlines()[-1])["cameras"] == {"V0": 3}
     folder = CaptureFolder.open(root)
     assert all(folder.load_mask("V0", i).min() == 1.0 for i in range(3))
+
+
+def test_the_synthesizer_writes_plates_for_static_cameras_only(tmp_path):
+    """A tracking camera moves, so no plate stands behind it (``volcap masks`` refuses it): ``plates=True``
+    writes the static cameras' alone, and a face rig's synthesis refuses ``--plates`` by name."""
+    from typer.testing import CliRunner
+
+    import flows.cli as cli
+
+    root = synthesize_capture(tmp_path / "cap", rig="demo_scene", seed=0, frames=1, cameras=["S000", "S008"],
+                              supersample=1, plates=True).parent
+    assert [p.name for p in (root / "plates").iterdir()] == ["S000.exr"]
+    again = synthesize_capture(tmp_path / "cap", rig="demo_scene", seed=0, frames=1, cameras=["S000", "S008"],
+                               supersample=1).parent
+    assert not (again / "plates").exists()   # a rerun without plates leaves none behind
+    res = CliRunner().invoke(cli.app, ["synth", str(tmp_path / "face"), "--rig", "demo_face", "--frames", "1",
+                                       "--plates"])
+    assert res.exit_code != 0 and "--plates is for scene rigs" in str(res.exception or res.output)

@@ -225,18 +225,23 @@ def test_demo_and_test_presets_train_as_they_were_measured():
 
     demo = PRESETS["demo"].train_config(held_out=["S004"], max_gaussians=80_000)
     # issue 28's route since 2026-11-28 (docs/poly4dgs.md, "The zoom points' depth"): the zoom
-    # cameras' points, the performer-weighted camera schedule, MCMC's moving weight
+    # cameras' points, the performer-weighted camera schedule, MCMC's moving weight; since that
+    # evening the alpha loss on the capture's masks every 4th step ("Performer masks as an alpha loss")
     assert demo == TrainConfig(steps=1640, grid_size=8, eval_every=328, eval_max_views=4, checkpoint_every=328,
                                mcmc=MCMCConfig(refine_start=298, refine_every=298, refine_stop=1490, cap_max=80_000,
                                                moving_weight=4.0),
                                init_max_points=80_000, held_out_cameras=["S004"], init_zoom_stride_px=2,
-                               performer_view_weight=1.5)
+                               performer_view_weight=1.5, mask_alpha_weight=1.0, mask_alpha_every=4)
+    # the route's figures of the afternoon: the same without the alpha loss
+    assert PRESETS["demo"].with_overrides(mask_alpha_weight=0.0, mask_alpha_every=1).train_config(
+        held_out=["S004"], max_gaussians=80_000) == demo.model_copy(
+        update={"mask_alpha_weight": 0.0, "mask_alpha_every": 1})
 
     def unrouted(steps: int) -> TrainConfig:
         """The demo preset at ``steps`` without the route: the demo as measured before it."""
         return PRESETS["demo"].with_steps(steps).with_overrides(
-            init_zoom_stride_px=None, performer_view_weight=0.0, moving_weight=1.0).train_config(
-            held_out=["S004"], max_gaussians=80_000)
+            init_zoom_stride_px=None, performer_view_weight=0.0, moving_weight=1.0,
+            mask_alpha_weight=0.0, mask_alpha_every=1).train_config(held_out=["S004"], max_gaussians=80_000)
 
     # the figures of 2026-11-28 before the route, at 1640 steps and before them at 820: the same
     # schedules without the route
@@ -254,7 +259,8 @@ def test_demo_and_test_presets_train_as_they_were_measured():
                                  mcmc=MCMCConfig(refine_start=100, refine_every=100, refine_stop=500, cap_max=80_000),
                                  init_max_points=80_000, held_out_cameras=["S004"])
     longer = PRESETS["demo"].with_steps(550).with_steps(1300).with_overrides(
-        init_zoom_stride_px=None, performer_view_weight=0.0, moving_weight=1.0).train_config(
+        init_zoom_stride_px=None, performer_view_weight=0.0, moving_weight=1.0, mask_alpha_weight=0.0,
+        mask_alpha_every=1).train_config(
         held_out=["S004"], max_gaussians=80_000)
     assert longer == before.model_copy(update={
         "steps": 1300, "eval_every": 260, "checkpoint_every": 260,

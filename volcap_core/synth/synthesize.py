@@ -34,6 +34,9 @@ FACE_EXPRESSIVE = 1.6
 #: the rig's lidar scan of the static set, a capture input (calibration reads it); the same bytes are
 #: kept in ground_truth/lidar.ply for evaluation
 LIDAR_FILE = "lidar.ply"
+#: the static cameras' clean plates (``plates=True``): ``plates/<camera id>.exr``, what
+#: ``volcap masks --plates`` reads (not a capture input: ingest does not read the folder)
+PLATES_DIR = "plates"
 Progress = Callable[[int, int], None]
 
 #: a static camera with measured intrinsics in the rig (a lens calibration) is rendered with the
@@ -429,11 +432,21 @@ def _render_camera(plan: CameraPlan, world: World, fps: float, frames: int, seed
     return {"frames": gt_frames, "samples": samples}
 
 
+def _render_plate(plan: CameraPlan, world: World, seed: int, ss: int, path: Path) -> None:
+    """A static camera's clean plate: the set without the actors (no contact shadows) at the take's
+    first instant, rendered as its frames are (the same set cache and samples) through its sensor
+    with a noise stream of its own, as a studio shoots one before the take."""
+    empty = World(world.stage, [])
+    cam = camera_at(plan, empty, 0.0)[0]
+    rad = render(empty, cam, 0.0, ss, cache=background(empty, plan.static, ss), bg_ss=1)[0]
+    sio.write_exr(path, plan.sensor.apply(rad, _rng(seed, "plate", plan.cam.id)))
+
+
 def _synthesize(out_dir: Path, rig_name: str | Path, seed: int, frames: int, kind: str, n_actors: int,
                 ss: int, cameras: Sequence[str] | None, write_depth: bool, lidar_spacing_m: float,
                 progress: Progress | None, name: str | None, lidar: bool = True,
                 lens_error: Mapping[str, float] = LENS_CALIBRATION_ERROR,
-                performer: Mapping[str, Any] | None = None) -> Path:
+                performer: Mapping[str, Any] | None = None, plates: bool = False) -> Path:
     if frames < 1:
         raise ValueError("frames must be >= 1")
     if ss < 1:
@@ -447,7 +460,7 @@ def _synthesize(out_dir: Path, rig_name: str | Path, seed: int, frames: int, kin
     # a rerun into the same folder replaces what a previous synthesis wrote (and nothing else)
     for old in (out_dir / "capture.json", out_dir / "rig.json", out_dir / LIDAR_FILE):
         old.unlink(missing_ok=True)
-    for old in (out_dir / FRAMES_DIR, out_dir / GT_DIR):
+    for old in (out_dir / FRAMES_DIR, out_dir / GT_DIR, out_dir / PLATES_DIR):
         if old.is_dir():
             shutil.rmtree(old)
     rig_ref = rig.name
@@ -503,6 +516,9 @@ def _synthesize(out_dir: Path, rig_name: str | Path, seed: int, frames: int, kin
             "frames": res["frames"]}
         if plan.zoom is not None:   # the true zoom lens table (each frame's 'distortion' is it at that focal)
             gt_cams[cid]["zoom_lens"] = plan.zoom.model_dump(mode="json")
+        if plates and not plan.tracks:
+            (out_dir / PLATES_DIR).mkdir(exist_ok=True)
+            _render_plate(plan, world, seed, ss, out_dir / PLATES_DIR / f"{cid}.exr")
     desc = CaptureDescription(
         name=name or f"synth-{rig.name}-s{seed}", rig=rig_ref, fps=fps,
         take=Take(start_timecode=TAKE_START, frame_count=frames), cameras=sources, ground_truth=GT_DIR,
@@ -549,7 +565,7 @@ def synthesize_capture(out_dir: Path, rig: str = "demo_scene", seed: int = 0, fr
                        progress: Progress | None = None, actors: int = 2, supersample: int = 2,
                        cameras: Sequence[str] | None = None, write_depth: bool = False,
                        lidar_spacing_m: float = 0.05, name: str | None = None, lidar: bool = True,
-                       lens_calibration_error: Mapping[str, float] | None = None) -> Path:
+                       lens_calibration_error: Mapping[str, float] | None = None, plates: bool = False) -> Path:
     """Render a Scene Rig capture of ``actors`` walking, talking actors; returns capture.json's path.
 
     ``rig``: a built-in rig name or a rig JSON file (copied into the capture). ``cameras`` renders a
@@ -560,7 +576,9 @@ def synthesize_capture(out_dir: Path, rig: str = "demo_scene", seed: int = 0, fr
     none in capture.json; ``ground_truth/lidar.ply`` is still written, for evaluation).
     ``lens_calibration_error``: for a rig whose static cameras carry measured intrinsics, how far
     (1 sigma) each unit's true lens is from them, in the keys of :data:`LENS_CALIBRATION_ERROR`
-    (the default; ``centre_px`` in the rig's pixels). Same arguments, same bytes.
+    (the default; ``centre_px`` in the rig's pixels). ``plates``: also write each static camera's
+    clean plate, ``plates/<camera id>.exr`` (:data:`PLATES_DIR`: the empty set through its sensor,
+    what ``volcap masks --plates`` computes the performer masks against). Same arguments, same bytes.
     """
     if not 1 <= actors <= 3:
         raise ValueError("actors must be 1, 2 or 3")
@@ -571,7 +589,7 @@ def synthesize_capture(out_dir: Path, rig: str = "demo_scene", seed: int = 0, fr
             raise ValueError(f"lens_calibration_error: unknown keys {sorted(unknown)}; known: {sorted(error)}")
         error.update(lens_calibration_error)
     return _synthesize(Path(out_dir), rig, seed, frames, "scene", actors, supersample, cameras, write_depth,
-                       lidar_spacing_m, progress, name, lidar, error)
+                       lidar_spacing_m, progress, name, lidar, error, plates=plates)
 
 
 def synthesize_face_capture(out_dir: Path, rig: str = "demo_face", seed: int = 0, frames: int = 48, *,
