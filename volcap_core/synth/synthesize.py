@@ -397,10 +397,19 @@ def _performer_source(actor_of: tuple[str | Path, int]) -> dict[str, Any]:
 # --------------------------------------------------------------------------- the writer
 
 def _render_camera(plan: CameraPlan, world: World, fps: float, frames: int, seed: int, ss: int,
-                   cam_dir: Path, depth_dir: Path | None, tick, mask_dir: Path | None = None) -> dict:
+                   cam_dir: Path, depth_dir: Path | None, tick, mask_dir: Path | None = None,
+                   plate: Path | None = None) -> dict:
     """Render and write all of one camera's frames (and, for take frames, the depth maps and performer
-    masks when their folders are given); return its ground truth and encoder samples."""
+    masks when their folders are given; for a static camera its clean plate at ``plate`` when
+    given); return its ground truth and encoder samples."""
     cache = background(world, plan.static, ss) if not plan.tracks else None
+    if plate is not None and cache is not None:
+        # the set without the actors (nor their contact shadows) at the take's first instant, from
+        # the frames' own set render, through the sensor with a noise stream of its own: a clean
+        # plate as a studio shoots one before the take
+        empty = World(world.stage, [])
+        rad = render(empty, camera_at(plan, empty, 0.0)[0], 0.0, ss, cache=cache, bg_ss=1)[0]
+        sio.write_exr(plate, plan.sensor.apply(rad, _rng(seed, "plate", plan.cam.id)))
     bg_ss = 1   # moving cameras: the set at one sample per pixel (mip-filtered), actors at ss
     gt_frames, samples = [], []
     enc_rng = _rng(seed, "encoder-noise", plan.cam.id)
@@ -430,16 +439,6 @@ def _render_camera(plan: CameraPlan, world: World, fps: float, frames: int, seed
                 sio.write_exr(mask_dir / f"{k:06d}.exr", mask[0], half=True)
         tick()
     return {"frames": gt_frames, "samples": samples}
-
-
-def _render_plate(plan: CameraPlan, world: World, seed: int, ss: int, path: Path) -> None:
-    """A static camera's clean plate: the set without the actors (no contact shadows) at the take's
-    first instant, rendered as its frames are (the same set cache and samples) through its sensor
-    with a noise stream of its own, as a studio shoots one before the take."""
-    empty = World(world.stage, [])
-    cam = camera_at(plan, empty, 0.0)[0]
-    rad = render(empty, cam, 0.0, ss, cache=background(empty, plan.static, ss), bg_ss=1)[0]
-    sio.write_exr(path, plan.sensor.apply(rad, _rng(seed, "plate", plan.cam.id)))
 
 
 def _synthesize(out_dir: Path, rig_name: str | Path, seed: int, frames: int, kind: str, n_actors: int,
@@ -501,7 +500,11 @@ def _synthesize(out_dir: Path, rig_name: str | Path, seed: int, frames: int, kin
             depth_dir.mkdir(parents=True, exist_ok=True)
             mask_dir = gt_dir / "masks" / cid
             mask_dir.mkdir(parents=True, exist_ok=True)
-        res = _render_camera(plan, world, fps, frames, seed, ss, cam_dir, depth_dir, tick, mask_dir)
+        plate = None
+        if plates and not plan.tracks:
+            (out_dir / PLATES_DIR).mkdir(exist_ok=True)
+            plate = out_dir / PLATES_DIR / f"{cid}.exr"
+        res = _render_camera(plan, world, fps, frames, seed, ss, cam_dir, depth_dir, tick, mask_dir, plate)
         sources.append(CameraSource(
             id=cid, path=f"{FRAMES_DIR}/{cid}", start_timecode=frames_to_timecode(take_tc - plan.pre_roll, fps),
             encoding=Encoding.linear, lens_encoder=res["samples"] or None))
@@ -516,9 +519,6 @@ def _synthesize(out_dir: Path, rig_name: str | Path, seed: int, frames: int, kin
             "frames": res["frames"]}
         if plan.zoom is not None:   # the true zoom lens table (each frame's 'distortion' is it at that focal)
             gt_cams[cid]["zoom_lens"] = plan.zoom.model_dump(mode="json")
-        if plates and not plan.tracks:
-            (out_dir / PLATES_DIR).mkdir(exist_ok=True)
-            _render_plate(plan, world, seed, ss, out_dir / PLATES_DIR / f"{cid}.exr")
     desc = CaptureDescription(
         name=name or f"synth-{rig.name}-s{seed}", rig=rig_ref, fps=fps,
         take=Take(start_timecode=TAKE_START, frame_count=frames), cameras=sources, ground_truth=GT_DIR,
