@@ -183,7 +183,9 @@ def write_prepared(dst: Path, data, init, config, meta: dict, *, faces: dict | N
     (``meta`` and each view's camera), ``frames/``, ``masks.npz`` (each view's performer mask as
     ``View.load_mask`` gives it), ``init.safetensors`` (the initial points ``init``), and where
     they exist ``faces.npz`` (``faces``: ``(camera, frame)`` -> ``[H, W]`` bool face region),
-    ``valid.npz`` (the pixels that hold footage after rectification).
+    ``valid.npz`` (the pixels that hold footage after rectification), ``mattes.npz`` (a synthetic
+    capture's own masks beside its ground truth, ``View.load_matte``: what the alpha loss trains
+    toward, as the train-segment task's views carry them).
 
     Footage: ``exr_bytes(view)`` gives each view's half-float EXR as the capture stores it (its
     views neither resampled nor rectified); without it the views' images as ``segment_data`` gives
@@ -197,7 +199,7 @@ def write_prepared(dst: Path, data, init, config, meta: dict, *, faces: dict | N
 
     shutil.rmtree(dst, ignore_errors=True)   # another capture's files would travel
     (dst / "frames").mkdir(parents=True)
-    views, masks, valid = [], {}, {}
+    views, masks, valid, mattes = [], {}, {}, {}
     for v in data.views:
         name = f"{v.camera_id}_{v.frame:06d}"
         if exr_bytes is not None:
@@ -209,6 +211,9 @@ def write_prepared(dst: Path, data, init, config, meta: dict, *, faces: dict | N
             if ok is not None:
                 valid[name] = ok.numpy()
         masks[name] = v.load_mask().numpy().astype(np.float32)
+        matte = v.load_matte() if exr_bytes is not None else None   # png: the masks are the capture's own
+        if matte is not None:
+            mattes[name] = matte.numpy().astype(np.float32)
         K, w2c = v.camera.K.numpy(), v.camera.world_to_camera.numpy()
         views.append({"camera": v.camera_id, "frame": v.frame, "time": v.time, "K": K.tolist(),
                       "world_to_camera": w2c.tolist(), "width": v.camera.width, "height": v.camera.height})
@@ -217,6 +222,8 @@ def write_prepared(dst: Path, data, init, config, meta: dict, *, faces: dict | N
         np.savez_compressed(dst / "faces.npz", **{f"{c}_{f:06d}": m for (c, f), m in faces.items()})
     if valid:
         np.savez_compressed(dst / "valid.npz", **valid)
+    if mattes:
+        np.savez_compressed(dst / "mattes.npz", **mattes)
     (dst / "init.safetensors").write_bytes(initial_points_bytes(init, config))
     meta = dict(meta)
     if exr_bytes is None:
@@ -296,6 +303,7 @@ class Prepared:
         faces = np.load(src / "faces.npz") if (src / "faces.npz").is_file() else None
         valid = np.load(src / "valid.npz") if (src / "valid.npz").is_file() else None
         own_masks = self.meta.get("footage") == "png"   # a real capture's masks: its own, also the matte
+        mattes = np.load(src / "mattes.npz") if (src / "mattes.npz").is_file() else None
         views = []
         self.faces = None if faces is None else {}
         for v in self.meta["views"]:
@@ -306,8 +314,9 @@ class Prepared:
                             width=v["width"], height=v["height"])
             mask = torch.from_numpy(masks[name])
             ok = torch.from_numpy(valid[name]) if valid is not None and name in valid.files else None
-            views.append(View(v["camera"], v["frame"], v["time"], camera, image, mask, valid=ok,
-                              matte=mask if own_masks else None))
+            matte = (mask if own_masks else torch.from_numpy(mattes[name])
+                     if mattes is not None and name in mattes.files else None)
+            views.append(View(v["camera"], v["frame"], v["time"], camera, image, mask, valid=ok, matte=matte))
             if faces is not None:
                 self.faces[(v["camera"], v["frame"])] = faces[name]
         self.data = SegmentData(tuple(self.meta["frames"]), views)

@@ -14,6 +14,7 @@ from flows.runtime import run_flow
 from volcap_core import reconstruction
 from volcap_core.calibration.record import Calibration
 from volcap_core.capture import Capture
+from volcap_core.masks import write_plate_masks
 from volcap_core.pointcloud import PointCloudSequence
 from volcap_core.production.presets import named_preset
 from volcap_core.segment import tracking_frames
@@ -36,7 +37,8 @@ def test_prepare_run_report(prefect_api, tmp_path):
     pycolmap and OpenCV cannot be imported, reported. 155 s of CPU on the 2-core machine under a
     load of ~25 (2026-11-27; 8 cameras: 202 s), most of it the floors' colour fits per view."""
     root = synthesize_capture(tmp_path / "cap", rig="demo_scene", seed=3, frames=2, cameras=CAMERAS,
-                              supersample=1, write_depth=True, lidar=False).parent
+                              supersample=1, write_depth=True, lidar=False, plates=True).parent
+    write_plate_masks(root, plates=root / "plates")   # the capture's own masks, as the demo's
     store = ArtifactStore(str(tmp_path / "store")).url
     capture = run_flow(ingest_flow, store=store, capture_dir=str(root)).result.digest
     recon = run_flow(reconstruct_flow, store=store, capture=capture, preset="test", points_per_frame=1500,
@@ -51,6 +53,13 @@ def test_prepare_run_report(prefect_api, tmp_path):
     # without --gaussians-per-frame: the production preset's budget a frame (a GPU's size)
     assert bench.demo_quality(4).gaussians_per_frame == named_preset("production").gaussians_per_frame == 100_000
     assert len(meta["views"]) == 2 * len(CAMERAS)
+    # the capture's own masks travel as the views' mattes (the demo preset's alpha loss trains on them
+    # there, as in the train-segment task); the ground truth's stay the scored masks
+    prep = bench.Prepared(src)
+    with_matte = sorted({v.camera_id for v in prep.data.views if v.matte is not None})
+    assert with_matte == ["S001", "S002", "S003", "S004"]   # the static cameras: no plate behind a tracking one
+    v = next(v for v in prep.data.views if v.camera_id == "S001")
+    assert not torch.equal(v.load_matte(), v.load_mask())
 
     # the run part: no Prefect, pycolmap, OpenCV or OpenImageIO in its process
     out = tmp_path / "out"
