@@ -81,6 +81,56 @@ def moving_scene(n: int = 40, *, frames=(0, 3), fps: float = 10.0, cameras: int 
     return data, points, cams
 
 
+def performers_on_a_floor(*, frames=(0, 2), fps: float = 10.0, size: int = 24):
+    """Performers (30 Gaussians moving at constant velocity) on a static floor (a grid of flat
+    Gaussians at z = -0.45), seen by 5 ring cameras; per view the footage and the performers'
+    true coverage (the view's matte). Returns (SegmentData, initial points per frame: the
+    performers' noisy, the floor's as it is and marked static)."""
+    from volcap_core.colour import srgb_decode_unbounded
+    from volcap_core.splat.render import render
+    from volcap_core.splat.sh import SH_C0, sh_to_colour
+    from volcap_core.splat.train import PointsAtTime, SegmentData
+
+    actors = random_gaussians(30, seed=3, sh_degree=0, spread=0.3, scale=(0.05, 0.12))
+    actors.opacities[:] = 0.9
+    vel = torch.randn(30, 3, generator=torch.Generator().manual_seed(4)) * 0.3
+    u = torch.linspace(-1.0, 1.0, 9)
+    floor_xyz = torch.stack([*torch.meshgrid(u, u, indexing="ij"), torch.full((9, 9), -0.45)], -1).reshape(-1, 3)
+    nf = len(floor_xyz)
+    floor = Gaussians3D(floor_xyz, torch.tensor([[1.0, 0, 0, 0]]).repeat(nf, 1),
+                        torch.tensor([[0.14, 0.14, 0.01]]).repeat(nf, 1), torch.full((nf,), 0.95),
+                        torch.full((nf, 1, 3), 0.1 / SH_C0), torch.arange(nf))
+    cams = ring_cameras(5, size=size)
+
+    def at(t: float, flag: bool = False) -> Gaussians3D:
+        sh = torch.cat([actors.sh, floor.sh])
+        if flag:   # colour 1 on the performers, 0 on the floor: their coverage, occluded by the floor
+            sh = torch.cat([torch.full_like(actors.sh, 0.5 / SH_C0), torch.full_like(floor.sh, -0.5 / SH_C0)])
+        return Gaussians3D(torch.cat([actors.means + vel * t, floor.means]), torch.cat([actors.quats, floor.quats]),
+                           torch.cat([actors.scales, floor.scales]), torch.cat([actors.opacities, floor.opacities]),
+                           sh, torch.arange(30 + nf), colour_space="linear" if flag else "srgb_unbounded")
+
+    with torch.no_grad():
+        images = {(str(i), f): render(at(f / fps), c, backend="torch")["rgb"] for i, c in enumerate(cams)
+                  for f in range(*frames)}
+        masks = {(str(i), f): render(at(f / fps, True), c, backend="torch")["rgb"][..., 0]
+                 for i, c in enumerate(cams) for f in range(*frames)}
+    data = SegmentData.build(frames=frames, camera_ids=[str(i) for i in range(5)], fps=fps,
+                             load_image=lambda c, f: images[(c, f)], camera_for=lambda c, f: cams[int(c)],
+                             load_matte=lambda c, f: masks[(c, f)])
+    g = torch.Generator().manual_seed(9)
+    colour = srgb_decode_unbounded(sh_to_colour(actors.sh, actors.means)).clamp(0, 1)
+    points = []
+    for f in range(*frames):
+        # a noisy "dense" cloud: the performers 3 points a Gaussian with 6 cm jitter, the floor as it is
+        xyz = torch.cat([(actors.means + vel * f / fps).repeat(3, 1) + 0.06 * torch.randn(90, 3, generator=g),
+                         floor_xyz])
+        rgb = torch.cat([colour.repeat(3, 1), torch.full((nf, 3), 0.01)])
+        static = torch.cat([torch.zeros(90, dtype=torch.bool), torch.ones(nf, dtype=torch.bool)])
+        points.append(PointsAtTime(f / fps, xyz, rgb, static))
+    return data, points
+
+
 def record_kernel_threads(monkeypatch, module, *kernels: str) -> list[int]:
     """Wrap the compiled ``kernels`` (names in ``module``) so each call records numba's thread
     count at that moment; returns the record (one int per call, in call order)."""

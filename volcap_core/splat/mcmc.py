@@ -38,7 +38,7 @@ import torch
 from pydantic import BaseModel, ConfigDict, Field
 
 from volcap_core.checkpoint import AdamState
-from volcap_core.splat.model import LOG_SCALE_MAX, LOG_SCALE_MIN, STATIC_LOG_LAMBDA, Poly4DGS
+from volcap_core.splat.model import LOG_SCALE_MAX, LOG_SCALE_MIN, Poly4DGS
 from volcap_core.splat.rasterize import quat_scale_to_covar
 
 __all__ = ["MCMCConfig", "add_gaussians", "inject_noise", "mcmc_regulariser", "relocate_dead",
@@ -128,11 +128,9 @@ def _source_weight(model: Poly4DGS, o0: torch.Tensor, cfg: MCMCConfig) -> torch.
     ``cfg.moving_weight`` for the moving ones (a lifespan: ``log λ_1`` above the static value).
     ``moving_weight`` 1 (or a model without lifespans) returns ``o0`` itself: the draws of every
     run before the weight existed."""
-    lam = model.params.get("log_lambdas")
-    if cfg.moving_weight == 1.0 or lam is None:
+    if cfg.moving_weight == 1.0 or "log_lambdas" not in model.params:
         return o0
-    moving = lam.detach()[:, 0] > STATIC_LOG_LAMBDA + 10.0
-    return torch.where(moving, o0 * cfg.moving_weight, o0)
+    return torch.where(model.moving(), o0 * cfg.moving_weight, o0)
 
 
 @torch.no_grad()

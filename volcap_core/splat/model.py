@@ -262,6 +262,28 @@ class Poly4DGS:
     def to(self, device: torch.device | str) -> "Poly4DGS":
         return Poly4DGS(self.config, {k: v.to(device) for k, v in self.params.items()})
 
+    def moving(self) -> torch.Tensor:
+        """``[N]`` bool: the Gaussians with a lifespan (``log λ_1`` above the static value: the
+        performers') rather than the set's, which live for the whole segment. Every Gaussian of a
+        model without lifespans counts as moving."""
+        lam = self.params.get("log_lambdas")
+        if lam is None:
+            return torch.ones(len(self), dtype=torch.bool, device=self.params["means"].device)
+        return lam.detach()[:, 0] > STATIC_LOG_LAMBDA + 10.0
+
+    def subset(self, keep: torch.Tensor) -> "Poly4DGS":
+        """The Gaussians ``keep`` (``[N]`` bool or indices), as plain (no-grad) copies."""
+        return Poly4DGS(self.config, {k: v.detach()[keep].clone() for k, v in self.params.items()})
+
+    @staticmethod
+    def joined(first: "Poly4DGS", second: "Poly4DGS") -> "Poly4DGS":
+        """One model holding ``first``'s Gaussians, then ``second``'s (the same config; plain
+        copies)."""
+        if first.config != second.config:
+            raise ValueError(f"joining models of different configs: {first.config} and {second.config}")
+        return Poly4DGS(first.config, {k: torch.cat([first.params[k].detach(), second.params[k].detach()])
+                                       for k in first.params})
+
 
 def _powers(dt: torch.Tensor, degree: int) -> torch.Tensor:
     """``[N, degree]`` with column i-1 = dt^i."""

@@ -296,8 +296,8 @@ def render(gaussians: Gaussians3D, camera: Camera, *, backend: Backend = "auto",
         backend: ``"auto"``, ``"gsplat"``, ``"torch"`` or ``"numba"``, resolved by
             :func:`resolve_backend` (an explicit back-end that cannot run raises
             :class:`BackendUnavailable`).
-        background: ``[3]`` linear colour behind the Gaussians (default black), added as
-            ``(1 - alpha) · background``.
+        background: ``[3]`` linear colour behind the Gaussians (default black), or an ``[H, W, 3]``
+            image (another model's render: training's frozen set), added as ``(1 - alpha) · background``.
         tile_size: tile edge of the torch and numba back-ends (px).
         stats: filled with the torch or numba back-end's work counts (benchmarks).
     Returns:

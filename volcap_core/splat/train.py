@@ -50,7 +50,6 @@ from volcap_core.splat.mcmc import (
     relocate_dead,
 )
 from volcap_core.splat.model import (
-    STATIC_LOG_LAMBDA,
     Gaussians3D,
     Poly4DGS,
     Poly4DGSConfig,
@@ -283,6 +282,11 @@ class TrainConfig(BaseModel):
     mask_alpha_every: int = Field(1, ge=1, description="the alpha loss on every N-th step only (its extra render "
                                   "and backward cost ~60 % of a CPU step: docs/poly4dgs.md, 'Performer masks as "
                                   "an alpha loss')")
+    set_frozen_from: float | None = Field(None, gt=0, lt=1, description="from this fraction of the steps on, the "
+                                          "set (the static Gaussians) stops training and each training view's "
+                                          "render of it is the background the performers are composited over, so "
+                                          "the remaining steps cost only the performers' Gaussians (docs/poly4dgs.md, "
+                                          "'The set frozen'); None: the set trains to the end")
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     held_out_cameras: list[str] = Field(default_factory=list)
     init_opacity: float = Field(0.5, gt=0, lt=1)
@@ -318,16 +322,20 @@ class TrainConfig(BaseModel):
     tile_size: int = Field(8, ge=1)
 
     @model_serializer(mode="wrap")
-    def _omit_off_mask_alpha(self, handler):
-        # at their defaults the alpha loss's fields are left out of the JSON: configs (a
-        # train-segment key, a stored record's config) written before they existed keep their bytes
+    def _omit_off_options(self, handler):
+        # at their defaults the alpha loss's and the frozen set's fields are left out of the JSON:
+        # configs (a train-segment key, a stored record's config) written before they existed keep
+        # their bytes
         out = handler(self)
         if isinstance(out, dict):
-            if out.get("mask_alpha_weight") == 0.0:
-                del out["mask_alpha_weight"]
-            if out.get("mask_alpha_every") == 1:
-                del out["mask_alpha_every"]
+            for name, off in _OFF_WHEN.items():
+                if name in out and out[name] == off:
+                    del out[name]
         return out
+
+
+#: TrainConfig fields left out of its JSON at these values (added after configs were stored)
+_OFF_WHEN = {"mask_alpha_weight": 0.0, "mask_alpha_every": 1, "set_frozen_from": None}
 
 
 @dataclass(frozen=True)
@@ -458,8 +466,7 @@ def _freeze_static_lifespans(model: Poly4DGS) -> None:
     g = model.params.get("log_lambdas")
     if g is None or g.grad is None:
         return
-    static = g.detach()[:, 0] <= STATIC_LOG_LAMBDA + 10.0
-    g.grad[static] = 0.0
+    g.grad[~model.moving()] = 0.0
 
 
 # ---------------------------------------------------------------------------------- evaluation
@@ -513,6 +520,63 @@ class _State:
     step: int
     wall_s: float
     history: list[EvalPoint]
+
+
+#: The frozen set's renders kept for its training views at most (``TrainConfig.set_frozen_from``):
+#: the demo segment's 72 views at 320x180 take 50 MB; a production's 4K views ~100 MB each, so
+#: beyond this a view's render of the set is made again each time it is drawn
+SET_RENDERS_KEPT_BYTES = 2 * 1024 ** 3
+
+
+@dataclass
+class _FrozenSet:
+    """The set once frozen (``TrainConfig.set_frozen_from``): its Gaussians and their Adam moments
+    (kept so that a checkpoint still holds the whole model and its state), and each training
+    view's render of it (``[H, W, 3]`` linear, over the config's background), made on the view's
+    first draw and kept within :data:`SET_RENDERS_KEPT_BYTES`: 12 bytes a pixel a training view."""
+
+    model: Poly4DGS
+    adam: AdamState
+    backgrounds: dict[int, torch.Tensor] = field(default_factory=dict)
+
+
+def _freeze_set(state: _State) -> _FrozenSet:
+    """Split ``state``'s model in place: the performers (moving Gaussians) stay in it as the
+    trained leaves, the set (static ones) goes to the returned :class:`_FrozenSet`. Each keeps
+    its order, so :func:`_whole` gives the model back set first, and splitting that again (a
+    checkpoint resumed after the freeze) gives the same two halves."""
+    moving = state.model.moving()
+    frozen = _FrozenSet(state.model.subset(~moving), AdamState(
+        {k: m[~moving] for k, m in state.adam.exp_avg.items()},
+        {k: v[~moving] for k, v in state.adam.exp_avg_sq.items()}, state.adam.step))
+    state.model = state.model.subset(moving)
+    for v in state.model.params.values():
+        v.requires_grad_(True)
+    state.adam = AdamState({k: m[moving] for k, m in state.adam.exp_avg.items()},
+                           {k: v[moving] for k, v in state.adam.exp_avg_sq.items()}, state.adam.step)
+    return frozen
+
+
+def _whole(state: _State, frozen: _FrozenSet | None) -> _State:
+    """``state`` with the frozen set joined back in front of the performers (model and Adam
+    moments): what a checkpoint, an evaluation and the result hold."""
+    if frozen is None:
+        return state
+    adam = AdamState({k: torch.cat([frozen.adam.exp_avg[k], m]) for k, m in state.adam.exp_avg.items()},
+                     {k: torch.cat([frozen.adam.exp_avg_sq[k], v]) for k, v in state.adam.exp_avg_sq.items()},
+                     state.adam.step)
+    return replace(state, model=Poly4DGS.joined(frozen.model, state.model), adam=adam)
+
+
+def _performers_mcmc(config: TrainConfig, n_set: int, n_performers: int) -> TrainConfig:
+    """``config`` for a refine step of the performers alone (the set frozen): the segment's budget
+    less the set's Gaussians, and growth by as many as the whole model's ``grow_rate`` would add,
+    so freezing the set leaves the count as it would have grown (MCMC's ``moving_weight`` sends most
+    of that growth to the performers anyway)."""
+    m = config.mcmc
+    rate = m.grow_rate * (n_set + n_performers) / max(1, n_performers)
+    return config.model_copy(update={"mcmc": m.model_copy(
+        update={"cap_max": max(1, m.cap_max - n_set), "grow_rate": rate})})
 
 
 def _serialise(state: _State, config: TrainConfig, extra: dict) -> bytes:
@@ -574,12 +638,7 @@ def performer_alpha(model: Poly4DGS, gaussians: Gaussians3D, camera: Camera, *, 
     what compositing the performers over another background needs; the render's own alpha is 1
     wherever the set is. One more render of the same Gaussians, each a flat linear colour
     ``m_i``, over black."""
-    lam = model.params.get("log_lambdas")
-    ids = gaussians.ids
-    if lam is None:
-        moving = torch.ones(len(gaussians), device=gaussians.means.device)
-    else:
-        moving = (lam.detach()[ids, 0] > STATIC_LOG_LAMBDA + 10.0).to(gaussians.sh.dtype)
+    moving = model.moving()[gaussians.ids].to(gaussians.sh.dtype)
     sh = torch.zeros_like(gaussians.sh)
     sh[:, 0, :] = ((moving - 0.5) / SH_C0)[:, None]     # SH DC: colour = sh0·C0 + 0.5 = m
     flat = replace(gaussians, sh=sh, colour_space="linear")
@@ -600,6 +659,8 @@ def step_loss(model: Poly4DGS, time: float, camera: Camera, target: torch.Tensor
             or None for everywhere.
         exposure: every training camera's exposure grid [C, Gy, Gx, 3]; ``row`` picks this one.
         black: every training camera's black-level grid [C, 3]; ``row`` picks this one.
+        background: what the render is composited over: a ``[3]`` linear colour or, once the set
+            is frozen (``config.set_frozen_from``), the view's ``[H, W, 3]`` render of the set.
         matte: [H, W] the view's performer mask in [0, 1], or None; with
             ``config.mask_alpha_weight`` the performers' alpha (:func:`performer_alpha`) is pulled
             toward it (L1 over the valid pixels).
@@ -722,19 +783,45 @@ def train_segment(views: SegmentData, init_points: Sequence[PointsAtTime], confi
                 "black": config.lr.black if config.optimise_black_level else 0.0}
     bg = torch.tensor(config.background, device=device)
     cam_row = {c: i for i, c in enumerate(train_cams)}
+    # the step at which the set stops training (TrainConfig.set_frozen_from), and once it has
+    frozen_at = None if config.set_frozen_from is None else max(1, round(config.set_frozen_from * config.steps))
+    frozen: _FrozenSet | None = None
+    step_config = config
 
     def run_eval() -> None:
         if eval_views and (not state.history or state.history[-1].step != state.step):
-            sc = summarise(evaluate_held_out(state.model, eval_views, config, device=device))
+            sc = summarise(evaluate_held_out(_whole(state, frozen).model, eval_views, config, device=device))
             state.history.append(EvalPoint(state.step, state.wall_s, sc.psnr, sc.ssim))
+
+    def background(i: int) -> torch.Tensor:
+        """What training view ``i``'s performers are composited over: the config's colour, or
+        once the set is frozen, the view's render of it (kept while the kept renders stay within
+        :data:`SET_RENDERS_KEPT_BYTES`, made again on each draw beyond)."""
+        if frozen is None:
+            return bg
+        if i in frozen.backgrounds:
+            return frozen.backgrounds[i]
+        v = train_views[i]
+        with torch.no_grad():
+            image = render(evaluate(frozen.model, v.time), v.camera, backend=backend.name,
+                           background=bg, tile_size=config.tile_size)["rgb"]
+        kept = sum(b.numel() * b.element_size() for b in frozen.backgrounds.values())
+        if kept + image.numel() * image.element_size() <= SET_RENDERS_KEPT_BYTES:
+            frozen.backgrounds[i] = image
+        return image
 
     if state.step == 0 and config.eval_every:
         run_eval()
     while state.step < config.steps:
         t_start = time.perf_counter()
+        if frozen_at is not None and frozen is None and state.step >= frozen_at:
+            frozen = _freeze_set(state)
         step = state.step + 1
         model = state.model
-        view = train_views[draw_view(len(train_views), weights, state.generator)]
+        if frozen is not None and config.mcmc.is_refine_step(step):
+            step_config = _performers_mcmc(config, len(frozen.model), len(model))
+        i = draw_view(len(train_views), weights, state.generator)
+        view = train_views[i]
         target = view.load().to(device)
         lrs = learning_rates(config, step, scene_scale, time_scale, model)
         for p in (*model.params.values(), *grid_params.values()):
@@ -742,7 +829,7 @@ def train_segment(views: SegmentData, init_points: Sequence[PointsAtTime], confi
         row = cam_row[view.camera_id]
         loss, parts = step_loss(model, view.time, view.camera, target, view.load_valid(),
                                 grid_params["exposure"], row, grid_params["black"], config,
-                                backend=backend.name, background=bg,
+                                backend=backend.name, background=background(i),
                                 matte=view.load_matte() if config.mask_alpha_weight
                                 and step % config.mask_alpha_every == 0 else None)
         if not torch.isfinite(loss.detach()):
@@ -752,22 +839,23 @@ def train_segment(views: SegmentData, init_points: Sequence[PointsAtTime], confi
                 f"{'finite' if bool(torch.isfinite(target).all()) else 'has NaN/Inf pixels'})")
         loss.backward()
         relocated, grown = optimiser_step(model, state.adam, grid_params, grid_lrs, state.grid_adam, lrs,
-                                          config, step, state.generator, scene_scale=scene_scale)
+                                          step_config, step, state.generator, scene_scale=scene_scale)
         state.step = step
         state.wall_s += time.perf_counter() - t_start
 
         if progress is not None:
             progress(step, config.steps, {"loss": float(loss.detach()), **parts,
-                                          "num_gaussians": len(model), "relocated": relocated,
+                                          "num_gaussians": len(model) + (len(frozen.model) if frozen else 0),
+                                          "relocated": relocated,
                                           "grown": grown, "wall_s": state.wall_s})
         if config.eval_every and step % config.eval_every == 0:
             run_eval()
         if checkpoint is not None and (
                 (config.checkpoint_every and step % config.checkpoint_every == 0)
                 or step == config.steps):
-            checkpoint(_serialise(state, config, extra), step)
+            checkpoint(_serialise(_whole(state, frozen), config, extra), step)
     run_eval()
-    final = state.model.detached()
+    final = _whole(state, frozen).model.detached()
     grids = ExposureGrids(state.grids.camera_ids, state.grids.exposure.detach().clone(),
                           state.grids.black.detach().clone())
     return TrainResult(final, grids, list(state.history), state.step, state.wall_s, backend=backend)
