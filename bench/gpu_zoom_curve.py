@@ -97,8 +97,10 @@ def _points_of(s, calibration) -> str:
 def demo_quality(steps: int, gaussians_per_frame: int | None = None):
     """The demo preset with the production preset's budget (Gaussians a frame, GPU memory) and MCMC
     schedule, stretched to ``steps``: the demo's cameras, held-out cameras and initialisation, at
-    the size and schedule a production trains. ``gaussians_per_frame`` replaces the production
-    preset's (a CPU smoke test's tiny model; None: the production's)."""
+    the size and schedule a production trains, the set trained to the end as a production trains it
+    (the demo's ``set_frozen_from`` buys CPU steps; at a production budget it is unmeasured).
+    ``gaussians_per_frame`` replaces the production preset's (a CPU smoke test's tiny model; None:
+    the production's)."""
     from volcap_core.production.presets import named_preset
 
     demo, prod = named_preset("demo"), named_preset("production")
@@ -106,7 +108,7 @@ def demo_quality(steps: int, gaussians_per_frame: int | None = None):
         train_steps=prod.train_steps, refine_start=prod.refine_start, refine_every=prod.refine_every,
         refine_stop=prod.refine_stop, eval_every=prod.eval_every, checkpoint_every=prod.checkpoint_every,
         gaussians_per_frame=gaussians_per_frame or prod.gaussians_per_frame, max_gaussians_per_segment=None,
-        gpu_memory_gb=prod.gpu_memory_gb).with_steps(steps)
+        gpu_memory_gb=prod.gpu_memory_gb, set_frozen_from=prod.set_frozen_from).with_steps(steps)
 
 
 def prepare(dst: Path, store_url: str, steps: int, *, capture: str | None = None, calibration: str | None = None,

@@ -39,15 +39,19 @@ def plan_reconstruction(info: CaptureInfo, frames: tuple[int, int], preset: str,
 
 def segment_configs(plan: SegmentPlan, preset: str, *, degrees: str = "poly4dgs", held_out: Sequence[str] = (),
                     steps: int | None = None, max_gaussians: int | None = None,
-                    mask_alpha: tuple[float, int] | None = None) -> list[TrainConfig]:
+                    mask_alpha: tuple[float, int] | None = None,
+                    set_frozen_from: float | None = None) -> list[TrainConfig]:
     """Each segment's TrainConfig: the preset's (its schedule stretched to ``steps`` when given),
     with the segment's Gaussian budget from the plan (``gaussians_per_frame`` a frame within the
     preset's cap), as a production's train-segment step trains it; ``max_gaussians`` replaces that
     budget for every segment. ``mask_alpha``: ``(weight, every)``, the preset's
-    ``mask_alpha_weight`` and ``mask_alpha_every`` replaced (the alpha loss on the capture's masks)."""
+    ``mask_alpha_weight`` and ``mask_alpha_every`` replaced (the alpha loss on the capture's masks).
+    ``set_frozen_from``: the preset's replaced (0: the set trains to the end; None: the preset's)."""
     quality = named_preset(preset) if steps is None else named_preset(preset).with_steps(steps)
     if mask_alpha is not None:
         quality = quality.with_overrides(mask_alpha_weight=mask_alpha[0], mask_alpha_every=mask_alpha[1])
+    if set_frozen_from is not None:
+        quality = quality.with_overrides(set_frozen_from=set_frozen_from or None)
     return [quality.train_config(degrees=degrees, held_out=held_out, max_gaussians=max_gaussians or seg.gaussians)
             for seg in plan.segments]
 
@@ -80,7 +84,7 @@ def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = 
                      steps: int | None = None, allow_unregistered: bool = False,
                      known_distance: tuple[str, str, float] | None = None,
                      known_points: dict | None = None, min_pair_inliers: int | None = None,
-                     mask_alpha: tuple[float, int] | None = None) -> dict:
+                     mask_alpha: tuple[float, int] | None = None, set_frozen_from: float | None = None) -> dict:
     """Train the segments of ``capture`` (a ref name such as ``captures/demo`` or a digest).
 
     ``calibration`` / ``points``: refs of a Calibration and a PointCloudSequence. When omitted, the
@@ -98,7 +102,8 @@ def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = 
     :func:`segment_configs`, the preset's TrainConfig stretched to ``steps`` when given, each
     segment to its plan's Gaussian budget unless ``max_gaussians`` is given; ``mask_alpha``:
     ``(weight, every)``, the alpha loss on the capture's own masks (a capture without masks trains
-    as without it).
+    as without it); ``set_frozen_from``: the fraction of the steps after which the set stops
+    training (0: never; None: the preset's).
     Returns the segment model refs and their held-out PSNR/SSIM and training wall time, each with
     its frames and its core (the frames no neighbour shares).
     """
@@ -144,7 +149,7 @@ def reconstruct_flow(store: str, capture: str, frames: tuple[int, int] | None = 
              "given" if calibration else "ground-truth" if ground_truth else "estimated", calib_ref.digest,
              points_ref.digest)
     configs = segment_configs(plan, preset, degrees=degrees, held_out=held, steps=steps, max_gaussians=max_gaussians,
-                              mask_alpha=mask_alpha)
+                              mask_alpha=mask_alpha, set_frozen_from=set_frozen_from)
     log.info("capture %s: %d segment(s) of frames %d:%d (%d shared by neighbours), preset %s, held out %s",
              cap.name, len(plan.segments), a, b, plan.overlap, preset, ", ".join(held) or "none")
     jobs = [SegmentJob(capture=capture_ref, calibration=calib_ref, points=points_ref, frames=seg.frames,

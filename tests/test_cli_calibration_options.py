@@ -100,6 +100,18 @@ def test_reconstruct_passes_the_mask_alpha_loss_to_its_flow(flow_calls, tmp_path
     assert len(flow_calls) == calls
 
 
+def test_reconstruct_passes_the_frozen_sets_fraction_to_its_flow(flow_calls, tmp_path):
+    """`--set-frozen-from F` (0: off): passed as given, the preset's when omitted, refused outside [0, 0.99]."""
+    assert _invoke("reconstruct", "captures/x", "--out", str(tmp_path)).exit_code == 0
+    assert flow_calls[-1]["set_frozen_from"] is None
+    for given in ("0", "0.3"):
+        res = _invoke("reconstruct", "captures/x", "--set-frozen-from", given, "--out", str(tmp_path))
+        assert res.exit_code == 0 and flow_calls[-1]["set_frozen_from"] == float(given), res.output
+    for bad in ("1", "-0.1", "x"):
+        res = _invoke("reconstruct", "captures/x", "--set-frozen-from", bad, "--out", str(tmp_path))
+        assert res.exit_code == 2 and "--set-frozen-from" in res.output, (bad, res.output)
+
+
 def test_conflicting_or_bad_options_are_refused_before_any_flow(flow_calls, tmp_path):
     marks = tmp_path / "marks.json"
     marks.write_text(json.dumps(MARKS))
