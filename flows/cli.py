@@ -150,6 +150,7 @@ def masks(capture_dir: Annotated[Path, typer.Argument(help="capture folder holdi
           plates: Annotated[Optional[Path], typer.Option(help="folder of background plates, <camera id>.exr|png|tif|tiff|dpx in the camera's encoding; a static camera without one gets the median of its take")] = None,
           cameras: Annotated[Optional[str], typer.Option(help="comma-separated static cameras (default: all static cameras)")] = None,
           whole_recording: Annotated[bool, typer.Option("--whole-recording", help="a video camera without a plate gets the median of its whole file, not of the take (a performer who stays put through a short take is in the take's median)")] = False,
+          drop_shadows: Annotated[bool, typer.Option("--drop-shadows", help="leave the performers' shadows on the set out of the masks: a pixel that is the plate darkened to 45-85 percent of its brightness with its colour kept (a performer in the wall's colour, darker, reads so too)")] = False,
           json_out: JsonOpt = False) -> None:
     """Compute performer masks against background plates into the capture folder's masks folder."""
     from volcap_core.masks import write_plate_masks
@@ -159,7 +160,8 @@ def masks(capture_dir: Annotated[Path, typer.Argument(help="capture folder holdi
     with progress:
         written = write_plate_masks(capture_dir, plates=plates,
                                     cameras=[c for c in cameras.split(",") if c] if cameras else None,
-                                    whole_recording=whole_recording, progress=lambda cam, done, total: update(done, total))
+                                    whole_recording=whole_recording, drop_shadows=drop_shadows,
+                                    progress=lambda cam, done, total: update(done, total))
     wall = time.perf_counter() - t0
     _emit({"cameras": written, "wall_s": round(wall, 3)}, json_out,
           f"wrote {sum(written.values())} masks of {len(written)} camera(s) into {capture_dir} in {wall:.1f} s")
