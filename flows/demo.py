@@ -1,6 +1,6 @@
 """The demo: every stage that exists, run on the built-in synthetic capture.
 
-the static cameras' performer masks against the synthesizer's clean plates (``volcap masks --plates``)
+the static cameras' performer masks against the synthesizer's clean plates, shadows left out (``volcap masks --plates --drop-shadows``)
 → ingest → calibrate (static cameras, tracking cameras, dense points of the frames reconstructed) →
 reconstruct (Poly4DGS, one segment of the first 8 frames to the preset's Gaussian budget, on the
 estimated calibration, scored on held-out cameras (the demo preset holds out one static and one tracking
@@ -97,10 +97,11 @@ def demo_flow(store: str, capture_dir: str, out_dir: str, preset: str = "demo", 
     s = ArtifactStore(store)
     plates = Path(capture_dir) / PLATES_DIR
     if plates.is_dir():
-        # the static cameras' performer masks against their clean plates, as `volcap masks --plates`
-        # writes them: the capture's own masks, which start each segment from the performers' visual
-        # hull and train their alpha (the demo preset's mask_alpha_weight; docs/poly4dgs.md)
-        write_plate_masks(capture_dir, plates=plates)
+        # the static cameras' performer masks against their clean plates, as `volcap masks --plates
+        # --drop-shadows` writes them (the performers' shadows on the floor left out): the capture's
+        # own masks, which start each segment from the performers' visual hull and train their
+        # alpha (the demo preset's mask_alpha_weight; docs/poly4dgs.md)
+        write_plate_masks(capture_dir, plates=plates, drop_shadows=True)
     capture = ingest_flow(store=store, capture_dir=capture_dir)
     # The first third of the take, one segment at the preset's budget (the demo preset's 10,000
     # Gaussians a frame): at demo size a whole take spreads the Gaussians too thin per instant (each
