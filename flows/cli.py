@@ -275,8 +275,19 @@ def reconstruct(capture: Annotated[str, typer.Argument(help="capture ref name (c
                      f"(raw {_fmt(seg['held_out_psnr_raw'])} dB; performers {_fmt(seg['held_out_psnr_performers'])} dB)\n"
                      f"    floors on the same views: empty model {_fmt(seg['floor_empty_psnr'])} dB, untrained "
                      f"{_fmt(seg['floor_initial_psnr'])} dB; training views {_fmt(seg['training_psnr'])} dB\n"
+                     + _alpha_line(seg["scores"].get("alpha", {})) +
                      f"    contact sheet: {seg.get('contact_sheet_png', 'none')}")
     _emit({**result, **summary.counts()}, json_out, "\n".join(lines))
+
+
+def _alpha_line(alpha: dict) -> str:
+    """The performers' alpha on the held-out views, per camera role, beside its floors (``scores.alpha``;
+    empty without performer masks)."""
+    if not alpha:
+        return ""
+    roles = "; ".join(f"{role} " + ", ".join(f"{m} {a[m]['error']:.3f} / {a[m]['on']:.3f} / {a[m]['spill']:.3f}"
+                                            for m in ("trained", "initial", "empty")) for role, a in alpha.items())
+    return f"    performers' alpha on the held-out views (|A - M| / on the performers / spill): {roles}\n"
 
 
 def _read_json(path: Path) -> Any:

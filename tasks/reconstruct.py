@@ -84,7 +84,7 @@ def ground_truth_points(store: str, capture: ArtifactRef, calibration: ArtifactR
                                            method=f"ground-truth depth, {points_per_frame} per frame"))
 
 
-@volcap_task(name="train-segment", version="12", retries=1, libraries=RECONSTRUCTION_LIBRARIES)
+@volcap_task(name="train-segment", version="13", retries=1, libraries=RECONSTRUCTION_LIBRARIES)
 def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRef, points: ArtifactRef,
                        frames: list[int], config: TrainConfig, seed: int) -> ArtifactRef:
     """Train one Poly4DGS segment, score it against its floors and draw its contact sheet
@@ -106,7 +106,8 @@ def train_segment_task(store: str, capture: ArtifactRef, calibration: ArtifactRe
     a capture with its own performer masks starts from the performers' visual hull. Version 12: the
     zoom cameras' points (``init_zoom_stride_px``, the demo preset's) take the depth the frame's
     other training cameras confirm by photo-consistency, the unconfirmed ones dropped
-    (``splat.init.photo_depth``; issue 28).
+    (``splat.init.photo_depth``; issue 28). Version 13: the scores add ``alpha``, the performers'
+    alpha on the held-out views against their masks, beside the floors (issue 30).
     """
     s = ArtifactStore(store)
     cap = s.get_record(capture, Capture)

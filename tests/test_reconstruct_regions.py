@@ -28,7 +28,7 @@ def test_reconstruct_reports_face_and_performer_regions_per_role(prefect_api, tm
     seg = out["segments"][0]
     regions = seg["scores"]["regions"]
     # the figures that were there stay, beside the new key
-    assert set(seg["scores"]) == {"held_out", "training", "regions"}
+    assert set(seg["scores"]) == {"held_out", "training", "regions", "alpha"}
     assert set(seg["scores"]["held_out"]) == {"trained", "initial", "empty"}
     held, training = regions["held_out"], regions["training"]
     assert held["static"]["cameras"] == ["S002"] and held["tracking"]["cameras"] == ["S009"]
@@ -46,3 +46,12 @@ def test_reconstruct_reports_face_and_performer_regions_per_role(prefect_api, tm
     print("region figures", regions)
     # the performers' PSNR of a role's region figures is the scores' performer PSNR on the same views
     assert held["static"]["trained"]["performers"]["views"] == 2
+    # the performers' alpha on the held-out views, per role, beside the floors: the empty model's
+    # is 0 (its error the masks' mean), the trained model's nearer the masks than the untrained one's
+    alpha = seg["scores"]["alpha"]
+    print("performers' alpha", alpha)
+    assert alpha["static"]["cameras"] == ["S002"] and alpha["tracking"]["cameras"] == ["S009"]
+    for role, a in alpha.items():
+        assert a["empty"]["on"] == 0.0 and a["empty"]["spill"] == 0.0 and a["trained"]["views"] == 2
+        assert a["trained"]["error"] < a["empty"]["error"], role
+        assert 0.0 < a["trained"]["on"] <= 1.0

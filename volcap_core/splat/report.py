@@ -18,6 +18,13 @@ face (a head region from the caller, intersected with the performers), for the t
 its two floors on the same pixels: the held-out views under the held-out protocol (each model's
 own cross-fitted gain/offset), the training views with the trained model's grids and the floors'
 cross-fitted gain/offset (the floors learned no grids).
+
+Where held-out views carry performer masks, ``alpha`` adds per camera role the **performers'
+alpha** (:func:`~volcap_core.splat.train.performer_alpha`: what a shot composites the performers
+with) against the mask ``M``, for the trained model and its floors: ``error`` the mean
+``|A - M|`` over the valid pixels, ``on`` the mean ``A`` on the performers (``M >= 0.5``: 1 is
+solid), ``spill`` the ``A`` outside them summed over the performers' pixel count (floaters,
+shadows drawn as performer: 0 is clean).
 """
 
 from __future__ import annotations
@@ -30,7 +37,7 @@ import torch
 
 from volcap_core.contact_sheet import SheetRow
 from volcap_core.splat.grids import ExposureGrids
-from volcap_core.splat.model import Poly4DGS
+from volcap_core.splat.model import Poly4DGS, evaluate
 from volcap_core.splat.scoring import (
     ColourTransform,
     Scores,
@@ -49,10 +56,12 @@ from volcap_core.splat.train import (
     evaluate_held_out,
     frame_interval,
     init_model,
+    performer_alpha,
     render_views,
 )
 
-__all__ = ["SegmentScores", "role_regions", "score_segment", "sheet_views", "spread_views", "view_regions"]
+__all__ = ["SegmentScores", "alpha_figures", "role_regions", "score_segment", "sheet_views", "spread_views",
+           "view_regions"]
 
 
 @dataclass
@@ -68,14 +77,16 @@ class SegmentScores:
     views: list[ViewScore] = field(default_factory=list)
     sheet_rows: list[SheetRow] = field(default_factory=list)
     regions: dict = field(default_factory=dict)
+    alpha: dict = field(default_factory=dict)
 
     def to_json(self) -> dict:
         """What :attr:`volcap_core.reconstruction.SegmentModel.scores` keeps. ``regions``: view set
         (``held_out``, ``training``) -> camera role -> model (``trained``, ``empty``, ``initial``)
-        -> region (``performers``, ``face``) -> ``{psnr, ssim, detail, views}``; empty without
-        performer masks."""
+        -> region (``performers``, ``face``) -> ``{psnr, ssim, detail, views}``; ``alpha``: camera
+        role -> ``cameras`` and model -> ``{error, on, spill, views}`` on the held-out views (module
+        doc); both empty without performer masks."""
         return {"held_out": {k: v.to_json() for k, v in self.held_out.items()},
-                "training": self.training.to_json(), "regions": self.regions}
+                "training": self.training.to_json(), "regions": self.regions, "alpha": self.alpha}
 
     def table(self) -> list[dict]:
         """One row per model and view set: what a coordinator reads (and the Prefect table)."""
@@ -163,6 +174,10 @@ def score_segment(model: Poly4DGS, grids: ExposureGrids, data: SegmentData,
                          **{name: [t.apply(r) for t, r in zip(f[1], f[0])] for name, f in train_floors.items()}}
         regions = {"held_out": role_regions(held_views, held_targets, held_outputs, role_of, head_region),
                    "training": role_regions(scored, targets, train_outputs, role_of, head_region)}
+        alpha = alpha_figures(held_views, {"trained": model, "initial": initial, "empty": None}, config,
+                              role_of, device=device)
+    else:
+        alpha = {}
 
     rows = []
     held_cams = sorted(held)
@@ -182,7 +197,7 @@ def score_segment(model: Poly4DGS, grids: ExposureGrids, data: SegmentData,
         r = grids.apply(render_views(model, [v], config, device=device)[0], v.camera_id)
         p = score_views([r], [v.load()[..., :3].to(device)], ["x"], [0], valid=[v.load_valid()])[0].psnr
         rows.append(_row(f"{v.camera_id} frame {v.frame} training  PSNR {p:.1f} dB", v, r))
-    return SegmentScores(held_out, training, trained_views, rows, regions)
+    return SegmentScores(held_out, training, trained_views, rows, regions, alpha)
 
 
 def _floor(model: Poly4DGS | None, views: Sequence[View], config: TrainConfig, device
@@ -243,6 +258,43 @@ def role_regions(views: Sequence[View], targets: Sequence[torch.Tensor], outputs
             model: {region: mean_region_scores([score_region(outputs[model][i], targets[i], per_view[i][region])
                                                 for i in idx]) for region in names}
             for model in outputs}}
+    return out
+
+
+def alpha_figures(views: Sequence[View], models: Mapping[str, Poly4DGS | None], config: TrainConfig,
+                  role_of: Mapping[str, str], *, device: torch.device | str = "cpu") -> dict:
+    """The performers' alpha of each of ``models`` (None: the empty model, alpha 0) on ``views``
+    against their performer masks (the module doc's ``error``, ``on``, ``spill``, each the mean over
+    the views), per camera role (absent from ``role_of``: ``"static"``): role -> ``cameras`` and
+    model -> ``{error, on, spill, views}``. Views without a mask, or without performers in it, are
+    left out."""
+    masked = []
+    for v in views:
+        m = v.load_mask()
+        if m is None:
+            continue
+        ok = v.load_valid()
+        ok = torch.ones_like(m, dtype=torch.bool) if ok is None else ok.to(m.device)
+        if bool(((m >= 0.5) & ok).any()):
+            masked.append((v, m.to(device), ok.to(device)))
+    out: dict = {}
+    for role in sorted({role_of.get(v.camera_id, "static") for v, _, _ in masked}):
+        mine = [x for x in masked if role_of.get(x[0].camera_id, "static") == role]
+        out[role] = {"cameras": sorted({v.camera_id for v, _, _ in mine})}
+        for name, model in models.items():
+            figs = []
+            for v, m, ok in mine:
+                if model is None:
+                    a = torch.zeros_like(m)
+                else:
+                    with torch.no_grad():
+                        a = performer_alpha(model, evaluate(model, v.time), v.camera, backend=config.backend,
+                                            tile_size=config.tile_size).to(m)
+                on = (m >= 0.5) & ok
+                figs.append(((a - m).abs()[ok].mean(), a[on].mean(), a[~on & ok].sum() / on.sum()))
+            f = torch.tensor(figs, dtype=torch.float64).mean(0).tolist()
+            out[role][name] = {"error": round(f[0], 4), "on": round(f[1], 4), "spill": round(f[2], 4),
+                               "views": len(figs)}
     return out
 
 
