@@ -2,7 +2,8 @@
 performer? (issue 30; figures in ``docs/poly4dgs.md`` "Real footage" and ``docs/benchmarks.md``).
 
     python bench/bench_pose2sim_heldout.py --workdir W --held cam02 [--steps 250] [--gaussians 20000]
-        [--fill-shell] [--mask-alpha 0.1] [--hull-oracle] [--tag T] [--json out.json] [--sheet sheet.jpg]
+        [--fill-shell] [--mask-alpha 0.1] [--set-frozen-from F] [--hull-oracle] [--tag T] [--json out.json]
+        [--sheet sheet.jpg]
         [--scale 1 --dense-scale 0.25 --gpu-prepare DIR [--gaussians-per-frame N]]
 
 ``../shared/data/real/pose2sim/Demo_SinglePerson``: 4 portrait phone cameras (1080x1920, 60 fps)
@@ -255,6 +256,8 @@ def train(inputs: dict, points: str, args) -> dict:
     overrides = {"eval_every": 0, "image_scale": args.scale}
     if args.mask_alpha:
         overrides["mask_alpha_weight"] = args.mask_alpha
+    if args.set_frozen_from is not None:
+        overrides["set_frozen_from"] = args.set_frozen_from or None
     config = named_preset("demo").with_steps(args.steps).train_config(held_out=[args.held],
                                                                       max_gaussians=args.gaussians, **overrides)
     cap, calib, data, init = segment_inputs(inputs, points, args, config)
@@ -344,6 +347,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--gaussians", type=int, default=20000)
     ap.add_argument("--fill-shell", action="store_true", help="keep the room shell's unseen points, median-coloured")
     ap.add_argument("--mask-alpha", type=float, default=0.0, help="TrainConfig.mask_alpha_weight")
+    ap.add_argument("--set-frozen-from", type=float, default=None,
+                    help="TrainConfig.set_frozen_from (0: the set trains to the end; default: the demo preset's)")
     ap.add_argument("--hull-oracle", action="store_true",
                     help="diagnostic: the held-out camera's mask carves the performers' hull too (colours nothing)")
     ap.add_argument("--tag", default="run", help="names the saved model in the workdir")
