@@ -325,7 +325,7 @@ PRESETS: dict[str, QualityPreset] = {
     # Where the capture has masks (the demo's: against its clean plates), the performers' alpha
     # trained toward them on every 4th step (docs/poly4dgs.md, "Performer masks as an alpha loss").
     # Since 2026-11-28 night the set freezes halfway and the second half trains the performers alone
-    # over its render, ~1.7x faster a step: 2030 steps (the 1640-step schedule stretched) in the time
+    # over its render, ~1.6x faster a step: 2030 steps (the 1640-step schedule stretched) in the time
     # of 1640 (docs/poly4dgs.md, "The set frozen")
     "demo": QualityPreset(train_steps=2030, grid_size=8, eval_every=406, eval_max_views=4, checkpoint_every=406,
                           refine_start=369, refine_every=369, refine_stop=1844,
