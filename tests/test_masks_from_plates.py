@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from volcap_core.capture import CaptureFolder
-from volcap_core.imageio.read import read_exr_native
+from volcap_core.imageio.read import read_exr_header, read_exr_native
 from volcap_core.masks import write_plate_masks
 from volcap_core.synth import synthesize_capture
 
@@ -49,6 +49,8 @@ def test_masks_against_plates_agree_with_the_ground_truth(tmp_path):
     res = CliRunner().invoke(cli.app, ["masks", str(root), "--plates", str(root / "plates"), "--drop-shadows"])
     assert res.exit_code == 0, res.output
     clean = _iou(root)
+    header = read_exr_header(sorted((root / "masks" / "S000").iterdir())[0])
+    assert header["volcap.mask_source"] == "plate S000.exr, shadows dropped"
     # no plate given: each camera's median of its take, performers that walk leave it (partly)
     write_plate_masks(root)
     median = _iou(root)

@@ -19,9 +19,10 @@ performer (``drop_shadows``): on the demo capture's 8 static cameras, against cl
 lifts the IoU with the ground truth from 0.82 to 0.86 (``docs/capture-layout.md``). It is off by
 default: a performer in the colour of the wall behind, darker, reads as shadow too, and on Pose2Sim's
 footage (the plate the median of the recording, skin in front of a beige wall) it cut 1.4-4 % of the
-masks' pixels, all inside the bodies, with no cast shadow to remove. The plate of a camera is a file the user gives (a clean
-plate: the empty stage, shot by that camera), or, without one, the per-pixel median of the
-camera's take frames (:func:`volcap_core.calibration.photometric.background_plate`, the
+masks' pixels, all inside the bodies, with no cast shadow to remove.
+
+The plate of a camera is a file the user gives (a clean plate: the empty stage, shot by that
+camera), or, without one, the per-pixel median of the camera's take frames (:func:`volcap_core.calibration.photometric.background_plate`, the
 calibration's own background plate: performers who move leave it). Only static cameras get
 masks: a tracking camera moves, and no plate stands behind it.
 
@@ -219,7 +220,8 @@ def write_plate_masks(capture_dir: str | Path, *, plates: str | Path | None = No
                               compression="zip",
                               attributes={"volcap.camera": c, "volcap.mask_source": "plate " +
                                           (given[c].name if c in given else "median of the " +
-                                           ("recording" if whole_recording else "take"))})
+                                           ("recording" if whole_recording else "take")) +
+                                          (", shadows dropped" if drop_shadows else "")})
             write_atomic(out / f"{number:06d}.exr", data)
             if progress is not None:
                 progress(c, i + 1, n)
