@@ -235,7 +235,7 @@ def reconstruct(capture: Annotated[str, typer.Argument(help="capture ref name (c
                 min_pair_inliers: Annotated[Optional[int], typer.Option(min=8, help="for the calibration run here (no --calibration), as volcap calibrate --min-pair-inliers")] = None,
                 seed: Annotated[int, typer.Option()] = 0,
                 mask_alpha: Annotated[Optional[str], typer.Option(help="WEIGHT[:EVERY]: train the performers' alpha toward the capture's own masks (imported or from volcap masks) with this L1 weight, on every EVERY-th step (default 1); the preset's mask_alpha_weight / mask_alpha_every replaced. A capture without masks trains as without it")] = None,
-                set_frozen_from: Annotated[Optional[float], typer.Option(min=0.0, max=0.99, help="from this fraction of the steps on, the set (the static Gaussians) stops training and the performers train alone over its render (docs/poly4dgs.md, 'The set frozen'); 0: the set trains to the end; default: the preset's (demo: 0.5)")] = None,
+                set_frozen_from: Annotated[Optional[float], typer.Option(min=0.0, max=0.99, help="from this fraction of the steps on, the set (the static Gaussians) stops training and the performers train alone over its render (docs/poly4dgs.md, 'The set frozen'); 0: the set trains to the end; default: the preset's (none sets it)")] = None,
                 out: Annotated[Path, typer.Option(help="folder for each segment's contact sheet PNG")] = Path("reconstruct"),
                 store: StoreOpt = DEFAULT_STORE, json_out: JsonOpt = False) -> None:
     """Train the Poly4DGS segments of an ingested capture; reports held-out PSNR/SSIM (per-camera gain/offset

@@ -226,32 +226,29 @@ def test_demo_and_test_presets_train_as_they_were_measured():
     demo = PRESETS["demo"].train_config(held_out=["S004"], max_gaussians=80_000)
     # issue 28's route since 2026-11-28 (docs/poly4dgs.md, "The zoom points' depth"): the zoom
     # cameras' points, the performer-weighted camera schedule, MCMC's moving weight; since that
-    # evening the alpha loss on the capture's masks every 4th step ("Performer masks as an alpha loss");
-    # since that night the set frozen after half of 2030 steps ("The set frozen")
-    assert demo == TrainConfig(steps=2030, grid_size=8, eval_every=406, eval_max_views=4, checkpoint_every=406,
-                               mcmc=MCMCConfig(refine_start=369, refine_every=369, refine_stop=1844, cap_max=80_000,
+    # evening the alpha loss on the capture's masks every 4th step ("Performer masks as an alpha loss")
+    assert demo == TrainConfig(steps=1640, grid_size=8, eval_every=328, eval_max_views=4, checkpoint_every=328,
+                               mcmc=MCMCConfig(refine_start=298, refine_every=298, refine_stop=1490, cap_max=80_000,
                                                moving_weight=4.0),
                                init_max_points=80_000, held_out_cameras=["S004"], init_zoom_stride_px=2,
-                               performer_view_weight=1.5, mask_alpha_weight=1.0, mask_alpha_every=4,
-                               set_frozen_from=0.5)
-    # the evening's figures: 1640 steps, the set trained to the end (the 1640-step schedule exactly)
-    evening = PRESETS["demo"].with_steps(1640).with_overrides(set_frozen_from=None).train_config(
+                               performer_view_weight=1.5, mask_alpha_weight=1.0, mask_alpha_every=4)
+    # the set frozen halfway through 2030 steps (measured 2026-11-28 night, "The set frozen"): the
+    # 1640-step schedule stretched
+    frozen = PRESETS["demo"].with_steps(2030).with_overrides(set_frozen_from=0.5).train_config(
         held_out=["S004"], max_gaussians=80_000)
-    assert evening == demo.model_copy(update={
-        "steps": 1640, "eval_every": 328, "checkpoint_every": 328, "set_frozen_from": None,
-        "mcmc": MCMCConfig(refine_start=298, refine_every=298, refine_stop=1490, cap_max=80_000, moving_weight=4.0)})
+    assert frozen == demo.model_copy(update={
+        "steps": 2030, "eval_every": 406, "checkpoint_every": 406, "set_frozen_from": 0.5,
+        "mcmc": MCMCConfig(refine_start=369, refine_every=369, refine_stop=1844, cap_max=80_000, moving_weight=4.0)})
     # the route's figures of the afternoon: the same without the alpha loss
-    assert PRESETS["demo"].with_steps(1640).with_overrides(
-        mask_alpha_weight=0.0, mask_alpha_every=1, set_frozen_from=None).train_config(
-        held_out=["S004"], max_gaussians=80_000) == evening.model_copy(
+    assert PRESETS["demo"].with_overrides(mask_alpha_weight=0.0, mask_alpha_every=1).train_config(
+        held_out=["S004"], max_gaussians=80_000) == demo.model_copy(
         update={"mask_alpha_weight": 0.0, "mask_alpha_every": 1})
 
     def unrouted(steps: int) -> TrainConfig:
         """The demo preset at ``steps`` without the route: the demo as measured before it."""
         return PRESETS["demo"].with_steps(steps).with_overrides(
             init_zoom_stride_px=None, performer_view_weight=0.0, moving_weight=1.0,
-            mask_alpha_weight=0.0, mask_alpha_every=1, set_frozen_from=None).train_config(
-            held_out=["S004"], max_gaussians=80_000)
+            mask_alpha_weight=0.0, mask_alpha_every=1).train_config(held_out=["S004"], max_gaussians=80_000)
 
     # the figures of 2026-11-28 before the route, at 1640 steps and before them at 820: the same
     # schedules without the route
@@ -270,7 +267,7 @@ def test_demo_and_test_presets_train_as_they_were_measured():
                                  init_max_points=80_000, held_out_cameras=["S004"])
     longer = PRESETS["demo"].with_steps(550).with_steps(1300).with_overrides(
         init_zoom_stride_px=None, performer_view_weight=0.0, moving_weight=1.0, mask_alpha_weight=0.0,
-        mask_alpha_every=1, set_frozen_from=None).train_config(
+        mask_alpha_every=1).train_config(
         held_out=["S004"], max_gaussians=80_000)
     assert longer == before.model_copy(update={
         "steps": 1300, "eval_every": 260, "checkpoint_every": 260,
@@ -304,12 +301,11 @@ def test_reconstruct_trains_each_segment_to_its_plans_budget():
     assert {(c.mask_alpha_weight, c.mask_alpha_every) for c in masked} == {(1.0, 4)}
     assert [c.model_copy(update={"mask_alpha_weight": 0.0, "mask_alpha_every": 1}) for c in masked] == \
         segment_configs(plan, "test")
-    # --set-frozen-from F: the preset's replaced; 0 turns the demo preset's off
+    # --set-frozen-from F: the preset's replaced (0: off, as every preset is)
     frozen = segment_configs(plan, "test", set_frozen_from=0.4)
     assert {c.set_frozen_from for c in frozen} == {0.4}
     assert [c.model_copy(update={"set_frozen_from": None}) for c in frozen] == segment_configs(plan, "test")
-    assert {c.set_frozen_from for c in segment_configs(plan, "demo")} == {0.5}
-    assert {c.set_frozen_from for c in segment_configs(plan, "demo", set_frozen_from=0)} == {None}
+    assert segment_configs(plan, "test", set_frozen_from=0) == segment_configs(plan, "test")
 
 
 @flow
@@ -346,8 +342,8 @@ def test_segment_data_at_a_fraction_of_the_resolution(ingested):
 
 
 def test_steps_stretch_the_preset_schedule_and_keep_the_budget():
-    cfg = PRESETS["demo"].with_steps(4060).train_config(max_gaussians=5000)
-    assert cfg.steps == 4060 and cfg.mcmc.cap_max == 5000 and cfg.init_max_points == 5000
+    cfg = PRESETS["demo"].with_steps(3280).train_config(max_gaussians=5000)
+    assert cfg.steps == 3280 and cfg.mcmc.cap_max == 5000 and cfg.init_max_points == 5000
     base = PRESETS["demo"].train_config()
     assert cfg.eval_every == 2 * base.eval_every and cfg.mcmc.refine_stop == 2 * base.mcmc.refine_stop
     # "evaluate only at the end" stays so at any length
