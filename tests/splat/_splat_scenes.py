@@ -81,11 +81,12 @@ def moving_scene(n: int = 40, *, frames=(0, 3), fps: float = 10.0, cameras: int 
     return data, points, cams
 
 
-def performers_on_a_floor(*, frames=(0, 2), fps: float = 10.0, size: int = 24):
+def performers_on_a_floor(*, frames=(0, 2), fps: float = 10.0, size: int = 24, plates: bool = False):
     """Performers (30 Gaussians moving at constant velocity) on a static floor (a grid of flat
     Gaussians at z = -0.45), seen by 5 ring cameras; per view the footage and the performers'
     true coverage (the view's matte). Returns (SegmentData, initial points per frame: the
-    performers' noisy, the floor's as it is and marked static)."""
+    performers' noisy, the floor's as it is and marked static) and, with ``plates``, each
+    camera's clean plate (the floor alone, ``{camera id: [H, W, 3]}``)."""
     from volcap_core.colour import srgb_decode_unbounded
     from volcap_core.splat.render import render
     from volcap_core.splat.sh import SH_C0, sh_to_colour
@@ -115,6 +116,7 @@ def performers_on_a_floor(*, frames=(0, 2), fps: float = 10.0, size: int = 24):
                   for f in range(*frames)}
         masks = {(str(i), f): render(at(f / fps, True), c, backend="torch")["rgb"][..., 0]
                  for i, c in enumerate(cams) for f in range(*frames)}
+        clean = {str(i): render(floor, c, backend="torch")["rgb"] for i, c in enumerate(cams)}
     data = SegmentData.build(frames=frames, camera_ids=[str(i) for i in range(5)], fps=fps,
                              load_image=lambda c, f: images[(c, f)], camera_for=lambda c, f: cams[int(c)],
                              load_matte=lambda c, f: masks[(c, f)])
@@ -128,7 +130,7 @@ def performers_on_a_floor(*, frames=(0, 2), fps: float = 10.0, size: int = 24):
         rgb = torch.cat([colour.repeat(3, 1), torch.full((nf, 3), 0.01)])
         static = torch.cat([torch.zeros(90, dtype=torch.bool), torch.ones(nf, dtype=torch.bool)])
         points.append(PointsAtTime(f / fps, xyz, rgb, static))
-    return data, points
+    return (data, points, clean) if plates else (data, points)
 
 
 def record_kernel_threads(monkeypatch, module, *kernels: str) -> list[int]:

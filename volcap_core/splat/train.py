@@ -579,6 +579,22 @@ def _performers_mcmc(config: TrainConfig, n_set: int, n_performers: int) -> Trai
         update={"cap_max": max(1, m.cap_max - n_set), "grow_rate": rate})})
 
 
+def _with_set(set_model: Poly4DGS, points: Sequence[PointsAtTime], config: TrainConfig, *,
+              frame_interval_s: float, generator: torch.Generator) -> Poly4DGS:
+    """The untrained model of a segment whose set is trained already (``train_segment``'s
+    ``set_model``): ``set_model`` first, then the performers initialised from ``points``' moving
+    points alone (:func:`init_model` with the whole initial budget theirs)."""
+    if not bool((~set_model.moving()).all()):
+        raise ValueError(f"set_model: {int(set_model.moving().sum())} of its {len(set_model)} Gaussians "
+                         "have a lifespan (performers'); a set holds static Gaussians only")
+    moving = [replace(p, xyz=p.xyz[~p.static], rgb=p.rgb[~p.static], static=None,
+                      footprint=None if p.footprint is None else p.footprint[~p.static])
+              if p.static is not None else p for p in points]
+    performers = init_model([p for p in moving if len(p.xyz)], config.model_copy(update={"init_static_share": 0.0}),
+                            frame_interval_s=frame_interval_s, generator=generator)
+    return Poly4DGS.joined(set_model.to(performers.params["means"].device), performers)
+
+
 def _serialise(state: _State, config: TrainConfig, extra: dict) -> bytes:
     tensors: dict[str, torch.Tensor] = {}
     for k, v in state.model.params.items():
@@ -715,7 +731,8 @@ def optimiser_step(model: Poly4DGS, adam: AdamState, grid_params: dict[str, torc
 
 
 def train_segment(views: SegmentData, init_points: Sequence[PointsAtTime], config: TrainConfig,
-                  *, checkpoint: Callable[[bytes, int], None] | None = None,
+                  *, set_model: Poly4DGS | None = None,
+                  checkpoint: Callable[[bytes, int], None] | None = None,
                   resume_from: bytes | None = None, seed: int = 0,
                   progress: Callable[[int, int, dict], None] | None = None,
                   device: torch.device | str | None = None) -> TrainResult:
@@ -726,6 +743,14 @@ def train_segment(views: SegmentData, init_points: Sequence[PointsAtTime], confi
             by ``config.held_out_cameras``).
         init_points: dense points per frame (ignored when resuming).
         config: see :class:`TrainConfig`.
+        set_model: the set trained already (static Gaussians only, the same model config; e.g.
+            once per capture from the static cameras' background plates), or None. Given, it is
+            frozen from the first step as ``config.set_frozen_from`` freezes the segment's own
+            set: each training view's render of it is the background the performers are
+            composited over; the performers start from ``init_points``' moving points alone and
+            have MCMC's whole budget (``config.mcmc.cap_max``) to themselves. The result and
+            every checkpoint hold the whole model, the set first. Resuming, pass it again: the
+            checkpoint holds its values, its presence keeps the set frozen from the first step.
         checkpoint: called as ``checkpoint(bytes, step)`` every ``config.checkpoint_every`` steps
             and after the last step; the bytes resume the run exactly.
         resume_from: checkpoint bytes to continue from (the model config must match; the rest of
@@ -770,7 +795,10 @@ def train_segment(views: SegmentData, init_points: Sequence[PointsAtTime], confi
             raise ValueError("checkpoint was trained on other cameras")
     else:
         gen = torch.Generator().manual_seed(seed)
-        model = init_model(init_points, config, frame_interval_s=frame_dt, generator=gen).to(device)
+        if set_model is None:
+            model = init_model(init_points, config, frame_interval_s=frame_dt, generator=gen).to(device)
+        else:
+            model = _with_set(set_model, init_points, config, frame_interval_s=frame_dt, generator=gen).to(device)
         for v in model.params.values():
             v.requires_grad_(True)
         grids = ExposureGrids.identity(train_cams, config.grid_size, device)
@@ -783,8 +811,10 @@ def train_segment(views: SegmentData, init_points: Sequence[PointsAtTime], confi
                 "black": config.lr.black if config.optimise_black_level else 0.0}
     bg = torch.tensor(config.background, device=device)
     cam_row = {c: i for i, c in enumerate(train_cams)}
-    # the step at which the set stops training (TrainConfig.set_frozen_from), and once it has
-    frozen_at = None if config.set_frozen_from is None else max(1, round(config.set_frozen_from * config.steps))
+    # the step at which the set stops training (TrainConfig.set_frozen_from; the first, with a set
+    # trained already), and once it has
+    frozen_at = (0 if set_model is not None
+                 else None if config.set_frozen_from is None else max(1, round(config.set_frozen_from * config.steps)))
     frozen: _FrozenSet | None = None
     step_config = config
 
@@ -818,7 +848,7 @@ def train_segment(views: SegmentData, init_points: Sequence[PointsAtTime], confi
             frozen = _freeze_set(state)
         step = state.step + 1
         model = state.model
-        if frozen is not None and config.mcmc.is_refine_step(step):
+        if frozen is not None and set_model is None and config.mcmc.is_refine_step(step):
             step_config = _performers_mcmc(config, len(frozen.model), len(model))
         i = draw_view(len(train_views), weights, state.generator)
         view = train_views[i]
