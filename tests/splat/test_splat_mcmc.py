@@ -198,3 +198,33 @@ def test_moving_weight_spends_growth_on_the_performers():
     m.params["log_lambdas"][:200] = STATIC_LOG_LAMBDA
     n = add_gaussians(m, None, MCMCConfig(grow_rate=0.5), torch.Generator().manual_seed(3))
     assert torch.equal(m.params["means"][-n:], new_even)
+
+
+def test_gradient_weight_sends_growth_where_the_loss_still_pulls():
+    """Same opacities everywhere; a quarter of the Gaussians carry a large positional gradient in
+    Adam's second moment (an under-fit region). Without the weight growth copies about a quarter
+    of its sources from them; with ``gradient_weight`` most; off (0) the draws are exactly those
+    of a config without the field, and it is left out of the config's JSON."""
+    def grown_pulled(weight: float) -> tuple[int, torch.Tensor]:
+        m = _model(n=400)
+        m.params["opacities"].fill_(0.0)
+        adam = AdamState.zeros_like(m.params)
+        adam.exp_avg_sq["means"][:] = 1e-8
+        adam.exp_avg_sq["means"][300:] = 1e-4            # RMS gradient 100x the rest's
+        before = m.params["means"].detach().clone()
+        n = add_gaussians(m, adam, MCMCConfig(grow_rate=0.5, gradient_weight=weight), torch.Generator().manual_seed(3))
+        new = m.params["means"][-n:]
+        src = torch.cdist(new, before).argmin(dim=1)      # each copy sits on its source
+        return int((src >= 300).sum()), new
+
+    even, new_even = grown_pulled(0.0)
+    favoured, _ = grown_pulled(2.0)
+    assert 30 <= even <= 70                               # ~a quarter of 200
+    # weights 1 + 2 * 3.88 = 8.76 against 1 + 2 * 0.039 = 1.08: 100 * 8.76 / (876 + 300 * 1.08) = 73 %
+    assert 125 <= favoured <= 165
+    m = _model(n=400)
+    m.params["opacities"].fill_(0.0)
+    n = add_gaussians(m, AdamState.zeros_like(m.params), MCMCConfig(grow_rate=0.5), torch.Generator().manual_seed(3))
+    assert torch.equal(m.params["means"][-n:], new_even)
+    assert "gradient_weight" not in MCMCConfig().model_dump_json()
+    assert MCMCConfig(gradient_weight=2.0).model_dump()["gradient_weight"] == 2.0

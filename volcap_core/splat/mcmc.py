@@ -20,6 +20,13 @@ What it does, with the defaults of :class:`MCMCConfig` (gsplat's ``MCMCStrategy`
   stay put. The ``/ s²`` makes the displacement relative to the scene equal to gsplat's in its
   normalised (scale ~1) world, for which ``noise_lr`` was tuned (derivation in
   :func:`inject_noise`).
+* **Sampling toward the under-fit** (``gradient_weight`` > 0; ours, issue 28's "densification
+  that responds to the under-fit regions of zoom views"): a source's weight ``o_0`` is multiplied
+  by ``1 + gradient_weight · r / mean(r)``, ``r`` its means' RMS gradient as Adam's second moment
+  holds it (an average over the last ~1/(1-β2) steps, at no cost): where the loss still pulls
+  Gaussians, splits and copies go, as 3DGS's densification by gradient sends them. A 3D gradient
+  is a pixel error times the camera's focal length over depth, so a zoom camera's under-fit face
+  weighs most. A Gaussian whose moments were reset (just relocated or grown) weighs ``o_0``.
 * **Nothing to sample from**: relocation and growth sample live Gaussians with a finite,
   positive ``o_0``; when there is none (all opacities underflowed to 0, or non-finite) they do
   nothing and return 0.
@@ -35,7 +42,7 @@ import functools
 import math
 
 import torch
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_serializer
 
 from volcap_core.checkpoint import AdamState
 from volcap_core.splat.model import LOG_SCALE_MAX, LOG_SCALE_MIN, Poly4DGS
@@ -60,6 +67,18 @@ class MCMCConfig(BaseModel):
     moving_weight: float = Field(1.0, gt=0, description="relocation and growth sample a moving Gaussian "
                                  "(finite lifespan) with this times the weight of a static one of the same "
                                  "opacity: > 1 spends the budget on the performers first")
+    gradient_weight: float = Field(0.0, ge=0, description="relocation and growth sample a Gaussian with its "
+                                   "opacity times 1 + this × its means' RMS gradient over the mean one (Adam's "
+                                   "second moment): > 0 sends the budget where the loss still pulls; 0: off")
+
+    @model_serializer(mode="wrap")
+    def _omit_off_options(self, handler):
+        # off, the field is left out of the JSON: configs (a train-segment key, a stored record's
+        # config) written before it existed keep their bytes
+        out = handler(self)
+        if isinstance(out, dict) and out.get("gradient_weight") == 0.0:
+            del out["gradient_weight"]
+        return out
 
     def is_refine_step(self, step: int) -> bool:
         """True after optimiser step ``step`` (1-based) when relocation and growth run."""
@@ -123,14 +142,24 @@ def _sample_by_opacity(o0: torch.Tensor, candidates: torch.Tensor, n: int,
     return candidates[pick.to(candidates.device)]
 
 
-def _source_weight(model: Poly4DGS, o0: torch.Tensor, cfg: MCMCConfig) -> torch.Tensor:
+def _source_weight(model: Poly4DGS, o0: torch.Tensor, cfg: MCMCConfig,
+                   adam: AdamState | None = None) -> torch.Tensor:
     """``[N]`` sampling weight of each Gaussian as a relocation/growth source: ``o_0``, times
-    ``cfg.moving_weight`` for the moving ones (a lifespan: ``log λ_1`` above the static value).
-    ``moving_weight`` 1 (or a model without lifespans) returns ``o0`` itself: the draws of every
-    run before the weight existed."""
-    if cfg.moving_weight == 1.0 or "log_lambdas" not in model.params:
-        return o0
-    return torch.where(model.moving(), o0 * cfg.moving_weight, o0)
+    ``cfg.moving_weight`` for the moving ones (a lifespan: ``log λ_1`` above the static value),
+    times ``1 + cfg.gradient_weight · r / mean(r)`` with ``r`` the means' RMS gradient from
+    ``adam`` (module doc). At ``moving_weight`` 1 (or a model without lifespans) and
+    ``gradient_weight`` 0 (or no Adam state) it is ``o0`` itself: the draws of every run before
+    the weights existed."""
+    w = o0
+    if cfg.moving_weight != 1.0 and "log_lambdas" in model.params:
+        w = torch.where(model.moving(), w * cfg.moving_weight, w)
+    if cfg.gradient_weight and adam is not None and "means" in adam.exp_avg_sq:
+        r = adam.exp_avg_sq["means"].detach().sum(dim=1).sqrt()
+        ok = torch.isfinite(r)
+        mean = float(r[ok].mean()) if bool(ok.any()) else 0.0
+        if mean > 0.0:
+            w = w * (1.0 + cfg.gradient_weight * torch.where(ok, r, 0.0) / mean)
+    return w
 
 
 @torch.no_grad()
@@ -167,7 +196,7 @@ def relocate_dead(model: Poly4DGS, adam: AdamState | None, cfg: MCMCConfig,
     if n_dead == 0 or len(live) == 0:
         return 0
     dead_idx = torch.nonzero(dead).squeeze(1)
-    sampled = _sample_by_opacity(_source_weight(model, o0, cfg), live, n_dead, generator)
+    sampled = _sample_by_opacity(_source_weight(model, o0, cfg, adam), live, n_dead, generator)
     if sampled is None:
         return 0
     _split_into(model, sampled, cfg)
@@ -198,7 +227,7 @@ def add_gaussians(model: Poly4DGS, adam: AdamState | None, cfg: MCMCConfig,
         return 0
     p = model.params
     o0 = torch.sigmoid(p["opacities"])
-    sampled = _sample_by_opacity(_source_weight(model, o0, cfg), torch.nonzero(_sampleable(model)).squeeze(1),
+    sampled = _sample_by_opacity(_source_weight(model, o0, cfg, adam), torch.nonzero(_sampleable(model)).squeeze(1),
                                  n_new, generator)
     if sampled is None:
         return 0
