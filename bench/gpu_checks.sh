@@ -84,8 +84,9 @@ prepared() {
     fi
     if [ -n "${ZOOM_CURVE:-}" ]; then
         mkdir -p "$OUT/zoom"
+        # ZOOM_ARGS: more --run options (e.g. "--evals 5 --mcmc gradient_weight=2")
         timeout "${ZOOM_S:-300}" python3 bench/gpu_zoom_curve.py --run "$(unpacked "$ZOOM_CURVE")" --out "$OUT/zoom" --device cuda \
-            --budget-s "${ZOOM_BUDGET_S:-250}" 2>&1 | tee "$OUT/zoom/log" | tail -40
+            --budget-s "${ZOOM_BUDGET_S:-250}" ${ZOOM_ARGS:-} 2>&1 | tee "$OUT/zoom/log" | tail -40
     fi
     if [ -n "${P2S:-}" ]; then
         mkdir -p "$OUT/p2s"

@@ -32,6 +32,12 @@ A GPU machine has no Prefect, pycolmap or OpenCV and no artifact store, so the w
 3. ``--report OUT`` (here): the curve as a Markdown table for ``docs/benchmarks.md`` and the
    contact sheet (truth | render | error, :mod:`volcap_core.contact_sheet`) from ``OUT/sheet.npz``.
 
+Two routes of issue 28 run through the same parts (``docs/poly4dgs.md``): ``--prepare ... --plates
+DIR`` keeps the static cameras' clean plates in the folder and ``--run ... --set-steps N`` trains the
+set from them first (:func:`plate_set`), then the performers alone over it (``train_segment``'s
+``set_model``); ``--run ... --mcmc NAME=VALUE`` sets an MCMCConfig field over the prepared preset's
+(``gradient_weight=2``: growth toward the under-fit).
+
 A real capture without ground truth (issue 30's GPU item: Pose2Sim at full resolution) is prepared
 by ``bench/bench_pose2sim_heldout.py --gpu-prepare DIR``, which builds the segment and its initial
 points with that bench's stages and writes them with :func:`write_prepared`: its frames rectified as
@@ -113,9 +119,11 @@ def demo_quality(steps: int, gaussians_per_frame: int | None = None):
 
 def prepare(dst: Path, store_url: str, steps: int, *, capture: str | None = None, calibration: str | None = None,
             points: str | None = None, frames: tuple[int, int] = (0, 8), seed: int = 0,
-            gaussians_per_frame: int | None = None) -> None:
+            gaussians_per_frame: int | None = None, plates: Path | None = None) -> None:
     """Part 1 (module doc). ``gaussians_per_frame``: :func:`demo_quality`'s (None: the production
-    preset's)."""
+    preset's). ``plates``: a folder of the static cameras' clean background plates
+    (``<camera>.exr``, as ``volcap synth --plates`` writes them beside the capture), copied into
+    ``DIR/plates`` for ``--run --set-steps``: the set trained from them first."""
     from volcap_core import reconstruction
     from volcap_core.calibration.record import Calibration
     from volcap_core.capture import Capture
@@ -177,6 +185,18 @@ def prepare(dst: Path, store_url: str, steps: int, *, capture: str | None = None
             "roles": roles, "gaussians": planned.gaussians, "preset": quality.model_dump(mode="json")}
     write_prepared(dst, data, init, config, meta, faces=faces,
                    exr_bytes=lambda v: s.get_bytes(cap.camera(v.camera_id).frames[v.frame]))
+    if plates is not None:
+        from volcap_core.masks import plate_files
+
+        files = plate_files(plates, [c for c, r in roles.items() if r == "static"])
+        if not files:
+            raise SystemExit(f"{plates}: no static camera's plate (<camera>.exr)")
+        (dst / "plates").mkdir()
+        for cam, path in files.items():
+            if path.suffix.lower() != ".exr":
+                raise SystemExit(f"{path}: a plate travels as the capture's half-float EXR only")
+            shutil.copyfile(path, dst / "plates" / f"{cam}.exr")
+        print(f"{dst}/plates: {', '.join(files)}", flush=True)
 
 
 def write_prepared(dst: Path, data, init, config, meta: dict, *, faces: dict | None = None,
@@ -323,15 +343,20 @@ class Prepared:
                 self.faces[(v["camera"], v["frame"])] = faces[name]
         self.data = SegmentData(tuple(self.meta["frames"]), views)
         self.init = load_initial_points(src / "init.safetensors")
+        #: camera -> its background plate ``[H, W, 3]`` linear (``--prepare --plates``), or empty
+        self.plates = ({p.stem: _footage(src / "plates", p.stem) for p in sorted((src / "plates").glob("*.exr"))}
+                       if (src / "plates").is_dir() else {})
 
-    def config(self, steps: int | None = None, evals: int = 8, backend: str = "auto"):
+    def config(self, steps: int | None = None, evals: int = 8, backend: str = "auto", mcmc: dict | None = None):
         """The segment's TrainConfig: the preset (stretched to ``steps`` when given) at the prepared
         budget and held-out cameras, checkpoints ``evals`` times in the run (each is scored), no
-        evaluation of the trainer's own (the run scores its checkpoints)."""
+        evaluation of the trainer's own (the run scores its checkpoints); ``mcmc``: MCMCConfig
+        fields set as given (``--mcmc NAME=VALUE``)."""
         quality = self.quality if steps is None else self.quality.with_steps(steps)
         n = quality.train_steps
         return quality.train_config(held_out=self.meta["held_out"], max_gaussians=self.meta["gaussians"],
-                                    eval_every=0, checkpoint_every=max(1, n // max(1, evals)), backend=backend)
+                                    eval_every=0, checkpoint_every=max(1, n // max(1, evals)), backend=backend,
+                                    **({"mcmc": dict(mcmc)} if mcmc else {}))
 
     def head_region(self, view) -> np.ndarray | None:
         return None if self.faces is None else self.faces[(view.camera_id, view.frame)]
@@ -552,9 +577,54 @@ class _Stop(Exception):
     """The budget is spent: training ends at the last scored checkpoint."""
 
 
+def plate_set(prep: Prepared, config, steps: int, gaussians: int, device: torch.device, seed: int):
+    """The set trained once from the static training cameras' background plates (``--set-steps``;
+    issue 28's route "the set trained once per capture"): the segment's static points (every
+    cloud's, pooled) fitted by :func:`~volcap_core.splat.train.train_segment` to each static
+    training camera's plate, as one frame at the segment's middle time (a static Gaussian's motion
+    terms then get no gradient, so it stands still at every frame), with ``config``'s losses and
+    schedule stretched to ``steps``, at most ``gaussians``, no performer terms (no alpha loss, a
+    uniform camera schedule). Held-out cameras' plates stay out. Returns ``(set model, seconds of
+    training)``."""
+    from dataclasses import replace
+
+    from volcap_core.splat import PointsAtTime, SegmentData, View
+    from volcap_core.splat.train import train_segment
+
+    held = set(config.held_out_cameras)
+    cams = [c for c in sorted(prep.plates) if c not in held and prep.meta["roles"].get(c) == "static"]
+    if not cams:
+        raise SystemExit("--set-steps: the prepared folder holds no training camera's plate (--prepare --plates)")
+    times = sorted(prep.data.times)
+    t_set = times[len(times) // 2]
+    views = []
+    for cam in cams:
+        v = next(v for v in prep.data.views if v.camera_id == cam)
+        views.append(View(cam, v.frame, t_set, v.camera, prep.plates[cam], torch.zeros(prep.plates[cam].shape[:2])))
+    clouds = [p for p in prep.init if p.static is not None and bool(p.static.any())]
+    points = PointsAtTime(
+        time=t_set, xyz=torch.cat([p.xyz[p.static] for p in clouds]), rgb=torch.cat([p.rgb[p.static] for p in clouds]),
+        static=torch.ones(sum(int(p.static.sum()) for p in clouds), dtype=torch.bool),
+        footprint=None if any(p.footprint is None for p in clouds) else torch.cat([p.footprint[p.static] for p in clouds]))
+    set_config = prep.quality.with_steps(steps).train_config(
+        held_out=[], max_gaussians=gaussians, eval_every=0, checkpoint_every=0, backend=config.backend)
+    set_config = set_config.model_copy(update={"init_static_share": 1.0, "mask_alpha_weight": 0.0,
+                                               "performer_view_weight": 0.0, "set_frozen_from": None})
+    result = train_segment(SegmentData((views[0].frame, views[0].frame + 1), views), [replace(points)], set_config,
+                           seed=seed, device=device)
+    print(f"the set from {len(cams)} plates ({', '.join(cams)}): {len(result.model)} Gaussians, {steps} steps "
+          f"in {result.wall_s:.1f} s", flush=True)
+    return result.model, result.wall_s
+
+
 def run(src: Path, out: Path, device: torch.device, budget_s: float, steps: int | None = None, evals: int = 8,
-        backend: str = "auto", trace_every: int = 25) -> dict:
-    """Part 2 (module doc). Returns what ``OUT/curve.json`` holds."""
+        backend: str = "auto", trace_every: int = 25, set_steps: int = 0, set_gaussians: int | None = None,
+        mcmc: dict | None = None) -> dict:
+    """Part 2 (module doc). Returns what ``OUT/curve.json`` holds. ``set_steps`` > 0: the set is
+    trained first from the folder's plates (:func:`plate_set`, at most ``set_gaussians``: default
+    half the segment's budget) and the segment trains its performers alone over it
+    (``train_segment``'s ``set_model``); its time is not within ``budget_s``'s training. ``mcmc``:
+    MCMCConfig fields over the prepared preset's (:meth:`Prepared.config`)."""
     from volcap_core.checkpoint import deterministic_torch
     from volcap_core.splat.render import resolve_backend
     from volcap_core.splat.train import _deserialise, train_segment
@@ -565,7 +635,7 @@ def run(src: Path, out: Path, device: torch.device, budget_s: float, steps: int 
         return time.perf_counter() - t_start
 
     prep = Prepared(src)
-    config = prep.config(steps, evals, backend)
+    config = prep.config(steps, evals, backend, mcmc)
     seed = int(prep.meta["seed"])
     chosen = resolve_backend(config.backend, device)
     curve: dict = {"device": str(device), "torch": torch.__version__,
@@ -621,10 +691,15 @@ def run(src: Path, out: Path, device: torch.device, budget_s: float, steps: int 
             if step < config.steps and elapsed() + since > budget_s - RESERVE_S:
                 raise _Stop
 
+        set_model = None
+        if set_steps:
+            set_model, curve["set_train_s"] = plate_set(prep, config, set_steps,
+                                                        set_gaussians or config.mcmc.cap_max // 2, device, seed)
+            curve.update(set_steps=set_steps, set_gaussians=len(set_model))
         stopped = "steps"
         try:
-            train_segment(prep.data, prep.init, config, checkpoint=checkpoint, progress=progress, seed=seed,
-                          device=device)
+            train_segment(prep.data, prep.init, config, set_model=set_model, checkpoint=checkpoint,
+                          progress=progress, seed=seed, device=device)
         except _Stop:
             stopped = "budget"
         curve.update(points=points, trace=trace, stopped=stopped, elapsed_s=round(elapsed(), 2))
@@ -774,14 +849,26 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--budget-s", type=float, default=250.0, help="--run stops at a scored checkpoint within this")
     ap.add_argument("--evals", type=int, default=8, help="scored checkpoints along the run")
     ap.add_argument("--sheet", type=Path, default=None, help="--report: write the face contact sheet here")
+    ap.add_argument("--plates", type=Path, default=None,
+                    help="--prepare: the static cameras' clean plates (<camera>.exr), kept for --set-steps")
+    ap.add_argument("--set-steps", type=int, default=0,
+                    help="--run: train the set from the prepared plates for this many steps first, then the "
+                    "performers alone over it (0: the segment trains set and performers together)")
+    ap.add_argument("--mcmc", action="append", default=[], metavar="NAME=VALUE",
+                    help="--run: an MCMCConfig field over the prepared preset's (e.g. gradient_weight=2)")
+    ap.add_argument("--set-gaussians", type=int, default=None,
+                    help="--run --set-steps: the set's budget (default: half the segment's)")
     args = ap.parse_args(argv)
     if args.prepare:
         prepare(args.prepare, args.store, args.steps or 3000, capture=args.capture, calibration=args.calibration,
-                points=args.points, frames=tuple(args.frames), gaussians_per_frame=args.gaussians_per_frame)
+                points=args.points, frames=tuple(args.frames), gaussians_per_frame=args.gaussians_per_frame,
+                plates=args.plates)
     elif args.run:
         if args.out is None:
             ap.error("--run needs --out")
-        run(args.run, args.out, torch.device(args.device), args.budget_s, args.steps, args.evals, args.backend)
+        run(args.run, args.out, torch.device(args.device), args.budget_s, args.steps, args.evals, args.backend,
+            set_steps=args.set_steps, set_gaussians=args.set_gaussians,
+            mcmc={k: float(v) for k, v in (item.split("=", 1) for item in args.mcmc)})
     else:
         report(args.report, args.sheet)
 

@@ -47,7 +47,8 @@ def test_prepare_run_report(prefect_api, tmp_path):
     bench = load_bench("gpu_zoom_curve")
     src = tmp_path / "prep"
     bench.main(["--prepare", str(src), "--store", store, "--capture", refs[0], "--calibration", refs[1],
-                "--points", refs[2], "--frames", "0", "2", "--steps", "4", "--gaussians-per-frame", "1000"])
+                "--points", refs[2], "--frames", "0", "2", "--steps", "4", "--gaussians-per-frame", "1000",
+                "--plates", str(root / "plates")])
     meta = json.loads((src / "segment.json").read_text())
     assert meta["held_out"] == ["S003", "S009"] and meta["gaussians"] == 2000   # 1 000 a frame, as asked
     # without --gaussians-per-frame: the production preset's budget a frame (a GPU's size)
@@ -91,6 +92,20 @@ def test_prepare_run_report(prefect_api, tmp_path):
     sheet = tmp_path / "sheet.png"
     bench.main(["--report", str(out), "--sheet", str(sheet)])
     assert sheet.stat().st_size > 1000
+
+    # issue 28's routes through the same run: the set from the static cameras' plates (the held-out
+    # S003's left out), then the performers alone over it; an MCMC field over the preset's
+    assert sorted(bench.Prepared(src).plates) == ["S001", "S002", "S003", "S004"]
+    routes = tmp_path / "routes"
+    proc = run_without_absent("gpu_zoom_curve", ["--run", src, "--out", routes, "--device", "cpu", "--steps", "2",
+                                                 "--evals", "1", "--budget-s", "600", "--set-steps", "2",
+                                                 "--mcmc", "gradient_weight=2"])
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    assert "the set from 3 plates (S001, S002, S004)" in proc.stdout
+    routed = json.loads((routes / "curve.json").read_text())
+    assert routed["set_steps"] == 2 and 0 < routed["set_gaussians"] <= 1000   # half the segment's 2 000
+    assert routed["train_config"]["mcmc"]["gradient_weight"] == 2.0
+    assert routed["points"][-1]["gaussians"] > routed["set_gaussians"]       # the set and the performers
 
     # bench_train_time on the same folder: a training's wall time, loss thirds and model digest,
     # the same digest run after run (the CPU training is bit-reproducible)
