@@ -34,6 +34,10 @@
 #   OUT=/tmp/gpu GPU_CLOSEUP=.gpu PREPARED_ONLY=1 bash bench/gpu_checks.sh          # the close-up alone
 #   OUT=/tmp/gpu P2S=.gpu-p2s PAIRS=.gpu-pairs PREPARED_ONLY=1 bash bench/gpu_checks.sh   # two prepared runs
 #   OUT=/tmp/gpu ZOOM_CURVE=.gpu-carry/zoom.tar.xz PREPARED_ONLY=1 bash bench/gpu_checks.sh   # a packed folder
+#   # issue 28's production budget to its schedule's end (5 000 steps at ~73 ms on an H200, 5 scored points;
+#   # ~480 s with the build, in one 15-minute lease; prepared with --steps 5000):
+#   OUT=/tmp/gpu ZOOM_CURVE=.gpu-carry/zoom.tar.xz ZOOM_ARGS="--evals 5" ZOOM_BUDGET_S=450 ZOOM_S=480 \
+#       PREPARED_ONLY=1 bash bench/gpu_checks.sh
 set -u
 OUT=${OUT:-/tmp/volcap-gpu}
 mkdir -p "$OUT"
