@@ -347,16 +347,18 @@ class Prepared:
         self.plates = ({p.stem: _footage(src / "plates", p.stem) for p in sorted((src / "plates").glob("*.exr"))}
                        if (src / "plates").is_dir() else {})
 
-    def config(self, steps: int | None = None, evals: int = 8, backend: str = "auto", mcmc: dict | None = None):
+    def config(self, steps: int | None = None, evals: int = 8, backend: str = "auto", mcmc: dict | None = None,
+               lr: dict | None = None):
         """The segment's TrainConfig: the preset (stretched to ``steps`` when given) at the prepared
         budget and held-out cameras, checkpoints ``evals`` times in the run (each is scored), no
         evaluation of the trainer's own (the run scores its checkpoints); ``mcmc``: MCMCConfig
-        fields set as given (``--mcmc NAME=VALUE``)."""
+        fields set as given (``--mcmc NAME=VALUE``), ``lr``: LearningRates fields (``--lr NAME=VALUE``)."""
         quality = self.quality if steps is None else self.quality.with_steps(steps)
         n = quality.train_steps
-        return quality.train_config(held_out=self.meta["held_out"], max_gaussians=self.meta["gaussians"],
-                                    eval_every=0, checkpoint_every=max(1, n // max(1, evals)), backend=backend,
-                                    **({"mcmc": dict(mcmc)} if mcmc else {}))
+        config = quality.train_config(held_out=self.meta["held_out"], max_gaussians=self.meta["gaussians"],
+                                      eval_every=0, checkpoint_every=max(1, n // max(1, evals)), backend=backend,
+                                      **({"mcmc": dict(mcmc)} if mcmc else {}))
+        return config.model_copy(update={"lr": config.lr.model_copy(update=lr)}) if lr else config
 
     def head_region(self, view) -> np.ndarray | None:
         return None if self.faces is None else self.faces[(view.camera_id, view.frame)]
@@ -619,12 +621,13 @@ def plate_set(prep: Prepared, config, steps: int, gaussians: int, device: torch.
 
 def run(src: Path, out: Path, device: torch.device, budget_s: float, steps: int | None = None, evals: int = 8,
         backend: str = "auto", trace_every: int = 25, set_steps: int = 0, set_gaussians: int | None = None,
-        mcmc: dict | None = None) -> dict:
+        mcmc: dict | None = None, lr: dict | None = None) -> dict:
     """Part 2 (module doc). Returns what ``OUT/curve.json`` holds. ``set_steps`` > 0: the set is
     trained first from the folder's plates (:func:`plate_set`, at most ``set_gaussians``: default
     half the segment's budget) and the segment trains its performers alone over it
     (``train_segment``'s ``set_model``); its time is not within ``budget_s``'s training. ``mcmc``:
-    MCMCConfig fields over the prepared preset's (:meth:`Prepared.config`)."""
+    MCMCConfig fields over the prepared preset's, ``lr`` LearningRates fields over TrainConfig's
+    (:meth:`Prepared.config`)."""
     from volcap_core.checkpoint import deterministic_torch
     from volcap_core.splat.render import resolve_backend
     from volcap_core.splat.train import _deserialise, train_segment
@@ -635,7 +638,7 @@ def run(src: Path, out: Path, device: torch.device, budget_s: float, steps: int 
         return time.perf_counter() - t_start
 
     prep = Prepared(src)
-    config = prep.config(steps, evals, backend, mcmc)
+    config = prep.config(steps, evals, backend, mcmc, lr)
     seed = int(prep.meta["seed"])
     chosen = resolve_backend(config.backend, device)
     curve: dict = {"device": str(device), "torch": torch.__version__,
@@ -856,6 +859,8 @@ def main(argv: list[str] | None = None) -> None:
                     "performers alone over it (0: the segment trains set and performers together)")
     ap.add_argument("--mcmc", action="append", default=[], metavar="NAME=VALUE",
                     help="--run: an MCMCConfig field over the prepared preset's (e.g. gradient_weight=2)")
+    ap.add_argument("--lr", action="append", default=[], metavar="NAME=VALUE",
+                    help="--run: a LearningRates field over TrainConfig's (e.g. sh0=0.01)")
     ap.add_argument("--set-gaussians", type=int, default=None,
                     help="--run --set-steps: the set's budget (default: half the segment's)")
     args = ap.parse_args(argv)
@@ -868,7 +873,8 @@ def main(argv: list[str] | None = None) -> None:
             ap.error("--run needs --out")
         run(args.run, args.out, torch.device(args.device), args.budget_s, args.steps, args.evals, args.backend,
             set_steps=args.set_steps, set_gaussians=args.set_gaussians,
-            mcmc={k: float(v) for k, v in (item.split("=", 1) for item in args.mcmc)})
+            mcmc={k: float(v) for k, v in (item.split("=", 1) for item in args.mcmc)},
+            lr={k: float(v) for k, v in (item.split("=", 1) for item in args.lr)})
     else:
         report(args.report, args.sheet)
 
