@@ -36,7 +36,8 @@ Two routes of issue 28 run through the same parts (``docs/poly4dgs.md``): ``--pr
 DIR`` keeps the static cameras' clean plates in the folder and ``--run ... --set-steps N`` trains the
 set from them first (:func:`plate_set`), then the performers alone over it (``train_segment``'s
 ``set_model``); ``--run ... --mcmc NAME=VALUE`` sets an MCMCConfig field over the prepared preset's
-(``gradient_weight=2``: growth toward the under-fit).
+(``gradient_weight=2``: growth toward the under-fit) and ``--lr NAME=VALUE`` a learning rate
+(``scales=0.025``).
 
 A real capture without ground truth (issue 30's GPU item: Pose2Sim at full resolution) is prepared
 by ``bench/bench_pose2sim_heldout.py --gpu-prepare DIR``, which builds the segment and its initial
@@ -588,8 +589,6 @@ def plate_set(prep: Prepared, config, steps: int, gaussians: int, device: torch.
     schedule stretched to ``steps``, at most ``gaussians``, no performer terms (no alpha loss, a
     uniform camera schedule). Held-out cameras' plates stay out. Returns ``(set model, seconds of
     training)``."""
-    from dataclasses import replace
-
     from volcap_core.splat import PointsAtTime, SegmentData, View
     from volcap_core.splat.train import train_segment
 
@@ -612,7 +611,7 @@ def plate_set(prep: Prepared, config, steps: int, gaussians: int, device: torch.
         held_out=[], max_gaussians=gaussians, eval_every=0, checkpoint_every=0, backend=config.backend)
     set_config = set_config.model_copy(update={"init_static_share": 1.0, "mask_alpha_weight": 0.0,
                                                "performer_view_weight": 0.0, "set_frozen_from": None})
-    result = train_segment(SegmentData((views[0].frame, views[0].frame + 1), views), [replace(points)], set_config,
+    result = train_segment(SegmentData((views[0].frame, views[0].frame + 1), views), [points], set_config,
                            seed=seed, device=device)
     print(f"the set from {len(cams)} plates ({', '.join(cams)}): {len(result.model)} Gaussians, {steps} steps "
           f"in {result.wall_s:.1f} s", flush=True)

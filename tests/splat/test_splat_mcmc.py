@@ -173,31 +173,33 @@ def test_regulariser_is_differentiable():
     assert (m.params["opacities"].grad > 0).all() and (m.params["scales"].grad > 0).all()
 
 
+def _grown_from(m: Poly4DGS, adam: AdamState | None, cfg: MCMCConfig, first: int) -> tuple[int, torch.Tensor]:
+    """Grow ``m`` once (seeded): how many copies came from Gaussians ``first`` onward (each copy
+    sits on its source), and the copies' means."""
+    before = m.params["means"].detach().clone()
+    n = add_gaussians(m, adam, cfg, torch.Generator().manual_seed(3))
+    new = m.params["means"][-n:]
+    return int((torch.cdist(new, before).argmin(dim=1) >= first).sum()), new
+
+
 def test_moving_weight_spends_growth_on_the_performers():
     """Half the Gaussians static (unbounded lifespan), half moving, same opacities: growth copies
     sources ∝ opacity (about half moving) unless ``moving_weight`` favours the moving ones; with
     weight 1 the draws are exactly those of a config without the field."""
     from volcap_core.splat.model import STATIC_LOG_LAMBDA
 
-    def grown_moving(weight: float) -> tuple[int, torch.Tensor]:
+    def half_static() -> Poly4DGS:
         m = _model(n=400)
         m.params["opacities"].fill_(0.0)
         m.params["log_lambdas"][:200] = STATIC_LOG_LAMBDA
-        before = m.params["means"].detach().clone()
-        n = add_gaussians(m, None, MCMCConfig(grow_rate=0.5, moving_weight=weight), torch.Generator().manual_seed(3))
-        new = m.params["means"][-n:]
-        src = torch.cdist(new, before).argmin(dim=1)      # each copy sits on its source
-        return int((src >= 200).sum()), new
+        return m
 
-    even, new_even = grown_moving(1.0)
-    favoured, _ = grown_moving(9.0)
+    even, new_even = _grown_from(half_static(), None, MCMCConfig(grow_rate=0.5, moving_weight=1.0), 200)
+    favoured, _ = _grown_from(half_static(), None, MCMCConfig(grow_rate=0.5, moving_weight=9.0), 200)
     assert 70 <= even <= 130                      # ~half of 200
     assert favoured >= 170                        # ~90 %
-    m = _model(n=400)
-    m.params["opacities"].fill_(0.0)
-    m.params["log_lambdas"][:200] = STATIC_LOG_LAMBDA
-    n = add_gaussians(m, None, MCMCConfig(grow_rate=0.5), torch.Generator().manual_seed(3))
-    assert torch.equal(m.params["means"][-n:], new_even)
+    _, unweighted = _grown_from(half_static(), None, MCMCConfig(grow_rate=0.5), 200)
+    assert torch.equal(unweighted, new_even)
 
 
 def test_gradient_weight_sends_growth_where_the_loss_still_pulls():
@@ -205,26 +207,20 @@ def test_gradient_weight_sends_growth_where_the_loss_still_pulls():
     Adam's second moment (an under-fit region). Without the weight growth copies about a quarter
     of its sources from them; with ``gradient_weight`` most; off (0) the draws are exactly those
     of a config without the field, and it is left out of the config's JSON."""
-    def grown_pulled(weight: float) -> tuple[int, torch.Tensor]:
+    def pulled() -> tuple[Poly4DGS, AdamState]:
         m = _model(n=400)
         m.params["opacities"].fill_(0.0)
         adam = AdamState.zeros_like(m.params)
         adam.exp_avg_sq["means"][:] = 1e-8
         adam.exp_avg_sq["means"][300:] = 1e-4            # RMS gradient 100x the rest's
-        before = m.params["means"].detach().clone()
-        n = add_gaussians(m, adam, MCMCConfig(grow_rate=0.5, gradient_weight=weight), torch.Generator().manual_seed(3))
-        new = m.params["means"][-n:]
-        src = torch.cdist(new, before).argmin(dim=1)      # each copy sits on its source
-        return int((src >= 300).sum()), new
+        return m, adam
 
-    even, new_even = grown_pulled(0.0)
-    favoured, _ = grown_pulled(2.0)
+    even, new_even = _grown_from(*pulled(), MCMCConfig(grow_rate=0.5, gradient_weight=0.0), 300)
+    favoured, _ = _grown_from(*pulled(), MCMCConfig(grow_rate=0.5, gradient_weight=2.0), 300)
     assert 30 <= even <= 70                               # ~a quarter of 200
     # weights 1 + 2 * 3.88 = 8.76 against 1 + 2 * 0.039 = 1.08: 100 * 8.76 / (876 + 300 * 1.08) = 73 %
     assert 125 <= favoured <= 165
-    m = _model(n=400)
-    m.params["opacities"].fill_(0.0)
-    n = add_gaussians(m, AdamState.zeros_like(m.params), MCMCConfig(grow_rate=0.5), torch.Generator().manual_seed(3))
-    assert torch.equal(m.params["means"][-n:], new_even)
+    _, unweighted = _grown_from(*pulled(), MCMCConfig(grow_rate=0.5), 300)
+    assert torch.equal(unweighted, new_even)
     assert "gradient_weight" not in MCMCConfig().model_dump_json()
     assert MCMCConfig(gradient_weight=2.0).model_dump()["gradient_weight"] == 2.0
