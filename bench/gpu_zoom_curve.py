@@ -601,7 +601,7 @@ def plate_set(prep: Prepared, config, steps: int, gaussians: int, device: torch.
     views = []
     for cam in cams:
         v = next(v for v in prep.data.views if v.camera_id == cam)
-        views.append(View(cam, v.frame, t_set, v.camera, prep.plates[cam], torch.zeros(prep.plates[cam].shape[:2])))
+        views.append(View(cam, v.frame, t_set, v.camera, prep.plates[cam]))   # nothing scores these views
     clouds = [p for p in prep.init if p.static is not None and bool(p.static.any())]
     points = PointsAtTime(
         time=t_set, xyz=torch.cat([p.xyz[p.static] for p in clouds]), rgb=torch.cat([p.rgb[p.static] for p in clouds]),
