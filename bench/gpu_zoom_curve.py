@@ -169,7 +169,8 @@ def prepare(dst: Path, store_url: str, steps: int, *, capture: str | None = None
                          "distorted lens), which needs OpenCV; the GPU run takes the footage as stored")
     t0 = time.perf_counter()
     init = reconstruction.segment_init(s.get_bytes, cap, pts, data, config.held_out_cameras,
-                                       zoom_stride_px=config.init_zoom_stride_px)
+                                       zoom_stride_px=config.init_zoom_stride_px,
+                                       scene_flow=config.init_scene_flow)
     print(f"initial points: {sum(len(p.xyz) for p in init)} in {len(init)} clouds "
           f"({time.perf_counter() - t0:.1f} s)", flush=True)
 
@@ -278,6 +279,8 @@ def initial_points_bytes(init, config) -> bytes:
             clouds[f"{i}/static"] = p.static.numpy().astype(np.uint8)
         if p.footprint is not None and footprints:
             clouds[f"{i}/footprint"] = _compact(p.footprint.numpy())
+        if p.velocity is not None:
+            clouds[f"{i}/velocity"] = p.velocity.numpy().astype(np.float32)
     return st_save(clouds, {"times": json.dumps([p.time for p in init])})
 
 
@@ -294,8 +297,9 @@ def load_initial_points(path: Path) -> list:
         for i, t in enumerate(times):
             static = f.get_tensor(f"{i}/static").bool() if f"{i}/static" in keys else None
             foot = f.get_tensor(f"{i}/footprint").float() if f"{i}/footprint" in keys else None
+            vel = f.get_tensor(f"{i}/velocity").float() if f"{i}/velocity" in keys else None
             out.append(PointsAtTime(time=t, xyz=f.get_tensor(f"{i}/xyz").float(), rgb=f.get_tensor(f"{i}/rgb").float(),
-                                    static=static, footprint=foot))
+                                    static=static, footprint=foot, velocity=vel))
     return out
 
 

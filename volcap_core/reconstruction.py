@@ -258,7 +258,7 @@ def segment_points(points: PointCloudSequence, frames: tuple[int, int],
 
 def segment_init(load_bytes: Callable[[ArtifactRef], bytes], capture: Capture, points: PointCloudSequence,
                  data: SegmentData, held_out: Sequence[str] = (), zoom_stride_px: int | None = None,
-                 hull_oracle_cameras: Sequence[str] = ()) -> list[PointsAtTime]:
+                 hull_oracle_cameras: Sequence[str] = (), scene_flow: bool = False) -> list[PointsAtTime]:
     """What a segment's training starts from, built as the ``train-segment`` task builds it: the
     segment's dense points split static/moving, plus the capture's lidar scan coloured by the
     static training cameras (:func:`segment_points`, :func:`background_views`) or, for a capture
@@ -266,7 +266,8 @@ def segment_init(load_bytes: Callable[[ArtifactRef], bytes], capture: Capture, p
     (:func:`~volcap_core.splat.init.room_shell`: the floor at z = 0, walls beyond the cameras).
     Each point carries its finest training camera's pixel footprint (:func:`with_footprints`);
     ``zoom_stride_px`` (``TrainConfig.init_zoom_stride_px``) adds the zoom cameras' points
-    (:func:`with_zoom_points`). A capture with its own performer masks (its training views carry
+    (:func:`with_zoom_points`); ``scene_flow`` (``TrainConfig.init_scene_flow``) gives every moving
+    point its velocity (:func:`with_scene_flow`). A capture with its own performer masks (its training views carry
     mattes: :func:`has_performer_mattes`) gets the performers' visual hull as each frame's moving
     points, and loses the sweep's moving points outside the stage volume
     (:func:`with_performer_hull`). Anything that must reproduce a stored segment (a resumed run, a
@@ -292,7 +293,9 @@ def segment_init(load_bytes: Callable[[ArtifactRef], bytes], capture: Capture, p
         clouds = with_performer_hull(clouds, data, held_out, stage_volume(capture.rig.stage_size_m),
                                      carve_only=hull_oracle_cameras)
     clouds = with_footprints(clouds, data, held_out)
-    return clouds if zoom_stride_px is None else with_zoom_points(clouds, data, held_out, zoom_stride_px)
+    if zoom_stride_px is not None:
+        clouds = with_zoom_points(clouds, data, held_out, zoom_stride_px)
+    return with_scene_flow(clouds, data, held_out) if scene_flow else clouds
 
 
 #: the radius that closes a performer mask before the hull is carved from it, as a fraction of the
@@ -399,6 +402,61 @@ def with_zoom_points(clouds: Sequence[PointsAtTime], data: SegmentData, held_out
                            rgb=torch.cat([p.rgb, torch.from_numpy(np.concatenate([a[1] for a in add]).astype(np.float32))]),
                            static=None if p.static is None else torch.cat([p.static, torch.zeros(len(nx), dtype=torch.bool)]),
                            footprint=torch.cat([p.footprint, torch.from_numpy(np.concatenate([a[2] for a in add])).float()])))
+    return out
+
+
+def with_scene_flow(clouds: Sequence[PointsAtTime], data: SegmentData, held_out: Sequence[str] = ()
+                    ) -> list[PointsAtTime]:
+    """Each frame's cloud with its moving points' velocity (``PointsAtTime.velocity``, m/s; the
+    static points' 0): the training cameras' optical flow to the frames before and after,
+    triangulated and smoothed over each point's neighbours
+    (:mod:`volcap_core.splat.scene_flow`). The flows run on the views' grey sRGB, each camera's
+    once per pair of frames. Clouds of no frame (the scan, the room shell) stay as they are."""
+    from volcap_core.colour import srgb_encode
+    from volcap_core.splat.scene_flow import FlowPair, optical_flow, point_velocities, smoothed_velocities
+
+    held = set(held_out)
+    views = {(v.camera_id, v.frame): v for v in data.views if v.camera_id not in held}
+    frame_of = {round(v.time, 6): v.frame for v in data.views}
+    time_of = {v.frame: v.time for v in data.views}
+    grey: dict[tuple[str, int], np.ndarray] = {}
+    flows: dict[tuple[str, int, int], np.ndarray] = {}
+
+    def grey_of(cam: str, f: int) -> np.ndarray:
+        if (cam, f) not in grey:
+            rgb = np.clip(views[(cam, f)].load()[..., :3].numpy(), 0.0, None)
+            grey[(cam, f)] = (np.clip(srgb_encode(rgb).mean(axis=2), 0, 1) * 255).round().astype(np.uint8)
+        return grey[(cam, f)]
+
+    def flow(cam: str, f: int, g: int) -> np.ndarray:
+        if (cam, f, g) not in flows:
+            flows[(cam, f, g)] = optical_flow(grey_of(cam, f), grey_of(cam, g))
+        return flows[(cam, f, g)]
+
+    cameras = sorted({c for c, _ in views})
+    out = []
+    for p in clouds:
+        f = frame_of.get(round(p.time, 6))
+        moving = ~p.static.numpy() if p.static is not None else np.ones(len(p.xyz), bool)
+        if f is None or moving.sum() < 2:
+            out.append(p)
+            continue
+        neighbours = []
+        for g in (f - 1, f + 1):
+            pairs = []
+            for cam in cameras:
+                a, b = views.get((cam, f)), views.get((cam, g))
+                if a is None or b is None:
+                    continue
+                pairs.append(FlowPair(a.camera.opencv_K(), a.camera.world_to_camera.double().numpy(),
+                                      b.camera.opencv_K(), b.camera.world_to_camera.double().numpy(),
+                                      a.camera.width, a.camera.height, flow(cam, f, g), flow(cam, g, f)))
+            if pairs:
+                neighbours.append((time_of[g] - time_of[f], pairs))
+        xyz = p.xyz.double().numpy()[moving]
+        velocity = np.zeros((len(p.xyz), 3), np.float32)
+        velocity[moving] = smoothed_velocities(xyz, point_velocities(xyz, neighbours))
+        out.append(replace(p, velocity=torch.from_numpy(velocity)))
     return out
 
 

@@ -87,7 +87,8 @@ def fit_segment(cap: Capture, capture_ref: ArtifactRef, calib: Calibration, cali
                                        reconstruction.FrameCache(get_bytes), scale=config.image_scale,
                                        load_mask=load_mask)
     init = reconstruction.segment_init(get_bytes, cap, points, data, config.held_out_cameras,
-                                       zoom_stride_px=config.init_zoom_stride_px)
+                                       zoom_stride_px=config.init_zoom_stride_px,
+                                       scene_flow=config.init_scene_flow)
     device = device or ("cuda" if torch.cuda.is_available() else "cpu")
     with deterministic_torch(device):
         result = train_segment(data, init, config, checkpoint=checkpoint if config.checkpoint_every else None,

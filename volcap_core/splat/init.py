@@ -12,7 +12,8 @@ What does not move is one Gaussian for the whole segment, not a copy per frame:
 3. :func:`initial_gaussians` pools the static points of every frame, thins them on a voxel grid
    to the static budget and gives them an unbounded lifespan (λ = 0, centred mid-segment); each
    frame's moving points are thinned to the moving budget and live about one frame interval
-   around their frame's time.
+   around their frame's time, or several where they carry their velocity
+   (:mod:`volcap_core.splat.scene_flow`).
 
 Initial scale: ``scale_factor`` × the RMS distance to the 3 nearest neighbours *within the pool the
 Gaussian was drawn from after thinning*, at most ``max_scale_ratio`` × the pool's median — the
@@ -348,6 +349,7 @@ class InitSplit:
     Attributes:
         xyz: ``[N, 3]`` metres. rgb: ``[N, 3]`` linear colour. scale: ``[N]`` metres.
         t0: ``[N]`` seconds. static: ``[N]`` bool (unbounded lifespan).
+        velocity: ``[N, 3]`` m/s at ``t0`` (0 for the static ones), or None where no frame gave one.
     """
 
     xyz: np.ndarray
@@ -355,6 +357,7 @@ class InitSplit:
     scale: np.ndarray
     t0: np.ndarray
     static: np.ndarray
+    velocity: np.ndarray | None = None
 
     @property
     def counts(self) -> dict[str, int]:
@@ -369,8 +372,10 @@ def initial_gaussians(frames: Sequence[tuple], *,
 
     Args:
         frames: per frame ``(time_s, xyz [P, 3], rgb [P, 3] linear, static [P] bool or None)``,
-            optionally a fifth ``footprint [P]`` metres (:func:`finest_footprint`) or None;
-            ``static=None`` treats the frame's points as moving.
+            optionally a fifth ``footprint [P]`` metres (:func:`finest_footprint`) or None and a
+            sixth ``velocity [P, 3]`` m/s (:mod:`~volcap_core.splat.scene_flow`) or None, which
+            the moving Gaussians drawn from those points keep; ``static=None`` treats the
+            frame's points as moving.
         budget: most Gaussians in total.
         static_share: fraction of the budget the static pool may take (what it leaves unused
             goes to the moving points, and the reverse).
@@ -389,17 +394,21 @@ def initial_gaussians(frames: Sequence[tuple], *,
     """
     rng = np.random.default_rng(seed)
     s_xyz, s_rgb, m_parts = [], [], []
+    any_velocity = False
     for time_s, xyz, rgb, static, *more in frames:
         xyz, rgb = np.asarray(xyz, np.float64).reshape(-1, 3), np.asarray(rgb, np.float64).reshape(-1, 3)
         st = np.zeros(len(xyz), bool) if static is None else np.asarray(static, bool)
         foot = more[0] if more and more[0] is not None else np.full(len(xyz), np.inf)
+        vel = more[1] if len(more) > 1 and more[1] is not None else None
+        any_velocity |= vel is not None
+        vel = np.zeros((len(xyz), 3)) if vel is None else np.asarray(vel, np.float64).reshape(-1, 3)
         s_xyz.append(xyz[st])
         s_rgb.append(rgb[st])
         moving, m_foot = xyz[~st], np.asarray(foot, np.float64)[~st]
         level = _levels(m_foot, finest_level)
         keep = drop_isolated(moving, groups=level)
         m_parts.append((float(time_s), moving[keep], rgb[~st][keep], m_foot[keep],
-                        None if level is None else level[keep]))
+                        None if level is None else level[keep], vel[~st][keep]))
     s_xyz_all = np.concatenate(s_xyz) if s_xyz else np.zeros((0, 3))
     s_rgb_all = np.concatenate(s_rgb) if s_rgb else np.zeros((0, 3))
     # the same static point given by several frames is one point (a scan repeated per frame)
@@ -416,13 +425,15 @@ def initial_gaussians(frames: Sequence[tuple], *,
     times = [f[0] for f in frames]
     mid = 0.5 * (min(times) + max(times)) if times else 0.0
     parts_t0 = [np.full(n_static, mid)]
+    parts_velocity = [np.zeros((n_static, 3))]
     shares = _fair_shares([len(p[1]) for p in m_parts], budget - n_static)
-    for (time_s, xyz, rgb, foot, level), share in zip(m_parts, shares):
+    for (time_s, xyz, rgb, foot, level, vel), share in zip(m_parts, shares):
         if share == 0:
             continue
         k = voxel_thin(xyz, share, rng, level)
         parts_xyz.append(xyz[k])
         parts_rgb.append(rgb[k])
+        parts_velocity.append(vel[k])
         sc = scale_factor * _capped(neighbour_scale(xyz[k]), max_scale_ratio)
         if moving_scale_px is not None:
             sc = np.minimum(sc, moving_scale_px * foot[k])
@@ -433,7 +444,8 @@ def initial_gaussians(frames: Sequence[tuple], *,
     scale = np.concatenate(parts_scale)
     static = np.zeros(len(xyz), bool)
     static[:n_static] = True
-    return InitSplit(xyz, np.concatenate(parts_rgb), scale, np.concatenate(parts_t0), static)
+    return InitSplit(xyz, np.concatenate(parts_rgb), scale, np.concatenate(parts_t0), static,
+                     np.concatenate(parts_velocity) if any_velocity else None)
 
 
 def _levels(footprint: np.ndarray, finest_level: int) -> np.ndarray | None:

@@ -206,8 +206,9 @@ class Poly4DGS:
     @classmethod
     def from_points(cls, config: Poly4DGSConfig, xyz: torch.Tensor, colour: torch.Tensor, *,
                     scales: torch.Tensor, t0: torch.Tensor | None = None,
-                    opacity: float = 0.5, lifespan_s: float | torch.Tensor = 1.0) -> "Poly4DGS":
-        """One isotropic Gaussian per point, no motion.
+                    opacity: float = 0.5, lifespan_s: float | torch.Tensor = 1.0,
+                    velocity: torch.Tensor | None = None) -> "Poly4DGS":
+        """One isotropic Gaussian per point, no motion (or ``velocity``).
 
         Args:
             xyz: ``[N, 3]`` positions (metres).
@@ -220,6 +221,8 @@ class Poly4DGS:
                 λ_1 = 1/σ_t², and λ_i = 0.01 / σ_t^(2i) for i >= 2 (a near-Gaussian envelope the
                 optimiser reshapes). ``inf`` = lives for ever (what does not move): log λ =
                 :data:`STATIC_LOG_LAMBDA`.
+            velocity: ``[N, 3]`` m/s at ``t0``, the first-order mean coefficient μ_1 (needs
+                ``mean_degree`` >= 1); None: 0.
         """
         n = xyz.shape[0]
         dev, dt = xyz.device, torch.float32
@@ -236,6 +239,10 @@ class Poly4DGS:
         c = config
         if c.mean_degree:
             p["means_t"] = torch.zeros(n, c.mean_degree, 3, device=dev)
+            if velocity is not None:
+                p["means_t"][:, 0] = velocity.to(dev, dt).reshape(n, 3)
+        elif velocity is not None:
+            raise ValueError("a velocity needs mean_degree >= 1")
         if c.quat_degree:
             p["quats_t"] = torch.zeros(n, c.quat_degree, 4, device=dev)
         if c.scale_degree:

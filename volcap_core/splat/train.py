@@ -219,6 +219,10 @@ class PointsAtTime:
     #: (:func:`volcap_core.splat.init.finest_footprint`), or None; read with
     #: ``TrainConfig.init_moving_scale_px``
     footprint: torch.Tensor | None = None
+    #: ``[P, 3]`` m/s, each point's velocity at ``time`` (the static points' 0;
+    #: :func:`volcap_core.reconstruction.with_scene_flow`), or None: the moving Gaussians made from
+    #: it start with this motion instead of none
+    velocity: torch.Tensor | None = None
 
 
 # --------------------------------------------------------------------------------------- config
@@ -292,6 +296,9 @@ class TrainConfig(BaseModel):
     init_opacity: float = Field(0.5, gt=0, lt=1)
     init_lifespan_frames: float = Field(0.7, gt=0,
                                         description="initial temporal σ of moving Gaussians, in frame intervals")
+    init_scene_flow: bool = Field(False, description="start each moving Gaussian with its point's velocity from the "
+                                  "training views' optical flow (reconstruction.with_scene_flow), so that it can "
+                                  "live over several frames (init_lifespan_frames); False: no motion")
     init_max_points: int | None = Field(None, gt=0, description="thin the initial points to this")
     init_cap_fraction: float = Field(0.7, gt=0, le=1, description="initial Gaussians at most this "
                                      "fraction of mcmc.cap_max (room for growth)")
@@ -323,7 +330,7 @@ class TrainConfig(BaseModel):
 
     @model_serializer(mode="wrap")
     def _omit_off_options(self, handler):
-        # at their defaults the alpha loss's and the frozen set's fields are left out of the JSON:
+        # at their defaults the alpha loss's, the frozen set's and the scene flow's fields are left out of the JSON:
         # configs (a train-segment key, a stored record's config) written before they existed keep
         # their bytes
         out = handler(self)
@@ -335,7 +342,7 @@ class TrainConfig(BaseModel):
 
 
 #: TrainConfig fields left out of its JSON at these values (added after configs were stored)
-_OFF_WHEN = {"mask_alpha_weight": 0.0, "mask_alpha_every": 1, "set_frozen_from": None}
+_OFF_WHEN = {"mask_alpha_weight": 0.0, "mask_alpha_every": 1, "set_frozen_from": None, "init_scene_flow": False}
 
 
 @dataclass(frozen=True)
@@ -374,7 +381,8 @@ def init_model(points: Sequence[PointsAtTime], config: TrainConfig, *, frame_int
     the point's colour (unbounded sRGB, or linear as it is when ``config.model.colour_space ==
     "linear"``), isotropic scale = ``init_scale_factor`` × the RMS distance to the 3 nearest
     neighbours of its pool (at most ``init_max_scale_ratio`` × the pool's median), opacity
-    ``init_opacity``, no motion.
+    ``init_opacity``; no motion, or where the points carry a velocity
+    (``PointsAtTime.velocity``: :func:`volcap_core.reconstruction.with_scene_flow`) that velocity.
     """
     from volcap_core.splat.init import initial_gaussians
 
@@ -387,7 +395,8 @@ def init_model(points: Sequence[PointsAtTime], config: TrainConfig, *, frame_int
                          "(PointsAtTime.footprint)")
     frames = [(p.time, p.xyz.double().numpy(), p.rgb.double().numpy(),
                None if p.static is None else p.static.numpy(),
-               None if p.footprint is None else p.footprint.double().numpy()) for p in points]
+               None if p.footprint is None else p.footprint.double().numpy(),
+               None if p.velocity is None else p.velocity.double().numpy()) for p in points]
     split = initial_gaussians(frames, budget=init_budget(config), static_share=config.init_static_share,
                               scale_factor=config.init_scale_factor,
                               max_scale_ratio=config.init_max_scale_ratio,
@@ -402,7 +411,8 @@ def init_model(points: Sequence[PointsAtTime], config: TrainConfig, *, frame_int
     return Poly4DGS.from_points(config.model, torch.from_numpy(split.xyz).float(), colour,
                                 scales=torch.from_numpy(split.scale).float(),
                                 t0=torch.from_numpy(split.t0).float(), opacity=config.init_opacity,
-                                lifespan_s=lifespan)
+                                lifespan_s=lifespan,
+                                velocity=None if split.velocity is None else torch.from_numpy(split.velocity).float())
 
 
 def init_budget(config: TrainConfig) -> int:
