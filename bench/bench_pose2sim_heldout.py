@@ -196,7 +196,8 @@ def segment_inputs(inputs: dict, points: str, args, config) -> tuple:
     data = reconstruction.segment_data(cap, calib, None, (0, cap.frame_count), reconstruction.FrameCache(s.get_bytes),
                                        scale=config.image_scale)
     init = reconstruction.segment_init(s.get_bytes, cap, pts, data, config.held_out_cameras,
-                                       hull_oracle_cameras=config.held_out_cameras if args.hull_oracle else ())
+                                       hull_oracle_cameras=config.held_out_cameras if args.hull_oracle else (),
+                                       scene_flow=config.init_scene_flow)
     if args.fill_shell:   # the room shell's points no training camera sees: the seen points' median colour
         init = list(init[:-1]) + [filled_shell(data, cap, config.held_out_cameras, init[-1].time)]
     print("initial points a cloud:", [len(p.xyz) for p in init], flush=True)

@@ -279,8 +279,8 @@ def initial_points_bytes(init, config) -> bytes:
             clouds[f"{i}/static"] = p.static.numpy().astype(np.uint8)
         if p.footprint is not None and footprints:
             clouds[f"{i}/footprint"] = _compact(p.footprint.numpy())
-        if p.velocity is not None:
-            clouds[f"{i}/velocity"] = p.velocity.numpy().astype(np.float32)
+        if p.velocity is not None:   # half precision where lossless (with_scene_flow's are)
+            clouds[f"{i}/velocity"] = _compact(p.velocity.numpy())
     return st_save(clouds, {"times": json.dumps([p.time for p in init])})
 
 

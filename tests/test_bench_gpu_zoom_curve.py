@@ -131,7 +131,8 @@ def test_prepare_run_report(prefect_api, tmp_path):
     data = reconstruction.segment_data(cap, calib, tracking_frames(s.get_bytes, calib), (0, 2),
                                        reconstruction.FrameCache(s.get_bytes), load_mask=ground_truth.mask_loader(files))
     init = reconstruction.segment_init(s.get_bytes, cap, s.get_record(s.resolve(refs[2]), PointCloudSequence), data,
-                                       config.held_out_cameras, zoom_stride_px=config.init_zoom_stride_px)
+                                       config.held_out_cameras, zoom_stride_px=config.init_zoom_stride_px,
+                                       scene_flow=config.init_scene_flow)
     scene = json.loads(files.read("scene.json"))
     train_cams = sorted({c for c in data.camera_ids if c not in config.held_out_cameras})
     grids = ExposureGrids.identity(train_cams, config.grid_size)

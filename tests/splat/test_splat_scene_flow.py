@@ -154,3 +154,14 @@ def test_velocity_needs_a_temporal_mean(degree):
     with pytest.raises(ValueError, match="mean_degree"):
         Poly4DGS.from_points(Poly4DGSConfig(mean_degree=degree), torch.zeros(2, 3), torch.zeros(2, 3),
                              scales=torch.ones(2), t0=torch.zeros(2), velocity=torch.zeros(2, 3))
+
+
+def test_points_keep_their_velocity_when_subset_and_refuse_a_mismatch():
+    """A subset (the set trained apart keeps a cloud's moving points only) carries each point's
+    velocity with it; a velocity of another length is refused, naming the field."""
+    xyz = torch.arange(12, dtype=torch.float32).view(4, 3)
+    p = PointsAtTime(0.5, xyz, xyz.clone(), static=torch.tensor([True, False, True, False]), velocity=xyz * 2)
+    q = p.subset(~p.static)
+    assert torch.equal(q.xyz, xyz[[1, 3]]) and torch.equal(q.velocity, xyz[[1, 3]] * 2)
+    with pytest.raises(ValueError, match="velocity has 3 rows for 4 points"):
+        PointsAtTime(0.5, xyz, xyz.clone(), velocity=xyz[:3])

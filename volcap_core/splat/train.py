@@ -224,6 +224,18 @@ class PointsAtTime:
     #: it start with this motion instead of none
     velocity: torch.Tensor | None = None
 
+    def __post_init__(self) -> None:
+        n = len(self.xyz)
+        for name in ("rgb", "static", "footprint", "velocity"):
+            v = getattr(self, name)
+            if v is not None and len(v) != n:
+                raise ValueError(f"points at t={self.time:.4f} s: {name} has {len(v)} rows for {n} points")
+
+    def subset(self, keep: torch.Tensor) -> "PointsAtTime":
+        """These points where ``keep`` ``[P]`` (bool or indices), every per-point field with them."""
+        return replace(self, **{name: None if getattr(self, name) is None else getattr(self, name)[keep]
+                                for name in ("xyz", "rgb", "static", "footprint", "velocity")})
+
 
 # --------------------------------------------------------------------------------------- config
 
@@ -597,9 +609,7 @@ def _with_set(set_model: Poly4DGS, points: Sequence[PointsAtTime], config: Train
     if not bool((~set_model.moving()).all()):
         raise ValueError(f"set_model: {int(set_model.moving().sum())} of its {len(set_model)} Gaussians "
                          "have a lifespan (performers'); a set holds static Gaussians only")
-    moving = [replace(p, xyz=p.xyz[~p.static], rgb=p.rgb[~p.static], static=None,
-                      footprint=None if p.footprint is None else p.footprint[~p.static])
-              if p.static is not None else p for p in points]
+    moving = [replace(p.subset(~p.static), static=None) if p.static is not None else p for p in points]
     performers = init_model([p for p in moving if len(p.xyz)], config.model_copy(update={"init_static_share": 0.0}),
                             frame_interval_s=frame_interval_s, generator=generator)
     return Poly4DGS.joined(set_model.to(performers.params["means"].device), performers)
