@@ -224,29 +224,44 @@ def test_demo_and_test_presets_train_as_they_were_measured():
     from volcap_core.splat.train import TrainConfig
 
     demo = PRESETS["demo"].train_config(held_out=["S004"], max_gaussians=80_000)
+    # since 2026-11-29 (docs/poly4dgs.md, "The performers' initial motion"): the moving Gaussians start
+    # with their points' velocity and live ~3 frames, on 1340 steps (the time 1640 took without them)
+    assert demo == TrainConfig(steps=1340, grid_size=8, eval_every=268, eval_max_views=4, checkpoint_every=268,
+                               mcmc=MCMCConfig(refine_start=243, refine_every=243, refine_stop=1217, cap_max=80_000,
+                                               moving_weight=4.0),
+                               init_max_points=80_000, held_out_cameras=["S004"], init_zoom_stride_px=2,
+                               performer_view_weight=1.5, mask_alpha_weight=1.0, mask_alpha_every=4,
+                               init_scene_flow=True, init_lifespan_frames=3.0)
+    # the preset before (1640 steps, no initial motion), from which the figures before that date come:
     # issue 28's route since 2026-11-28 (docs/poly4dgs.md, "The zoom points' depth"): the zoom
     # cameras' points, the performer-weighted camera schedule, MCMC's moving weight; since that
     # evening the alpha loss on the capture's masks every 4th step ("Performer masks as an alpha loss")
-    assert demo == TrainConfig(steps=1640, grid_size=8, eval_every=328, eval_max_views=4, checkpoint_every=328,
-                               mcmc=MCMCConfig(refine_start=298, refine_every=298, refine_stop=1490, cap_max=80_000,
-                                               moving_weight=4.0),
-                               init_max_points=80_000, held_out_cameras=["S004"], init_zoom_stride_px=2,
-                               performer_view_weight=1.5, mask_alpha_weight=1.0, mask_alpha_every=4)
+    former_preset = PRESETS["demo"].with_overrides(train_steps=1640, eval_every=328, checkpoint_every=328,
+                                                   refine_start=298, refine_every=298, refine_stop=1490,
+                                                   init_scene_flow=False, init_lifespan_frames=0.7)
+    former = former_preset.train_config(held_out=["S004"], max_gaussians=80_000)
+    assert former == TrainConfig(steps=1640, grid_size=8, eval_every=328, eval_max_views=4, checkpoint_every=328,
+                                 mcmc=MCMCConfig(refine_start=298, refine_every=298, refine_stop=1490, cap_max=80_000,
+                                                 moving_weight=4.0),
+                                 init_max_points=80_000, held_out_cameras=["S004"], init_zoom_stride_px=2,
+                                 performer_view_weight=1.5, mask_alpha_weight=1.0, mask_alpha_every=4)
+    # its JSON (a stored segment's key) is the bytes it had before the scene flow's fields existed
+    assert "init_scene_flow" not in former.model_dump_json()
     # the set frozen halfway through 2030 steps (measured 2026-11-28 night, "The set frozen"): the
     # 1640-step schedule stretched
-    frozen = PRESETS["demo"].with_steps(2030).with_overrides(set_frozen_from=0.5).train_config(
+    frozen = former_preset.with_steps(2030).with_overrides(set_frozen_from=0.5).train_config(
         held_out=["S004"], max_gaussians=80_000)
-    assert frozen == demo.model_copy(update={
+    assert frozen == former.model_copy(update={
         "steps": 2030, "eval_every": 406, "checkpoint_every": 406, "set_frozen_from": 0.5,
         "mcmc": MCMCConfig(refine_start=369, refine_every=369, refine_stop=1844, cap_max=80_000, moving_weight=4.0)})
     # the route's figures of the afternoon: the same without the alpha loss
-    assert PRESETS["demo"].with_overrides(mask_alpha_weight=0.0, mask_alpha_every=1).train_config(
-        held_out=["S004"], max_gaussians=80_000) == demo.model_copy(
+    assert former_preset.with_overrides(mask_alpha_weight=0.0, mask_alpha_every=1).train_config(
+        held_out=["S004"], max_gaussians=80_000) == former.model_copy(
         update={"mask_alpha_weight": 0.0, "mask_alpha_every": 1})
 
     def unrouted(steps: int) -> TrainConfig:
         """The demo preset at ``steps`` without the route: the demo as measured before it."""
-        return PRESETS["demo"].with_steps(steps).with_overrides(
+        return former_preset.with_steps(steps).with_overrides(
             init_zoom_stride_px=None, performer_view_weight=0.0, moving_weight=1.0,
             mask_alpha_weight=0.0, mask_alpha_every=1).train_config(held_out=["S004"], max_gaussians=80_000)
 
@@ -265,7 +280,7 @@ def test_demo_and_test_presets_train_as_they_were_measured():
     assert before == TrainConfig(steps=550, grid_size=8, eval_every=110, eval_max_views=4, checkpoint_every=110,
                                  mcmc=MCMCConfig(refine_start=100, refine_every=100, refine_stop=500, cap_max=80_000),
                                  init_max_points=80_000, held_out_cameras=["S004"])
-    longer = PRESETS["demo"].with_steps(550).with_steps(1300).with_overrides(
+    longer = former_preset.with_steps(550).with_steps(1300).with_overrides(
         init_zoom_stride_px=None, performer_view_weight=0.0, moving_weight=1.0, mask_alpha_weight=0.0,
         mask_alpha_every=1).train_config(
         held_out=["S004"], max_gaussians=80_000)
@@ -342,8 +357,8 @@ def test_segment_data_at_a_fraction_of_the_resolution(ingested):
 
 
 def test_steps_stretch_the_preset_schedule_and_keep_the_budget():
-    cfg = PRESETS["demo"].with_steps(3280).train_config(max_gaussians=5000)
-    assert cfg.steps == 3280 and cfg.mcmc.cap_max == 5000 and cfg.init_max_points == 5000
+    cfg = PRESETS["demo"].with_steps(2680).train_config(max_gaussians=5000)
+    assert cfg.steps == 2680 and cfg.mcmc.cap_max == 5000 and cfg.init_max_points == 5000
     base = PRESETS["demo"].train_config()
     assert cfg.eval_every == 2 * base.eval_every and cfg.mcmc.refine_stop == 2 * base.mcmc.refine_stop
     # "evaluate only at the end" stays so at any length

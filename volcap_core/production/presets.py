@@ -44,6 +44,7 @@ DEGREES = {"poly4dgs": Poly4DGSConfig.paper, "rotor4d": Poly4DGSConfig.rotor4d, 
 TRAINING_FIELDS = ("train_steps", "grid_size", "eval_every", "eval_max_views", "checkpoint_every",
                    "refine_start", "refine_every", "refine_stop", "train_scale", "sh_degree", "held_out_tracking",
                    "init_static_share", "init_zoom_stride_px", "init_finest_level", "init_moving_scale_px",
+                   "init_scene_flow", "init_lifespan_frames",
                    "performer_view_weight", "moving_weight", "mask_alpha_weight", "mask_alpha_every", "set_frozen_from")
 
 #: The preset fields that shape the enhancer's training (a train-enhancer step carries them).
@@ -87,6 +88,10 @@ class QualityPreset(BaseModel):
                                    description="moving points thinned up to 2^-N times finer where a camera resolves finer")
     init_moving_scale_px: float | None = Field(_TRAIN["init_moving_scale_px"].default, gt=0,
                                                description="moving Gaussians' initial scale cap, in finest footprints")
+    init_scene_flow: bool = Field(_TRAIN["init_scene_flow"].default,
+                                  description="moving Gaussians start with their points' velocity (optical flow, triangulated)")
+    init_lifespan_frames: float = Field(_TRAIN["init_lifespan_frames"].default, gt=0,
+                                        description="moving Gaussians' initial temporal σ, in frame intervals")
     performer_view_weight: float = Field(_TRAIN["performer_view_weight"].default, ge=0,
                                          description="camera schedule weight of the views' performer coverage")
     moving_weight: float = Field(_MCMC["moving_weight"].default, gt=0,
@@ -266,6 +271,7 @@ class QualityPreset(BaseModel):
             "held_out_cameras": list(held_out), "init_static_share": self.init_static_share,
             "init_zoom_stride_px": self.init_zoom_stride_px, "init_finest_level": self.init_finest_level,
             "init_moving_scale_px": self.init_moving_scale_px, "performer_view_weight": self.performer_view_weight,
+            "init_scene_flow": self.init_scene_flow, "init_lifespan_frames": self.init_lifespan_frames,
             "mask_alpha_weight": self.mask_alpha_weight, "mask_alpha_every": self.mask_alpha_every,
             "set_frozen_from": self.set_frozen_from}
         if max_gaussians is not None:
@@ -318,20 +324,25 @@ PRESETS: dict[str, QualityPreset] = {
     # 8-frame segment) that fit its time target; the measurements: docs/poly4dgs.md "The demo".
     # 1640 steps since the compiled CPU training step (projection, slice, colours, Adam, all cores for
     # the compositing): ~3.7 min of training on 2 quiet cores, issue 28's ~4 minutes; the 820-step
-    # schedule doubled (820 steps before, 550 before the compiled compositor: `with_steps` gives
-    # both schedules back exactly). Issue 28's route since 2026-11-28 (docs/poly4dgs.md, "The zoom
+    # schedule doubled (820 steps before, 550 before the compiled compositor); 1340 since the initial
+    # motion (below), that schedule stretched. Issue 28's route since 2026-11-28 (docs/poly4dgs.md, "The zoom
     # points' depth"): the zoom cameras' own points every 2 px at a photo-consistent depth, views
     # drawn by their performer coverage (1.5) and MCMC growing the moving Gaussians 4x as readily.
     # Where the capture has masks (the demo's: against its clean plates), the performers' alpha
     # trained toward them on every 4th step (docs/poly4dgs.md, "Performer masks as an alpha loss").
     # The set frozen halfway through 2030 steps (the same time) was measured on two seeds and left
     # off: the zoom cameras' faces +10 % detail, the held-out static performers -0.5 dB
-    # (docs/poly4dgs.md, "The set frozen")
-    "demo": QualityPreset(train_steps=1640, grid_size=8, eval_every=328, eval_max_views=4, checkpoint_every=328,
-                          refine_start=298, refine_every=298, refine_stop=1490,
+    # (docs/poly4dgs.md, "The set frozen"). Since 2026-11-29 the moving Gaussians start with their
+    # points' velocity (the training views' optical flow, triangulated) and live ~3 frames, so each
+    # frame sees ~3 frames' Gaussians; a step then costs ~1.2x, so 1340 steps (the 1640-step
+    # schedule's time): the close-up's face +0.8 dB, the zoom cameras' performers +0.9 dB and +19 %
+    # detail (docs/poly4dgs.md, "The performers' initial motion")
+    "demo": QualityPreset(train_steps=1340, grid_size=8, eval_every=268, eval_max_views=4, checkpoint_every=268,
+                          refine_start=243, refine_every=243, refine_stop=1217,
                           gaussians_per_frame=10_000, max_gaussians_per_segment=80_000, overlap=2,
                           held_out_tracking=1, init_zoom_stride_px=2, performer_view_weight=1.5, moving_weight=4.0,
-                          mask_alpha_weight=1.0, mask_alpha_every=4, **_CPU_FACE),
+                          mask_alpha_weight=1.0, mask_alpha_every=4, init_scene_flow=True, init_lifespan_frames=3.0,
+                          **_CPU_FACE),
     # dailies: half resolution, short training, one 24 GB GPU per segment
     "preview": QualityPreset(train_steps=3_000, eval_every=500, checkpoint_every=500,
                              refine_start=300, refine_every=100, refine_stop=2_500,
