@@ -2,7 +2,8 @@
 performer? (issue 30; figures in ``docs/poly4dgs.md`` "Real footage" and ``docs/benchmarks.md``).
 
     python bench/bench_pose2sim_heldout.py --workdir W --held cam02 [--steps 250] [--gaussians 20000]
-        [--fill-shell] [--mask-alpha 0.1] [--set-frozen-from F] [--hull-oracle] [--tag T] [--json out.json]
+        [--fill-shell] [--mask-alpha 0.1] [--set-frozen-from F] [--no-scene-flow] [--hull-oracle] [--tag T]
+        [--json out.json]
         [--sheet sheet.jpg]
         [--scale 1 --dense-scale 0.25 --gpu-prepare DIR [--gaussians-per-frame N]]
 
@@ -259,6 +260,8 @@ def train(inputs: dict, points: str, args) -> dict:
         overrides["mask_alpha_weight"] = args.mask_alpha
     if args.set_frozen_from is not None:
         overrides["set_frozen_from"] = args.set_frozen_from or None
+    if args.no_scene_flow:   # the moving Gaussians as before the demo preset's initial motion
+        overrides.update(init_scene_flow=False, init_lifespan_frames=0.7)
     config = named_preset("demo").with_steps(args.steps).train_config(held_out=[args.held],
                                                                       max_gaussians=args.gaussians, **overrides)
     cap, calib, data, init = segment_inputs(inputs, points, args, config)
@@ -350,6 +353,9 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--mask-alpha", type=float, default=0.0, help="TrainConfig.mask_alpha_weight")
     ap.add_argument("--set-frozen-from", type=float, default=None,
                     help="TrainConfig.set_frozen_from (0: the set trains to the end; default: the demo preset's)")
+    ap.add_argument("--no-scene-flow", action="store_true",
+                    help="the moving Gaussians without their initial velocity, living ~1 frame (the demo preset "
+                         "before 2026-11-29)")
     ap.add_argument("--hull-oracle", action="store_true",
                     help="diagnostic: the held-out camera's mask carves the performers' hull too (colours nothing)")
     ap.add_argument("--tag", default="run", help="names the saved model in the workdir")
