@@ -81,10 +81,14 @@ def _sample(field: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Bilinear samples ``[N, C]`` of ``field [H, W, C]`` at ``uv`` (edge values outside)."""
     import cv2
 
-    x = uv[:, 0].astype(np.float32)[None]
-    y = uv[:, 1].astype(np.float32)[None]
+    # remap's maps as rows of 1024 (a map side must stay under 32767; a frame holds ~1e5 points)
+    n = len(uv)
+    rows = max(1, -(-n // 1024))
+    maps = np.zeros((2, rows * 1024), np.float32)
+    maps[:, :n] = uv.T
+    x, y = maps.reshape(2, rows, 1024)
     return np.stack([cv2.remap(np.ascontiguousarray(field[..., c]), x, y, cv2.INTER_LINEAR,
-                               borderMode=cv2.BORDER_REPLICATE)[0] for c in range(field.shape[-1])], axis=1)
+                               borderMode=cv2.BORDER_REPLICATE).ravel()[:n] for c in range(field.shape[-1])], axis=1)
 
 
 def moved_points(xyz: np.ndarray, observations: Sequence[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
