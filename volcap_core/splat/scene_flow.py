@@ -71,7 +71,9 @@ class FlowPair:
 
 
 def _project(K: np.ndarray, W: np.ndarray, xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(uv [N, 2] pixels, camera-space points [N, 3])``."""
+    """``(uv [N, 2] pixels, camera-space points [N, 3])``. Not ``calibration.geometry.project``: the
+    depth is floored here so a point behind a camera keeps finite pixels and Jacobian, which its
+    zero weight then cancels (an infinite one times zero would poison the solve with NaN)."""
     pc = xyz @ W[:3, :3].T + W[:3, 3]
     z = np.maximum(pc[:, 2], 1e-6)
     return pc[:, :2] / z[:, None] @ K[:2, :2].T + K[:2, 2], pc
