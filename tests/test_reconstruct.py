@@ -225,20 +225,27 @@ def test_demo_and_test_presets_train_as_they_were_measured():
 
     demo = PRESETS["demo"].train_config(held_out=["S004"], max_gaussians=80_000)
     # since 2026-11-29 (docs/poly4dgs.md, "The performers' initial motion"): the moving Gaussians start
-    # with their points' velocity and live ~3 frames, on 1340 steps (the time 1640 took without them)
+    # with their points' velocity and live ~3 frames, on 1340 steps (the time 1640 took without them);
+    # since later that day the faces the zoom cameras resolve thinned up to 8x finer and started at
+    # most 2 of their pixels wide ("The faces' Gaussians at the zoom cameras' pixels")
     assert demo == TrainConfig(steps=1340, grid_size=8, eval_every=268, eval_max_views=4, checkpoint_every=268,
                                mcmc=MCMCConfig(refine_start=243, refine_every=243, refine_stop=1217, cap_max=80_000,
                                                moving_weight=4.0),
                                init_max_points=80_000, held_out_cameras=["S004"], init_zoom_stride_px=2,
                                performer_view_weight=1.5, mask_alpha_weight=1.0, mask_alpha_every=4,
-                               init_scene_flow=True, init_lifespan_frames=3.0)
+                               init_scene_flow=True, init_lifespan_frames=3.0,
+                               init_finest_level=-3, init_moving_scale_px=2.0)
+    # the preset of the morning of 2026-11-29, from which that day's initial-motion figures come
+    motion_only = PRESETS["demo"].with_overrides(init_finest_level=0, init_moving_scale_px=None)
+    assert motion_only.train_config(held_out=["S004"], max_gaussians=80_000) == demo.model_copy(
+        update={"init_finest_level": 0, "init_moving_scale_px": None})
     # the preset before (1640 steps, no initial motion), from which the figures before that date come:
     # issue 28's route since 2026-11-28 (docs/poly4dgs.md, "The zoom points' depth"): the zoom
     # cameras' points, the performer-weighted camera schedule, MCMC's moving weight; since that
     # evening the alpha loss on the capture's masks every 4th step ("Performer masks as an alpha loss")
-    former_preset = PRESETS["demo"].with_overrides(train_steps=1640, eval_every=328, checkpoint_every=328,
-                                                   refine_start=298, refine_every=298, refine_stop=1490,
-                                                   init_scene_flow=False, init_lifespan_frames=0.7)
+    former_preset = motion_only.with_overrides(train_steps=1640, eval_every=328, checkpoint_every=328,
+                                               refine_start=298, refine_every=298, refine_stop=1490,
+                                               init_scene_flow=False, init_lifespan_frames=0.7)
     former = former_preset.train_config(held_out=["S004"], max_gaussians=80_000)
     assert former == TrainConfig(steps=1640, grid_size=8, eval_every=328, eval_max_views=4, checkpoint_every=328,
                                  mcmc=MCMCConfig(refine_start=298, refine_every=298, refine_stop=1490, cap_max=80_000,

@@ -336,13 +336,17 @@ PRESETS: dict[str, QualityPreset] = {
     # points' velocity (the training views' optical flow, triangulated) and live ~3 frames, so each
     # frame sees ~3 frames' Gaussians; a step then costs ~1.2x, so 1340 steps (the 1640-step
     # schedule's time): the close-up's face +0.8 dB, the zoom cameras' performers +0.9 dB and +19 %
-    # detail (docs/poly4dgs.md, "The performers' initial motion")
+    # detail (docs/poly4dgs.md, "The performers' initial motion"). Since 2026-11-29 (later) where a
+    # camera resolves a moving point finer than the frame's 90th-percentile footprint, the point is
+    # thinned on a grid up to 8x finer and its Gaussian starts at most 2 of that camera's pixels wide:
+    # the zoom cameras' faces got ~1,260 Gaussians 2 px wide where they had ~660 at 6 px, and their
+    # eyes, brows and hair drawn (docs/poly4dgs.md, "The faces' Gaussians at the zoom cameras' pixels")
     "demo": QualityPreset(train_steps=1340, grid_size=8, eval_every=268, eval_max_views=4, checkpoint_every=268,
                           refine_start=243, refine_every=243, refine_stop=1217,
                           gaussians_per_frame=10_000, max_gaussians_per_segment=80_000, overlap=2,
                           held_out_tracking=1, init_zoom_stride_px=2, performer_view_weight=1.5, moving_weight=4.0,
                           mask_alpha_weight=1.0, mask_alpha_every=4, init_scene_flow=True, init_lifespan_frames=3.0,
-                          **_CPU_FACE),
+                          init_finest_level=-3, init_moving_scale_px=2.0, **_CPU_FACE),
     # dailies: half resolution, short training, one 24 GB GPU per segment
     "preview": QualityPreset(train_steps=3_000, eval_every=500, checkpoint_every=500,
                              refine_start=300, refine_every=100, refine_stop=2_500,
