@@ -35,7 +35,8 @@
 #   OUT=/tmp/gpu P2S=.gpu-p2s PAIRS=.gpu-pairs PREPARED_ONLY=1 bash bench/gpu_checks.sh   # two prepared runs
 #   OUT=/tmp/gpu ZOOM_CURVE=.gpu-carry/zoom.tar.xz PREPARED_ONLY=1 bash bench/gpu_checks.sh   # a packed folder
 #   # issue 28's production budget to its schedule's end (5 000 steps at ~73 ms on an H200 before the
-#   # performers' initial motion, which costs ~1.25x a step on a CPU; 5 scored points; ~480 s with the
+#   # performers' initial motion, which costs ~1.25x a step on a CPU, and the faces' 2-px Gaussians, which
+#   # cost ~0.9x; 5 scored points; ~480 s with the
 #   # build, in one 15-minute lease; prepared with --steps 5000 from a `volcap demo` store of the preset):
 #   OUT=/tmp/gpu ZOOM_CURVE=.gpu-carry/zoom.tar.xz ZOOM_ARGS="--evals 5" ZOOM_BUDGET_S=450 ZOOM_S=480 \
 #       PREPARED_ONLY=1 bash bench/gpu_checks.sh
@@ -69,8 +70,8 @@ print('gsplat extension:', _C, f'{time.time() - t:.0f} s')"
 }
 
 # A prepared folder travels as itself or, where the working tree would pass the 64 MiB a call carries
-# (with the demo preset's zoom points and velocities .gpu-zoom is 47.9 MiB), as a tar.xz holding it at its top
-# (`tar cJf .gpu-carry/zoom.tar.xz .gpu-zoom`, 34.2 MiB; carry .gpu-carry, pass ZOOM_CURVE=.gpu-carry/zoom.tar.xz):
+# (with the demo preset's zoom points, velocities and footprints .gpu-zoom is 51.0 MiB), as a tar.xz holding it at its
+# top (`tar cJf .gpu-carry/zoom.tar.xz .gpu-zoom`, 34.4 MiB; carry .gpu-carry, pass ZOOM_CURVE=.gpu-carry/zoom.tar.xz):
 # unpacked here under /tmp/prepared, its folder's path printed.
 unpacked() {
     case "$1" in

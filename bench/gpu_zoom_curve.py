@@ -49,8 +49,8 @@ and one training camera, the whole frame at a quarter size and the performer at 
 
     python bench/gpu_zoom_curve.py --prepare .gpu-zoom --store /tmp/demo-base/store
     OUT=/tmp/gpu ZOOM_CURVE=.gpu-zoom PREPARED_ONLY=1 bash bench/gpu_checks.sh   # GPU; carry .gpu-zoom, .whl
-    # with the demo preset's zoom points the folder is 42.5 MiB: over a GPU call's 64 MiB with the
-    # tree and the wheels, so pack it (34 MiB) and carry .gpu-carry, .whl instead:
+    # with the demo preset's zoom points, velocities and footprints the folder is 51 MiB: over a GPU
+    # call's 64 MiB with the tree and the wheels, so pack it (34.4 MiB) and carry .gpu-carry, .whl instead:
     tar cJf .gpu-carry/zoom.tar.xz .gpu-zoom
     OUT=/tmp/gpu ZOOM_CURVE=.gpu-carry/zoom.tar.xz PREPARED_ONLY=1 bash bench/gpu_checks.sh
     python bench/gpu_zoom_curve.py --report /path/to/OUT --sheet zoom_sheet.png
@@ -266,8 +266,9 @@ def write_prepared(dst: Path, data, init, config, meta: dict, *, faces: dict | N
 def initial_points_bytes(init, config) -> bytes:
     """The initial points ``init`` (``PointsAtTime`` per cloud) as the safetensors file a prepared
     folder holds (``init.safetensors``; :func:`load_initial_points` reads it): footprints only where
-    ``config`` (a TrainConfig or QualityPreset) makes ``init_model`` read them, floats as half where
-    that loses nothing (the folder travels to a GPU within 64 MiB, wheels included)."""
+    ``config`` (a TrainConfig or QualityPreset) makes ``init_model`` read them, and then the moving
+    points' only (the static ones' inf: never read), floats as half where that loses nothing (the
+    folder travels to a GPU within 64 MiB, wheels included)."""
     from safetensors.numpy import save as st_save
 
     footprints = config.init_moving_scale_px is not None or config.init_finest_level < 0
@@ -278,7 +279,10 @@ def initial_points_bytes(init, config) -> bytes:
         if p.static is not None:
             clouds[f"{i}/static"] = p.static.numpy().astype(np.uint8)
         if p.footprint is not None and footprints:
-            clouds[f"{i}/footprint"] = _compact(p.footprint.numpy())
+            foot = p.footprint.numpy().copy()
+            if p.static is not None:   # init_model reads the moving points' alone: inf packs to nothing
+                foot[p.static.numpy()] = np.inf
+            clouds[f"{i}/footprint"] = _compact(foot)
         if p.velocity is not None:   # half precision where lossless (with_scene_flow's are)
             clouds[f"{i}/velocity"] = _compact(p.velocity.numpy())
     return st_save(clouds, {"times": json.dumps([p.time for p in init])})

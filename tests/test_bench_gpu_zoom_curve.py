@@ -20,6 +20,7 @@ from volcap_core.production.presets import named_preset
 from volcap_core.segment import tracking_frames
 from volcap_core.splat.grids import ExposureGrids
 from volcap_core.splat.report import score_segment
+from volcap_core.splat.train import frame_interval, init_model
 from volcap_core.store import ArtifactStore
 from volcap_core.synth import ground_truth, synthesize_capture
 
@@ -146,3 +147,11 @@ def test_prepare_run_report(prefect_api, tmp_path):
     assert ours["regions"] == theirs.regions
     assert ours["training"] == theirs.training.to_json()
     assert ours["held_out"] == theirs.held_out["trained"].to_json()
+    # and the prepared points are the library's: the same initial model, parameter for parameter (the
+    # moving points' footprints, which the preset's levels and scale cap read, travel exactly)
+    assert config.init_finest_level < 0 and config.init_moving_scale_px is not None
+    ours_init, theirs_init = (init_model(points, config, frame_interval_s=frame_interval(data.times),
+                                         generator=torch.Generator().manual_seed(0)) for points in (prep.init, init))
+    assert ours_init.params.keys() == theirs_init.params.keys()
+    for name, value in ours_init.params.items():
+        assert torch.equal(value, theirs_init.params[name]), name
