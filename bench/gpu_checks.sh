@@ -35,8 +35,8 @@
 #   OUT=/tmp/gpu P2S=.gpu-p2s PAIRS=.gpu-pairs PREPARED_ONLY=1 bash bench/gpu_checks.sh   # two prepared runs
 #   OUT=/tmp/gpu ZOOM_CURVE=.gpu-carry/zoom.tar.xz PREPARED_ONLY=1 bash bench/gpu_checks.sh   # a packed folder
 #   # issue 28's production budget to its schedule's end (5 000 steps at ~73 ms on an H200 before the
-#   # performers' initial motion, which costs ~1.25x a step on a CPU, and the faces' 2-px Gaussians, which
-#   # cost ~0.9x; 5 scored points; ~480 s with the
+#   # performers' initial motion, which costs ~1.25x a step on a CPU, and the faces' 2-px Gaussians, ~0.9x
+#   # there; 5 scored points; ~480 s with the
 #   # build, in one 15-minute lease; prepared with --steps 5000 from a `volcap demo` store of the preset):
 #   OUT=/tmp/gpu ZOOM_CURVE=.gpu-carry/zoom.tar.xz ZOOM_ARGS="--evals 5" ZOOM_BUDGET_S=450 ZOOM_S=480 \
 #       PREPARED_ONLY=1 bash bench/gpu_checks.sh
