@@ -26,7 +26,7 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from typing import Literal
 
 import numpy as np
@@ -224,9 +224,13 @@ class PointsAtTime:
     #: it start with this motion instead of none
     velocity: torch.Tensor | None = None
 
+    def _per_point(self) -> list[str]:
+        """The fields with one row per point: every one but ``time``."""
+        return [f.name for f in fields(self) if f.name != "time"]
+
     def __post_init__(self) -> None:
         n = len(self.xyz)
-        for name in ("rgb", "static", "footprint", "velocity"):
+        for name in self._per_point():
             v = getattr(self, name)
             if v is not None and len(v) != n:
                 raise ValueError(f"points at t={self.time:.4f} s: {name} has {len(v)} rows for {n} points")
@@ -234,7 +238,7 @@ class PointsAtTime:
     def subset(self, keep: torch.Tensor) -> "PointsAtTime":
         """These points where ``keep`` ``[P]`` (bool or indices), every per-point field with them."""
         return replace(self, **{name: None if getattr(self, name) is None else getattr(self, name)[keep]
-                                for name in ("xyz", "rgb", "static", "footprint", "velocity")})
+                                for name in self._per_point()})
 
 
 # --------------------------------------------------------------------------------------- config
