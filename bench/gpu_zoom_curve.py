@@ -36,8 +36,10 @@ Two routes of issue 28 run through the same parts (``docs/poly4dgs.md``): ``--pr
 DIR`` keeps the static cameras' clean plates in the folder and ``--run ... --set-steps N`` trains the
 set from them first (:func:`plate_set`), then the performers alone over it (``train_segment``'s
 ``set_model``); ``--run ... --mcmc NAME=VALUE`` sets an MCMCConfig field over the prepared preset's
-(``gradient_weight=2``: growth toward the under-fit) and ``--lr NAME=VALUE`` a learning rate
-(``scales=0.025``).
+(``gradient_weight=2``: growth toward the under-fit), ``--lr NAME=VALUE`` a learning rate
+(``scales=0.025``) and ``--train NAME=VALUE`` any TrainConfig field, its value JSON
+(``init_lifespan_frames=1.5``; a field that reads the moving points' footprints needs a folder
+prepared for a preset that reads them).
 
 A real capture without ground truth (issue 30's GPU item: Pose2Sim at full resolution) is prepared
 by ``bench/bench_pose2sim_heldout.py --gpu-prepare DIR``, which builds the segment and its initial
@@ -357,16 +359,25 @@ class Prepared:
                        if (src / "plates").is_dir() else {})
 
     def config(self, steps: int | None = None, evals: int = 8, backend: str = "auto", mcmc: dict | None = None,
-               lr: dict | None = None):
+               lr: dict | None = None, train: dict | None = None):
         """The segment's TrainConfig: the preset (stretched to ``steps`` when given) at the prepared
         budget and held-out cameras, checkpoints ``evals`` times in the run (each is scored), no
         evaluation of the trainer's own (the run scores its checkpoints); ``mcmc``: MCMCConfig
-        fields set as given (``--mcmc NAME=VALUE``), ``lr``: LearningRates fields (``--lr NAME=VALUE``)."""
+        fields set as given (``--mcmc NAME=VALUE``), ``lr``: LearningRates fields (``--lr NAME=VALUE``),
+        ``train``: TrainConfig fields (``--train NAME=VALUE``, validated as TrainConfig validates them)."""
         quality = self.quality if steps is None else self.quality.with_steps(steps)
         n = quality.train_steps
         config = quality.train_config(held_out=self.meta["held_out"], max_gaussians=self.meta["gaussians"],
                                       eval_every=0, checkpoint_every=max(1, n // max(1, evals)), backend=backend,
                                       **({"mcmc": dict(mcmc)} if mcmc else {}))
+        if train:
+            config = type(config).model_validate({**config.model_dump(), **train})
+        needs_footprints = config.init_moving_scale_px is not None or config.init_finest_level < 0
+        if needs_footprints and any(p.footprint is None and p.static is not None and not bool(p.static.all())
+                                    for p in self.init):
+            raise SystemExit("the training reads the moving points' footprints (init_finest_level < 0 or "
+                             "init_moving_scale_px), which this folder's init.safetensors does not hold: it was "
+                             "prepared for a preset that did not read them; --prepare it again")
         return config.model_copy(update={"lr": config.lr.model_copy(update=lr)}) if lr else config
 
     def head_region(self, view) -> np.ndarray | None:
@@ -628,13 +639,13 @@ def plate_set(prep: Prepared, config, steps: int, gaussians: int, device: torch.
 
 def run(src: Path, out: Path, device: torch.device, budget_s: float, steps: int | None = None, evals: int = 8,
         backend: str = "auto", trace_every: int = 25, set_steps: int = 0, set_gaussians: int | None = None,
-        mcmc: dict | None = None, lr: dict | None = None) -> dict:
+        mcmc: dict | None = None, lr: dict | None = None, train: dict | None = None) -> dict:
     """Part 2 (module doc). Returns what ``OUT/curve.json`` holds. ``set_steps`` > 0: the set is
     trained first from the folder's plates (:func:`plate_set`, at most ``set_gaussians``: default
     half the segment's budget) and the segment trains its performers alone over it
     (``train_segment``'s ``set_model``); its time is not within ``budget_s``'s training. ``mcmc``:
-    MCMCConfig fields over the prepared preset's, ``lr`` LearningRates fields over TrainConfig's
-    (:meth:`Prepared.config`)."""
+    MCMCConfig fields over the prepared preset's, ``lr`` LearningRates fields over TrainConfig's,
+    ``train`` TrainConfig fields over the preset's (:meth:`Prepared.config`)."""
     from volcap_core.checkpoint import deterministic_torch
     from volcap_core.splat.render import resolve_backend
     from volcap_core.splat.train import _deserialise, train_segment
@@ -645,7 +656,7 @@ def run(src: Path, out: Path, device: torch.device, budget_s: float, steps: int 
         return time.perf_counter() - t_start
 
     prep = Prepared(src)
-    config = prep.config(steps, evals, backend, mcmc, lr)
+    config = prep.config(steps, evals, backend, mcmc, lr, train)
     seed = int(prep.meta["seed"])
     chosen = resolve_backend(config.backend, device)
     curve: dict = {"device": str(device), "torch": torch.__version__,
@@ -868,6 +879,9 @@ def main(argv: list[str] | None = None) -> None:
                     help="--run: an MCMCConfig field over the prepared preset's (e.g. gradient_weight=2)")
     ap.add_argument("--lr", action="append", default=[], metavar="NAME=VALUE",
                     help="--run: a LearningRates field over TrainConfig's (e.g. sh0=0.01)")
+    ap.add_argument("--train", action="append", default=[], metavar="NAME=VALUE",
+                    help="--run: a TrainConfig field over the prepared preset's, its value JSON "
+                    "(e.g. init_lifespan_frames=1.5, ssim_weight=0.4)")
     ap.add_argument("--set-gaussians", type=int, default=None,
                     help="--run --set-steps: the set's budget (default: half the segment's)")
     args = ap.parse_args(argv)
@@ -881,7 +895,8 @@ def main(argv: list[str] | None = None) -> None:
         run(args.run, args.out, torch.device(args.device), args.budget_s, args.steps, args.evals, args.backend,
             set_steps=args.set_steps, set_gaussians=args.set_gaussians,
             mcmc={k: float(v) for k, v in (item.split("=", 1) for item in args.mcmc)},
-            lr={k: float(v) for k, v in (item.split("=", 1) for item in args.lr)})
+            lr={k: float(v) for k, v in (item.split("=", 1) for item in args.lr)},
+            train={k: json.loads(v) for k, v in (item.split("=", 1) for item in args.train)})
     else:
         report(args.report, args.sheet)
 

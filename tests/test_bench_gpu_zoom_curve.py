@@ -95,19 +95,22 @@ def test_prepare_run_report(prefect_api, tmp_path):
     assert sheet.stat().st_size > 1000
 
     # issue 28's routes through the same run: the set from the static cameras' plates (the held-out
-    # S003's left out), then the performers alone over it; an MCMC field and a learning rate over
-    # the preset's
+    # S003's left out), then the performers alone over it; an MCMC field, a learning rate and
+    # TrainConfig fields over the preset's
     assert sorted(bench.Prepared(src).plates) == ["S001", "S002", "S003", "S004"]
     routes = tmp_path / "routes"
     proc = run_without_absent("gpu_zoom_curve", ["--run", src, "--out", routes, "--device", "cpu", "--steps", "2",
                                                  "--evals", "1", "--budget-s", "600", "--set-steps", "2",
-                                                 "--mcmc", "gradient_weight=2", "--lr", "scales=0.01"])
+                                                 "--mcmc", "gradient_weight=2", "--lr", "scales=0.01",
+                                                 "--train", "init_lifespan_frames=1.5", "--train", "ssim_weight=0.4"])
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert "the set from 3 plates (S001, S002, S004)" in proc.stdout
     routed = json.loads((routes / "curve.json").read_text())
     assert routed["set_steps"] == 2 and 0 < routed["set_gaussians"] <= 1000   # half the segment's 2 000
     assert routed["train_config"]["mcmc"]["gradient_weight"] == 2.0
     assert routed["train_config"]["lr"]["scales"] == 0.01 and routed["train_config"]["lr"]["sh0"] == 2.5e-3
+    assert routed["train_config"]["init_lifespan_frames"] == 1.5 and routed["train_config"]["ssim_weight"] == 0.4
+    assert routed["train_config"]["init_finest_level"] == -3    # the preset's, where --train is silent
     assert routed["points"][-1]["gaussians"] > routed["set_gaussians"]       # the set and the performers
 
     # bench_train_time on the same folder: a training's wall time, loss thirds and model digest,
