@@ -3,6 +3,7 @@ scored as ``volcap reconstruct --json`` scores (issue 28's GPU item)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import pytest
@@ -112,6 +113,13 @@ def test_prepare_run_report(prefect_api, tmp_path):
     assert routed["train_config"]["init_lifespan_frames"] == 1.5 and routed["train_config"]["ssim_weight"] == 0.4
     assert routed["train_config"]["init_finest_level"] == -3    # the preset's, where --train is silent
     assert routed["points"][-1]["gaussians"] > routed["set_gaussians"]       # the set and the performers
+    # a preset that reads the moving points' footprints, on points without them: refused, not trained
+    # as if every Gaussian started at its neighbours' spacing
+    bare = bench.Prepared(src)
+    bare.init = [dataclasses.replace(p, footprint=None) for p in bare.init]
+    with pytest.raises(SystemExit, match="footprints"):
+        bare.config()
+    assert bare.config(train={"init_finest_level": 0, "init_moving_scale_px": None}).init_finest_level == 0
 
     # bench_train_time on the same folder: a training's wall time, loss thirds and model digest,
     # the same digest run after run (the CPU training is bit-reproducible)
