@@ -18,6 +18,7 @@ from volcap_core.production.spec import (
     parse_spec,
     segment_plan_for,
 )
+from volcap_core.splat.mcmc import MCMCConfig
 
 DOCS = Path(__file__).resolve().parents[2] / "docs"
 
@@ -254,6 +255,23 @@ def test_the_alpha_loss_is_a_quality_field_whose_default_leaves_the_journal_as_i
     assert (train.parameters.as_json()["mask_alpha_weight"], train.parameters.as_json()["mask_alpha_every"]) == (1.0, 4)
     cfg = spec.quality_preset().train_config(held_out=["S004"])
     assert (cfg.mask_alpha_weight, cfg.mask_alpha_every) == (1.0, 4)
+
+
+def test_mcmcs_opacity_regulariser_is_a_quality_field_whose_default_leaves_the_journal_as_it_was():
+    """``quality: {opacity_reg: 0.001}`` reaches the segment's MCMC and the train-segment step; at
+    its default (3DGS-MCMC's 0.01) neither the step's JSON nor the TrainConfig changes."""
+    data = base_spec()
+    data["quality"] = {"preset": "production"}
+    spec = parse_spec(data)
+    train = next(s for s in needed_steps(spec, facts(), shots=["wide"]) if s.kind == "train-segment")
+    assert "opacity_reg" not in train.parameters.as_json()
+    assert spec.quality_preset().train_config().mcmc.opacity_reg == MCMCConfig().opacity_reg == 0.01
+    data["quality"]["opacity_reg"] = 0.001
+    spec = parse_spec(data)
+    again = next(s for s in needed_steps(spec, facts(), shots=["wide"]) if s.kind == "train-segment")
+    assert again.parameters.as_json()["opacity_reg"] == 0.001
+    cfg = spec.quality_preset().train_config(held_out=["S004"])
+    assert cfg.mcmc.opacity_reg == 0.001 and cfg.mcmc.refine_stop == PRESETS["production"].refine_stop
 
 
 def test_plan_order_stability_and_reconstruct():

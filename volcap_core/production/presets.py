@@ -45,7 +45,8 @@ TRAINING_FIELDS = ("train_steps", "grid_size", "eval_every", "eval_max_views", "
                    "refine_start", "refine_every", "refine_stop", "train_scale", "sh_degree", "held_out_tracking",
                    "init_static_share", "init_zoom_stride_px", "init_finest_level", "init_moving_scale_px",
                    "init_scene_flow", "init_lifespan_frames",
-                   "performer_view_weight", "moving_weight", "mask_alpha_weight", "mask_alpha_every", "set_frozen_from")
+                   "performer_view_weight", "moving_weight", "opacity_reg", "mask_alpha_weight", "mask_alpha_every",
+                   "set_frozen_from")
 
 #: The preset fields that shape the enhancer's training (a train-enhancer step carries them).
 ENHANCER_TRAINING_FIELDS = ("enhancer_architecture", "enhancer_weights", "enhancer_steps", "enhancer_finetune",
@@ -96,6 +97,8 @@ class QualityPreset(BaseModel):
                                          description="camera schedule weight of the views' performer coverage")
     moving_weight: float = Field(_MCMC["moving_weight"].default, gt=0,
                                  description="MCMC relocation/growth weight of moving Gaussians")
+    opacity_reg: float = Field(_MCMC["opacity_reg"].default, ge=0,
+                               description="MCMC's opacity regulariser weight (3DGS-MCMC's 0.01)")
     # -- the performers' alpha (what a shot composites) against the capture's own masks, where it has
     #    them (docs/poly4dgs.md "Performer masks as an alpha loss"); a capture without masks trains as before
     mask_alpha_weight: float = Field(_TRAIN["mask_alpha_weight"].default, ge=0,
@@ -261,7 +264,8 @@ class QualityPreset(BaseModel):
         if degrees not in DEGREES:
             raise ValueError(f"unknown model degrees {degrees!r}: choose one of {', '.join(DEGREES)}")
         mcmc: dict[str, Any] = {"refine_start": self.refine_start, "refine_every": self.refine_every,
-                                "refine_stop": self.refine_stop, "moving_weight": self.moving_weight}
+                                "refine_stop": self.refine_stop, "moving_weight": self.moving_weight,
+                                "opacity_reg": self.opacity_reg}
         if isinstance(overrides.get("mcmc"), dict):
             mcmc.update(overrides.pop("mcmc"))
         values: dict[str, Any] = {

@@ -112,10 +112,10 @@ class TrainSegment(_preset_fields("TrainingSchedule", TRAINING_FIELDS)):
     memory_bytes: int
 
     def as_json(self) -> dict[str, Any]:
-        # the alpha loss's and the frozen set's fields at their defaults (off) are left out: the
-        # journals of plans made before they existed keep their fingerprints
+        # the alpha loss's, the frozen set's and MCMC's opacity regulariser's fields at their
+        # defaults are left out: the journals of plans made before they existed keep their fingerprints
         out = super().as_json()
-        for name in ("mask_alpha_weight", "mask_alpha_every", "set_frozen_from"):
+        for name in ("mask_alpha_weight", "mask_alpha_every", "set_frozen_from", "opacity_reg"):
             if out.get(name) == QualityPreset.model_fields[name].default:
                 del out[name]
         return out
