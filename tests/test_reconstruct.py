@@ -228,17 +228,23 @@ def test_demo_and_test_presets_train_as_they_were_measured():
     # with their points' velocity and live ~3 frames, on 1340 steps (the time 1640 took without them);
     # since later that day the faces the zoom cameras resolve thinned up to 8x finer and started at
     # most 2 of their pixels wide ("The faces' Gaussians at the zoom cameras' pixels")
+    # and since the third session of that day MCMC's opacity regulariser 0.001 ("What holds the eyes back")
     assert demo == TrainConfig(steps=1340, grid_size=8, eval_every=268, eval_max_views=4, checkpoint_every=268,
                                mcmc=MCMCConfig(refine_start=243, refine_every=243, refine_stop=1217, cap_max=80_000,
-                                               moving_weight=4.0),
+                                               moving_weight=4.0, opacity_reg=0.001),
                                init_max_points=80_000, held_out_cameras=["S004"], init_zoom_stride_px=2,
                                performer_view_weight=1.5, mask_alpha_weight=1.0, mask_alpha_every=4,
                                init_scene_flow=True, init_lifespan_frames=3.0,
                                init_finest_level=-3, init_moving_scale_px=2.0)
+    # the preset before it (the faces' Gaussians' figures), with 3DGS-MCMC's regulariser
+    faces = PRESETS["demo"].with_overrides(opacity_reg=0.01)
+    assert faces.train_config(held_out=["S004"], max_gaussians=80_000) == demo.model_copy(
+        update={"mcmc": demo.mcmc.model_copy(update={"opacity_reg": 0.01})})
     # the preset of the morning of 2026-11-29, from which that day's initial-motion figures come
-    motion_only = PRESETS["demo"].with_overrides(init_finest_level=0, init_moving_scale_px=None)
+    motion_only = faces.with_overrides(init_finest_level=0, init_moving_scale_px=None)
     assert motion_only.train_config(held_out=["S004"], max_gaussians=80_000) == demo.model_copy(
-        update={"init_finest_level": 0, "init_moving_scale_px": None})
+        update={"init_finest_level": 0, "init_moving_scale_px": None,
+                "mcmc": demo.mcmc.model_copy(update={"opacity_reg": 0.01})})
     # the preset before (1640 steps, no initial motion), from which the figures before that date come:
     # issue 28's route since 2026-11-28 (docs/poly4dgs.md, "The zoom points' depth"): the zoom
     # cameras' points, the performer-weighted camera schedule, MCMC's moving weight; since that
