@@ -39,7 +39,7 @@ set from them first (:func:`plate_set`), then the performers alone over it (``tr
 (``gradient_weight=2``: growth toward the under-fit), ``--lr NAME=VALUE`` a learning rate
 (``scales=0.025``) and ``--train NAME=VALUE`` any TrainConfig field, its value JSON
 (``init_lifespan_frames=1.5``; a field that reads the moving points' footprints needs a folder
-prepared for a preset that reads them).
+prepared for a preset that reads them: ``init_model`` refuses points without them).
 
 A real capture without ground truth (issue 30's GPU item: Pose2Sim at full resolution) is prepared
 by ``bench/bench_pose2sim_heldout.py --gpu-prepare DIR``, which builds the segment and its initial
@@ -372,12 +372,6 @@ class Prepared:
                                       **({"mcmc": dict(mcmc)} if mcmc else {}))
         if train:
             config = type(config).model_validate({**config.model_dump(), **train})
-        needs_footprints = config.init_moving_scale_px is not None or config.init_finest_level < 0
-        if needs_footprints and any(p.footprint is None and p.static is not None and not bool(p.static.all())
-                                    for p in self.init):
-            raise SystemExit("the training reads the moving points' footprints (init_finest_level < 0 or "
-                             "init_moving_scale_px), which this folder's init.safetensors does not hold: it was "
-                             "prepared for a preset that did not read them; --prepare it again")
         return config.model_copy(update={"lr": config.lr.model_copy(update=lr)}) if lr else config
 
     def head_region(self, view) -> np.ndarray | None:

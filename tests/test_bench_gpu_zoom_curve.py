@@ -113,13 +113,16 @@ def test_prepare_run_report(prefect_api, tmp_path):
     assert routed["train_config"]["init_lifespan_frames"] == 1.5 and routed["train_config"]["ssim_weight"] == 0.4
     assert routed["train_config"]["init_finest_level"] == -3    # the preset's, where --train is silent
     assert routed["points"][-1]["gaussians"] > routed["set_gaussians"]       # the set and the performers
-    # a preset that reads the moving points' footprints, on points without them: refused, not trained
-    # as if every Gaussian started at its neighbours' spacing
+    # a preset that reads the moving points' footprints, on points without them (a folder prepared for
+    # a preset that did not read them): refused by the initial model the run builds, not trained as if
+    # every Gaussian started at its neighbours' spacing; --train can switch the fields off
     bare = bench.Prepared(src)
     bare.init = [dataclasses.replace(p, footprint=None) for p in bare.init]
-    with pytest.raises(SystemExit, match="footprints"):
-        bare.config()
-    assert bare.config(train={"init_finest_level": 0, "init_moving_scale_px": None}).init_finest_level == 0
+    interval = frame_interval(bare.data.times)
+    with pytest.raises(ValueError, match="footprint"):
+        init_model(bare.init, bare.config(), frame_interval_s=interval)
+    off = bare.config(train={"init_finest_level": 0, "init_moving_scale_px": None})
+    assert off.init_finest_level == 0 and len(init_model(bare.init, off, frame_interval_s=interval)) > 0
 
     # bench_train_time on the same folder: a training's wall time, loss thirds and model digest,
     # the same digest run after run (the CPU training is bit-reproducible)
